@@ -54,8 +54,9 @@ does not ship Novint's), the legs homed (move the grip in and out), one packet p
 --port ftdi://0x0403:0xcb48/1 names a real Falcon (:N the N-th, :SERIAL by serial number);
 without --port the emulated Falcon behind an emulated FT232R runs under the same pyftdi
 code. It reports the link (replies missing, bytes dropped, readings against the emulated
-encoders) and a verdict (ok, degraded); the felt matrices are not measured through the
-Falcon's counts. Permissions and the udev rule: docs/devices.md."""
+encoders) and a verdict (ok, degraded); beside it the felt matrices' statement: "not
+measurable" where the Falcon's counts are too coarse for the scene (its figures said).
+Permissions and the udev rule: docs/devices.md."""
 
 #: ``hapsim run --help``: what fits a screen (the rest: ``--help-all``, docs/commands.md).
 _SHORT_DESCRIPTION = """\

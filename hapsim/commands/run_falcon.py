@@ -24,8 +24,9 @@ _REFUSED = (("--baud", "baud", "the Falcon's rates are its loader's and firmware
              "already: the firmware answers each packet"),
             ("--faults", "faults", "the Falcon's hostile streams are injected by its "
              "emulated FT232R in the tests (tests/test_falcon_usb.py)"),
-            ("--amplitude", "amplitude", "the felt matrices are not measured through "
-             "the Falcon's counts (docs/devices.md)"))
+            ("--amplitude", "amplitude", "the run takes no hand starts: the felt "
+             "matrices' statement in its report says whether the Falcon's counts could "
+             "measure them (docs/devices.md)"))
 
 
 def _image(path) -> bytes:
@@ -57,7 +58,8 @@ def run_falcon_command(args) -> int:
     Returns
     -------
     int
-        0 when the loop ran (verdict ``ok`` or ``degraded``, said); 1 when the device
+        0 when the loop ran (verdict ``ok`` or ``degraded``, said; the felt matrices'
+        statement beside it, :func:`hapsim.pipeline.falcon_run.felt_statement`); 1 when the device
         failed (not found, no permission, the loader's handshake, unplugged: the message
         says what to check) or the loop is unstable without ``--allow-unstable``.
 
@@ -67,7 +69,7 @@ def run_falcon_command(args) -> int:
         No or an unreadable ``--firmware``, a refused option, a bad ``--port``, a scene
         that is not 3-D with a delta device (exit 2).
     """
-    from hapsim.pipeline.falcon_run import emulated_falcon, run_falcon
+    from hapsim.pipeline.falcon_run import emulated_falcon, felt_statement, run_falcon
     from hapsim.drivers.falcon_usb import FalconUSB, parse_url
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
@@ -117,6 +119,9 @@ def run_falcon_command(args) -> int:
     finally:
         if link is not None:
             link.close()
+    # the felt matrices: whether the Falcon's counts can measure them here (computed
+    # after the loop, the Falcon at zero commands: ~2 s of CPU)
+    felt = felt_statement(scene)
     where = ("the emulated Falcon (an emulated FT232R under pyftdi's code)" if emulated
              else f"the Falcon at {args.port}")
     pos = res["position"]
@@ -135,7 +140,7 @@ def run_falcon_command(args) -> int:
            "implausible": res["decoder"]["implausible"], "truth": res["truth"],
            "travel_m": travel,
            "max_command": int(np.abs(res["commands"]).max()) if packets else 0,
-           "felt_matrices": None, "scheduling": res["scheduling"],
+           "felt_matrices": felt, "scheduling": res["scheduling"],
            # a stop on the motion and the braking after it (hapsim.braking; None: none)
            "stopped": res["stopped"], "brake": res["brake"],
            "verdict": res["verdict"], "reason": res["reason"]}
@@ -171,7 +176,6 @@ def run_falcon_command(args) -> int:
               f"command {out['max_command']} counts", file=o)
     if res["brake"]:
         print("  " + brake_text(res["brake"], "N m s/rad", "rad/s"), file=o)
-    print("  not measured: the felt matrices (one encoder count is 27-47 um at the handle, "
-          "the free responses' whole range: docs/devices.md)", file=o)
+    print(f"  felt matrices: {felt['verdict']}: {felt['reason']}", file=o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
     return 0

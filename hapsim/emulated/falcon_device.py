@@ -302,6 +302,23 @@ class FalconDevice:
         self.plant.step_torque(tau)
         return device_packet(self._counts(), self.homed, 0)
 
+    def let_go(self, x0, v0) -> None:
+        """The hand's start of an identification record: the handle put at ``x0`` from the
+        operating point, moving at ``v0``, and let go (the legs by Newton steps on the
+        plant's kinematics, :class:`hapsim.joint_device.LocalJointDeviceND`); the commands
+        held and those not yet in effect are zero, as after the homing's zero packets.
+
+        Parameters
+        ----------
+        x0, v0 : array_like, shape (3,)
+            The handle's displacement [m] and velocity [m/s]
+            (:func:`hapsim.lockstep.excitation_starts`).
+        """
+        self.plant = LocalJointDeviceND(self.scene, x0, v0)
+        self.commands = (0, 0, 0)
+        self._fifo = deque([(0, 0, 0)] * self.delay)
+        self._due.clear()
+
     def counts(self) -> tuple:
         """The three encoder counts the device reports now (relative to the power-up
         pose until homed): the truth a host's readings are compared with in the tests."""

@@ -32,7 +32,7 @@ import numpy as np
 from hapsim.drivers.falcon import ENVELOPE_RAD, WORKSPACE_RAD
 from hapsim.errors import DeviceError
 
-__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "reply_timeout",
+__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "felt_statement", "reply_timeout",
            "FIRMWARE_PROBES", "REPLY_SLACK_S", "WORKSPACE_RAD", "ENVELOPE_RAD"]
 
 #: Packets sent after the load before concluding the firmware does not run.
@@ -61,6 +61,10 @@ REPLY_SLACK_S = 0.002
 #: The wait [s] for each of the firmware's first answers after its load
 #: (:data:`FIRMWARE_PROBES` of them): the wait each reply had before, not the loop's.
 PROBE_TIMEOUT_S = 0.05
+#: The most states of a scene's loop whose felt feasibility a run computes
+#: (:func:`felt_statement`): configs/delta_sphere.yaml's 12 take ~1 s of CPU;
+#: configs/delta_mesh.yaml's 162 took 3.5 min (its 3,240-sample records' sensitivities).
+FEASIBILITY_STATES = 24
 
 
 def reply_timeout(rate_hz: float) -> float:
@@ -160,6 +164,49 @@ def falcon_verdict(res: dict) -> dict:
                 f"came whole and plausible, every leg homed ({caveat})"}
     return {"verdict": "degraded", "reason": f"{said} (of {res['samples']} samples; a "
             f"missing sample holds the last reading); {caveat}"}
+
+
+def felt_statement(scene) -> dict:
+    """What a Falcon run says of the felt matrices: whether they can be measured through
+    the Falcon's counts at all (:func:`hapsim.emulated.falcon_felt.felt_feasibility`: the
+    readings' and commands' rounding at the largest hand start the scene's linear range
+    allows, against the limit of a statement), never a verdict the stated uncertainty
+    does not cover.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 3-D delta scene.
+
+    Returns
+    -------
+    dict
+        ``verdict``: ``"not measurable"`` (the counts too coarse for this scene: the
+        reason gives the figures) or ``"not measured"`` (they would do, but the run
+        closes the loop from rest, with no hand starts to fit; or the loop has more
+        than :data:`FEASIBILITY_STATES` states, ``states``, and the figures are not
+        computed in a run); ``reason``; and the
+        feasibility's figures (``amplitude_m``, ``count_at_handle_m``, ``worst``,
+        ``widrow_kollar``, ``limit``, ``needed_amplitude_m``, ``needed_count_rad``, when
+        computed).
+    """
+    from hapsim.emulated.falcon_felt import felt_feasibility
+    from hapsim.lockstep import identification_plan
+    plan = identification_plan(scene)
+    if plan[0].states > FEASIBILITY_STATES:
+        return {"verdict": "not measured", "states": int(plan[0].states),
+                "reason": f"the loop has {plan[0].states} states, more than the "
+                          f"{FEASIBILITY_STATES} whose feasibility a run computes (the "
+                          "records' first-order figures would take minutes): "
+                          "tools/falcon_felt_figures.py computes them"}
+    f = felt_feasibility(scene, plan)
+    out = {k: v for k, v in f.items() if k not in ("worst_reading", "worst_command")}
+    if f["verdict"] == "measurable":
+        out["verdict"] = "not measured"
+        out["reason"] = ("the run closes the loop from rest and takes no hand starts to "
+                         "fit (tools/falcon_felt_figures.py measures them on the emulated "
+                         "Falcon); at its counts: " + f["reason"])
+    return out
 
 
 def _zero(link, timeout: float) -> int:
