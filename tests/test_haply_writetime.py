@@ -124,9 +124,9 @@ def test_the_correction_removes_the_holds_motion(seed, tmp_path):
     raw = cols["position"] - exact["position"]
     left = raw - terms["motion"]
     assert np.max(np.abs(raw)) > 300 * q
-    # measured over seeds 0-5 (1,000 rows): 0.10 to 0.32 % of the jitter's effect left (the second
+    # measured over seeds 0-5: 0.12 to 0.50 % of the jitter's effect left (the second
     # order of the holds' departures, the rounding through the estimate); margin 2
-    assert np.linalg.norm(left) <= measured(0.0032, 2.0) * np.linalg.norm(raw)
+    assert np.linalg.norm(left) <= measured(0.0050, 2.0) * np.linalg.norm(raw)
 
 
 def test_exact_periods_change_nothing(tmp_path):

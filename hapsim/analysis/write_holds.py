@@ -292,6 +292,7 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     read = np.isfinite(x).all(axis=1)
     ok_hold[1:] &= read[1:] & read[:-1]
     ok_hold[0] = False
+    QV = _known_motion(b, Fall, Mi) if window else None
     for k in range(1 if first_torque is not None else 2, N):
         h = b[k] - b[k - 1]
         dh = h - T
@@ -311,8 +312,7 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
                + L * c * ((ndx + 2 * eps) / h_lo ** 2 + float(np.linalg.norm(Mi @ F)) / 2)
                + L * c * c * nMiB * V / 2)
         g_r = 2 * c / h_lo                # the rounding's gain on v_hat (sd multiplier)
-        fit = (_window_velocity(k, window, b, x, Fall, Mi, ok_hold, T)
-               if window else None)
+        fit = _window_velocity(k, window, b, x, QV, ok_hold) if window else None
         if fit is not None:
             # the readings around s_k, their known forces' motion taken off, fitted with a
             # straight line in the host's write times (module notes of the window)
@@ -337,11 +337,27 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     return out
 
 
-def _window_velocity(k: int, m: int, b, x, Fall, Mi, ok_hold, T):
+def _known_motion(b, Fall, Mi):
+    """The motion the known forces alone make, from ``s_0``, at each write: ``Q`` [m]
+    and ``V`` [m/s] (N, n), each hold's ``M^-1 F`` integrated exactly over its length
+    (a hold not finite counts 0: no window crosses it)."""
+    dt = np.diff(b)
+    dt = np.where(np.isfinite(dt), dt, 0.0)[:, None]
+    N = len(b)
+    A = (Mi @ np.asarray(Fall[:N - 1], float).T).T         # hold i's: Fall[i - 1]
+    n = A.shape[1]
+    V, Q = np.zeros((N, n)), np.zeros((N, n))
+    V[1:] = np.cumsum(A * dt, axis=0)
+    Q[1:] = np.cumsum(V[:-1] * dt + A * dt * dt / 2, axis=0)
+    return Q, V
+
+
+def _window_velocity(k: int, m: int, b, x, QV, ok_hold):
     """:func:`hold_corrections`' velocity at ``s_k`` from the readings of rows
     ``k - m .. k + m`` (its ``window``): ``(v_hat, S1, S2, sqrt(sum c_j^2), tau_max)``, or
     None with fewer than three readings. The window stops at a hold not ``ok_hold`` (far
-    off a period, its force unknown, a reading missing at its end)."""
+    off a period, its force unknown, a reading missing at its end); the known forces'
+    motion from ``s_k`` is ``Q_j - Q_k - V_k (s_j - s_k)`` (:func:`_known_motion`)."""
     lo = k
     while lo > k - m and lo - 1 >= 0 and ok_hold[lo]:
         lo -= 1
@@ -350,23 +366,13 @@ def _window_velocity(k: int, m: int, b, x, Fall, Mi, ok_hold, T):
         hi += 1
     if hi - lo < 2:
         return None
-    n = x.shape[1]
-    P = np.zeros((hi - lo + 1, n))             # the known forces' motion from s_k
-    for direction, rng in ((1, range(k + 1, hi + 1)), (-1, range(k, lo, -1))):
-        p, q = np.zeros(n), np.zeros(n)
-        for i in rng:
-            dt = direction * (b[i] - b[i - 1])
-            a = Mi @ Fall[i - 1]
-            p = p + q * dt + a * dt * dt / 2
-            q = q + a * dt
-            P[(i if direction > 0 else i - 1) - lo] = p
+    Q, V = QV
     tau = b[lo:hi + 1] - b[k]
-    y = x[lo:hi + 1] - P
+    y = x[lo:hi + 1] - (Q[lo:hi + 1] - Q[k] - tau[:, None] * V[k])
     tc = tau - tau.mean()
     c = tc / float(tc @ tc)
-    v_hat = c @ y
     ac = np.abs(c)
-    return (v_hat, float(ac.sum()), float(ac @ tau ** 2), float(np.sqrt(c @ c)),
+    return (c @ y, float(ac.sum()), float(ac @ tau ** 2), float(np.sqrt(c @ c)),
             float(np.max(np.abs(tau))))
 
 

@@ -303,10 +303,11 @@ def _write_holds(scene, cols: dict, driver, quantum: float):
 
     Returns
     -------
-    tuple of dict or None
-        :func:`hapsim.analysis.write_holds.write_time_terms` with ``latency_s`` 0 and
-        :data:`hapsim.pipeline.haply2_host.LINK_JITTER_S` (the firmware's pass); None
-        when it does not apply (another board, a lockstep mock, another delay, no times).
+    tuple or None
+        :func:`hapsim.analysis.write_holds.write_time_terms` with ``latency_s`` 0 (a
+        dict), and a callable giving it with :data:`hapsim.pipeline.haply2_host.
+        LINK_JITTER_S` (the firmware's pass; computed only for a "differs"); None when it
+        does not apply (another board, a lockstep mock, another delay, no times).
     """
     if not (getattr(driver, "holds_from_write", False) and getattr(driver, "own_clock", False)
             and float(scene.device.delay) == 1.0 and "time" in cols and cols["time"].size):
@@ -319,16 +320,18 @@ def _write_holds(scene, cols: dict, driver, quantum: float):
     except ConfigError:
         return None
     pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
-    return tuple(write_time_terms(scene, cols, quantum=quantum, position_rel=pr, latency_s=L,
-                                  flag_estimated=FLAG_ESTIMATED, responses=resp)
-                 for L in (0.0, LINK_JITTER_S))
+
+    def terms(L):
+        return write_time_terms(scene, cols, quantum=quantum, position_rel=pr, latency_s=L,
+                                flag_estimated=FLAG_ESTIMATED, responses=resp)
+    return terms(0.0), lambda: terms(LINK_JITTER_S)
 
 
 def _link_check(pred, measured, fitted, exclude, bounds, holds) -> None:
     """A "differs" of a board on its own clock stands only beyond the uncertainty with the
     link's unseen latency varying too (as :func:`hapsim.pipeline.haply2_host.
     measure_felt_haply2_port`): the fit again with the remainder's bounds at
-    ``holds[1]``'s latency; ``measured`` gets ``write_hold_s`` (the largest hold off a
+    ``holds[1]()``'s latency; ``measured`` gets ``write_hold_s`` (the largest hold off a
     period kept, corrected), ``link_k_unc``, ``link_b_unc`` and ``_link_within`` (that
     fit's verdict), which :func:`identify_run` reads after its own."""
     measured["write_hold_s"] = holds[0]["hold_s"]
@@ -337,7 +340,7 @@ def _link_check(pred, measured, fitted, exclude, bounds, holds) -> None:
     if probe.get("within") is not False:
         return
     n0 = len(bounds) - len(holds[0]["bounds"])
-    bounds[n0:] = holds[1]["bounds"]
+    bounds[n0:] = holds[1]()["bounds"]
     link = fitted(exclude)
     verdict(pred, link)
     measured["link_k_unc"] = link.get("k_interval", math.nan)
