@@ -34,11 +34,13 @@ HOLD_CUT_PERIODS = 0.5
 #: The half-width of the window of readings a 1-D run's velocity at a write is estimated
 #: from (:func:`hold_corrections`' ``window``, :func:`write_time_terms`) [rows]. From a
 #: hold's two readings the encoder's rounding (half a count over a period) was the
-#: correction's largest error on the Haply M3 (4880 counts per revolution): the stated
-#: uncertainty of k 70 times the uncorrected run's over random loops
-#: (``tests/test_haply_writetime.py``'s); over 2m + 1 readings the rounding's gain falls
-#: as ``1 / m`` while the friction's remainder, ``|M^-1 B| V tau^2 / 2``, grows as
-#: ``m^2``: m = 4 left it 10 times, m = 8 8 times (the rounding still the larger part).
+#: correction's largest error on the Haply M3 (4880 counts per revolution): its share of
+#: the stated uncertainty of k 70 times the uncorrected run's whole uncertainty over
+#: random loops (``tests/test_haply_writetime.py``'s); over 2m + 1 readings the
+#: rounding's gain falls as ``1 / m`` while the friction's remainder,
+#: ``|M^-1 B| V tau^2 / 2``, grows as ``m^2``: m = 4 left the uncertainty 10 times the
+#: uncorrected one, m = 8 8 times with the largest hold's departure in every window's
+#: bound, 1.1-1.2 times with each window's own (``configs/haply.yaml`` in real time).
 VELOCITY_WINDOW = 8
 
 
@@ -237,7 +239,11 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
         part of the motion, at most ``|M^-1 B| V tau^2 / 2`` at ``tau = s_j - s_k``, so
         ``e_v = |M^-1 B| V S2 / 2 + |M^-1| e_F S2 / 2 + eps S1 + 2 L S1 (V + a_max
         tau_max)`` with ``S1 = sum |c_j|``, ``S2 = sum |c_j| tau_j^2`` (the rounding's
-        ``eps S1`` apart with ``rounding_apart``: gain ``sqrt(sum c_j^2) sqrt(2 m + 1)``).
+        ``eps S1`` apart with ``rounding_apart``: the gains per reading ``j``,
+        ``sqrt((2 m + 1) sum_k G_k^2 c_kj^2)`` over the windows ``k`` that hold it,
+        ``G_k`` the remainder's factor ``D (1 + D |M^-1 B| / 2)`` or ``D |M^-1 B|``: by
+        Cauchy-Schwarz, ``sum_j (sum_k G_k c_kj u_k)^2 <= max_j (sum_k G_k^2 c_kj^2)
+        (2 m + 1) sum_k u_k^2`` for any sensitivity ``u`` of the fit through the loop).
         The rounding's share falls as ``m^-1.5``: from adjacent readings it was the
         correction's largest error on a 1-D joint read to a few thousand counts.
 
@@ -293,6 +299,7 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     ok_hold[1:] &= read[1:] & read[:-1]
     ok_hold[0] = False
     QV = _known_motion(b, Fall, Mi) if window else None
+    acc = np.zeros((N, 2))                # rounding_apart with a window: per reading
     for k in range(1 if first_torque is not None else 2, N):
         h = b[k] - b[k - 1]
         dh = h - T
@@ -313,10 +320,11 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
                + L * c * c * nMiB * V / 2)
         g_r = 2 * c / h_lo                # the rounding's gain on v_hat (sd multiplier)
         fit = _window_velocity(k, window, b, x, QV, ok_hold) if window else None
+        cw = None
         if fit is not None:
             # the readings around s_k, their known forces' motion taken off, fitted with a
             # straight line in the host's write times (module notes of the window)
-            v_hat, sc1, sc2, sq, tmax = fit
+            v_hat, sc1, sc2, sq, tmax, lo, cw = fit
             a_hat = Mi @ (F - B @ v_hat)
             e_v = (nMiB * V * sc2 / 2 + nMi * float(np.max(eFall)) * sc2 / 2
                    + (0.0 if rounding_apart else eps * sc1)
@@ -331,8 +339,17 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
                   + nMiB * a_max * D ** 3 / 6)
         vel[k] = D * e_a + L * na + nMiB * a_max * D * D / 2
         out["corrected"][k] = True
-        if rounding_apart:
+        if rounding_apart and window and abs(dh) <= HOLD_CUT_PERIODS * T:
+            # per reading, the squared weights of the windows that hold it (docstring;
+            # a hold further off is cut, :func:`write_time_terms`: its change not used)
+            if cw is None:                 # the hold's two readings: +-c / h_lo
+                lo, cw = k - 1, np.array([-c / h_lo, c / h_lo])
+            G = np.array([D * (1 + D * nMiB / 2), D * nMiB])
+            acc[lo:lo + cw.size] += np.outer(cw * cw, G * G)
+        elif rounding_apart:
             out["rounding_gain"][k] = (g_r * D * (1 + D * nMiB / 2), g_r * D * nMiB)
+    if rounding_apart and window:
+        out["rounding_gain"] = np.sqrt((2 * window + 1) * acc)
     out["position"], out["velocity"] = pos, vel
     return out
 
@@ -354,7 +371,8 @@ def _known_motion(b, Fall, Mi):
 
 def _window_velocity(k: int, m: int, b, x, QV, ok_hold):
     """:func:`hold_corrections`' velocity at ``s_k`` from the readings of rows
-    ``k - m .. k + m`` (its ``window``): ``(v_hat, S1, S2, sqrt(sum c_j^2), tau_max)``, or
+    ``k - m .. k + m`` (its ``window``): ``(v_hat, S1, S2, sqrt(sum c_j^2), tau_max,
+    first row, c)``, or
     None with fewer than three readings. The window stops at a hold not ``ok_hold`` (far
     off a period, its force unknown, a reading missing at its end); the known forces'
     motion from ``s_k`` is ``Q_j - Q_k - V_k (s_j - s_k)`` (:func:`_known_motion`)."""
@@ -373,7 +391,7 @@ def _window_velocity(k: int, m: int, b, x, QV, ok_hold):
     c = tc / float(tc @ tc)
     ac = np.abs(c)
     return (c @ y, float(ac.sum()), float(ac @ tau ** 2), float(np.sqrt(c @ c)),
-            float(np.max(np.abs(tau))))
+            float(np.max(np.abs(tau))), lo, c)
 
 
 def hold_motion(scene, state: np.ndarray, *, responses=None, seq=None) -> np.ndarray:
@@ -574,8 +592,9 @@ def write_time_terms(scene, cols: dict, *, quantum: float, position_rel: float =
     # the readings' rounding in the estimate, as the sensor's own is stated: a random
     # error e_j, uniform within +-eps (sd eps / sqrt(3)), entering the rows whose windows
     # hold it; no worse than white noise of sd max(gain) eps / sqrt(3) through the position
-    # and velocity responses (hold_corrections' rounding_apart)
-    g = np.where(keep[:, None], hc["rounding_gain"], 0.0)
+    # and velocity responses (hold_corrections' rounding_apart; per reading, the rows cut
+    # counted too: an upper bound)
+    g = hc["rounding_gain"]
     wire = [(float(np.max(g[:, j], initial=0.0)) * dlt[0] / np.sqrt(3.0), r)
             for j, r in enumerate((Rp, Rv))]
     wire = [(sd, r) for sd, r in wire if sd > 0]
