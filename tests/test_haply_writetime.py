@@ -84,7 +84,9 @@ def test_a_jittered_host_never_makes_a_matching_m3_differ(seed, tmp_path):
     rows read to 2^16 counts per revolution: the matching joint is never "differs", and
     within (before, on main: 3 of these 12 said 'differs', k or b 1.3 to 2.1 stated
     uncertainties off); the same loop with 30 % more joint inertia, the same writes, still
-    "differs" (every third seed: each measurement costs a second of CPU)."""
+    "differs" (every third seed: each measurement costs CPU), and with 2 % more, which the
+    link's unseen latency could explain, "not measurable" with that reason (never
+    "within")."""
     prep, late = _random_case(seed, tmp_path)
     cols, drv, _ = haply_offline_loop(prep.scene, ROWS, write_late=late,
                                       resolution=RESOLUTION)
@@ -94,14 +96,21 @@ def test_a_jittered_host_never_makes_a_matching_m3_differ(seed, tmp_path):
     # the class happened: holds up to 0.3-0.4 ms off a period
     assert np.max(np.abs(np.diff(cols["time"]) - prep.scene.period)) > 0.3e-3
     assert m.get("within") is True, info
-    if seed % 3:
+    if seed % 3 == 2:
         return
     dev = prep.scene.device
+    heavier = 1.3 if seed % 3 == 0 else 1.02
     cols, drv, _ = haply_offline_loop(prep.scene, ROWS, write_late=late, resolution=RESOLUTION,
-                                      device=dataclasses.replace(dev, mass=1.3 * dev.mass))
+                                      device=dataclasses.replace(dev, mass=heavier * dev.mass))
     w = _measure(prep, cols, drv)
-    assert str(w.get("verdict")).startswith("measured differs"), (
-        w.get("verdict"), w.get("error"), w.get("k"), prep.pred["k"], w.get("k_unc"))
+    info = (w.get("verdict"), w.get("error"), w.get("k"), prep.pred["k"], w.get("k_unc"),
+            w.get("link_k_unc"))
+    if heavier == 1.3:
+        assert str(w.get("verdict")).startswith("measured differs"), info
+    else:
+        # 2 % more: beyond the stated uncertainty, but within what the link's unseen
+        # latency (50 us between writes, worst case) could make: never "within"
+        assert w.get("within") is False and "link's latency" in str(w.get("verdict")), info
 
 
 @pytest.mark.parametrize("seed", range(3))
