@@ -188,10 +188,13 @@ def test_a_host_stall_is_a_stall_beside_two_busy_processes(monkeypatch):
         return
     assert lp["mock"]["true_excursion"] <= 0.2 * (1 + 1e-9), (
         {k: lp[k] for k in ("ticks", "missed", "estimated", "overruns", "stop_reason")})
-    # (the verdict is not asserted here: at load 15-18 one run in three said 'differs'
-    # with under 2 % late ticks -- the host's jitter within a period is not yet in the
-    # stated uncertainty; the note says so)
+    # never "differs" of the matching joint: the host's write jitter within a period
+    # (before: one run in three at load 15-18 said 'differs' with under 2 % late ticks)
+    # is corrected, its remainder stated (hapsim.analysis.write_holds, measure's
+    # write_hold_s), and a "differs" stands only beyond the link's unseen 50 us too
     assert m.get("verdict") or m.get("error")
+    assert not str(m.get("verdict", "")).startswith("measured differs"), (
+        {q: m.get(q) for q in ("verdict", "k", "b", "k_unc", "b_unc", "write_hold_s")})
 
 
 def test_a_late_run_is_not_called_within():

@@ -257,6 +257,15 @@ class Driver:
     #: transport; a lockstep mock's is not): the measurement seeks the holds it mistimed
     #: that no host saw (:func:`hapsim.pipeline.measure.identify_run`).
     own_tick = False
+    #: The board holds each force from when it takes the write to when it takes the next
+    #: (no tick of its own, no watchdog: the Haply M3, firmware V1.5), so each hold lasts
+    #: the time between two writes' arrivals, not a period: the measurement corrects the
+    #: record for the host's write times (:func:`hapsim.analysis.write_holds.
+    #: write_time_terms`) when the run's board keeps its own clock (:attr:`own_clock`).
+    holds_from_write = False
+    #: The run's board keeps its own clock (set by the run's transport; a lockstep mock,
+    #: stepped one period per command, does not).
+    own_clock = False
 
     def mistimed_rows(self, columns: dict):
         """Rows whose force was held a tick longer or shorter than the loop's period, left

@@ -577,6 +577,10 @@ class HaplyM3(Driver):
     #: Its decoder takes the joint's inertia (:meth:`decoder`): the transport states it
     #: and the time since the last record's command before each read.
     checks_reach = True
+    #: Firmware V1.5 sets the torque in the pass that takes a write and holds it until the
+    #: next (``loop``: ``write_states`` then ``read_states``; no watchdog, no tick): a
+    #: hold is the time between two writes' arrivals (:attr:`Driver.holds_from_write`).
+    holds_from_write = True
 
     def unknown_force_rows(self, columns: dict):
         """Rows whose torque the board may have parsed from the wrong bytes (a host byte

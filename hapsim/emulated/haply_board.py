@@ -10,7 +10,7 @@ import math
 
 from hapsim.emulated.actuated import Actuated
 
-__all__ = ["HaplyDevice"]
+__all__ = ["HaplyDevice", "haply_offline_loop"]
 
 
 class HaplyDevice(Actuated):
@@ -177,3 +177,81 @@ class HaplyDevice(Actuated):
         if wall:
             self.ready_at = t
         return out
+
+
+def haply_offline_loop(scene, n: int, *, write_late=None, device=None,
+                       resolution: float = 4880.0):
+    """The Haply M3 THS closed offline on a simulated clock: the board on its own time
+    (:class:`HaplyDevice` with ``clock="wall"``, fed the simulated time of each write),
+    hapsim's engine as the host; deterministic, no pty, no real time.
+
+    The host loop's arithmetic (:class:`hapsim.drivers.transport.DriverTransport`): row
+    ``k`` is the reply to command ``k`` (the joint read when the board took it), the
+    force computed from it goes out with command ``k + 1``. The host writes command ``k``
+    at ``k T + write_late[k]`` and stamps the row with that time (the transport's
+    ``time_us``, the telemetry's ``time``, from 62.5 ms on: the arming before); the board
+    takes it on arrival (its next pass)
+    and holds its torque until it takes the next (firmware V1.5: no watchdog, no tick),
+    so hold ``k`` lasts ``T + write_late[k] - write_late[k - 1]``.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A calibrated scene whose device speaks ``haply`` (its rate, delay 1, force limit
+        and excitation).
+    n : int
+        Rows [samples].
+    write_late : array_like of float, shape (n + 1,), optional
+        How late the host writes each command after its tick [s] (0: on time).
+    device : hapsim.scene.Device, optional
+        The board's true joint when it is not the scene's (a hidden inertia).
+    resolution : float, optional
+        The encoder's counts per revolution (the set-up's and the board's).
+
+    Returns
+    -------
+    tuple
+        ``(columns, driver, board)``: telemetry columns (``time`` [s], ``position``
+        [rad], ``force`` [N m], ``seq``, ``flags``, ``late``, ``force_seq``, ``status``),
+        shape (n,); the :class:`hapsim.drivers.haply.HaplyM3` whose replies they are
+        (its ``loop_delay`` and ``own_clock`` set); the board.
+    """
+    import numpy as np
+
+    from hapsim.drivers.haply import HaplyM3
+    from hapsim.engine import Engine
+    sc = scene
+    x0 = float(getattr(sc.excitation, "x0", 0.0) or 0.0)
+    drv = HaplyM3(resolution=resolution, **HaplyM3.embedded_options({}, x0))    # armed at the hand's start
+    drv.loop_delay = int(sc.device.delay)
+    drv.own_clock = True                       # the board keeps its time (simulated)
+    board = HaplyDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall",
+                        resolution=drv.resolution)
+    now = [0.0]
+    dec = drv.decoder()
+    T = sc.period
+    late = np.zeros(n + 1) if write_late is None else np.asarray(write_late, float)
+    # the arming (278 resets in 50 us passes, the set-up's 2 ms: 16 ms of the board's
+    # time, which starts at 0) done well before row 0, at rest
+    t0 = 0.0625                                  # exact in binary64
+    board.feed(drv.arm(), 0.0)
+    dec.feed(board.feed(drv.encode_force(0.0), t0 / 2))
+
+    def command(j: int, f: float) -> float:
+        now[0] = t0 + j * T + float(late[j])
+        return dec.feed(board.feed(drv.encode_force(f), now[0]))[-1]
+
+    x = command(0, 0.0)
+    cols = {q: np.zeros(n) for q in ("time", "position", "force")}
+    lim = float(sc.device.force_limit)
+    eng = Engine(sc)
+    for k in range(n):
+        cols["time"][k] = now[0]
+        cols["position"][k] = x
+        f = min(max(eng.port_step(x), -lim), lim)
+        cols["force"][k] = drv.applied_force(f)
+        x = command(k + 1, f)
+    cols.update(seq=np.arange(n), flags=np.zeros(n, np.uint8), late=np.zeros(n, np.uint8),
+                force_seq=np.arange(n) - int(sc.device.delay), status=np.zeros(n, np.uint16))
+    return cols, drv, board
+

@@ -18,7 +18,8 @@ time each torque acts from when the board takes its write to when it takes the n
 holds' departures from a period, from the host's write times, are changes of the
 device's state (:func:`hold_bounds`): known with their signs, they are estimated and
 their motion through the loop removed from the records (:func:`hold_corrections`,
-:func:`hold_motion`), and what that estimate leaves enters the stated uncertainty.
+:func:`hold_motion`, dimension-free in :mod:`hapsim.analysis.write_holds`), and what
+that estimate leaves enters the stated uncertainty.
 
 ``python -m hapsim.pipeline.haply2_host`` still starts the emulated board's child
 (:func:`hapsim.pipeline.haply2_embedded.main`, its own entry since the split).
@@ -31,6 +32,8 @@ import sys
 
 import numpy as np
 
+from hapsim.analysis.write_holds import (HOLD_CUT_PERIODS, hold_bounds, hold_corrections,
+                                         hold_motion)
 from hapsim.emulated.haply2_board import PASS_S, in_hand_order
 from hapsim.emulated.haply2_verdict import felt_verdict_of_runs
 from hapsim.drivers.haply import MAX_TORQUE
@@ -39,8 +42,10 @@ from hapsim.errors import ConfigError, DeviceError
 from hapsim.pipeline.haply2_record import (ARM_TIMEOUT, ENVELOPE_RAD, WORKSPACE_RAD, PortLink,
                                            record_realtime)
 
+# hold_bounds, hold_corrections, hold_motion, HOLD_CUT_PERIODS: dimension-free since the
+# Haply M3 uses them too (hapsim.analysis.write_holds), named here as before
 __all__ = ["estimate_bounds", "hold_bounds", "hold_corrections", "hold_motion",
-           "measure_felt_haply2_port", "usable_rows", "WORKSPACE_RAD"]
+           "measure_felt_haply2_port", "usable_rows", "HOLD_CUT_PERIODS", "WORKSPACE_RAD"]
 
 
 #: How much the time a board takes a write may vary from one write to the next beyond
@@ -51,20 +56,6 @@ __all__ = ["estimate_bounds", "hold_bounds", "hold_corrections", "hold_motion",
 #: latency varies more (a USB frame's scheduling, an emulated board's process
 #: descheduled); a departure within what this allowance explains stays "not measurable".
 LINK_JITTER_S = PASS_S
-#: A hold (the interval between two of the host's writes) more than this many periods
-#: off one period is cut from the records on a board that keeps its own time, as a stall
-#: is (:func:`usable_rows`); the smaller departures are corrected and what the correction
-#: leaves enters the stated uncertainty (:func:`hold_corrections`). Measured
-#: (tools/driver_timing.py, two CPU-bound processes, in-process board): most holds
-#: within 10 us of a period, pairs of 100-900 us (one late write) a few times a record.
-#: It was 0.1 while each hold entered at its worst case (:func:`hold_bounds`: a kept hold
-#: off by 0.5-1.4 ms made the write-timing term of the felt stiffness 4.6 and 9.8 % in two
-#: runs); corrected, those cuts were what left correct runs "partly within" (2 of 10: up
-#: to 80 of a record's 200 rows cut, the damping's term along one direction over 0.25
-#: without any write-timing term). Half a period: the host's loop re-times itself
-#: when that far behind (:func:`record_realtime`), and a hold of 500 us is still corrected to
-#: within its remainder's bound (``tests/test_haply2_writetime.py``).
-HOLD_CUT_PERIODS = 0.5
 
 
 def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
@@ -132,280 +123,6 @@ def estimate_bounds(rec: dict, scene, J, delta) -> np.ndarray:
     held = (r * T * (v + T * a_max / 2) + (r * T) ** 2 / 2 * a_max)[:, None] + eps
     out[est] = np.where(hold[:, None], held, ext)
     return out
-
-
-def hold_bounds(rec: dict, scene, J, delta, *, latency_s: float = 0.0) -> dict:
-    """How far each hold's length moved the device: the bounds of the state changes that
-    the host's real write times add to the loop of exact periods (issue 29: the host's
-    write-timing term of the stated uncertainty).
-
-    The board takes write ``k`` at ``s_k`` and, in the same pass, reads the encoders
-    (row ``k``'s sample, ``x(s_k)``) and sets the torques, held until it takes the next
-    (firmware V1.5, ``.ino`` lines 77 and 89; :class:`hapsim.emulated.haply2_board.
-    Haply2DIYBoard`). The loop predicted holds each torque exactly ``T``; over the
-    real hold ``h_k = s_k - s_(k-1) = T + delta_k`` the device's state ``z = [x, v]``
-    reaches ``z(s_(k-1) + T)`` and then moves on by
-    ``w_k = integral of dz/dt from s_(k-1) + T to s_k`` under the same torque (for
-    ``delta_k < 0``, minus that motion continued). So the record is, exactly, the loop
-    of exact periods with the state changed by ``w_k`` at each sample ``k``: a change of
-    the device's state that the loop then carries (:func:`hapsim.lockstep.state_responses`),
-    with ``|w_k,x| <= |delta_k| v_k`` and ``|w_k,v| <= |delta_k| a_k`` (the mean value
-    bound), ``v_k``, ``a_k`` bounds of the handle's speed and acceleration within
-    ``|delta_k|`` of ``s_k``. A hold's start and end shifted together (a constant
-    latency) change nothing: only the lengths count.
-
-    ``delta_k`` from the host's clock: write ``k`` began at ``b_k`` (``rec["write_s"]``,
-    its first column), and the board took it a latency after that is constant up to
-    ``latency_s`` (an in-process board is fed inside the write, at its start; over a
-    port the latency is the write call's, the link's and the board's next pass, which
-    the host cannot see: the verdict's fallback, :func:`measure_felt_haply2_port`):
-    ``|delta_k| <= |b_k - b_(k-1) - T| + latency_s``.
-    Speed: over hold ``k`` the mean velocity is ``(x_k - x_(k-1)) / h_k`` and no
-    instant within ``|delta_k|`` of it departs from it by more than
-    ``a_max (h_k + |delta_k|)``, so ``v_k = (|x_k - x_(k-1)| + 2 |eps|) / h_lo
-    + a_max (T + 2 |delta_k|)`` (``h_lo = b_k - b_(k-1) - latency_s`` the hold's
-    shortest length, ``eps`` the readings' rounding through ``J``; where a reading is
-    missing, the record's largest speed bound). Acceleration:
-    ``a_k = (|F_k| + b_max v_k) / m_min``, ``F_k = J^-T tau`` of the torque held over
-    hold ``k`` (row ``k - 2``'s, written with write ``k - 1``), ``m_min``, ``b_max`` the
-    Cartesian mass's and friction's extreme eigenvalues at rest, ``a_max`` its largest
-    over the record (as :func:`estimate_bounds`: no hand on the handle, the
-    velocity-product terms left out). Each axis is bounded by the norm.
-
-    Parameters
-    ----------
-    rec : dict
-        :func:`record_realtime`'s record: ``write_s`` (N, 2) [s], ``position`` (N, 2)
-        [m], ``torque`` (N, 2) [N m], optionally ``readings`` (N, 2) [m].
-    scene : hapsim.scene.SceneND
-        The scene (its period ``T``, the device's mass and friction at rest).
-    J : ndarray, shape (2, 2)
-        The Jacobian at rest [m/rad].
-    delta : array_like, shape (2,)
-        The readings' rounding per joint [rad].
-    latency_s : float, optional
-        How much the link's latency may vary between two writes [s] (0: constant).
-
-    Returns
-    -------
-    dict
-        ``delta`` (N,) the bound of ``|delta_k|`` [s] (0 at row 0, the record's start),
-        ``position`` (N, 2) [m] and ``velocity`` (N, 2) [m/s]: the bounds of ``w_k``
-        per axis. All 0 where the writes were exactly ``T`` apart.
-
-    See Also
-    --------
-    hold_corrections : the same changes estimated with their signs (the measurement's
-        correction), this worst case kept where a change is not estimated.
-    """
-    T = scene.period
-    w = np.asarray(rec["write_s"], float)
-    N = w.shape[0]
-    dl = np.zeros(N)
-    if N > 1:
-        dl[1:] = np.abs(np.diff(w[:, 0]) - T) + float(latency_s)
-    dl = np.where(np.isfinite(dl), dl, np.inf)
-    out = {"delta": dl, "position": np.zeros((N, 2)), "velocity": np.zeros((N, 2))}
-    if not np.any(dl):
-        return out
-    eps = float(np.linalg.norm(np.abs(J) @ np.asarray(delta, float)))
-    x = np.asarray(rec.get("readings", rec["position"]), float)
-    m_min = float(np.min(np.linalg.eigvalsh(scene.device.mass)))
-    b_max = float(np.max(np.abs(np.linalg.eigvalsh(
-        0.5 * (scene.device.friction + scene.device.friction.T)))))
-    F = np.linalg.norm(np.linalg.solve(J.T, np.asarray(rec["torque"], float).T).T, axis=1)
-    Fk = np.zeros(N)                                  # the force held over hold k
-    Fk[2:] = F[:N - 2]
-    step = np.full(N, np.nan)
-    step[1:] = np.linalg.norm(np.diff(x, axis=0), axis=1)
-    h_lo = np.full(N, T)                              # the hold's shortest length
-    h_lo[1:] = np.maximum(np.diff(w[:, 0]) - float(latency_s), 1e-6 * T)
-    mean = (step + 2 * eps) / h_lo
-    v_rec = float(np.nanmax(mean)) if np.isfinite(mean).any() else 0.0
-    mean = np.where(np.isfinite(mean), mean, v_rec)
-    a_max = (float(np.max(F, initial=0.0)) + b_max * v_rec) / m_min
-    v = mean + a_max * (T + 2 * np.where(np.isfinite(dl), dl, 0.0))
-    a = (Fk + b_max * v) / m_min
-    pos = np.where(np.isinf(dl), np.inf, dl * v)
-    vel = np.where(np.isinf(dl), np.inf, dl * a)
-    pos[0] = vel[0] = 0.0
-    out["position"] = np.repeat(pos[:, None], 2, axis=1)
-    out["velocity"] = np.repeat(vel[:, None], 2, axis=1)
-    return out
-
-
-def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
-                     first_torque=None) -> dict:
-    """The state changes the host's write timing made, estimated from the record with
-    their signs, and the bounds of what that estimate leaves (issue 29: the known holds
-    corrected, only the remainder in the stated uncertainty).
-
-    :func:`hold_bounds` bounds each hold's state change ``w_k`` whatever its sign; but the
-    host knows each hold's departure ``delta_k`` with its sign, from its write times
-    (``delta_hat_k = b_k - b_(k-1) - T``, ``|delta_k - delta_hat_k| <= L``, ``L`` =
-    ``latency_s`` the variation of the latency the host cannot see), and the device's
-    velocity and acceleration at each sample from the readings and the force held. The
-    device (Cartesian mass ``M``, friction ``B`` at rest; no hand on the handle in a free
-    response; the velocity-product terms, second order in the amplitude, left out as
-    in :func:`estimate_bounds`) under the force ``F_k = J^-T tau`` held constant over
-    hold ``k`` (row ``k - 2``'s torque) moves, with ``a(t) = M^-1 (F_k - B v(t))``:
-
-    * over the hold ``h_k``, by Taylor's theorem with the integral remainder,
-      ``x_k - x_(k-1) = h v_k - h^2/2 a_k - R``, ``a_k = M^-1 (F_k - B v_k)`` the
-      acceleration just before ``s_k`` and ``|R| <= |M^-1 B| a_max h^3 / 6``
-      (``|a(t) - a_k| <= |M^-1 B| a_max |t - s_k|``), so
-      ``(I + h/2 M^-1 B) v_k = (x_k - x_(k-1)) / h + h/2 M^-1 F_k + R / h``;
-      the estimate ``v_hat`` solves this with ``R = 0``, the readings and ``h_hat``;
-    * over the departure (as :func:`hold_bounds`: the motion from ``s_k - delta_k`` to
-      ``s_k``, for ``delta_k < 0`` minus the motion continued under ``F_k``),
-      ``w_x = delta v_k - delta^2/2 a_k + R_x``, ``|R_x| <= |M^-1 B| a_max |delta|^3/6``,
-      and ``w_v = delta a_k + R_v``, ``|R_v| <= |M^-1 B| a_max delta^2 / 2``; the
-      estimate ``w_hat = [delta_hat v_hat - delta_hat^2/2 a_hat, delta_hat a_hat]``,
-      ``a_hat = M^-1 (F_k - B v_hat)``.
-
-    The remainder's bounds, with ``D = |delta_hat| + L``, ``h_lo``/``h_hi`` =
-    ``h_hat -/+ L``, ``c = 1 / (1 - h_hi |M^-1 B| / 2)`` (a bound of
-    ``|(I + h/2 M^-1 B)^-1|``), ``eps`` the readings' rounding through ``J``,
-    ``e_F = 2^-24 |J^-T| |tau|`` (the torque's float32), ``V_k`` =
-    ``(|x_k - x_(k-1)| + 2 eps) / h_lo + a_max h_hi`` (a bound of ``|v_k|``):
-
-    * ``|v_hat - v_k| <= e_v = c (2 eps / h_lo + |M^-1 B| a_max h_hi^2 / 6
-      + h_hi/2 |M^-1| e_F) + L c ((|x_k - x_(k-1)| + 2 eps) / h_lo^2 + |M^-1 F_k| / 2)
-      + L c^2 |M^-1 B| V_k / 2`` (the readings, ``R``, the torque, and ``h`` known only
-      to ``L``: the derivative of the solution over ``h``);
-    * ``|a_hat - a_k| <= e_a = |M^-1| e_F + |M^-1 B| e_v``;
-    * ``|w_x - w_hat_x| <= D e_v + L |v_hat| + D^2/2 e_a + L (2 |delta_hat| + L)/2
-      |a_hat| + |M^-1 B| a_max D^3 / 6``;
-    * ``|w_v - w_hat_v| <= D e_a + L |a_hat| + |M^-1 B| a_max D^2 / 2``.
-
-    ``a_max`` is :func:`hold_bounds`'s bound of the acceleration over the record; each
-    axis is bounded by the norm. A row without both readings (an estimated or damaged
-    sample), row 1 without ``first_torque`` (the torque held over the first hold, written
-    with row 0's write, is not in the record), a hold with ``c`` not finite, or a hold
-    not finite is not corrected: its ``w_hat`` is 0 and its bound :func:`hold_bounds`'s.
-    With writes exactly ``T`` apart and ``L = 0`` everything is 0 (the record is left as
-    it is). Not in the bound: the mass and the Jacobian changing with the configuration
-    over the record's excursion (first order in the amplitude, as the velocity-product
-    terms; the linearisation bound's part of the uncertainty), and a board other than
-    the scene's (a wrong loop: its correction is off by the departure times the holds'
-    effect, second order, as the wire's other terms computed on the predicted loop).
-
-    Parameters
-    ----------
-    rec : dict
-        As :func:`hold_bounds` (``write_s``, ``position``, ``torque``, optionally
-        ``readings``: used, uncorrected, for the velocities).
-    scene : hapsim.scene.SceneND
-    J : ndarray, shape (2, 2)
-        The Jacobian at rest [m/rad].
-    delta : array_like, shape (2,)
-        The readings' rounding per joint [rad].
-    latency_s : float, optional
-        ``L`` [s] (0: the latency constant).
-    first_torque : array_like, shape (2,), optional
-        The torque row 0's write carried [N m], held over the first hold:
-        :func:`record_realtime`'s row 0 is the arming's zero write (0, 0), whose reply is
-        sample 0. Without it, row 1 is not corrected.
-
-    Returns
-    -------
-    dict
-        ``delta`` (N,) [s], as :func:`hold_bounds`'s; ``state`` (N, 4): ``w_hat``
-        ``[x, v]`` [m, m/s] per row (:meth:`hapsim.lockstep.LockstepND.step`'s
-        ``state_error``); ``position`` (N, 2) [m] and ``velocity`` (N, 2) [m/s]: the
-        bounds of ``w - w_hat`` per axis; ``corrected`` (N,) bool.
-    """
-    T = scene.period
-    L = float(latency_s)
-    out = hold_bounds(rec, scene, J, delta, latency_s=L)
-    N = len(out["delta"])
-    out["state"] = np.zeros((N, 4))
-    out["corrected"] = np.zeros(N, bool)
-    if not np.any(out["delta"]):
-        return out
-    b = np.asarray(rec["write_s"], float)[:, 0]
-    x = np.asarray(rec.get("readings", rec["position"]), float)
-    M = np.asarray(scene.device.mass, float)
-    B = np.asarray(scene.device.friction, float)
-    Mi = np.linalg.inv(M)
-    MiB = Mi @ B
-    nMi, nMiB = float(np.linalg.norm(Mi, 2)), float(np.linalg.norm(MiB, 2))
-    eps = float(np.linalg.norm(np.abs(J) @ np.asarray(delta, float)))
-    tau = np.asarray(rec["torque"], float)
-    Fall = np.linalg.solve(J.T, tau.T).T
-    eFall = 2.0 ** -24 * np.linalg.norm(np.abs(np.linalg.inv(J.T)) @ np.abs(tau).T, axis=0)
-    # the force held over hold k is row k - 1's of these (row k - 2's torque; row -1:
-    # the torque of row 0's write)
-    Fall = np.vstack([np.zeros((1, 2)) if first_torque is None else
-                      np.linalg.solve(J.T, np.asarray(first_torque, float)), Fall])
-    eFall = np.concatenate([[0.0 if first_torque is None else 2.0 ** -24 * float(
-        np.linalg.norm(np.abs(np.linalg.inv(J.T)) @ np.abs(np.asarray(first_torque, float))))],
-        eFall])
-    # a_max as hold_bounds's: the force's largest, the record's largest speed bound
-    m_min = float(np.min(np.linalg.eigvalsh(M)))
-    b_max = float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (B + B.T)))))
-    steps = np.linalg.norm(np.diff(x, axis=0), axis=1)
-    h_all = np.maximum(np.diff(b) - L, 1e-6 * T)
-    mean = (steps + 2 * eps) / h_all
-    v_rec = float(np.nanmax(mean)) if np.isfinite(mean).any() else 0.0
-    a_max = (float(np.max(np.linalg.norm(Fall, axis=1), initial=0.0)) + b_max * v_rec) / m_min
-    pos, vel = out["position"].copy(), out["velocity"].copy()
-    for k in range(1 if first_torque is not None else 2, N):
-        h = b[k] - b[k - 1]
-        dh = h - T
-        dx = x[k] - x[k - 1]
-        h_lo, h_hi = h - L, h + L
-        if not (np.isfinite(dx).all() and np.isfinite(h) and np.isfinite(out["delta"][k])
-                and h_lo > 0 and h_hi * nMiB < 2):
-            continue
-        F, eF = Fall[k - 1], float(eFall[k - 1])
-        c = 1.0 / (1.0 - h_hi * nMiB / 2)
-        v_hat = np.linalg.solve(np.eye(2) + h / 2 * MiB, dx / h + h / 2 * (Mi @ F))
-        a_hat = Mi @ (F - B @ v_hat)
-        out["state"][k, :2] = dh * v_hat - dh * dh / 2 * a_hat
-        out["state"][k, 2:] = dh * a_hat
-        ndx = float(np.linalg.norm(dx))
-        V = (ndx + 2 * eps) / h_lo + a_max * h_hi
-        e_v = (c * (2 * eps / h_lo + nMiB * a_max * h_hi ** 2 / 6 + h_hi / 2 * nMi * eF)
-               + L * c * ((ndx + 2 * eps) / h_lo ** 2 + float(np.linalg.norm(Mi @ F)) / 2)
-               + L * c * c * nMiB * V / 2)
-        e_a = nMi * eF + nMiB * e_v
-        D = abs(dh) + L
-        nv, na = float(np.linalg.norm(v_hat)), float(np.linalg.norm(a_hat))
-        pos[k] = (D * e_v + L * nv + D * D / 2 * e_a + L * (2 * abs(dh) + L) / 2 * na
-                  + nMiB * a_max * D ** 3 / 6)
-        vel[k] = D * e_a + L * na + nMiB * a_max * D * D / 2
-        out["corrected"][k] = True
-    out["position"], out["velocity"] = pos, vel
-    return out
-
-
-def hold_motion(scene, state: np.ndarray) -> np.ndarray:
-    """The record's change that the state changes ``state`` made: the loop of exact
-    periods (:class:`hapsim.lockstep.LockstepND`, the scene's predicted loop) run with
-    them minus without, so that ``position - hold_motion(scene, w_hat)`` is the record
-    with the estimated changes of :func:`hold_corrections` removed. Exact for a linear
-    loop; for a scene with contacts or Euclidean links, its linearisation at rest to the
-    changes' size relative (as :func:`hapsim.lockstep.state_responses`).
-
-    Parameters
-    ----------
-    scene : hapsim.scene.SceneND
-    state : ndarray, shape (N, 2 n)
-        The changes ``[x, v]`` [m, m/s] at each sample.
-
-    Returns
-    -------
-    ndarray, shape (N, n)
-        [m]; zeros (no run) when every change is 0.
-    """
-    from hapsim.lockstep import LockstepND
-    state = np.asarray(state, float)
-    N, n = state.shape[0], state.shape[1] // 2
-    if not np.any(state):
-        return np.zeros((N, n))
-    return (LockstepND(scene).step(N, record=True, state_error=state)
-            - LockstepND(scene).step(N, record=True))
 
 
 def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False,

@@ -142,7 +142,17 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         mistimed = None if rows_of is None else rows_of(cols)
         if mistimed is not None:
             clamp_unknown = mistimed if clamp_unknown is None else clamp_unknown | mistimed
+        # a board on its own clock that holds each force from its write's arrival: the
+        # holds' known departures from a period (the host's write times) corrected, what
+        # the correction leaves in the stated uncertainty, the holds far off cut
+        holds = _write_holds(scene, cols, driver, quantum)
+        if holds is not None:
+            position = position - holds[0]["motion"]
+            cut = holds[0]["cut"]
+            clamp_unknown = cut if clamp_unknown is None else clamp_unknown | cut
         wire = wire_errors(scene, cols, start, driver)
+        if holds is not None:
+            wire = wire + holds[0]["wire"]
         hw = late_info.pop("_force_half_width", None)
         lfb = late_info.pop("_late_force_bound", None)
         late_bounds = None if lfb is None else []
@@ -175,6 +185,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                     coulomb=dev.coulomb), response))
         exclude = ((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
                    else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown)
+        if holds is not None:
+            bounds += holds[0]["bounds"]
 
         def fitted(ex, fit=None):
             return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
@@ -199,6 +211,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                                          driver, unread)
         else:
             measured = fitted(exclude)
+        if holds is not None and "k" in measured:
+            _link_check(prep.pred, measured, fitted, exclude, bounds, holds)
         if mistimed is not None:
             measured["mistimed_rows"] = int(np.count_nonzero(mistimed))
         if replay is not None:
@@ -247,6 +261,18 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     if notes:
         measured["note"] = "; ".join(notes)
     verdict(prep.pred, measured)
+    link_within = measured.pop("_link_within", None)
+    if link_within and measured.get("within") is False:
+        # beyond the stated uncertainty, but within it with the link's unseen latency
+        # varying by LINK_JITTER_S between writes too: not told from the write timing
+        from hapsim.pipeline.haply2_host import LINK_JITTER_S
+        measured["within"] = False
+        measured["verdict"] = (
+            "not measurable: the board keeps its own time and the departure from the "
+            "prediction is within what the link's latency, unseen by the host, varying "
+            f"by up to {LINK_JITTER_S * 1e6:.0f} us between writes could make (k +-"
+            f"{measured['link_k_unc']:.3g}, b +-{measured['link_b_unc']:.3g}); rerun "
+            "with the board in lockstep to measure the loop")
     if "k" in measured:
         measured.setdefault("comparable", True)
         measured["rel_err"] = {q: relative_error(measured[q], pred.get(q))
@@ -256,6 +282,70 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             measured["rel_err_target"] = {q: relative_error(measured[q], t0[q])
                                           for q in ("k", "b", "f0_hz", "damping_ratio")}
     return measured
+
+
+def _write_holds(scene, cols: dict, driver, quantum: float):
+    """The host's write timing of a run whose board holds each force from its write's
+    arrival, on its own clock (:attr:`hapsim.drivers.base.Driver.holds_from_write`,
+    ``own_clock``), with the scene's delay the board's one period: the record's
+    correction and its remainder, without and with the link's unseen latency variation.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene.
+    cols : dict of ndarray
+        The telemetry columns (``time`` [s], ``position``, ``force``, ``seq``,
+        ``flags``), shape (n,).
+    driver : hapsim.drivers.base.Driver or None
+    quantum : float
+        The sensor's step [m].
+
+    Returns
+    -------
+    tuple or None
+        :func:`hapsim.analysis.write_holds.write_time_terms` with ``latency_s`` 0 (a
+        dict), and a callable giving it with :data:`hapsim.pipeline.haply2_host.
+        LINK_JITTER_S` (the firmware's pass; computed only for a "differs"); None when it
+        does not apply (another board, a lockstep mock, another delay, no times).
+    """
+    if not (getattr(driver, "holds_from_write", False) and getattr(driver, "own_clock", False)
+            and float(scene.device.delay) == 1.0 and "time" in cols and cols["time"].size):
+        return None
+    from hapsim.analysis.write_holds import state_change_responses, write_time_terms
+    from hapsim.host.telemetry import FLAG_ESTIMATED
+    from hapsim.pipeline.haply2_host import LINK_JITTER_S
+    try:
+        resp = state_change_responses(scene, int(cols["seq"].size))
+    except ConfigError:
+        return None
+    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
+
+    def terms(L):
+        return write_time_terms(scene, cols, quantum=quantum, position_rel=pr, latency_s=L,
+                                flag_estimated=FLAG_ESTIMATED, responses=resp)
+    return terms(0.0), lambda: terms(LINK_JITTER_S)
+
+
+def _link_check(pred, measured, fitted, exclude, bounds, holds) -> None:
+    """A "differs" of a board on its own clock stands only beyond the uncertainty with the
+    link's unseen latency varying too (as :func:`hapsim.pipeline.haply2_host.
+    measure_felt_haply2_port`): the fit again with the remainder's bounds at
+    ``holds[1]()``'s latency; ``measured`` gets ``write_hold_s`` (the largest hold off a
+    period kept, corrected), ``link_k_unc``, ``link_b_unc`` and ``_link_within`` (that
+    fit's verdict), which :func:`identify_run` reads after its own."""
+    measured["write_hold_s"] = holds[0]["hold_s"]
+    probe = dict(measured)
+    verdict(pred, probe)
+    if probe.get("within") is not False:
+        return
+    n0 = len(bounds) - len(holds[0]["bounds"])
+    bounds[n0:] = holds[1]()["bounds"]
+    link = fitted(exclude)
+    verdict(pred, link)
+    measured["link_k_unc"] = link.get("k_interval", math.nan)
+    measured["link_b_unc"] = link.get("b_interval", math.nan)
+    measured["_link_within"] = link.get("within") is True
 
 
 def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
