@@ -235,3 +235,49 @@ class WallClock:
                 self.held = due.popleft()[1]
         while due and due[0][0] <= self.t:
             self.held = due.popleft()[1]
+
+
+def offline_record(scene, driver, command, n: int, time_of) -> dict:
+    """A 1-D scene's loop closed through a board's bytes on a simulated clock: the
+    engine's port force at each reading, the driver's applied (wire-rounded) force logged,
+    the next command sent with it (the host's order: read, compute, write).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A calibrated scene (its engine, device delay and force limit [N]).
+    driver : hapsim.drivers.base.Driver
+        The driver whose ``applied_force`` the record logs.
+    command : callable
+        ``command(j, f) -> x``: sends command ``j`` carrying force ``f`` [N] to the board at
+        its simulated time and returns the reading [m or rad] its reply gives.
+    n : int
+        Rows [samples].
+    time_of : callable
+        ``time_of(k) -> t``: the time stamped on row ``k`` [s], read once command ``k``
+        has gone out.
+
+    Returns
+    -------
+    dict of ndarray
+        Telemetry columns, shape (n,): ``time``, ``position``, ``force`` (the applied
+        force), ``seq`` (0 .. n - 1), ``flags`` and ``late`` (0), ``force_seq`` (``seq -
+        delay``), ``status`` (0).
+    """
+    import numpy as np
+
+    from hapsim.engine import Engine
+    x = command(0, 0.0)
+    cols = {q: np.zeros(n) for q in ("time", "position", "force")}
+    lim = float(scene.device.force_limit)
+    eng = Engine(scene)
+    for k in range(n):
+        cols["time"][k] = time_of(k)
+        cols["position"][k] = x
+        f = min(max(eng.port_step(x), -lim), lim)
+        cols["force"][k] = driver.applied_force(f)
+        x = command(k + 1, f)
+    cols.update(seq=np.arange(n), flags=np.zeros(n, np.uint8), late=np.zeros(n, np.uint8),
+                force_seq=np.arange(n) - int(scene.device.delay),
+                status=np.zeros(n, np.uint16))
+    return cols

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from hapsim.emulated.actuated import Actuated
+from hapsim.emulated.actuated import Actuated, offline_record
 
 __all__ = ["HapkitSerialDevice", "hapkit_serial_offline_loop"]
 
@@ -161,10 +161,7 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         (n,); the :class:`hapsim.drivers.hapkit_serial.HapkitSerial` whose replies they
         are (its ``loop_delay`` and ``own_tick`` set, no hold marked); the board.
     """
-    import numpy as np
-
     from hapsim.drivers.hapkit_serial import HapkitSerial
-    from hapsim.engine import Engine
     sc = scene
     drv = HapkitSerial()
     drv.loop_delay = int(sc.device.delay)
@@ -172,7 +169,6 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     drv.own_tick = True                        # the sketch keeps its tick (simulated)
     board = HapkitSerialDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall")
     dec = drv.decoder()
-    eng = Engine(sc)
     T, tick = sc.period, board.TICK_S
     late = dict(read_late or {})
 
@@ -180,15 +176,5 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         now = j * T + (phase + float(late.get(j, 0.0))) * tick
         return dec.feed(board.feed(drv.encode_force(f), now))[-1]
 
-    x = command(0, 0.0)
-    cols = {q: np.zeros(n) for q in ("time", "position", "force")}
-    lim = float(sc.device.force_limit)
-    for k in range(n):
-        cols["time"][k] = k * T
-        cols["position"][k] = x
-        f = min(max(eng.port_step(x), -lim), lim)
-        cols["force"][k] = drv.applied_force(f)
-        x = command(k + 1, f)
-    cols.update(seq=np.arange(n), flags=np.zeros(n, np.uint8), late=np.zeros(n, np.uint8),
-                force_seq=np.arange(n) - int(sc.device.delay), status=np.zeros(n, np.uint16))
+    cols = offline_record(sc, drv, command, n, lambda k: k * T)
     return cols, drv, board

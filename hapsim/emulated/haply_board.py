@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from hapsim.emulated.actuated import Actuated
+from hapsim.emulated.actuated import Actuated, offline_record
 
 __all__ = ["HaplyDevice", "haply_offline_loop"]
 
@@ -219,7 +219,6 @@ def haply_offline_loop(scene, n: int, *, write_late=None, device=None,
     import numpy as np
 
     from hapsim.drivers.haply import HaplyM3
-    from hapsim.engine import Engine
     sc = scene
     x0 = float(getattr(sc.excitation, "x0", 0.0) or 0.0)
     drv = HaplyM3(resolution=resolution, **HaplyM3.embedded_options({}, x0))    # armed at the hand's start
@@ -241,17 +240,6 @@ def haply_offline_loop(scene, n: int, *, write_late=None, device=None,
         now[0] = t0 + j * T + float(late[j])
         return dec.feed(board.feed(drv.encode_force(f), now[0]))[-1]
 
-    x = command(0, 0.0)
-    cols = {q: np.zeros(n) for q in ("time", "position", "force")}
-    lim = float(sc.device.force_limit)
-    eng = Engine(sc)
-    for k in range(n):
-        cols["time"][k] = now[0]
-        cols["position"][k] = x
-        f = min(max(eng.port_step(x), -lim), lim)
-        cols["force"][k] = drv.applied_force(f)
-        x = command(k + 1, f)
-    cols.update(seq=np.arange(n), flags=np.zeros(n, np.uint8), late=np.zeros(n, np.uint8),
-                force_seq=np.arange(n) - int(sc.device.delay), status=np.zeros(n, np.uint16))
+    cols = offline_record(sc, drv, command, n, lambda k: now[0])
     return cols, drv, board
 
