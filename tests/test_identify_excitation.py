@@ -113,6 +113,11 @@ def test_identify_over_a_real_time_port_ends_without_a_safety_stop(tmp_path):
         mock.terminate()
         mock.wait(10)
     out = json.loads(stdout)
+    # the loop at SCHED_FIFO where permitted, as hapsim run's (preempted mid-push beside a
+    # CPU-bound process, it held its force and passed the envelope: -0.0100663 m, a
+    # fresh-clone suite at normal scheduling), or the reason it was refused
+    sched = out["loop"]["scheduling"]
+    assert sched == "SCHED_FIFO 10" or sched.startswith("normal (SCHED_FIFO"), sched
     assert not out["loop"]["safety_stop"], out["loop"]["stop_reason"]
     assert code == 0, stderr[-2000:]
     assert_within(out["device"], {"mass": 0.237, "friction": 1.31})

@@ -60,7 +60,7 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
              handle_signals: bool = False,
              driver_options: dict | None = None,
              mock_options: dict | None = None,
-             travel: float | None = None) -> IdentifyReport:
+             travel: float | None = None, rt_priority: int = 10) -> IdentifyReport:
     """Excite a device (or its mock) and identify its mass, friction, delay and hold.
 
     Parameters
@@ -104,6 +104,10 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
         The FireFader's travel between its end stops [m] (its datasheet's): a sweep between
         the stops finds its position scale first (``loop.travel_sweep``; the
         record's ``protocol_options`` carry it).
+    rt_priority : int
+        ``SCHED_FIFO`` priority of the excitation's loop on a real-time port where the OS
+        permits it (0: normal scheduling; ``loop.scheduling`` says what it got), as
+        ``hapsim run``'s ``--rt-priority``.
 
     Returns
     -------
@@ -137,7 +141,7 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
                          driver=None if driver == DEFAULT else driver, progress=progress,
                          transport=transport, handle_signals=handle_signals,
                          driver_options=driver_options, mock_options=mock_options,
-                         travel=travel)
+                         travel=travel, rt_priority=rt_priority)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None}
     if hand:
@@ -148,7 +152,7 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,
              duration=4.0, rate_hz=1000.0, max_delay=20, lockstep=False, seed=0,
              transport=None, progress=True, handle_signals=True, driver=None,
-             driver_options=None, mock_options=None, travel=None):
+             driver_options=None, mock_options=None, travel=None, rt_priority=10):
     """Excite, record and fit: what ``hapsim identify`` and :func:`identify` run.
 
     Parameters
@@ -173,6 +177,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     travel : float, optional
         The FireFader's travel between its end stops [m]
         (:func:`hapsim.pipeline.identify_run.record`).
+    rt_priority : int
+        As :func:`hapsim.pipeline.identify_run.record`.
 
     Returns
     -------
@@ -208,7 +214,7 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
                      noise_seed=seed, transport=transport, lockstep=lockstep, progress=progress,
                      handle_signals=False, stop=stop, driver=driver,
                      driver_options=driver_options, mock_options=mock_options,
-                     travel=travel)
+                     travel=travel, rt_priority=rt_priority)
         # the whole record: every stretch of consecutive STATEs is fitted, each from its
         # own initial state (a lost STATE is a gap, the mass and frictions are shared)
         seq = rec["seq"]

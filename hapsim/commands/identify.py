@@ -145,6 +145,10 @@ def register(sub) -> None:
                         "the largest delay tried (default 20: a USB latency timer of 16 ms "
                         "at 1 kHz and some; a framed device shows its delay itself)")
     p.add_argument("--lockstep", action="store_true", help="lockstep embedded mock")
+    p.add_argument("--rt-priority", type=Number(int, low=0, high=99), default=10, metavar="P",
+                   help="SCHED_FIFO priority of the excitation's loop where the OS permits "
+                        "it (default 10, as hapsim run; 0: normal scheduling): a loop "
+                        "preempted mid-push leaves the device its force for that long")
     p.add_argument("--mock-scene", metavar="SCENE",
                    help="scene whose device the embedded mock models (default: m = 0.1 kg, "
                         "b0 = 0.5 N s/m, d = 1)")
@@ -253,7 +257,7 @@ def run(args) -> int:
               duration=args.duration, rate_hz=args.rate, max_delay=args.max_delay,
               lockstep=args.lockstep, seed=args.seed, driver=args.driver,
               driver_options=dopts, hand=args.hand, progress=True, handle_signals=True,
-              mock_options=mopts,
+              mock_options=mopts, rt_priority=args.rt_priority,
               travel=None if args.travel is None else args.travel * 1e-3)
     rep = identify_api(args.port, device=device, **kw)
     fit, rec = rep.fit, rep.record

@@ -532,7 +532,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
            transport: str | None = None, lockstep: bool = False, progress: bool = True,
            handle_signals: bool = True, stop=None, driver: str | None = None,
            driver_options: dict | None = None, mock_options: dict | None = None,
-           travel: float | None = None):
+           travel: float | None = None, rt_priority: int = 10):
     """Run the excitation on a device (or the mock of ``device``) and return the record.
 
     Parameters
@@ -579,6 +579,11 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         between the stops finds its position scale
         (:func:`hapsim.drivers.firefader_travel.find_travel`), which the excitation and
         ``protocol_options`` then use.
+    rt_priority : int
+        ``SCHED_FIFO`` priority of the loop on a real-time port (pty or serial, not
+        lockstep) where the OS permits it, as ``hapsim run``'s (0: normal scheduling;
+        :class:`hapsim.host.realtime.RealtimePriority`): a host preempted mid-push leaves
+        the device its force for the preemption, beyond the excitation's plan.
 
     Returns
     -------
@@ -703,13 +708,19 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                          # input (its force_seq), a skipped STATE a hole in the record
                          backlog="all")
         tel = Telemetry(n)
+        from hapsim.host.realtime import RealtimePriority
         loop = HostLoop(ExcitationEngine(plan), tr, cfg, tel, stop)
         evt = threading.Event()
         th = None
         if progress:
             th = _progress_thread(tel, n, evt, "hapsim identify: exciting")
         try:
-            res = loop.run()
+            # the loop's thread at SCHED_FIFO where permitted, as hapsim run's: preempted
+            # for a few ms mid-push (a suite beside a CPU-bound process), the device held
+            # its force and passed the envelope the excitation had planned within
+            with RealtimePriority(rt_priority if transport in ("pty", "serial") and not lock
+                                  else 0) as rt:
+                res = loop.run()
         finally:
             evt.set()
             if th is not None:
@@ -753,7 +764,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "stop_reason": res.stop_reason, "safety_stop": bool(res.safety_stop),
                      "late": int(np.count_nonzero(late)), "clamped": int(res.clamped),
                      "device_delay": None if account is None else int(account.delay),
-                     "transport": transport, "lockstep": bool(lock),
+                     "transport": transport, "lockstep": bool(lock), "scheduling": rt.note,
                      "port": tr.info.get("port"), "faults": list(res.faults),
                      "f_max": float(res.f_max), "v_max": float(res.v_max),
                      "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
