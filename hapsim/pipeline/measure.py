@@ -273,13 +273,13 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             f"by up to {LINK_JITTER_S * 1e6:.0f} us between writes could make (k +-"
             f"{measured['link_k_unc']:.3g}, b +-{measured['link_b_unc']:.3g}); rerun "
             "with the board in lockstep to measure the loop")
-    shift = measured.pop("_unseen_shift", None)
+    shift = measured.get("unseen_hold_shift")
     if shift is not None and measured.get("within") is False and _within_unseen(
-            pred, measured, shift):
+            pred, measured, (shift["k"], shift["b"])):
         measured["verdict"] = (
             f"not measurable: the board mistimed holds no host saw "
             f"({measured['unseen_holds']} found in the record and cut, which moved the "
-            f"fit by k {shift[0]:.3g}, b {shift[1]:.3g}); the departure left is within "
+            f"fit by k {shift['k']:.3g}, b {shift['b']:.3g}); the departure left is within "
             f"{UNSEEN_SHIFT_FACTOR:g} times that, what a hold the search did not find "
             f"could make; rerun, or with the board in lockstep")
     if "k" in measured:
@@ -414,7 +414,9 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
         The measurement; with ``unseen_holds`` (how many were cut, 0 if none) and, when
         some were, ``unseen_hold_seqs`` (the ``seq`` of each one's first disturbed row,
         at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], whole ticks:
-        positive, taken late).
+        positive, taken late); ``unseen_hold_shift``, ``{"k": [N/m], "b": [N s/m]}``,
+        how far cutting them moved the fit, when it moved a fit (read by the "differs"
+        rule, :data:`UNSEEN_SHIFT_FACTOR`).
     """
     from hapsim.analysis.error_response import force_error_response, sensor_error_response
     from hapsim.analysis.identify import sensor_sd
@@ -463,8 +465,8 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
     if rows and None not in first and "k" in measured:
         # how far cutting the holds found moved the fit: the scale of what one not found
         # can do (identify_run's "differs" stands only beyond UNSEEN_SHIFT_FACTOR of it)
-        measured["_unseen_shift"] = (abs(measured["k"] - first[0]),
-                                     abs(measured["b"] - first[1]))
+        measured["unseen_hold_shift"] = {"k": abs(measured["k"] - first[0]),
+                                         "b": abs(measured["b"] - first[1])}
     if rows:
         seq = np.asarray(cols["seq"], np.int64)
         measured["unseen_hold_seqs"] = [int(seq[j]) for j in rows[:100]]
