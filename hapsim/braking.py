@@ -25,8 +25,8 @@ the sampled positions (what the host has) the loop of each mode is
 ``z^(d+2) - z^(d+1) + (g / 2)(z + 1) = 0`` (:func:`brake_mode_polynomial`; derived in its
 notes), also stable at ``g = 0.25`` for ``d <= 5`` (spectral radius 0.994 at ``d = 5``,
 1.011 at ``d = 6``): the same delay range. The exact sampled loop of any ``M``, friction
-and delay is :func:`brake_loop_matrix` (``tests/test_brake_nd.py`` checks it against both
-closed forms and over random devices). A true inertia larger than the ``M`` used (a hand
+and delay is :func:`hapsim.analysis.stability.brake_loop_matrix` (``tests/test_brake_nd.py``
+checks it against both closed forms and over random devices). A true inertia larger than the ``M`` used (a hand
 holding the handle) lowers every mode's gain into ``(0, g]``, still inside the bound.
 """
 
@@ -39,7 +39,7 @@ import numpy as np
 from hapsim.errors import dash
 
 __all__ = ["BRAKE_GAIN", "BRAKE_MAX_S", "REST_READINGS", "brake_damping", "brake_rest",
-           "gain_bound", "brake_mode_polynomial", "brake_loop_matrix", "Brake",
+           "gain_bound", "brake_mode_polynomial", "Brake",
            "brake_text"]
 
 #: The braking's gain ``g = B T / m`` (module notes): stable for a delay up to 5 periods.
@@ -180,66 +180,6 @@ def brake_mode_polynomial(gain: float, delay: int) -> np.ndarray:
     p[-2] += 0.5 * gain
     p[-1] += 0.5 * gain
     return p
-
-
-def brake_loop_matrix(mass, friction, damping, period: float, delay: int) -> np.ndarray:
-    """The exact sampled loop of a device braked by ``tau = -B y``: the state matrix of
-    ``(v[k], e_0, ..., e_d)``, ``e_j = x[k-j] - x[k-j-1]``.
-
-    The plant ``M x'' + B_f x' = tau`` (any dimension ``n``) with ``tau`` held over each
-    period (zero-order hold, exact: the matrix exponential), the host's velocity the
-    backward difference ``y[k] = e_0 / T`` and ``tau[k] = -B y[k-d] = -(B / T) e_d``.
-    Positions enter only through their differences (a braking has no position to go
-    to: the translation mode, at ``z = 1`` exactly, is left out).
-
-    Parameters
-    ----------
-    mass, friction, damping : array_like, shape (n, n) (or scalars)
-        ``M`` [kg], ``B_f`` and ``B`` [N s/m] (or joint-space [kg m^2], [N m s/rad]).
-    period : float
-        ``T`` [s].
-    delay : int
-        ``d`` >= 0 [periods].
-
-    Returns
-    -------
-    ndarray, shape (n (d + 2), n (d + 2))
-        Its eigenvalues are the loop's poles: stable while all are inside the unit
-        circle. With ``B_f = 0`` and ``B = g M / T`` they are the roots of
-        :func:`brake_mode_polynomial` at ``g``, each ``n`` times.
-
-    Raises
-    ------
-    numpy.linalg.LinAlgError
-        ``M`` singular.
-    """
-    from scipy.linalg import expm
-    M = np.atleast_2d(np.asarray(mass, float))
-    n = M.shape[0]
-    Bf, B = (float(a) * np.eye(n) if np.ndim(a) == 0 else np.asarray(a, float)
-             for a in (friction, damping))
-    T, d = float(period), int(delay)
-    Minv = np.linalg.inv(M)
-    # continuous (x, v): x' = v, v' = -M^-1 B_f v + M^-1 tau; the hold's exponential of
-    # the augmented matrix [[A, Bc], [0, 0]] gives Phi and Gamma at once
-    A = np.zeros((3 * n, 3 * n))
-    A[:n, n:2 * n] = np.eye(n)
-    A[n:2 * n, n:2 * n] = -Minv @ Bf
-    A[n:2 * n, 2 * n:] = Minv
-    E = expm(A * T)
-    Pxv, Pvv = E[:n, n:2 * n], E[n:2 * n, n:2 * n]
-    Gx, Gv = E[:n, 2 * n:], E[n:2 * n, 2 * n:]
-    K = -B / T                                   # tau = K e_d
-    S = n * (d + 2)
-    out = np.zeros((S, S))
-    ed = slice(n * (d + 1), n * (d + 2))
-    out[:n, :n] = Pvv
-    out[:n, ed] += Gv @ K
-    out[n:2 * n, :n] = Pxv
-    out[n:2 * n, ed] += Gx @ K
-    for j in range(1, d + 1):
-        out[n * (j + 1):n * (j + 2), n * j:n * (j + 1)] = np.eye(n)
-    return out
 
 
 class Brake:

@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 
+from hapsim.analysis.stability import brake_loop_matrix
 from hapsim.braking import (BRAKE_GAIN, BRAKE_MAX_S, Brake, brake_damping,
-                            brake_loop_matrix, brake_mode_polynomial, brake_rest,
-                            gain_bound)
+                            brake_mode_polynomial, brake_rest, gain_bound)
 from tolerance import eig_tol, expm_tol, roots_tol  # same directory
 
 RATE = 1000.0

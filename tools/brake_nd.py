@@ -37,7 +37,8 @@ class _Patch:
 def devices(count: int) -> dict:
     """Random devices of tests/test_brake_nd.py (seeds 11 and 7), ``count`` of each."""
     import test_brake_nd as t
-    from hapsim.braking import BRAKE_GAIN, brake_damping, brake_loop_matrix, brake_rest
+    from hapsim.analysis.stability import brake_loop_matrix
+    from hapsim.braking import BRAKE_GAIN, brake_damping, brake_rest
     ratios, rests, by_delay = [], 0, {}
     for n, M, Bf, hand, d, rng in t._devices(count, 11):
         direction = rng.standard_normal(n)

@@ -20,7 +20,7 @@ from hapsim.analysis.loop_poles import roots_w, scaled_gains
 from hapsim.errors import ConfigError
 
 __all__ = ["stability_limit", "damping_limits", "circle_scan_points", "stability_boundary",
-           "published_limits", "brent_root"]
+           "published_limits", "brent_root", "brake_loop_matrix"]
 
 
 def _log_rho(w: np.ndarray) -> float:
@@ -400,3 +400,57 @@ def published_limits(loop: LoopModel, B: float = 0.0) -> dict:
     return {"passivity_K": 2.0 * (b0 - abs(B)) / T,
             "diolaiti_K": (b0 + B) / (T / 2.0 + d * T),
             "centred_difference_K": 4.0 * m / (T * T)}
+
+
+def brake_loop_matrix(mass, friction, damping, period: float, delay: int) -> np.ndarray:
+    """The exact sampled loop of a device braked by ``tau = -B y``: the state matrix of
+    ``(v[k], e_0, ..., e_d)``, ``e_j = x[k-j] - x[k-j-1]``.
+
+    The plant ``M x'' + B_f x' = tau`` (any dimension ``n``) with ``tau`` held over each
+    period (zero-order hold, exact: the matrix exponential), the host's velocity the
+    backward difference ``y[k] = e_0 / T`` and ``tau[k] = -B y[k-d] = -(B / T) e_d``.
+    Positions enter only through their differences (a braking has no position to go
+    to: the translation mode, at ``z = 1`` exactly, is left out).
+
+    Parameters
+    ----------
+    mass, friction, damping : array_like, shape (n, n) (or scalars)
+        ``M`` [kg], ``B_f`` and ``B`` [N s/m] (or joint-space [kg m^2], [N m s/rad]).
+    period : float
+        ``T`` [s].
+    delay : int
+        ``d`` >= 0 [periods].
+
+    Returns
+    -------
+    ndarray, shape (n (d + 2), n (d + 2))
+        Its eigenvalues are the loop's poles: stable while all are inside the unit
+        circle. With ``B_f = 0`` and ``B = g M / T`` they are the roots of
+        :func:`hapsim.braking.brake_mode_polynomial` at ``g``, each ``n`` times.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        ``M`` singular.
+    """
+    from hapsim.analysis.ths_nd import zoh_blocks
+    M = np.atleast_2d(np.asarray(mass, float))
+    n = M.shape[0]
+    Bf, B = (float(a) * np.eye(n) if np.ndim(a) == 0 else np.asarray(a, float)
+             for a in (friction, damping))
+    T, d = float(period), int(delay)
+    # the exact hold of M x'' + B_f x' = tau (the n-D THS's own, phi-functions)
+    Ad, Bd = zoh_blocks(M, Bf, T)
+    Pxv, Pvv = Ad[:n, n:], Ad[n:, n:]
+    Gx, Gv = Bd[:n], Bd[n:]
+    K = -B / T                                   # tau = K e_d
+    S = n * (d + 2)
+    out = np.zeros((S, S))
+    ed = slice(n * (d + 1), n * (d + 2))
+    out[:n, :n] = Pvv
+    out[:n, ed] += Gv @ K
+    out[n:2 * n, :n] = Pxv
+    out[n:2 * n, ed] += Gx @ K
+    for j in range(1, d + 1):
+        out[n * (j + 1):n * (j + 2), n * j:n * (j + 1)] = np.eye(n)
+    return out

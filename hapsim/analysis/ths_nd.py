@@ -73,7 +73,7 @@ from hapsim.analysis.subsample import split_delay
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 
-__all__ = ["LoopModelND", "zoh_matrices", "split_hold_matrices", "state_matrix", "closed_loop_poles_nd", "rendered_pairs", "rendered_pairs_of", "felt_matrices", "continuous_poles", "render_state", "RenderND", "render_nd", "gain_matrices"]
+__all__ = ["LoopModelND", "zoh_matrices", "split_hold_matrices", "state_matrix", "closed_loop_poles_nd", "rendered_pairs", "rendered_pairs_of", "felt_matrices", "continuous_poles", "render_state", "RenderND", "render_nd", "gain_matrices", "zoh_blocks"]
 
 #: The only hold the n-D loop models (the paper's idealised hold has no n-D form here).
 HOLDS_ND = ("zoh",)
@@ -304,10 +304,37 @@ def zoh_matrices(loop: LoopModelND) -> tuple[np.ndarray, np.ndarray]:
 
 def _zoh_over(loop: LoopModelND, T: float):
     """:func:`zoh_matrices` over a hold of length ``T`` [s]."""
+    return zoh_blocks(loop.mass, loop.friction, T)
+
+
+def zoh_blocks(mass, friction, T: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`zoh_matrices` of raw matrices, over a hold of length ``T`` [s] (no range
+    checks: a joint-space inertia of 2e-4 kg m^2 is outside :data:`MASS_RANGE`).
+
+    Parameters
+    ----------
+    mass : ndarray, shape (n, n)
+        ``M`` [kg] (or [kg m^2]), invertible.
+    friction : ndarray, shape (n, n)
+        ``B0`` [N s/m] (or [N m s/rad]).
+    T : float
+        The hold [s].
+
+    Returns
+    -------
+    (Ad, Bd)
+        As :func:`zoh_matrices`.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        ``mass`` singular.
+    """
     from scipy.linalg import expm
-    n = loop.dof
-    Minv = np.linalg.inv(loop.mass)
-    Z = -(Minv @ loop.friction) * T
+    M = np.asarray(mass, float)
+    n = M.shape[0]
+    Minv = np.linalg.inv(M)
+    Z = -(Minv @ np.asarray(friction, float)) * T
     I = np.eye(n)
     big = np.zeros((3 * n, 3 * n))
     big[:n, :n] = Z
