@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 from hapsim.errors import ConfigError
 from hapsim.scene.elements import (Audio, Device, DeviceND, Excitation, ExcitationND, Link, Mass,
                                    MassND, Safety, SafetyND)
-from hapsim.scene.rules import Invalid, check_scene, code_line, coerce
+from hapsim.scene.rules import Invalid, check_scene, check_scene_ports, code_line, coerce
 
-__all__ = ["Scene", "SceneND"]
+__all__ = ["Scene", "SceneND", "ScenePorts"]
 
 
 @dataclass(frozen=True)
@@ -257,3 +257,97 @@ class SceneND:
     def port(self) -> MassND | None:
         """The port mass, or None."""
         return next((m for m in self.masses if m.kind == "port"), None)
+
+
+@dataclass(frozen=True)
+class ScenePorts:
+    """A validated 1-D scene with several ports, each felt through its own device (issue 30
+    item 3): read it with :func:`hapsim.scene.load_scene_ports`, or build it.
+
+    Checked when constructed (:func:`hapsim.scene.rules.check_scene_ports`), as
+    :class:`Scene` is.
+
+    Parameters
+    ----------
+    rate_hz : float
+        The one sample rate of every port's loop [Hz] (several rates: not built).
+    masses : tuple of Mass
+        Ports and grounds, in file order (2 to 3 ports).
+    links : tuple of Link
+        Spring-dampers between ports and to grounds, in file order.
+    devices : tuple of (str, Device)
+        Each port's name and its device (mass [kg], friction [N s/m], delay [periods],
+        protocol), in port order.
+    path : str
+        File the scene came from.
+    integrator : str
+        As :class:`Scene` (no virtual mass moves by it here).
+
+    Raises
+    ------
+    ConfigError
+        A broken rule, naming the key (``devices.fader_b.delay``) and, from a file, the
+        file and the line.
+    """
+
+    rate_hz: float
+    masses: tuple[Mass, ...]
+    links: tuple[Link, ...]
+    devices: tuple
+    path: str = "<string>"
+    integrator: str = "centred"
+
+    def __post_init__(self) -> None:
+        for name in ("masses", "links", "devices"):
+            value = getattr(self, name)
+            if isinstance(value, list):
+                object.__setattr__(self, name, tuple(value))
+        if isinstance(self.devices, dict):
+            object.__setattr__(self, "devices", tuple(self.devices.items()))
+        order = [m.name for m in self.masses if getattr(m, "kind", None) == "port"]
+        if all(isinstance(p, tuple) and len(p) == 2 for p in self.devices):
+            rank = {n: i for i, n in enumerate(order)}
+            object.__setattr__(self, "devices", tuple(sorted(
+                self.devices, key=lambda p: rank.get(p[0], len(rank)))))
+        try:
+            check_scene_ports(self)
+        except Invalid as bad:
+            line = code_line(self, bad.where)
+            shown = self.path if (line is not None or self.path != "<string>") else None
+            err = ConfigError(bad.message, file=shown, line=line, key=bad.key)
+            err.scene_where = bad.where
+            raise err from None
+
+    @property
+    def dimension(self) -> int:
+        """1: every port moves along one axis."""
+        return 1
+
+    @property
+    def period(self) -> float:
+        """Sample period T = 1 / rate_hz [s]."""
+        return 1.0 / self.rate_hz
+
+    @property
+    def ports(self) -> tuple[str, ...]:
+        """The ports' names, in file order (the axes of the coupled loop)."""
+        return tuple(n for n, _ in self.devices)
+
+    def device(self, port: str) -> Device:
+        """The device of the port called ``port``.
+
+        Parameters
+        ----------
+        port : str
+            A port's name.
+
+        Returns
+        -------
+        Device
+
+        Raises
+        ------
+        KeyError
+            No port has that name.
+        """
+        return dict(self.devices)[port]
