@@ -324,7 +324,9 @@ def run(args) -> int:
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
     from hapsim.scene import load_scene
-    from hapsim.scene import scene_dimension
+    from hapsim.scene import scene_dimension, scene_has_ports
+    if scene_has_ports(args.scene):            # several ports: in lockstep, in-process
+        return run_ports(args)
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: in lockstep, in-process
         return run_nd(args)
     if getattr(args, "amplitude", None) is not None:
@@ -663,5 +665,87 @@ def run_nd(args) -> int:
               f"the handle {wire['quantum_m']:.2e} m", file=o)
     from hapsim.pipeline.felt_run import print_statements
     print_statements(v, o)
+    print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
+    return 0
+
+
+def run_ports(args) -> int:
+    """Measure the felt matrices across the ports of a scene with several ports, in
+    lockstep (:func:`hapsim.lockstep.measure_felt_ports`: each port its own device model).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene``, ``lockstep`` (required), ``amplitude`` [m] (None: 1e-8), ``json``,
+        ``allow_unstable``; run's other options refused.
+
+    Returns
+    -------
+    int
+        0 when the loop is stable (the measurement reported, whatever it finds); 1 when
+        the check finds it unstable and ``--allow-unstable`` is not given.
+
+    Raises
+    ------
+    ConfigError
+        No ``--lockstep`` or a ``--port`` / ``--driver`` (the real-time run of several
+        ports is not built), another option a run of several ports does not take, a bad
+        amplitude or scene (file, line, key).
+    """
+    if not args.lockstep or args.port or getattr(args, "driver", None) is not None:
+        raise ConfigError("a scene with several ports runs in lockstep, in-process "
+                          "(--lockstep): the real-time run of several devices, each on its "
+                          "own clock and link, is not built yet", key="--lockstep")
+    try:
+        _refuse_options_nd(args)
+    except ConfigError as exc:
+        raise ConfigError(f"a scene with several ports does not take {exc.key} yet (it "
+                          "takes --lockstep, --amplitude, --allow-unstable, --json)",
+                          key=exc.key) from None
+    import numpy as np
+
+    from hapsim.lockstep import measure_felt_ports
+    from hapsim.scene import load_scene_ports
+    scene = load_scene_ports(args.scene)
+    a = 1e-8 if getattr(args, "amplitude", None) is None else args.amplitude
+    res = measure_felt_ports(scene, a)
+    chk, fit, v = res["predicted"], res["measured"], res["verdict"]
+    if not chk.stable and not args.allow_unstable:
+        from hapsim.errors import UnstableConfigError
+        raise UnstableConfigError(f"the coupled loop of {', '.join(chk.ports)} is unstable "
+                                  f"(spectral radius {chk.render.spectral_radius:.9g}); "
+                                  "--allow-unstable runs it anyway",
+                                  spectral_radius=chk.render.spectral_radius)
+
+    def lists(m):
+        return None if m is None else np.asarray(m).tolist()
+    if args.json:
+        print(json.dumps({"scene": args.scene, "ports": list(chk.ports),
+                          "verdict": v["verdict"], "reason": v["reason"],
+                          "stable": bool(chk.stable), "predicted": chk.to_dict(),
+                          "measured": {"felt_stiffness": lists(fit["felt_stiffness"]),
+                                       "felt_damping": lists(fit["felt_damping"])},
+                          "deviation": res["deviation"], "uncertainty": v["uncertainty"],
+                          "amplitude": a, "records": res["records"],
+                          "samples": res["samples"]}))
+        return 0
+    o = sys.stdout
+    print(f"{scene.path}: {len(chk.ports)} ports ({', '.join(chk.ports)}) in lockstep at "
+          f"{scene.rate_hz:g} Hz, in-process, each port its own device (delays "
+          f"{', '.join(f'{d:g}' for d in chk.delays)})", file=o)
+    print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
+          f"amplitude a = {a:g} m (minus the response from rest)", file=o)
+    for name, m, unit in (("predicted felt stiffness k", chk.render.felt_stiffness, "N/m"),
+                          ("measured felt stiffness k", fit["felt_stiffness"], "N/m"),
+                          ("predicted felt damping b", chk.render.felt_damping, "N s/m"),
+                          ("measured felt damping b", fit["felt_damping"], "N s/m")):
+        print(f"  {name} [{unit}]" + ("" if m is not None else ": none"), file=o)
+        for row in (m if m is not None else ()):
+            print("    " + "  ".join(f"{x:+14.8g}" for x in row), file=o)
+    dev = res["deviation"]
+    if dev is not None:
+        print(f"  measured - predicted (largest entry over the largest predicted): "
+              f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e} (round-off "
+              f"allowed {res['bound'].roundoff:.2e}: a linear loop)", file=o)
     print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
     return 0
