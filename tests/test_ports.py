@@ -396,3 +396,36 @@ def test_run_lockstep_on_two_ports_and_its_refusals(tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and flag in err[0] and "several ports" in err[0], err
+
+
+# --------------------------------------------------------------------------- the shipped scene
+
+def test_two_faders_modes_are_the_1d_loops_of_their_common_and_differential_motion():
+    """configs/two_faders.yaml (docs/ports.md quotes these figures): two identical faders,
+    each on an anchor spring (K_a, B_a), coupled by (K_c, B_c). Their motion splits
+    exactly into the common mode (both together: the 1-D loop of (K_a, B_a)) and the
+    differential one (the 1-D loop of (K_a + 2 K_c, B_a + 2 B_c)), each through one
+    fader's device (m, b0, the sub-sample delay): the felt pair along each principal
+    direction is that 1-D loop's (hapsim.analysis.ths.render, numpy.roots of its
+    characteristic), to both paths' pole round-off."""
+    from pathlib import Path
+    from hapsim.scene import load_scene_ports
+    path = Path(__file__).resolve().parents[1] / "configs" / "two_faders.yaml"
+    scene = load_scene_ports(path)
+    dv = scene.device("fader_a")
+    assert dv == scene.device("fader_b")
+    Ka, Ba = scene.link("spring_a").stiffness, scene.link("spring_a").damping
+    Kc, Bc = scene.link("coupling").stiffness, scene.link("coupling").damping
+    r = check_ports(scene).render
+    assert r.stable
+    l1 = LoopModel(mass=dv.mass, friction=dv.friction, rate_hz=scene.rate_hz, delay=dv.delay)
+    A = ports_state_matrix(scene)
+    for K, B, e in ((Ka, Ba, np.array([1.0, 1.0])), (Ka + 2 * Kc, Ba + 2 * Bc,
+                                                     np.array([1.0, -1.0]))):
+        r1 = render(l1, K, B)
+        i = int(np.argmax(np.abs(r.directions.T @ e)))     # the direction along e
+        P_, Q_, R_ = characteristic(l1)
+        dz = roots_tol(np.polyadd(np.polyadd(P_ * K, Q_ * B), R_)) + eig_tol(A)
+        dk, db = felt_tols(r.rendered_poles[i], dz, dv.mass, scene.period)
+        assert r.direction_stiffness[i] == pytest.approx(r1.k, rel=0, abs=dk)
+        assert r.direction_damping[i] == pytest.approx(r1.b, rel=0, abs=db)

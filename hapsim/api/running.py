@@ -14,7 +14,7 @@ from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
 from hapsim.api.common import (MeasuredPair, draw_report, load_scene, matrix_list,
-                               matrix_or_nan, n_d_scene)
+                               matrix_or_nan, n_d_scene, refuse_ports)
 from hapsim.results import Report
 
 
@@ -184,6 +184,7 @@ def run(scene, options=None, *, amplitude: float | None = None, **changes: Any):
                           f"{', '.join(valid)}", key=unknown[0])
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)               # in the dimension it declares
+    refuse_ports(scene, "run")
     opts = dataclasses.replace(options if options is not None
                                else RunOptions(handle_signals=False), **changes)
     if getattr(scene, "dimension", 1) != 1:

@@ -325,6 +325,13 @@ def _run_ports(args) -> int:
     _print_matrix("port damping B", chk.port_damping, "N s/m", o)
     _print_matrix("felt stiffness k", r.felt_stiffness, "N/m", o)
     _print_matrix("felt damping b", r.felt_damping, "N s/m", o)
+    if r.directions is not None:
+        print("  principal directions across the ports (least damped first):", file=o)
+        for i in range(len(chk.ports)):
+            e = "(" + ", ".join(f"{v:+.4f}" for v in r.directions[:, i]) + ")"
+            print(f"    {e}  m = {r.direction_mass[i]:.6g} kg  k = "
+                  f"{r.direction_stiffness[i]:.6g} N/m  b = {r.direction_damping[i]:.6g} "
+                  "N s/m", file=o)
     if r.note:
         print(f"  {r.note}", file=o)
     return 0 if chk.stable else 1

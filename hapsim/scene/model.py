@@ -304,8 +304,11 @@ class ScenePorts:
                 object.__setattr__(self, name, tuple(value))
         if isinstance(self.devices, dict):
             object.__setattr__(self, "devices", tuple(self.devices.items()))
-        order = [m.name for m in self.masses if getattr(m, "kind", None) == "port"]
-        if all(isinstance(p, tuple) and len(p) == 2 for p in self.devices):
+        order = [m.name for m in self.masses if getattr(m, "kind", None) == "port"
+                 and isinstance(m.name, str)]
+        if isinstance(self.devices, tuple) and all(
+                isinstance(p, tuple) and len(p) == 2 and isinstance(p[0], str)
+                for p in self.devices):
             rank = {n: i for i, n in enumerate(order)}
             object.__setattr__(self, "devices", tuple(sorted(
                 self.devices, key=lambda p: rank.get(p[0], len(rank)))))
@@ -351,3 +354,26 @@ class ScenePorts:
             No port has that name.
         """
         return dict(self.devices)[port]
+
+    def link(self, name: str) -> Link:
+        """The link called ``name``.
+
+        Parameters
+        ----------
+        name : str
+            Link name.
+
+        Returns
+        -------
+        Link
+            The link as stored (K [N/m], B [N s/m]).
+
+        Raises
+        ------
+        KeyError
+            When no link has that name.
+        """
+        for lk in self.links:
+            if lk.name == name:
+                return lk
+        raise KeyError(name)
