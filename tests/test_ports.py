@@ -4,7 +4,7 @@ against independent computations written here: each port's own 1-D prediction
 (hapsim.analysis.ths) when the ports are uncoupled, and, coupled, a state space assembled
 directly from each device's own expm zero-order hold and its own *force* delay line (not
 hapsim's position delay line), with its felt matrices by least squares on the quadratic
-eigen-equations of its own modes."""
+eigen-equations of its own modes (tests/test_ths_nd.py's reference_felt)."""
 
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ import json
 import numpy as np
 import pytest
 from scipy.linalg import expm
-from scipy.optimize import linear_sum_assignment
 
 from hapsim.analysis.loop import LoopModel, characteristic
 from hapsim.analysis.ports import check_ports, ports_state_matrix
 from hapsim.analysis.ths import render
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Link, Mass, ScenePorts, parse_scene, parse_scene_ports
+from test_ths_nd import felt_tols, match, reference_felt   # the n-D reference's helpers
 from tolerance import eig_bounds, eig_tol, expm_tol, measured, roots_tol
 
 pytestmark = pytest.mark.numerical
@@ -119,41 +119,6 @@ def nonzero(z, floor):
     """The eigenvalues above ``floor`` in modulus (the delay lines' zeros dropped: the
     two state spaces hold a different number of them)."""
     return z[np.abs(z) > floor]
-
-
-def match(a, b):
-    """Largest distance between two eigenvalue sets, optimally paired."""
-    cost = np.abs(a[:, None] - b[None, :])
-    r, c = linear_sum_assignment(cost)
-    return float(cost[r, c].max())
-
-
-def felt_tols(z, dz, m, T):
-    """Round-off of the felt (k, b) of pole ``z`` known to ``dz`` (first order: ``s``
-    moves by ``dz / (|z| T)``, ``k = m |s|^2`` by ``2 m |s| ds``, ``b`` by ``2 m ds``)."""
-    s = np.log(z) / T
-    ds = dz / (abs(z) * T)
-    return 2 * m * abs(s) * ds, 2 * m * ds
-
-
-def reference_felt(M, T, z, V, n):
-    """Felt (k, b) by least squares on ``(M s^2 + b s + k) u = 0`` over the n least
-    damped complex pairs of the reference (real and imaginary parts, 2 n^2 unknowns)."""
-    up = np.flatnonzero(z.imag > 0)
-    up = up[np.argsort(-np.abs(z[up]))][:n]
-    rows, rhs = [], []
-    for i in up:
-        s = np.log(z[i]) / T
-        u = V[:n, i] / np.linalg.norm(V[:n, i])
-        for r in range(n):
-            row = np.zeros(2 * n * n, complex)
-            row[r * n:(r + 1) * n] = u
-            row[n * n + r * n:n * n + (r + 1) * n] = s * u
-            val = -(M @ u)[r] * s * s
-            rows += [row.real, row.imag]
-            rhs += [val.real, val.imag]
-    x = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
-    return x[:n * n].reshape(n, n), x[n * n:].reshape(n, n)
 
 
 # --------------------------------------------------------------------------- prediction

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapsim.analysis.scene_check import felt_summary
 from hapsim.analysis.ths_nd import LoopModelND, RenderND, render_state, state_matrix
 
 __all__ = ["port_matrices", "port_loop", "ports_state_matrix", "PortsCheck", "check_ports"]
@@ -153,15 +154,7 @@ class PortsCheck:
         pairs, ``port_stiffness``, ``port_damping``, ``delays``, ``states``,
         ``rendered_poles``, ``note``."""
         r = self.render.to_dict()
-        return {"ports": list(self.ports), "dof": len(self.ports),
-                "stable": bool(self.stable),
-                "verdict": "stable" if self.stable else "unstable",
-                "spectral_radius": r["spectral_radius"],
-                "felt_stiffness": r["felt_stiffness"], "felt_damping": r["felt_damping"],
-                "principal_directions": r["principal_directions"],
-                "direction_stiffness": r["direction_stiffness"],
-                "direction_damping": r["direction_damping"],
-                "direction_mass": r["direction_mass"],
+        return {"ports": list(self.ports), "dof": len(self.ports), **felt_summary(r),
                 "port_stiffness": self.port_stiffness.tolist(),
                 "port_damping": self.port_damping.tolist(),
                 "delays": [float(d) for d in self.delays], "states": self.states,

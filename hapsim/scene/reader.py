@@ -153,16 +153,23 @@ def parse_scene(text: str, path: str = "<string>",
     excitation = _read_excitation(ctx, doc, path) if "excitation" in doc else Excitation()
     safety = _read_safety(ctx, doc) if "safety" in doc else Safety()
     audio = _read_audio(ctx, doc) if "audio" in doc else None
+    return _built(ctx, doc, lambda: Scene(
+        rate_hz=coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
+        device=device, excitation=excitation, path=path,
+        integrator=doc.get("integrator", _key("integrator").default), safety=safety,
+        audio=audio))
+
+
+def _built(ctx: LineContext, doc: LDict, make: Callable):
+    """``make()``, a scene checked as it is built; a broken rule named at the line of its
+    key in the document (the entry's line is all the scene itself knows)."""
     try:
-        return Scene(rate_hz=coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
-                     device=device, excitation=excitation, path=path,
-                     integrator=doc.get("integrator", _key("integrator").default), safety=safety,
-                     audio=audio)
+        return make()
     except ConfigError as exc:
         where = getattr(exc, "scene_where", None)
         if where is None:
             raise
-        raise ConfigError(exc.reason, file=path, line=ctx.doc_line(doc, where),
+        raise ConfigError(exc.reason, file=ctx.path, line=ctx.doc_line(doc, where),
                           key=exc.key) from None
 
 
@@ -201,17 +208,7 @@ def scene_has_ports(path: str | os.PathLike) -> bool:
         False otherwise, or when the file cannot be read or parsed (the reader that reads
         it then says why).
     """
-    try:
-        text = read_text(path)
-    except ConfigError:
-        return False
-    if "devices" not in text:
-        return False
-    try:
-        doc = load_yaml(text, os.fspath(path))
-    except ConfigError:
-        return False
-    return isinstance(doc, dict) and "devices" in doc
+    return "devices" in _top_keys(path, "devices")
 
 
 def load_scene_ports(path: str | os.PathLike) -> ScenePorts:
@@ -282,16 +279,10 @@ def parse_scene_ports(text: str, path: str = "<string>") -> ScenePorts:
                             "rate_hz drives every port", ctx.line_of(block, "rate_hz"),
                             f"{key}.rate_hz")
         devices.append((name, read_device(ctx, devs, key)))
-    try:
-        return ScenePorts(rate_hz=coerce(doc["rate_hz"]), masses=tuple(masses),
-                          links=tuple(links), devices=tuple(devices), path=path,
-                          integrator=doc.get("integrator", _key("integrator").default))
-    except ConfigError as exc:
-        where = getattr(exc, "scene_where", None)
-        if where is None:
-            raise
-        raise ConfigError(exc.reason, file=path, line=ctx.doc_line(doc, where),
-                          key=exc.key) from None
+    return _built(ctx, doc, lambda: ScenePorts(
+        rate_hz=coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
+        devices=tuple(devices), path=path,
+        integrator=doc.get("integrator", _key("integrator").default)))
 
 
 def _read_values(ctx: LineContext, d: LDict, section: str, key: str,
@@ -467,31 +458,38 @@ def scene_dimension(path: str | os.PathLike) -> int:
         reader then reads the file and reports any other problem, including a bad
         ``dimension``).
     """
+    d = _top_keys(path, "dimension").get("dimension")
+    return d if d in (2, 3) and not isinstance(d, bool) else 1
+
+
+def _top_keys(path: str | os.PathLike, word: str) -> dict:
+    """The top mapping of the scene file, cheaply: empty when the file cannot be read or
+    parsed (the reader that reads it then says why) or its text lacks ``word``."""
     try:
         text = read_text(path)
     except ConfigError:
-        return 1                       # the 1-D reader reports it
-    if "dimension" not in text:
-        return 1
-    got = _DIMENSIONS.get(text)
+        return {}
+    if word not in text:
+        return {}
+    got = _TOPS.get(text)
     if got is not None:
         return got
     try:
         doc = load_yaml(text, os.fspath(path))
     except ConfigError:
-        doc = None                     # the 1-D reader reports it
-    d = doc.get("dimension") if isinstance(doc, dict) else None
-    got = d if d in (2, 3) and not isinstance(d, bool) else 1
-    if len(_DIMENSIONS) >= 16:         # a few texts: a command asks two or three times
-        _DIMENSIONS.clear()
-    _DIMENSIONS[text] = got
+        doc = None
+    got = doc if isinstance(doc, dict) else {}
+    if len(_TOPS) >= 16:               # a few texts: a command asks two or three times
+        _TOPS.clear()
+    _TOPS[text] = got
     return got
 
 
-#: :func:`scene_dimension`'s answers by the file's text: a command of an n-D scene asked
-#: it two or three times (``check`` in the command and again in ``api.load_scene``), and
-#: each time parsed the whole file (a membrane's ~14 ms); the same text, the same answer.
-_DIMENSIONS: dict = {}
+#: :func:`_top_keys`'s answers by the file's text: a command of an n-D scene asked its
+#: dimension two or three times (``check`` in the command and again in
+#: ``api.load_scene``), and each time parsed the whole file (a membrane's ~14 ms); the
+#: same text, the same answer.
+_TOPS: dict = {}
 
 
 def load_scene_nd(path: str | os.PathLike) -> SceneND:

@@ -223,10 +223,6 @@ def check_scene(s) -> None:
     Invalid
         On the first broken rule, in scene order.
     """
-    check_key(_key("rate_hz"), s.rate_hz, "rate_hz")
-    check_key(_key("integrator"), s.integrator, "integrator")
-    if not isinstance(s.path, str):
-        raise Invalid(f"must be a string, got {type_name(s.path)}", ("path",))
     names, ports = _check_masses(s)
     if len(ports) > 1:
         raise Invalid(f"at most one port per scene (1-DoF device); found {len(ports)}: "
@@ -280,8 +276,6 @@ def check_scene_ports(s) -> None:
     Invalid
         On the first broken rule, in scene order.
     """
-    check_key(_key("rate_hz"), s.rate_hz, "rate_hz")
-    check_key(_key("integrator"), s.integrator, "integrator")
     names, ports = _check_masses(s)
     for i, m in enumerate(s.masses):
         if m.kind == "mass":
@@ -329,7 +323,12 @@ def check_scene_ports(s) -> None:
 
 
 def _check_masses(s) -> tuple[dict[str, int], list[int]]:
-    """The masses' rules; their names (name -> index) and the ports' indices."""
+    """The rules of the rate, the integrator, the path and the masses; the masses' names
+    (name -> index) and the ports' indices."""
+    check_key(_key("rate_hz"), s.rate_hz, "rate_hz")
+    check_key(_key("integrator"), s.integrator, "integrator")
+    if not isinstance(s.path, str):
+        raise Invalid(f"must be a string, got {type_name(s.path)}", ("path",))
     if not isinstance(s.masses, tuple) or not s.masses:
         raise Invalid("must be a non-empty list of masses", ("masses",))
     names: dict[str, int] = {}
