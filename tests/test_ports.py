@@ -354,8 +354,9 @@ def test_run_lockstep_on_two_ports_and_its_refusals(tmp_path, capsys):
     f.write_text(TWO)
     assert main(["run", str(f), "--lockstep", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert d["verdict"] == "within" and d["ports"] == ["a", "b"]
+    assert d["verdict"] == "within" and d["ports"] == ["a", "b"] and d["dof"] == 2
     assert max(d["deviation"].values()) <= 1e-6      # the issue's figure; derived above
+    assert all(s["verdict"] == "within" for s in d["statements"])
     for argv, flag in ((["run", str(f)], "--lockstep"),
                        (["run", str(f), "--lockstep", "--duration", "2"], "--duration")):
         assert main(argv) == 2
@@ -394,3 +395,29 @@ def test_two_faders_modes_are_the_1d_loops_of_their_common_and_differential_moti
         dk, db = felt_tols(r.rendered_poles[i], dz, dv.mass, scene.period)
         assert r.direction_stiffness[i] == pytest.approx(r1.k, rel=0, abs=dk)
         assert r.direction_damping[i] == pytest.approx(r1.b, rel=0, abs=db)
+
+
+def test_the_api_takes_a_scene_of_several_ports(tmp_path):
+    """hapsim.load_scene reads it, hapsim.check gives its PortsCheck, hapsim.run measures it
+    in lockstep (the command's report: a RunReportND of P axes) and refuses the real-time
+    run by name."""
+    import hapsim
+    from hapsim.analysis.ports import PortsCheck
+    f = tmp_path / "two.yaml"
+    f.write_text(TWO)
+    s = hapsim.load_scene(f)
+    assert type(s) is ScenePorts
+    assert type(hapsim.check(s)) is PortsCheck
+    r = hapsim.run(s, lockstep=True)
+    assert type(r) is hapsim.RunReportND and r.dof == 2 and r.verdict == "within"
+    assert r.extra["ports"] == ["a", "b"] and r.extra["delays"] == [1.0, 2.0]
+    assert r.k.shape == (2, 2)
+    with pytest.raises(ConfigError) as e:
+        hapsim.run(s)
+    assert e.value.key == "lockstep" and "not built" in str(e.value)
+    with pytest.raises(ConfigError) as e:
+        hapsim.run(s, lockstep=True, duration=2.0)
+    assert e.value.key == "duration" and "several ports" in str(e.value)
+    with pytest.raises(ConfigError) as e:
+        hapsim.play(s)
+    assert e.value.key == "devices"

@@ -671,19 +671,18 @@ def run_nd(args) -> int:
 
 def run_ports(args) -> int:
     """Measure the felt matrices across the ports of a scene with several ports, in
-    lockstep (:func:`hapsim.lockstep.measure_felt_ports`: each port its own device model).
+    lockstep (:func:`hapsim.api.running.run_scene_ports`: each port its own device model).
 
     Parameters
     ----------
     args : argparse.Namespace
         ``scene``, ``lockstep`` (required), ``amplitude`` [m] (None: 1e-8), ``json``,
-        ``allow_unstable``; run's other options refused.
+        ``allow_unstable``; run's other options refused by flag.
 
     Returns
     -------
     int
-        0 when the loop is stable (the measurement reported, whatever it finds); 1 when
-        the check finds it unstable and ``--allow-unstable`` is not given.
+        0 when the loop is stable (the measurement reported, whatever it finds).
 
     Raises
     ------
@@ -691,61 +690,42 @@ def run_ports(args) -> int:
         No ``--lockstep`` or a ``--port`` / ``--driver`` (the real-time run of several
         ports is not built), another option a run of several ports does not take, a bad
         amplitude or scene (file, line, key).
+    UnstableConfigError
+        The coupled loop is unstable without ``--allow-unstable`` (exit 1).
     """
-    if not args.lockstep or args.port or getattr(args, "driver", None) is not None:
-        raise ConfigError("a scene with several ports runs in lockstep, in-process "
-                          "(--lockstep): the real-time run of several devices, each on its "
-                          "own clock and link, is not built yet", key="--lockstep")
-    try:
-        _refuse_options_nd(args)
-    except ConfigError as exc:
-        raise ConfigError(f"a scene with several ports does not take {exc.key} yet (it "
-                          "takes --lockstep, --amplitude, --allow-unstable, --json)",
-                          key=exc.key) from None
-    import numpy as np
-
-    from hapsim.lockstep import measure_felt_ports
+    from hapsim.api.running import run_scene_ports
+    from hapsim.pipeline.options import RunOptions
     from hapsim.scene import load_scene_ports
+    for attr, flag in _REFUSED_ND:
+        if getattr(args, attr, None) is not None and getattr(args, attr) is not False:
+            raise ConfigError(f"a scene with several ports does not take {flag} yet",
+                              key=flag)
+    opts = RunOptions.from_args(args)
     scene = load_scene_ports(args.scene)
-    a = 1e-8 if getattr(args, "amplitude", None) is None else args.amplitude
-    res = measure_felt_ports(scene, a)
-    chk, fit, v = res["predicted"], res["measured"], res["verdict"]
-    if not chk.stable and not args.allow_unstable:
-        from hapsim.errors import UnstableConfigError
-        raise UnstableConfigError(f"the coupled loop of {', '.join(chk.ports)} is unstable "
-                                  f"(spectral radius {chk.render.spectral_radius:.9g}); "
-                                  "--allow-unstable runs it anyway",
-                                  spectral_radius=chk.render.spectral_radius)
-
-    def lists(m):
-        return None if m is None else np.asarray(m).tolist()
+    rep = run_scene_ports(scene, opts, getattr(args, "amplitude", None), by="flag")
     if args.json:
-        print(json.dumps({"scene": args.scene, "ports": list(chk.ports),
-                          "verdict": v["verdict"], "reason": v["reason"],
-                          "stable": bool(chk.stable), "predicted": chk.to_dict(),
-                          "measured": {"felt_stiffness": lists(fit["felt_stiffness"]),
-                                       "felt_damping": lists(fit["felt_damping"])},
-                          "deviation": res["deviation"], "uncertainty": v["uncertainty"],
-                          "amplitude": a, "records": res["records"],
-                          "samples": res["samples"]}))
+        print(json.dumps(rep.to_dict()))
         return 0
     o = sys.stdout
-    print(f"{scene.path}: {len(chk.ports)} ports ({', '.join(chk.ports)}) in lockstep at "
+    x = rep.extra
+    print(f"{scene.path}: {len(x['ports'])} ports ({', '.join(x['ports'])}) in lockstep at "
           f"{scene.rate_hz:g} Hz, in-process, each port its own device (delays "
-          f"{', '.join(f'{d:g}' for d in chk.delays)})", file=o)
-    print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
-          f"amplitude a = {a:g} m (minus the response from rest)", file=o)
-    for name, m, unit in (("predicted felt stiffness k", chk.render.felt_stiffness, "N/m"),
-                          ("measured felt stiffness k", fit["felt_stiffness"], "N/m"),
-                          ("predicted felt damping b", chk.render.felt_damping, "N s/m"),
-                          ("measured felt damping b", fit["felt_damping"], "N s/m")):
+          f"{', '.join(f'{d:g}' for d in x['delays'])})", file=o)
+    print(f"  excitation: {rep.records} free responses of {rep.samples} samples, amplitude "
+          f"a = {rep.linearisation_bound['amplitude']:g} m (minus the response from rest)",
+          file=o)
+    for name, m, unit in (("predicted felt stiffness k", rep.predicted["felt_stiffness"],
+                           "N/m"),
+                          ("measured felt stiffness k", rep.measured["felt_stiffness"], "N/m"),
+                          ("predicted felt damping b", rep.predicted["felt_damping"], "N s/m"),
+                          ("measured felt damping b", rep.measured["felt_damping"], "N s/m")):
         print(f"  {name} [{unit}]" + ("" if m is not None else ": none"), file=o)
-        for row in (m if m is not None else ()):
-            print("    " + "  ".join(f"{x:+14.8g}" for x in row), file=o)
-    dev = res["deviation"]
-    if dev is not None:
+        for row in (m or ()):
+            print("    " + "  ".join(f"{v:+14.8g}" for v in row), file=o)
+    if rep.deviation is not None:
         print(f"  measured - predicted (largest entry over the largest predicted): "
-              f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e} (round-off "
-              f"allowed {res['bound'].roundoff:.2e}: a linear loop)", file=o)
-    print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
+              f"k {rep.deviation['felt_stiffness']:.2e}, b {rep.deviation['felt_damping']:.2e}"
+              f" (round-off allowed {rep.linearisation_bound['roundoff']:.2e}: a linear "
+              "loop)", file=o)
+    print(f"  verdict: {rep.verdict}: {rep.reason}", file=o)
     return 0
