@@ -384,7 +384,7 @@ def read_device(ctx: LineContext, doc: LDict, key: str = "device") -> Device:
     vals = _read_values(ctx, d, "device", key)
     if isinstance(vals["delay"], float) and vals["delay"].is_integer():
         vals["delay"] = int(vals["delay"])   # a whole delay: the plain hold's int, as before
-    vals["hand"] = _read_hand(ctx, d) if "hand" in d else None
+    vals["hand"] = _read_hand(ctx, d, key) if "hand" in d else None
     vals["correction"] = (dict(ctx.mapping(d["correction"], f"{key}.correction",
                                            ctx.line_of(d, "correction")))
                           if "correction" in d else None)
@@ -395,9 +395,9 @@ def read_device(ctx: LineContext, doc: LDict, key: str = "device") -> Device:
     return Device(**vals)
 
 
-def _read_hand(ctx: LineContext, dev: LDict) -> Hand:
-    h = ctx.mapping(dev["hand"], "device.hand", ctx.line_of(dev, "hand"))
-    ctx.keys(h, _HAND_KEYS, "device.hand", required=("mass",))
+def _read_hand(ctx: LineContext, dev: LDict, key: str = "device") -> Hand:
+    h = ctx.mapping(dev["hand"], f"{key}.hand", ctx.line_of(dev, "hand"))
+    ctx.keys(h, _HAND_KEYS, f"{key}.hand", required=("mass",))
 
     def val(key, default):
         v = h.get(key, default)
