@@ -133,18 +133,19 @@ def test_stretches_of_free_responses_fit_exactly_and_a_cut_is_needed():
 
 
 def _measure(monkeypatch, seed, *, loss=0.0, stalls=None, clock="wall", inertia=1.0,
-             N=200):
+             N=200, friction=1.0):
     """The whole measurement (five records) on the emulated board, the host's stalls
     injected by sleeping ``stalls[n]`` [s] of simulated time inside its ``n``-th 10-byte
     write (on the wall clock the board holds the torque meanwhile), ``loss`` of the bytes
-    lost each way, the board's joint inertia ``inertia`` times the scene's (a hidden
-    difference)."""
+    lost each way, the board's joint inertia ``inertia`` and friction ``friction`` times
+    the scene's (a hidden difference)."""
     clk = SimClock()
     monkeypatch.setattr(record, "time", types.SimpleNamespace(
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))
     sc = load_scene_nd(WALL)
     plant = dataclasses.replace(sc, device=dataclasses.replace(
-        sc.device, joint_inertia=sc.device.joint_inertia * inertia))
+        sc.device, joint_inertia=sc.device.joint_inertia * inertia,
+        joint_friction=sc.device.joint_friction * friction))
     board = Haply2DIYBoard(plant, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock=clock)
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     link = SimLink(board, clk, f.rx, f.tx)
