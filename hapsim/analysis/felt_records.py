@@ -44,7 +44,10 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
     inequality on the fit's sensitivity times each error's response through the loop,
     as a whole and along each principal direction), the fit the affine one
     (:func:`hapsim.analysis.pencil.felt_sensitivity_nd` with ``offset=True``) and each
-    record's errors in its own fit only.
+    record's errors in its own fit only. Sources: the least-squares estimate's
+    first-order perturbation (G. A. F. Seber and C. J. Wild, *Nonlinear Regression*,
+    1989, Sec. 2.1) and Hoelder's inequality for the worst case over bounded errors of
+    any sign (:func:`hapsim.analysis.pencil.worst_case_nd`).
 
     Parameters
     ----------

@@ -40,10 +40,13 @@ A common equilibrium ``c`` (records of absolute handle positions, not difference
 a record from rest) is taken by an affine prediction, ``offset=True``:
 ``y[k] - c = sum_j C_j (y[k-j] - c)``, i.e. ``y[k] = sum_j C_j y[k-j] + g`` with
 ``g = (I - sum_j C_j) c`` one more unknown per coordinate, shared by every record and
-stretch. On exact data of the loop it holds exactly (as the differencing of the 1-D
-fit does), and it costs no row of a stretch: a first difference would cost each stretch
-one equation, and subtracting a record from rest would leave only the rows usable in
-both records (each record's cuts made the other's too).
+stretch (the vector autoregression with intercept, whose mean is
+``(I - sum_j C_j)^-1 g``: H. Luetkepohl, *New Introduction to Multiple Time Series
+Analysis*, 2005, Sec. 2.1.1 and 3.2). On exact data of the loop it holds exactly (as
+the differencing of the 1-D fit does), and it costs no row of a stretch: a first
+difference would cost each stretch one equation, and subtracting a record from rest
+would leave only the rows usable in both records (each record's cuts made the other's
+too).
 :mod:`hapsim.analysis.ths_nd` is imported on call (importing :mod:`hapsim.analysis` does
 not load it).
 """
