@@ -195,14 +195,18 @@ def test_host_stalls_on_the_boards_own_clock_are_cut_and_measured_simulated_time
     assert h["deviation"]["felt_stiffness"] > 0.05
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1, 2, 9])
 def test_resynchronised_records_are_cut_and_a_hidden_difference_still_differs_lockstep(
         monkeypatch, seed):
     """1 byte in 200 lost each way, the board in lockstep: 4-10 re-synchronisations per
     record, each cut with the missing replies before it; a correct loop is never
     "differs" (before: "not measurable" whatever the stretches), and a board whose joint
     inertia is 30 % above the scene's is "differs", the felt stiffness off by more than
-    its stated uncertainty."""
+    its stated uncertainty. Seed 9's heavier board kept three estimated rows (late
+    replies in step) 1e-5 m off: with them in the records' own-stretch fit it said
+    "partly within" (``haply2_verdict._without_estimates`` leaves them out). Over seeds
+    1-20 (simulated): 19 "differs" (17 before the own-stretch fit), the other an arming
+    the stream corrupted."""
     r = _measure(monkeypatch, seed, loss=1 / 200, clock="lockstep")
     assert sum(r["resyncs"]) > 0
     assert r["verdict"] != "differs", (r["reason"], r["deviation"], r["uncertainty"])

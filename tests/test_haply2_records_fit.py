@@ -133,20 +133,3 @@ def test_lossy_hidden_friction_never_within_lockstep(monkeypatch, seed):
     if r["verdict"] == "partly within":
         assert "felt damping" in r["not_stated"]
 
-
-@pytest.mark.parametrize("seed", [3, 9, 12])
-def test_lossy_hidden_inertia_differs_lockstep(monkeypatch, seed):
-    """1 byte in 200 lost each way, the board in lockstep with each joint's inertia 30 %
-    above the scene's: "differs", the felt stiffness off (17 %) by more than its stated
-    uncertainty. Seed 9 kept three estimated rows (late replies in step) whose
-    extrapolations were 1e-5 m off: with them in its own stretches' fit the run said
-    "partly within" (a direction within 0.23); they are left out of that fit
-    (``haply2_verdict._without_estimates``). Over seeds 1-20 (simulated, before and
-    after): 17 and 19 "differs", the rest an arming the stream corrupted."""
-    h = _measure(monkeypatch, seed, loss=1 / 200, clock="lockstep", inertia=1.3)
-    assert sum(h["resyncs"]) > 0
-    assert h["verdict"] == "differs", (h["reason"], h["deviation"], h["uncertainty"])
-    st = [s for s in h["statements"] if s["quantity"] == "felt_stiffness"
-          and s["direction"] is None]
-    assert st and st[0]["verdict"] == "differs"
-    assert h["deviation"]["felt_stiffness"] > h["uncertainty"]["felt_stiffness"]
