@@ -51,6 +51,10 @@ def random_ports(rng, *, coupled: bool, whole: bool = True) -> ScenePorts:
     return ScenePorts(rate_hz=rate, masses=tuple(masses), links=tuple(links),
                       devices=devices)
 
+#: Issue 30's requirement on a lockstep measurement of the felt matrices across ports
+#: (relative): not a round-off tolerance; the tests check the derived allowance is below it.
+ISSUE_BOUND = 1e-6
+
 
 def reference_state_matrix(scene) -> np.ndarray:
     """Independent closed loop of the ports: each device ``m x'' + b0 x' = u`` held by its
@@ -366,7 +370,7 @@ def test_lockstep_measures_the_predicted_felt_matrices_across_ports(whole):
         if not res["predicted"].stable or res["deviation"] is None:
             continue
         allowed = res["bound"].roundoff            # derived: 100 eps X / a + 1e6 eps
-        assert allowed <= 1e-6
+        assert allowed <= ISSUE_BOUND
         assert res["deviation"]["felt_stiffness"] <= allowed
         assert res["deviation"]["felt_damping"] <= allowed
         assert res["verdict"]["verdict"] == "within"
@@ -381,7 +385,7 @@ def test_run_lockstep_on_two_ports_and_its_refusals(tmp_path, capsys):
     assert main(["run", str(f), "--lockstep", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["verdict"] == "within" and d["ports"] == ["a", "b"] and d["dof"] == 2
-    assert max(d["deviation"].values()) <= 1e-6      # the issue's figure; derived above
+    assert max(d["deviation"].values()) <= ISSUE_BOUND   # derived above: round-off allowed
     assert all(s["verdict"] == "within" for s in d["statements"])
     for argv, flag in ((["run", str(f)], "--lockstep"),
                        (["run", str(f), "--lockstep", "--duration", "2"], "--duration")):
