@@ -162,7 +162,7 @@ def falcon_spring() -> str:
         "# A spring field felt through a Novint Falcon (delta, libnifalcon's geometry): the\n"
         "# handle held where it rests by a 3-D spring-damper of rest length 0 to an anchor\n"
         "# there (the same law along every axis). No contact to open, so a hand start may be\n"
-        "# millimetres, up to the run's envelope of 0.1 rad at a leg (3.8 mm here, about 101\n"
+        "# millimetres, up to the run's envelope of 0.1 rad at a leg (3.8 mm here, about 95\n"
         "# encoder counts of 27-47 um): there the readings' rounding may move the felt\n"
         "# stiffness by at most 0.19 of itself (first order, about the exact records), below\n"
         "# the 0.25 a statement allows, and 'hapsim run --driver falcon' measures the felt\n"
