@@ -156,3 +156,23 @@ def test_the_run_measures_them_on_the_emulated_falcon_only(spring):
     json.dumps(s)
     real = felt_statement(sc)
     assert real["verdict"] == "not measured" and "real Falcon" in real["reason"]
+
+
+def test_hapsim_run_prints_the_measured_felt_matrices(capsys, tmp_path):
+    """`hapsim run configs/falcon_spring.yaml --driver falcon --firmware FILE` on the
+    emulated Falcon, on its own clock (the wall clock: real time, as a user runs it):
+    exit 0, the seven records' account printed (the start, the rows missing and after a
+    host stall, both cut), each felt quantity's deviation and stated uncertainty, and a
+    verdict that is never "differs" of the scene's own device (a loaded machine's stalls
+    may cut the records to "not measurable": then said)."""
+    from hapsim.cli import main
+    fw = tmp_path / "falcon.bin"
+    fw.write_bytes(IMAGE)
+    assert main(["run", str(CONFIGS / "falcon_spring.yaml"), "--driver", "falcon",
+                 "--firmware", str(fw), "--packets", "40"]) == 0
+    out = capsys.readouterr().out
+    assert "felt matrices measured: 7 records of the hand let go 3.77 mm from rest" in out
+    assert "    felt stiffness: measured - predicted " in out
+    assert "    felt damping: measured - predicted " in out
+    line = next(x for x in out.splitlines() if x.startswith("  felt matrices: "))
+    assert line.split(": ")[1] in ("partly within", "within", "not measurable"), line
