@@ -45,6 +45,14 @@ ZERO_PACKETS = 5
 #: firmware, on its own clock, held the last command over them (counted in ``stalls``;
 #: on a paced Falcon the verdict is "degraded" then: another loop than the scene's).
 HELD_PERIODS = 2.0
+#: Periods between two of the loop's packets beyond which the second may have missed the
+#: firmware's tick after the first (the first's command held two ticks): its row is
+#: ``late`` (:func:`run_falcon`'s ``late_rows``, cut from the felt matrices' records).
+#: Measured against the emulated Falcon's own ticks at load 12 on 2 cores (1,023 rows, 419
+#: ticks missed): 1.25 caught 413-414 of them, cutting ~55 rows that missed none; 2 (the
+#: stalls' :data:`HELD_PERIODS`) caught 375, and a packet sent more than a period after the
+#: last reply was read (certain) only 8 of 470.
+SKIP_PERIODS = 1.25
 #: Longest time [s] a paced Falcon (its firmware on its own clock, no watchdog published)
 #: is left with a command computed from a reading older than this: the loop then sends
 #: zero commands until a reply comes (``held_zero``); the 1-DoF drivers' bound
@@ -254,8 +262,8 @@ def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
     stated by :func:`hapsim.emulated.falcon_felt.falcon_felt_verdict`.
 
     On the Falcon's own clock (``clock="wall"``) the loop is paced as a real Falcon's: a
-    row whose packet left more than :data:`HELD_PERIODS` periods after the one before
-    (``late_rows``: the firmware held the last command over the gap, so the record is not
+    row whose packet left more than :data:`SKIP_PERIODS` periods after the one before
+    (``late_rows``: the firmware may have held the last command over a tick, the record not
     the scene's loop there) is cut as a missing reply is, with the rows its held command
     acted on (:func:`hapsim.emulated.falcon_felt.falcon_usable_rows`); a record stopped
     on the motion (a leg beyond :data:`ENVELOPE_RAD`) or by the late-stop rule leaves
@@ -432,8 +440,9 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         (None, or the braking after that stop,
         :func:`hapsim.emulated.falcon_device.brake_legs`), ``joints`` (N, 3) [rad] read
         (NaN where missing), ``late_rows`` (N,) bool (the rows whose packet left more
-        than :data:`HELD_PERIODS` periods after the one before: the firmware held the
-        last command over the gap, so the row is not one period after the last),
+        than :data:`SKIP_PERIODS` periods after the one before, or more than one after the
+        previous reply was read: the firmware's tick may have passed without a packet,
+        the last command held over it, so the row not one period after the last),
         ``verdict``, ``reason``.
 
     Raises
@@ -484,6 +493,8 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     # the loop's exchanges on the host's clock: a gap of more than HELD_PERIODS periods
     # between two packets is a host stall (the firmware held the last command over it)
     stamps = []
+    # when each exchange returned (its reply read, or its wait over)
+    replied = []
     # whether each exchange's reply came before its timeout: a gap after one that did
     # not is the host waiting for a lost reply, not the host stalled
     answered = []
@@ -511,6 +522,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             # would otherwise leave the next reply one byte behind, read one packet late)
             ans = late + link.exchange(packet, 32, _reply_end, wait[0])
             answered.append(_reply_end(ans))
+            replied.append(time.perf_counter())
         except DeviceError as exc:
             raise DeviceError(f"{exc} (after {sent[0] - 1} packets since the firmware "
                               "load)") from None
@@ -544,6 +556,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         dec = DevicePacketDecoder()
     t0 = time.perf_counter()
     stamps.clear()
+    replied.clear()
     answered.clear()
     try:
         # a stop on the motion (the legs out of their envelope, a paced host too late)
@@ -567,12 +580,20 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
            "held_zero": res["held_zero"], "stopped": res["stopped"],
            "brake": res["brake"], "joints": res["joints"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
-    # sample k reads the reply of exchange k (stamps[0]: the loop's priming packet); a
-    # gap before it: the firmware held the command of exchange k - 1 over it
+    # sample k reads the reply of exchange k (stamps[0]: the loop's priming packet). The
+    # firmware takes a packet at its next tick, so packet k missed a tick (the command of
+    # packet k - 1 held over two: row k not one period after row k - 1) when it left more
+    # than a period after the tick packet k - 1 took, which lies between that packet's
+    # sending and its reply's reading: certainly when it left more than a period after
+    # that reply was read, possibly when it left more than a period after packet k - 1.
+    # Rows whose packet left more than SKIP_PERIODS after the last are cut, and those
+    # certain ones (module constants: the rule measured against the emulator's ticks)
     late = np.zeros(int(samples), bool)
-    m = min(gaps.size, late.size - 1)
+    sent_after = (np.asarray(stamps[1:]) - np.asarray(replied[:len(stamps) - 1])) \
+        * scene.rate_hz                                   # [periods]
+    m = min(sent_after.size, gaps.size, late.size - 1)
     if m > 0:
-        late[1:m + 1] = gaps[:m] > HELD_PERIODS
+        late[1:m + 1] = (gaps[:m] > SKIP_PERIODS) | (sent_after[:m] > 1.0)
     out["late_rows"] = late
     # gap k follows exchange k: after a reply that never came (lost bytes) the host
     # waited its timeout for it; after one that came, a long gap is the host's own
