@@ -31,7 +31,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["wire_terms_records"]
+__all__ = ["wire_terms_records", "within_excursion", "window_rows"]
 
 #: The error kinds (:func:`hapsim.lockstep.wire_terms_nd`'s).
 _KINDS = ("reading", "force", "position", "velocity")
@@ -118,3 +118,71 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
         out["directions"][q] = [float(w / a) if a > 0 else math.inf
                                 for w, a in zip(wd, along)]
     return out
+
+
+def within_excursion(scene, diffs, usable, amplitude: float) -> list:
+    """``usable`` with the rows after a record's first cut left out where the handle is
+    farther from rest than any undisturbed record goes (the largest excursion of the
+    loop predicted in lockstep from the hand's starts, :class:`hapsim.lockstep.LockstepND`).
+
+    A stretch after a host stall starts where the torque held over the stall left the
+    handle, not from one of the hand's starts: its rows beyond the undisturbed excursion
+    are at an amplitude the linearisation bound (stated at ``a``, as for a record without
+    a cut) does not cover. Measured on the emulated board (configs/pantograph_wall.yaml,
+    the 2DIY's board on its own clock): a 30 ms stall carried a record to 1.0 mm from rest,
+    2.9 times the undisturbed excursion and out of the wall (its depth 0.5 mm), and the
+    felt stiffness fitted there was 14 % off the prediction. The rows before the first
+    cut are the hand's start's, as in a record without one (kept whatever their
+    excursion).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+    diffs : list of ndarray, each shape (N, n)
+        The records minus the record from rest [m].
+    usable : list of ndarray of bool, each shape (N,)
+    amplitude : float
+        The hand's ``a`` [m].
+
+    Returns
+    -------
+    list of ndarray of bool, each shape (N,)
+    """
+    from hapsim.lockstep import LockstepND, excitation_starts
+    N = diffs[0].shape[0]
+    rest = LockstepND(scene).step(N, record=True)
+    nominal = 0.0
+    for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)[1:]:
+        r = LockstepND(scene, x0=x0, v0=v0).step(N, record=True)
+        nominal = max(nominal, float(np.max(np.linalg.norm(r - rest, axis=1))))
+    out = []
+    for d_, u in zip(diffs, usable):
+        u = np.asarray(u, bool).copy()
+        cut = np.flatnonzero(~u)
+        if cut.size:
+            after = np.arange(N) > cut[0]
+            u &= ~(after & (np.linalg.norm(d_, axis=1) > nominal))
+        out.append(u)
+    return out
+
+
+def window_rows(usable, order: int) -> np.ndarray:
+    """Rows ``k >= order`` whose rows ``k - order .. k`` are all usable (the equations
+    :func:`hapsim.analysis.pencil.fit_felt_nd` forms), as a mask.
+
+    Parameters
+    ----------
+    usable : array_like of bool, shape (N,)
+        The rows of a record's undisturbed stretches.
+    order : int
+        The fit's prediction order ``p``.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True where row ``k`` closes an equation of the fit.
+    """
+    u = np.asarray(usable, bool)
+    bad = np.concatenate(([0], np.cumsum(~u)))
+    k = np.arange(u.size)
+    return (k >= order) & (bad[k + 1] - bad[np.maximum(k - order, 0)] == 0)

@@ -70,7 +70,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         nothing stated of it).
     """
     from hapsim.analysis.pencil import fit_felt_nd
-    from hapsim.analysis.felt_records import wire_terms_records
+    from hapsim.analysis.felt_records import window_rows, wire_terms_records, within_excursion
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
@@ -99,7 +99,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         # 1-53 equations of the 194-363 the records' own stretches hold)
         x_eq = kin.forward(q)
         d = int(math.ceil(float(scene.device.delay)))
-        own = _within_excursion(scene, [r["position"] - x_eq for r in runs],
+        own = within_excursion(scene, [r["position"] - x_eq for r in runs],
                                 [_without_estimates(r, N, d) for r in runs], amplitude)
     try:
         if own is not None:
@@ -195,7 +195,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
                                  for g in GENERATIONS},
             "records": 2 * n, "samples": N,
             "fitted_rows": ([0] * len(diffs) if short is not None else
-                            [int(np.count_nonzero(_window_ok(u, order)))
+                            [int(np.count_nonzero(window_rows(u, order)))
                              for u in (own if own is not None else usable)]
                             if usable is not None else None)}
 
@@ -233,58 +233,3 @@ def _without_estimates(rec: dict, N: int, d: int) -> np.ndarray:
     for k in np.flatnonzero(np.asarray(rec.get("estimated", np.zeros(N, bool)), bool)):
         u[max(k - 1, 0):k + d + 2] = False
     return u
-
-
-def _within_excursion(scene, diffs, usable, amplitude: float) -> list:
-    """``usable`` with the rows after a record's first cut left out where the handle is
-    farther from rest than any undisturbed record goes (the largest excursion of the
-    loop predicted in lockstep from the hand's starts, :class:`hapsim.lockstep.LockstepND`).
-
-    A stretch after a host stall starts where the torque held over the stall left the
-    handle, not from one of the hand's starts: its rows beyond the undisturbed excursion
-    are at an amplitude the linearisation bound (stated at ``a``, as for a record without
-    a cut) does not cover. Measured on the emulated board (configs/pantograph_wall.yaml,
-    the board on its own clock): a 30 ms stall carried a record to 1.0 mm from rest,
-    2.9 times the undisturbed excursion and out of the wall (its depth 0.5 mm), and the
-    felt stiffness fitted there was 14 % off the prediction. The rows before the first
-    cut are the hand's start's, as in a record without one (kept whatever their
-    excursion).
-
-    Parameters
-    ----------
-    scene : hapsim.scene.SceneND
-    diffs : list of ndarray, each shape (N, n)
-        The records minus the record from rest [m].
-    usable : list of ndarray of bool, each shape (N,)
-    amplitude : float
-        The hand's ``a`` [m].
-
-    Returns
-    -------
-    list of ndarray of bool, each shape (N,)
-    """
-    from hapsim.lockstep import LockstepND, excitation_starts
-    N = diffs[0].shape[0]
-    rest = LockstepND(scene).step(N, record=True)
-    nominal = 0.0
-    for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)[1:]:
-        r = LockstepND(scene, x0=x0, v0=v0).step(N, record=True)
-        nominal = max(nominal, float(np.max(np.linalg.norm(r - rest, axis=1))))
-    out = []
-    for d_, u in zip(diffs, usable):
-        u = np.asarray(u, bool).copy()
-        cut = np.flatnonzero(~u)
-        if cut.size:
-            after = np.arange(N) > cut[0]
-            u &= ~(after & (np.linalg.norm(d_, axis=1) > nominal))
-        out.append(u)
-    return out
-
-
-def _window_ok(usable, order: int) -> np.ndarray:
-    """Rows ``k >= order`` whose rows ``k - order .. k`` are all usable (the equations
-    :func:`hapsim.analysis.pencil.fit_felt_nd` forms), as a mask."""
-    u = np.asarray(usable, bool)
-    bad = np.concatenate(([0], np.cumsum(~u)))
-    k = np.arange(u.size)
-    return (k >= order) & (bad[k + 1] - bad[np.maximum(k - order, 0)] == 0)
