@@ -9,6 +9,7 @@ eigen-equations of its own modes (tests/test_ths_nd.py's reference_felt)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -217,6 +218,24 @@ devices:
   b: {mass: 0.2, friction: 0.3, delay: 2, protocol: firefader}
 """
 
+#: Three faders: two FireFader boards (a board carries two), refused in real time.
+THREE_FADERS = """\
+rate_hz: 250
+masses:
+  - {name: a, kind: port}
+  - {name: b, kind: port}
+  - {name: c, kind: port}
+  - {name: g, kind: ground}
+links:
+  - {name: ab, kind: spring_damper, between: [a, b], stiffness: 30, damping: 0.1}
+  - {name: wa, kind: spring_damper, between: [a, g], stiffness: 15, damping: 0.1}
+  - {name: wc, kind: spring_damper, between: [c, g], stiffness: 15, damping: 0.1}
+devices:
+  a: {protocol: firefader, mass: 0.05, friction: 0.1, delay: 0.725}
+  b: {protocol: firefader, mass: 0.05, friction: 0.1, delay: 0.725}
+  c: {protocol: firefader, mass: 0.05, friction: 0.1, delay: 0.725}
+"""
+
 
 def test_a_two_port_scene_reads_each_port_with_its_device():
     s = parse_scene_ports(TWO, "two.yaml")
@@ -289,7 +308,8 @@ def test_commands_without_several_ports_refuse_them_in_one_line(tmp_path, capsys
     """Every command of the parser that takes a scene file (a new one fails here until it
     is listed) either takes several ports or refuses them: exit 2, one line naming the
     command, "several ports" and what takes them. ``run`` without ``--lockstep`` refuses
-    the real-time run."""
+    the real-time run of ports of different protocols (only the FireFader's two faders
+    run in real time: tests/test_faders_realtime.py)."""
     from hapsim.cli import main
     assert _scene_commands() == set(SCENE_COMMANDS)
     f = tmp_path / "two.yaml"
@@ -383,11 +403,24 @@ def test_run_lockstep_on_two_ports_and_its_refusals(tmp_path, capsys):
     assert d["verdict"] == "within" and d["ports"] == ["a", "b"] and d["dof"] == 2
     assert max(d["deviation"].values()) <= 1e-6      # the issue's figure; derived above
     assert all(s["verdict"] == "within" for s in d["statements"])
-    for argv, flag in ((["run", str(f)], "--lockstep"),
-                       (["run", str(f), "--lockstep", "--duration", "2"], "--duration")):
+    three = tmp_path / "three.yaml"
+    three.write_text(THREE_FADERS)
+    faders = str(Path(__file__).resolve().parents[1] / "configs" / "two_faders.yaml")
+    # in real time: ports of different protocols, three faders (two boards), another
+    # driver, the lockstep's own options: refused by name, before any board starts
+    for argv, flag, words in (
+            (["run", str(f)], "devices", "different protocols"),
+            (["run", str(f), "--port", "/dev/null"], "devices", "different protocols"),
+            (["run", str(three)], "devices", "several boards"),
+            (["run", faders, "--driver", "haply"], "--driver", "firefader"),
+            (["run", faders, "--duration", "2"], "--duration", "two faders"),
+            (["run", faders, "--port", "/dev/null", "--lockstep"], "--lockstep",
+             "two faders"),
+            (["run", str(f), "--lockstep", "--duration", "2"], "--duration",
+             "several ports")):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and flag in err[0] and "several ports" in err[0], err
+        assert len(err) == 1 and flag in err[0] and words in err[0], err
 
 
 # --------------------------------------------------------------------------- the shipped scene
@@ -426,7 +459,7 @@ def test_two_faders_modes_are_the_1d_loops_of_their_common_and_differential_moti
 def test_the_api_takes_a_scene_of_several_ports(tmp_path):
     """hapsim.load_scene reads it, hapsim.check gives its PortsCheck, hapsim.run measures it
     in lockstep (the command's report: a RunReportND of P axes) and refuses the real-time
-    run by name."""
+    run of ports of different protocols by name."""
     import hapsim
     from hapsim.analysis.ports import PortsCheck
     f = tmp_path / "two.yaml"
@@ -439,8 +472,8 @@ def test_the_api_takes_a_scene_of_several_ports(tmp_path):
     assert r.extra["ports"] == ["a", "b"] and r.extra["delays"] == [1.0, 2.0]
     assert r.k.shape == (2, 2)
     with pytest.raises(ConfigError) as e:
-        hapsim.run(s)
-    assert e.value.key == "lockstep" and "not built" in str(e.value)
+        hapsim.run(s)                         # real time: a and b of two protocols
+    assert e.value.key == "devices" and "not built" in str(e.value)
     with pytest.raises(ConfigError) as e:
         hapsim.run(s, lockstep=True, duration=2.0)
     assert e.value.key == "duration" and "several ports" in str(e.value)
