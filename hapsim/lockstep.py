@@ -386,7 +386,7 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 
 
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
-                  mass=None, responses=None) -> dict:
+                  mass=None, responses=None, period=None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces, and changes of the device's state.
@@ -438,6 +438,9 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
     responses : tuple of ndarray, optional
         The reading's and the force's :func:`error_responses` (several ports:
         :func:`port_error_responses`); default computed from ``scene``.
+    period : float, optional
+        The records' sample period [s] (default ``scene.period``; records taken every
+        ``D``-th sample: ``D T``, with ``responses`` sampled likewise).
 
     Returns
     -------
@@ -463,7 +466,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
     if r.felt_stiffness is None or r.directions is None:
         return inf
     N = int(np.asarray(diffs[0]).shape[0])
-    sens = felt_sensitivity_nd(diffs, mass, scene.period, order, usable=usable)
+    sens = felt_sensitivity_nd(diffs, mass, scene.period if period is None else period,
+                               order, usable=usable)
     if sens is None:
         return inf
     sens = [s for s in sens] + [-sum(sens)]          # the rest record's, in each

@@ -128,6 +128,33 @@ def test_the_records_replayed_through_each_faders_own_model_give_them_back(seed)
     assert all(np.any(r["position"][1:] != r["position"][0]) for r in run["records"][1:])
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_the_decimated_second_order_fit_is_exact_on_the_lockstep_loop(seed):
+    """The run's fit (every D-th sample, the rendered pairs only: order 2, the first
+    decimated sample skipped) on the exact lockstep loop's free responses
+    (hapsim.lockstep.LockstepPorts, no quantiser) gives the predicted felt matrices to
+    the linear loop's round-off allowance (LinearisationBound.roundoff, the lockstep
+    measurement's own): the hold's and the delay's fast modes it leaves out are gone
+    after one decimated sample, at 0.09^D of their start."""
+    from hapsim.analysis.felt_matrices import felt_deviation
+    from hapsim.analysis.pencil import fit_felt_nd
+    from hapsim.analysis.ports import check_ports, port_loop
+    from hapsim.lockstep import LockstepPorts, excitation_starts, ports_bound
+    from hapsim.pipeline.faders_run import FIT_ORDER, _decimated, decimation
+    sc = random_faders(np.random.default_rng(100 + seed))
+    chk = check_ports(sc)
+    T, N, a = sc.period, 300, 4e-3
+    D = decimation(chk, T)
+    assert D >= 4                             # 0.09^4 ~ 7e-5; the scenes' D: 9-15
+    rest = LockstepPorts(sc).step(N)
+    recs = [(LockstepPorts(sc, x0, v0).step(N) - rest)[::D]
+            for x0, v0 in excitation_starts(2, a, T)[1:]]
+    use = _decimated(np.ones(N, bool), D)
+    fit = fit_felt_nd(recs, port_loop(sc)[0].mass, D * T, FIT_ORDER, usable=[use] * 4)
+    dev = felt_deviation(fit, chk)
+    assert max(dev.values()) <= ports_bound(sc, chk, a).roundoff, (D, dev)
+
+
 def test_fader_b_is_the_firmwares_own_second_fader():
     """The board's fader B (the .ino's second motor, enable and pot): its byte of the
     packet drives it, its pot is in the record's second byte, read POT_S before pot A on

@@ -400,6 +400,8 @@ class FireFader(Driver):
 
     name = "firefader"
     travel_sweep = True
+    #: Both faders in every packet and record (:mod:`hapsim.pipeline.faders_run`).
+    ports_per_board = 2
     baud = 57600
     rtscts = True
     position_scale = METRES_PER_COUNT

@@ -79,8 +79,20 @@ CUT_PERIODS = 0.25
 #: counts (0.39 mm each) so the quantiser's rounding is a few percent of the motion, and
 #: small enough that the two-fader scene's forces stay under its 0.38 N limit.
 FADER_AMPLITUDE = 4e-3
+#: The fit's samples per cycle of the fastest rendered mode (:func:`decimation`): the
+#: records are fitted on every ``D``-th sample. Measured on one run's records (4 mm, the
+#: shipped scene, 6.2 Hz): every sample (the full order), the pots' steps of a tenth of
+#: a count per sample left the felt matrices unmeasurable (the rounding's term 10^3-10^4
+#: times them); every 8th to 16th sample (5 to 2.5 a cycle), the felt stiffness within
+#: 0.4-1.4 % of the prediction; every 24th aliased.
+SAMPLES_PER_CYCLE = 4
+#: The decimated fit's order: the rendered pairs only (2 per port's pair, a second-order
+#: vector recursion); the hold's and the delay's fast modes (``|z|`` ~0.09 a period at
+#: the FireFader's 250 Hz) are gone after one decimated sample (``0.09^D``), which the
+#: fit skips (:func:`_decimated`).
+FIT_ORDER = 2
 #: What the real-time run of the two faders takes (every other option refused by name).
-FADERS_TAKES = ("port", "driver", "allow_unstable", "rt_priority")
+FADERS_TAKES = ("port", "driver", "allow_unstable", "rt_priority", "seed")
 #: The host's wait for a reply before the run is stopped [s] (the board answers within
 #: ~3 ms: :meth:`hapsim.drivers.firefader.FireFader.round_trip_s`).
 REPLY_TIMEOUT_S = 0.5
@@ -100,17 +112,27 @@ def faders_refusal(scene, options) -> str | None:
     Returns
     -------
     str or None
-        The reason (several boards, other protocols, another driver), naming what is built.
+        The reason (several boards, other protocols, another driver), naming what is built
+        (the driver class's :attr:`~hapsim.drivers.base.Driver.ports_per_board`).
     """
-    protos = [d.protocol for _, d in scene.devices]
-    if options.driver not in (None, "firefader"):
-        return (f"driver {options.driver!r}: the real-time run of several ports drives the "
-                "FireFader's two faders only (--driver firefader)")
-    if len(protos) != 2 or any(p != "firefader" for p in protos):
-        return ("the real-time run of several ports is built for the FireFader's two faders "
-                "(two ports, both devices protocol: firefader); got "
-                + ", ".join(f"{n}: {d.protocol or 'framed'}" for n, d in scene.devices)
-                + " (several boards, or devices of different protocols, are not built yet)")
+    from hapsim.drivers import family
+    protos = sorted({d.protocol or "framed" for _, d in scene.devices})
+    got = ", ".join(f"{n}: {d.protocol or 'framed'}" for n, d in scene.devices)
+    if len(protos) != 1:
+        return (f"devices of different protocols ({got}): the real-time run of several "
+                "ports drives the ports of one board (the FireFader's two faders); several "
+                "boards, or devices of different protocols, are not built yet")
+    proto = protos[0]
+    if options.driver is not None and options.driver != proto:
+        return (f"driver {options.driver!r}: the scene's devices speak {proto}, and the "
+                "real-time run of several ports drives the ports of one board of theirs")
+    cls = family(proto).load()                  # None: the framed protocol
+    per = getattr(cls, "ports_per_board", 1)
+    if per != len(scene.devices):
+        return (f"{len(scene.devices)} ports of {proto} ({got}): the real-time run of "
+                f"several ports drives the ports one board carries ({per} on a {proto} "
+                "board; the FireFader's two faders); several boards, or devices of "
+                "different protocols, are not built yet")
     return None
 
 
@@ -371,27 +393,90 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
                             "not_stated": ["felt stiffness", "felt damping"]}}
     ok = [usable_rows(r, T, delay) for r in recs]
     rest = recs[0]["position"]
-    diffs = [r["position"] - rest for r in recs[1:]]
-    use = [u & ok[0] for u in ok[1:]]
+    D = decimation(chk, T)
+    Nd = len(range(0, samples, D))
+    diffs = [(r["position"] - rest)[::D] for r in recs[1:]]
+    use = [_decimated(u & ok[0], D) for u in ok[1:]]
     mass = port_loop(scene)[0].mass
-    fit = fit_felt_nd(diffs, mass, T, order, usable=use)
+    fit = fit_felt_nd(diffs, mass, D * T, FIT_ORDER, usable=use)
     dev = felt_deviation(fit, chk)
     bounds = [_bounds(r, T, METRES_PER_COUNT, force_scale) for r in recs]
-    eye = np.eye(2)
-    wire = wire_terms_nd(scene, diffs, chk, order,
-                         [("reading", eye, [b[0] for b in bounds]),
-                          ("force", eye, [b[1] for b in bounds])],
-                         usable=use, mass=mass,
-                         responses=port_error_responses(scene, samples))
+    wire = _decimated_wire(scene, chk, diffs, use, mass, bounds, D, Nd)
     wire.update(reading_bound_m=float(max(np.max(b[0]) for b in bounds)),
-                force_bound_n=float(max(np.max(b[1]) for b in bounds)))
+                force_bound_n=float(max(np.max(b[1]) for b in bounds)), decimation=D)
     v = felt_verdict(dev, bound, wire, directions=felt_directions(fit, chk))
     return {**base, "measured": fit, "deviation": dev, "wire": wire, "verdict": v,
-            "usable": [int(u.sum()) for u in ok], "incomplete": None}
+            "order": FIT_ORDER, "usable": [int(u.sum()) for u in ok], "incomplete": None}
+
+
+def decimation(chk, period: float) -> int:
+    """The records' decimation ``D``: every ``D``-th sample, so the fastest rendered mode
+    has :data:`SAMPLES_PER_CYCLE` samples a cycle (at least 1).
+
+    Parameters
+    ----------
+    chk : hapsim.analysis.ports.PortsCheck
+    period : float
+        ``T`` [s].
+
+    Returns
+    -------
+    int
+    """
+    from hapsim.analysis.ths_nd import continuous_poles
+    s = continuous_poles(chk.render.rendered_poles, period)
+    f = float(np.max(np.abs(s.imag))) / (2 * math.pi) if s.size else 0.0
+    return max(1, int(1.0 / (SAMPLES_PER_CYCLE * f * period))) if f > 0 else 1
+
+
+def _decimated(ok, D: int) -> np.ndarray:
+    """Decimated sample ``j`` is usable when every row from the one after sample
+    ``j - 1`` to row ``D j`` is (an equation spans undisturbed rows only); sample 0
+    never (its rows before it hold the hold's and the delay's fast modes' start)."""
+    Nd = len(range(0, ok.size, D))
+    out = np.zeros(Nd, bool)
+    for j in range(1, Nd):
+        out[j] = bool(ok[D * (j - 1) + 1:D * j + 1].all())
+    return out
+
+
+def _decimated_wire(scene, chk, diffs, use, mass, bounds, D: int, Nd: int) -> dict:
+    """The wire's term of the decimated fit: every row's errors, through the loop, onto
+    the decimated samples. An error at row ``D j' - o`` (``0 <= o < D``) reaches sample
+    ``j`` through the loop's response at lag ``D (j - j') + o``: for each ``o`` a
+    convolution in ``j - j'`` (:func:`hapsim.lockstep.wire_terms_nd` with the responses
+    ``R[D m + o]`` and the bounds of rows ``D j' - o``); the classes of rows are
+    disjoint, so their worst cases add (Hoelder over all rows)."""
+    from hapsim.lockstep import port_error_responses, wire_terms_nd
+    Rr, Rf = port_error_responses(scene, D * Nd)
+    T = scene.period
+    out = None
+    eye = np.eye(2)
+    for o in range(D):
+        lag = D * np.arange(Nd) + o
+        rows = D * np.arange(Nd) - o
+
+        def at(b):
+            x = np.zeros((Nd, 2))
+            x[rows >= 0] = b[rows[rows >= 0]]
+            return x
+        w = wire_terms_nd(scene, diffs, chk, FIT_ORDER,
+                          [("reading", eye, [at(b[0]) for b in bounds]),
+                           ("force", eye, [at(b[1]) for b in bounds])],
+                          usable=use, mass=mass, responses=(Rr[lag], Rf[lag]),
+                          period=D * T)
+        if out is None:
+            out = w
+            continue
+        for q in ("felt_stiffness", "felt_damping"):
+            out[q] += w[q]
+            out["directions"][q] = [a + b for a, b in zip(out["directions"][q],
+                                                          w["directions"][q])]
+    return out
 
 
 def run_faders(scene, options, amplitude: float | None = None, *, by: str = "field",
-               seed: int = 0, samples: int | None = None, board: dict | None = None):
+               samples: int | None = None, board: dict | None = None):
     """:func:`hapsim.api.run` of the FireFader's two faders in real time: the embedded
     emulated board on its own wall clock (or the board on ``options.port``), the host's
     loop (:func:`record_faders`) and the measurement (:func:`measure_faders`).
@@ -401,14 +486,12 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     scene : hapsim.scene.ScenePorts
         Two ports, both devices ``protocol: firefader``.
     options : hapsim.pipeline.options.RunOptions
-        ``port``, ``driver`` (``firefader``), ``allow_unstable``, ``rt_priority``; any
-        other option set is refused by name.
+        ``port``, ``driver`` (``firefader``), ``allow_unstable``, ``rt_priority``,
+        ``seed`` (the emulated board's); any other option set is refused by name.
     amplitude : float, optional
         ``a`` [m] (default :data:`FADER_AMPLITUDE`).
     by : {"field", "flag"}
         Name a refused option by its field or its flag.
-    seed : int, optional
-        The emulated board's seed.
     samples : int, optional
         Rows per record (default :func:`hapsim.lockstep.default_samples`).
     board : dict, optional
@@ -477,7 +560,7 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
         if not math.isfinite(opts["device_b"]["force_limit"]):
             opts["device_b"]["force_limit"] = None
         mock = EmbeddedDriverMock("firefader", dev_a, Excitation(), scene.rate_hz,
-                                  seed=seed, options=opts)
+                                  seed=options.seed, options=opts)
         port = mock.port
     report = None
     try:
