@@ -381,16 +381,18 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
     bound = ports_bound(scene, chk, amplitude)
     base = {"predicted": chk, "bound": bound, "order": order, "records": len(recs) - 1,
             "samples": samples}
-    if len(recs) < 5 or run["stop"] != "end":
-        why = (f"the run stopped ({run['stop']}) after {len(recs)} of 5 records"
-               if run["stop"] != "end" else "fewer than 5 records")
-        none = {"felt_stiffness": None, "felt_damping": None, "rendered_poles": [],
-                "residual": None, "rank": None}
+    none = {"felt_stiffness": None, "felt_damping": None, "rendered_poles": [],
+            "residual": None, "rank": None}
+
+    def unmeasured(why, usable=()):
         return {**base, "measured": none, "deviation": None, "wire": None,
-                "usable": [], "incomplete": why,
+                "usable": list(usable), "incomplete": why,
                 "verdict": {"verdict": "not measurable", "within": None, "uncertainty": None,
                             "reason": why, "statements": [],
                             "not_stated": ["felt stiffness", "felt damping"]}}
+    if len(recs) < 5 or run["stop"] != "end":
+        return unmeasured(f"the run stopped ({run['stop']}) after {len(recs)} of 5 records"
+                          if run["stop"] != "end" else "fewer than 5 records")
     ok = [usable_rows(r, T, delay) for r in recs]
     rest = recs[0]["position"]
     D = decimation(chk, T)
@@ -398,7 +400,12 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
     diffs = [(r["position"] - rest)[::D] for r in recs[1:]]
     use = [_decimated(u & ok[0], D) for u in ok[1:]]
     mass = port_loop(scene)[0].mass
-    fit = fit_felt_nd(diffs, mass, D * T, FIT_ORDER, usable=use)
+    try:
+        fit = fit_felt_nd(diffs, mass, D * T, FIT_ORDER, usable=use)
+    except ConfigError as exc:                # the stretches left hold too few equations
+        return unmeasured(f"the host's late writes cut the records to "
+                          f"{[int(u.sum()) for u in ok]} rows of {samples}: {exc}",
+                          [int(u.sum()) for u in ok])
     dev = felt_deviation(fit, chk)
     bounds = [_bounds(r, T, METRES_PER_COUNT, force_scale) for r in recs]
     wire = _decimated_wire(scene, chk, diffs, use, mass, bounds, D, Nd)
