@@ -218,25 +218,6 @@ devices:
   b: {mass: 0.2, friction: 0.3, delay: 2, protocol: firefader}
 """
 
-#: Three faders: two FireFader boards (a board carries two), refused in real time.
-THREE_FADERS = """\
-rate_hz: 250
-masses:
-  - {name: a, kind: port}
-  - {name: b, kind: port}
-  - {name: c, kind: port}
-  - {name: g, kind: ground}
-links:
-  - {name: ab, kind: spring_damper, between: [a, b], stiffness: 30, damping: 0.1}
-  - {name: wa, kind: spring_damper, between: [a, g], stiffness: 15, damping: 0.1}
-  - {name: wc, kind: spring_damper, between: [c, g], stiffness: 15, damping: 0.1}
-devices:
-  a: {protocol: firefader, mass: 0.05, friction: 0.1, delay: 0.725}
-  b: {protocol: firefader, mass: 0.05, friction: 0.1, delay: 0.725}
-  c: {protocol: firefader, mass: 0.05, friction: 0.1, delay: 0.725}
-"""
-
-
 def test_a_two_port_scene_reads_each_port_with_its_device():
     s = parse_scene_ports(TWO, "two.yaml")
     assert s.ports == ("a", "b")
@@ -403,15 +384,12 @@ def test_run_lockstep_on_two_ports_and_its_refusals(tmp_path, capsys):
     assert d["verdict"] == "within" and d["ports"] == ["a", "b"] and d["dof"] == 2
     assert max(d["deviation"].values()) <= 1e-6      # the issue's figure; derived above
     assert all(s["verdict"] == "within" for s in d["statements"])
-    three = tmp_path / "three.yaml"
-    three.write_text(THREE_FADERS)
     faders = str(Path(__file__).resolve().parents[1] / "configs" / "two_faders.yaml")
-    # in real time: ports of different protocols, three faders (two boards), another
-    # driver, the lockstep's own options: refused by name, before any board starts
+    # in real time: ports of different protocols, another driver, the lockstep's own
+    # options: refused by name, before any board starts (three faders: the API test)
     for argv, flag, words in (
             (["run", str(f)], "devices", "different protocols"),
             (["run", str(f), "--port", "/dev/null"], "devices", "different protocols"),
-            (["run", str(three)], "devices", "several boards"),
             (["run", faders, "--driver", "haply"], "--driver", "firefader"),
             (["run", faders, "--duration", "2"], "--duration", "two faders"),
             (["run", faders, "--port", "/dev/null", "--lockstep"], "--lockstep",
@@ -474,6 +452,16 @@ def test_the_api_takes_a_scene_of_several_ports(tmp_path):
     with pytest.raises(ConfigError) as e:
         hapsim.run(s)                         # real time: a and b of two protocols
     assert e.value.key == "devices" and "not built" in str(e.value)
+    # three faders (two FireFader boards: one carries two) in real time
+    ff = Device(mass=0.05, friction=0.1, delay=0.725, protocol="firefader")
+    three = ScenePorts(rate_hz=250.0, masses=tuple(Mass(n, "port") for n in "abc")
+                       + (Mass("g", "ground"),),
+                       links=tuple(Link(f"w{n}", "spring_damper", n, "g", 15.0, 0.1)
+                                   for n in "abc"),
+                       devices=tuple((n, ff) for n in "abc"))
+    with pytest.raises(ConfigError) as e:
+        hapsim.run(three)
+    assert e.value.key == "devices" and "several boards" in str(e.value)
     with pytest.raises(ConfigError) as e:
         hapsim.run(s, lockstep=True, duration=2.0)
     assert e.value.key == "duration" and "several ports" in str(e.value)

@@ -29,11 +29,13 @@ def main(argv=None) -> int:
     Parameters
     ----------
     argv : list of str, optional
+        ``--scene``, ``--seeds``, ``--hogs``, ``--json`` (module notes; default the
+        process's arguments).
 
     Returns
     -------
     int
-        0.
+        0 whatever the verdicts (they are the figures).
     """
     import hapsim
     from hapsim.scene import load_scene_ports

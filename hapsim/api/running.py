@@ -402,8 +402,7 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
     UnstableConfigError
         The coupled loop is unstable and ``allow_unstable`` is false.
     """
-    from hapsim.analysis.ports import check_ports
-    from hapsim.errors import UnstableConfigError
+    from hapsim.analysis.ports import stable_ports_check
     from hapsim.lockstep import measure_felt_ports
     from hapsim.pipeline.felt_run import DEFAULT_AMPLITUDE, refuse_options
     opts = options.check_values()
@@ -423,12 +422,7 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
     name = (lambda f: "--" + f.replace("_", "-")) if by == "flag" else (lambda f: f)
     refuse_options(opts, by, PORTS_TAKES, "a scene with several ports",
                    f"it takes {', '.join(name(f) for f in PORTS_TAKES + ('amplitude',))}")
-    chk = check_ports(scene)
-    if not chk.stable and not opts.allow_unstable:
-        raise UnstableConfigError(
-            f"the coupled loop of {', '.join(chk.ports)} is unstable (spectral radius "
-            f"{chk.render.spectral_radius:.9g}); {name('allow_unstable')} runs it anyway",
-            spectral_radius=chk.render.spectral_radius)
+    chk = stable_ports_check(scene, opts.allow_unstable, name("allow_unstable"))
     res = measure_felt_ports(scene, DEFAULT_AMPLITUDE if amplitude is None else amplitude)
     return RunReportND.from_dict({**run_report_nd(scene, res, True).to_dict(),
                                   "ports": list(chk.ports),

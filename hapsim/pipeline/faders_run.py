@@ -527,9 +527,8 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
 
     import serial
 
-    from hapsim.analysis.ports import check_ports
+    from hapsim.analysis.ports import stable_ports_check
     from hapsim.drivers.firefader import FireFader
-    from hapsim.errors import UnstableConfigError
     from hapsim.host.realtime import RealtimePriority
     from hapsim.lockstep import default_samples, excitation_starts
     from hapsim.pipeline.felt_run import refuse_options
@@ -544,12 +543,7 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     if not (math.isfinite(a) and 0 < a <= WORKSPACE_M / 4):
         raise ConfigError(f"must be a positive length up to {WORKSPACE_M / 4:g} m (a "
                           f"quarter of the workspace), got {amplitude!r}", key=name("amplitude"))
-    chk = check_ports(scene)
-    if not chk.stable and not options.allow_unstable:
-        raise UnstableConfigError(
-            f"the coupled loop of {', '.join(chk.ports)} is unstable (spectral radius "
-            f"{chk.render.spectral_radius:.9g}); {name('allow_unstable')} runs it anyway",
-            spectral_radius=chk.render.spectral_radius)
+    chk = stable_ports_check(scene, options.allow_unstable, name("allow_unstable"))
     order = chk.states // 2
     N = default_samples(order, 2) if samples is None else int(samples)
     T = scene.period
