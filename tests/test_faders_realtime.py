@@ -155,6 +155,60 @@ def test_the_decimated_second_order_fit_is_exact_on_the_lockstep_loop(seed):
     assert max(dev.values()) <= ports_bound(sc, chk, a).roundoff, (D, dev)
 
 
+def soft_faders(rng) -> ScenePorts:
+    """A random soft two-fader scene (anchors 4..8 N/m, coupling 5..10 N/m, the shipped
+    devices): the faders may move 9 mm under the 0.38 N limit."""
+    names = ("fader_a", "fader_b")
+    dev = Device(mass=0.05, friction=0.1, delay=0.725, force_limit=0.38,
+                 protocol="firefader")
+    return ScenePorts(
+        rate_hz=250.0, masses=tuple(Mass(n, "port") for n in names)
+        + (Mass("anchor", "ground"),),
+        links=tuple(Link(f"s{n[-1]}", "spring_damper", n, "anchor",
+                         float(rng.uniform(4.0, 8.0)), 0.05) for n in names)
+        + (Link("c", "spring_damper", *names, float(rng.uniform(5.0, 10.0)), 0.05),),
+        devices=tuple((n, dev) for n in names))
+
+
+@pytest.mark.parametrize("case", ["shipped", 0, 1, 2])
+def test_the_quantised_records_measure_what_they_state(case):
+    """The board in lockstep (by name: no host timing, the pots' and the forces' rounding
+    alone): the measurement states what the 8-bit pots allow and every statement it makes
+    holds -- none "differs" -- and at least the stiffness along the differential motion
+    (the stiffer direction) is stated (the shipped scene at 4 mm; random soft scenes at
+    9 mm, where the whole stiffness matrix may be). What the run cannot state is named
+    (not_stated), never guessed."""
+    from pathlib import Path
+
+    from hapsim.analysis.ports import check_ports
+    from hapsim.emulated.firefader_board import FireFaderDevice
+    from hapsim.lockstep import excitation_starts
+    from hapsim.pipeline.faders_run import measure_faders, record_faders
+    from hapsim.scene import load_scene_ports
+    if case == "shipped":
+        sc, a = load_scene_ports(Path(__file__).resolve().parents[1] / "configs"
+                                 / "two_faders.yaml"), 4e-3
+    else:
+        sc, a = soft_faders(np.random.default_rng(200 + case)), 9e-3
+    drv = ff.FireFader()
+    chk = check_ports(sc)
+    starts = excitation_starts(2, a, sc.period)
+    (_, da), (_, db) = sc.devices
+    dev = FireFaderDevice(da, sc.rate_hz, None, clock="lockstep", device_b=db,
+                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
+                          **drv.mock_hardware())
+    run = record_faders(InProcessLink(dev), sc, 300, len(starts),
+                        force_scale=drv.force_scale, pace=False)
+    assert not any(r["clamped"].any() for r in run["records"])   # the linear loop
+    v = measure_faders(sc, run, a, samples=300, order=chk.states // 2, chk=chk,
+                       force_scale=drv.force_scale)["verdict"]
+    said = {s["name"]: s["verdict"] for s in v["statements"]}
+    assert "differs" not in said.values(), v["reason"]
+    diff = [s for s in v["statements"] if s["quantity"] == "felt_stiffness"
+            and s["direction"] is not None and s["direction"][0] * s["direction"][1] < 0]
+    assert diff and diff[0]["verdict"] == "within", said
+
+
 def test_fader_b_is_the_firmwares_own_second_fader():
     """The board's fader B (the .ino's second motor, enable and pot): its byte of the
     packet drives it, its pot is in the record's second byte, read POT_S before pot A on

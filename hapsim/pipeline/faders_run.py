@@ -54,6 +54,7 @@ import time
 
 import numpy as np
 
+from hapsim.analysis.write_holds import HOLD_CUT_PERIODS
 from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["WORKSPACE_M", "LATE_STOP_S", "CUT_PERIODS", "FADERS_TAKES", "FADER_AMPLITUDE",
@@ -73,8 +74,11 @@ LATE_STOP_S = 0.25
 ARM_TIMEOUT_S = 10.0
 #: A write more than this many periods off its time on the grid is cut from the records
 #: with the rows its forces reach (:func:`usable_rows`); smaller departures enter the
-#: stated uncertainty (module notes).
-CUT_PERIODS = 0.25
+#: stated uncertainty (module notes). The 2DIY's cut
+#: (:data:`hapsim.analysis.write_holds.HOLD_CUT_PERIODS`, half a period): at a quarter,
+#: beside the other sessions' loads (load 7 on 2 cores), 30-60 writes a record were cut,
+#: and a decimated sample needs all its ``D`` rows.
+CUT_PERIODS = HOLD_CUT_PERIODS
 #: The excitation ``a`` of the real-time run [m] (``--amplitude``): 4 mm, about 10 pot
 #: counts (0.39 mm each) so the quantiser's rounding is a few percent of the motion, and
 #: small enough that the two-fader scene's forces stay under its 0.38 N limit.
