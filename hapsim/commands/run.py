@@ -712,11 +712,11 @@ def run_ports(args) -> int:
     o = sys.stdout
     x = rep.extra
     rt = x.get("realtime")
-    how = ("in lockstep, in-process, each port its own device" if rt is None else
-           f"in real time over {rt['port']}, one board for both")
-    print(f"{scene.path}: {len(x['ports'])} ports ({', '.join(x['ports'])}) {how} at "
-          f"{scene.rate_hz:g} Hz (delays {', '.join(f'{d:g}' for d in x['delays'])})",
-          file=o)
+    how = (f"in lockstep at {scene.rate_hz:g} Hz, in-process, each port its own device"
+           if rt is None else
+           f"in real time at {scene.rate_hz:g} Hz over {rt['port']}, one board for both")
+    print(f"{scene.path}: {len(x['ports'])} ports ({', '.join(x['ports'])}) {how} (delays "
+          f"{', '.join(f'{d:g}' for d in x['delays'])})", file=o)
     if rt is not None:
         print(f"  loop: stop {rt['stop']}; writes late by more than half a period per "
               f"record {rt['late_ticks']} (latest {rt['latest'] * 1e3:.1f} ms); rows used "

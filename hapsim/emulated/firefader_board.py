@@ -159,6 +159,12 @@ class FireFaderDevice(Actuated):
         times the period, from the first write).
     silent_ticks : int
         Lockstep: host writes in a row of which no byte arrived.
+    fader_b : hapsim.emulated.actuated.Actuated or None
+        Fader B's handle (with ``device_b``): its physics, its clock, its force held.
+    enable_b, heat_b, cap_b, pwm_b : int
+        Fader B's enable, heat and touch filters and its PWM (0 without ``device_b``).
+    adc_b_s : float
+        Wall clock, with ``device_b``: from the packet to pot B's read [s].
 
     Raises
     ------
