@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+from hapsim.drivers.firefader import HAND_PASSES
 from hapsim.emulated.actuated import Actuated
 
 __all__ = ["FireFaderDevice"]
@@ -180,10 +181,9 @@ class FireFaderDevice(Actuated):
     #: Pot B's reading ends this long before pot A's [s]: pot A's eight conversions
     #: ("This takes about 150 microseconds", ``.ino`` lines 341-343) come after pot B's.
     POT_S = 150e-6
-    #: Passes the hand holds the faders still after a silence before it lets go: the
-    #: enable's five passes below the gate (:data:`hapsim.drivers.firefader.GATE_PASSES`)
-    #: and three more.
-    HAND_PASSES = 8
+    #: Passes the hand holds the faders still after a silence before it lets go: the run's
+    #: convention (:data:`hapsim.drivers.firefader.HAND_PASSES`).
+    HAND_PASSES = HAND_PASSES
     #: The host's silence after which the hand takes the faders to its next start [s]:
     #: longer than the silence rule and its doubt band
     #: (:data:`hapsim.drivers.firefader.SILENCE_DOUBT_S`).

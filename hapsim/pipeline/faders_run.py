@@ -20,8 +20,8 @@ each device's ``force_limit`` and the protocol's 126 counts, and go out with the
 packet. Between records the host is silent longer than the ``.ino``'s silence rule
 (:data:`hapsim.drivers.firefader.SILENCE_S`): the board zeroes both forces; a hand (the
 emulated board's ``hand``; a person's at a real one) puts the faders at the record's
-start and lets go after :attr:`~hapsim.emulated.firefader_board.FireFaderDevice.
-HAND_PASSES` passes of zero force (the enable climbing back over its gate); that pass's
+start and lets go after :data:`hapsim.drivers.firefader.HAND_PASSES` passes of zero
+force (the enables climbing back over their gate); that pass's
 record is the record's row 0. The records are the rest and the ``2 P`` starts of
 :func:`hapsim.lockstep.excitation_starts` (each fader displaced by ``a``, then moving at
 ``a / (10 T)``).
@@ -209,9 +209,8 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     DeviceError
         No record during the arming.
     """
-    from hapsim.drivers.firefader import (CENTRE, FORCE_MAX, METRES_PER_COUNT, RecordDecoder,
-                                          encode_packet, force_counts)
-    from hapsim.emulated.firefader_board import FireFaderDevice
+    from hapsim.drivers.firefader import (CENTRE, FORCE_MAX, HAND_PASSES, METRES_PER_COUNT,
+                                          RecordDecoder, encode_packet, force_counts)
     from hapsim.host.realtime import sleep_until_ns
     from hapsim.lockstep import LockstepPorts
     T = scene.period
@@ -237,7 +236,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     out = []
     stop = "end"
     latest = 0.0
-    H = FireFaderDevice.HAND_PASSES
+    H = HAND_PASSES
     for j in range(starts):
         ser.write(zero)
         if pace:
