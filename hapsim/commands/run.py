@@ -718,7 +718,7 @@ def run_ports(args) -> int:
     print(f"{scene.path}: {len(x['ports'])} ports ({', '.join(x['ports'])}) {how} (delays "
           f"{', '.join(f'{d:g}' for d in x['delays'])})", file=o)
     if rt is not None:
-        print(f"  loop: stop {rt['stop']}; writes late by more than half a period per "
+        print(f"  loop: stop {rt['stop']}; writes off by more than half a period per "
               f"record {rt['late_ticks']} (latest {rt['latest'] * 1e3:.1f} ms); rows used "
               f"{rt['usable']}; force left on the faders {rt['held_at_end']} N", file=o)
     print(f"  excitation: {rep.records} free responses of {rep.samples} samples, amplitude "

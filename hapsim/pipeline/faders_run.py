@@ -40,10 +40,12 @@ measurement) on their undisturbed stretches (:func:`usable_rows`), against the p
 (:func:`hapsim.analysis.felt_matrices.felt_verdict`): the linear loop's round-off and the
 wire's term (:func:`hapsim.lockstep.wire_terms_nd` on the ports' loop): each reading to
 within half a pot count (:data:`hapsim.drivers.firefader.METRES_PER_COUNT`), each force to
-within half a force count, and the host's write times: a packet written ``delta`` late
-reads its pot ``delta`` late (a reading error up to ``|v| |delta|``) and leaves the force
-before it on for ``delta`` longer (an impulse ``|du| |delta|``, stated as a force error
-``|du| |delta| / T`` over the period: first order in ``delta / T``).
+within half a force count, and the host's write times: a packet written ``delta`` off
+its time (:func:`departures`: from the record's median lateness, which shifts the whole
+loop and changes no hold) reads its pot ``delta`` off (a reading error up to ``|v|
+|delta|``) and leaves the force before it on ``delta`` longer or shorter (an impulse
+``|du| |delta|``, stated as a force error ``|du| |delta| / T`` over the period: first
+order in ``delta / T``).
 """
 
 from __future__ import annotations
@@ -58,7 +60,8 @@ from hapsim.analysis.write_holds import HOLD_CUT_PERIODS
 from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["WORKSPACE_M", "LATE_STOP_S", "CUT_PERIODS", "FADERS_TAKES", "FADER_AMPLITUDE",
-           "faders_refusal", "record_faders", "usable_rows", "measure_faders", "run_faders"]
+           "faders_refusal", "record_faders", "departures", "usable_rows", "measure_faders",
+           "run_faders", "decimation"]
 
 #: The measurement's workspace [m] from the centre: 100 pot counts (39 mm), inside the
 #: ``.ino``'s enable range (``4 < pot < 251``, line 382) and the emulated board's end stops.
@@ -202,7 +205,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
         ``late`` (N,) [s] (how late the write whose pass read the row was, on the grid),
         ``clamped`` (N,) bool; ``stop`` (``"end"``, or why the run stopped: a safety
         limit, a lost reply, the host's own lateness), ``late_ticks`` per record (writes
-        more than :data:`CUT_PERIODS` periods late), ``latest`` [s] (the latest write).
+        more than :data:`CUT_PERIODS` periods off their time, :func:`departures`), ``latest`` [s] (the latest write).
 
     Raises
     ------
@@ -289,13 +292,14 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
         if stop != "end":
             break
     return {"records": out, "stop": stop, "latest": latest,
-            "late_ticks": [int(np.sum(r["late"] > CUT_PERIODS * T)) for r in out]}
+            "late_ticks": [int(np.sum(departures(r) > CUT_PERIODS * T)) for r in out]}
 
 
 def usable_rows(rec: dict, period: float, delay: float) -> np.ndarray:
     """The rows of a record on its undisturbed stretches: cut, with the rows the forces
     then sent reach (``ceil(d) + 1`` more), at a write more than :data:`CUT_PERIODS`
-    periods late (its force held that much longer; after a silence that may have reset
+    periods off its time (:func:`departures`: its force held that much longer or shorter;
+    after a silence that may have reset
     the enables, :data:`hapsim.drivers.firefader.SILENCE_DOUBT_S`, the gate's
     :data:`~hapsim.drivers.firefader.GATE_PASSES` passes of zero force too), at a force
     at its clamp (the loop is not the linear one there) and where no record came.
@@ -316,14 +320,36 @@ def usable_rows(rec: dict, period: float, delay: float) -> np.ndarray:
     from hapsim.drivers.firefader import GATE_PASSES, SILENCE_DOUBT_S
     N = rec["late"].size
     d = int(math.ceil(float(delay)))
-    bad = (rec["late"] > CUT_PERIODS * period) | rec["clamped"] \
+    dep = departures(rec)
+    bad = (dep > CUT_PERIODS * period) | rec["clamped"] \
         | ~np.isfinite(rec["position"]).all(axis=1)
     # a silence that may have reset the enables: the force is off for GATE_PASSES more
-    gated = rec["late"] >= SILENCE_DOUBT_S[0]
+    gated = dep >= SILENCE_DOUBT_S[0]
     ok = np.ones(N, bool)
     for k in np.flatnonzero(bad):
         ok[max(k - 1, 0):k + d + 2 + (GATE_PASSES if gated[k] else 0)] = False
     return ok
+
+
+def departures(rec: dict) -> np.ndarray:
+    """Each write's departure from its time [s], shape (N,): ``|late - median(late)|``.
+
+    The board sets a packet's forces when it comes and reads the pots ``adc_s`` later,
+    so a lateness common to every write of a record shifts the whole loop's timing and
+    leaves it the loop predicted (its holds all ``T``): the writes are on the grid
+    ``t0 + median + k T``, and only their departures from it change a hold.
+
+    Parameters
+    ----------
+    rec : dict
+        One of :func:`record_faders`'s records (``late`` [s]).
+
+    Returns
+    -------
+    ndarray
+    """
+    late = np.asarray(rec["late"], float)
+    return np.abs(late - np.median(late))
 
 
 def _bounds(rec: dict, period: float, quantum: float, force_scale: float):
@@ -333,7 +359,7 @@ def _bounds(rec: dict, period: float, quantum: float, force_scale: float):
     x = np.nan_to_num(rec["position"])
     dx = np.abs(np.diff(x, axis=0))
     v = (np.maximum(np.vstack([dx[:1], dx]), np.vstack([dx, dx[-1:]])) + quantum) / period
-    lag = rec["late"][:, None]
+    lag = departures(rec)[:, None]
     reading = quantum / 2 + v * lag
     u = rec["force"]
     du = np.abs(np.diff(np.vstack([np.zeros((1, 2)), u]), axis=0))
