@@ -234,13 +234,14 @@ def test_fader_b_is_the_firmwares_own_second_fader():
 def test_two_faders_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs):  # noqa: F811
     """The embedded board on its own wall clock, behind a pty, two CPU-bound processes
     running: the run ends by its duration, or by the host's own lateness (beyond
-    LATE_STOP_S), and leaves both faders at zero force (the board's own report); a
+    LATE_STOP_S, or a stall that carried a fader out of the workspace), and leaves both
+    faders at zero force (the board's own report); a
     verdict is made on both faders (the matrices across them and each principal
     direction, or "not measurable" with its reason). The verdict's word is not asserted:
     on the FireFader's 8-bit pots the full-order fit's stated uncertainty is what it is
     (docs/ports.md)."""
     import hapsim
-    from hapsim.pipeline.faders_run import LATE_STOP_S
+    from hapsim.pipeline.faders_run import CUT_PERIODS, LATE_STOP_S
     from pathlib import Path
     assert all(p.is_alive() for p in two_cpu_hogs)
     path = Path(__file__).resolve().parents[1] / "configs" / "two_faders.yaml"
@@ -249,9 +250,14 @@ def test_two_faders_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs):  
     took = time.monotonic() - t
     rt = rep.extra["realtime"]
     assert rt["held_at_end"] == [0.0, 0.0], rt
-    assert rt["stop"] == "end" or rt["stop"].startswith("host late"), rt
-    if rt["stop"] != "end":
+    assert rt["stop"] == "end" or rt["stop"].startswith(("host late", "safety:")), rt
+    if rt["stop"].startswith("host late"):
         assert rt["latest"] > LATE_STOP_S
+    if rt["stop"].startswith("safety:"):
+        # the workspace, after a stall of the host: the force held over it (or, past the
+        # silence rule, none) carried the fader out; seen once beside another session's
+        # SCHED_FIFO process (fader A 42.2 mm out after a 163 ms stall)
+        assert "workspace" in rt["stop"] and rt["latest"] > CUT_PERIODS / 250.0, rt
     assert rep.verdict in ("within", "differs", "not measurable") and rep.reason
     assert rep.dof == 2 and rep.extra["ports"] == ["fader_a", "fader_b"]
     if rt["stop"] == "end":
