@@ -30,7 +30,8 @@ from hapsim.joint_device import JointDeviceND
 
 __all__ = ["LockstepND", "measure_felt_lockstep", "excitation_starts", "default_samples",
            "identification_plan", "error_responses", "state_responses", "wire_terms_nd",
-           "PortDevice", "LockstepPorts", "measure_felt_ports"]
+           "PortDevice", "LockstepPorts", "measure_felt_ports", "port_error_responses",
+           "ports_bound"]
 
 
 class LockstepND:
@@ -384,7 +385,8 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
                                             ("state_error", 2 * n, n, size / scene.period)))
 
 
-def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict:
+def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
+                  mass=None, responses=None, period=None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces, and changes of the device's state.
@@ -430,6 +432,15 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         cut out or not, enters the rows fitted through the loop's response (one that
         ended before a stretch only changes its initial state, which a free response's
         fit hardly sees).
+    mass : array_like, shape (n, n), optional
+        The felt matrices' mass [kg] (default ``scene.device.mass``; several ports:
+        :func:`hapsim.analysis.ports.port_loop`'s).
+    responses : tuple of ndarray, optional
+        The reading's and the force's :func:`error_responses` (several ports:
+        :func:`port_error_responses`); default computed from ``scene``.
+    period : float, optional
+        The records' sample period [s] (default ``scene.period``; records taken every
+        ``D``-th sample: ``D T``, with ``responses`` sampled likewise).
 
     Returns
     -------
@@ -447,14 +458,16 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         ``"position"`` or ``"velocity"``.
     """
     from hapsim.analysis.pencil import felt_sensitivity_nd, worst_case_nd
-    n = scene.dimension
     r = chk.render
+    n = r.dof
+    mass = scene.device.mass if mass is None else mass
     inf = {"felt_stiffness": math.inf, "felt_damping": math.inf,
            "directions": {q: [math.inf] * n for q in FELT_QUANTITIES}}
     if r.felt_stiffness is None or r.directions is None:
         return inf
     N = int(np.asarray(diffs[0]).shape[0])
-    sens = felt_sensitivity_nd(diffs, scene.device.mass, scene.period, order, usable=usable)
+    sens = felt_sensitivity_nd(diffs, mass, scene.period if period is None else period,
+                               order, usable=usable)
     if sens is None:
         return inf
     sens = [s for s in sens] + [-sum(sens)]          # the rest record's, in each
@@ -470,7 +483,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         if kind not in kinds:
             raise ConfigError(f"an error's kind must be one of {', '.join(kinds)}, got "
                               f"{kind!r}", key="errors")
-    resp = dict(zip(kinds[:2], error_responses(scene, N)))
+    resp = dict(zip(kinds[:2], error_responses(scene, N) if responses is None
+                    else responses))
     if any(kind in kinds[2:] for kind, _, _ in errors):
         resp.update(zip(kinds[2:], state_responses(scene, N)))
     wc = 0.0
@@ -593,32 +607,77 @@ class LockstepPorts:
         self.K = np.array([lk.stiffness for lk in scene.links], float)
         self.B = np.array([lk.damping for lk in scene.links], float)
 
-    def step(self, samples: int) -> np.ndarray:
+    def step(self, samples: int, *, reading_error=None, force_error=None) -> np.ndarray:
         """Advance the loop and record the ports.
 
         Parameters
         ----------
         samples : int
+        reading_error : ndarray, shape (samples, P), optional
+            An error of the host's reading [m], as :meth:`LockstepND.step`'s: the links
+            are given, and the record holds, the device's sample plus it.
+        force_error : ndarray, shape (samples, P), optional
+            A force error [N] added to the force each device takes at sample ``i``.
 
         Returns
         -------
         ndarray, shape (samples, P)
-            Each port's sampled position [m], before the step.
+            Each port's sampled position [m], before the step (plus ``reading_error``).
         """
         out = np.empty((int(samples), self.P))
         for n in range(int(samples)):
             self.x[:self.P] = [d.position for d in self.devices]
+            if reading_error is not None:
+                self.x[:self.P] += reading_error[n]
             out[n] = self.x[:self.P]
-            d = self.x[self.i1] - self.x[self.i2]
-            dp = self.xp[self.i1] - self.xp[self.i2]
-            F = self.K * d + self.B * (d - dp) / self.T
-            force = np.zeros(self.x.size)
-            np.add.at(force, self.i1, -F)
-            np.add.at(force, self.i2, F)
+            force = self.forces()
+            if force_error is not None:
+                force[:self.P] += force_error[n]
             self.xp = self.x.copy()
             for i, dev in enumerate(self.devices):
                 dev.tick(force[i])
         return out
+
+    def forces(self) -> np.ndarray:
+        """The links' forces on every mass at the current positions ``x`` and the previous
+        ``xp`` [N], shape (P + grounds,): ports first (the scheme's law, class notes)."""
+        d = self.x[self.i1] - self.x[self.i2]
+        dp = self.xp[self.i1] - self.xp[self.i2]
+        F = self.K * d + self.B * (d - dp) / self.T
+        force = np.zeros(self.x.size)
+        np.add.at(force, self.i1, -F)
+        np.add.at(force, self.i2, F)
+        return force
+
+
+def port_error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
+    """:func:`error_responses` of a scene with several ports (:class:`LockstepPorts`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.ScenePorts
+    samples : int
+        Length ``L`` of the responses.
+    size : float, optional
+        The error's size [m] or [N] for the runs (the loop is linear: exact).
+
+    Returns
+    -------
+    (ndarray, ndarray)
+        Shapes (L, P, P): the record's change per unit reading error [m/m] and per unit
+        force error [m/N] at sample 0 along each port (``[t, :, j]`` for port ``j``).
+    """
+    L, P = int(samples), len(scene.devices)
+    rest = LockstepPorts(scene).step(L)
+    out = []
+    for kw in ("reading_error", "force_error"):
+        R = np.empty((L, P, P))
+        for j in range(P):
+            e = np.zeros((L, P))
+            e[0, j] = size
+            R[:, :, j] = (LockstepPorts(scene).step(L, **{kw: e}) - rest) / size
+        out.append(R)
+    return tuple(out)
 
 
 def measure_felt_ports(scene, amplitude: float = 1e-8, samples: int | None = None,
@@ -654,10 +713,8 @@ def measure_felt_ports(scene, amplitude: float = 1e-8, samples: int | None = Non
         ``2 p P`` unknowns.
     """
     from hapsim.analysis.felt_matrices import felt_verdict
-    from hapsim.analysis.linearisation import LinearisationBound
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.ports import check_ports, port_loop
-    from hapsim.analysis.ths_nd import continuous_poles
     a = float(amplitude)
     if not (math.isfinite(a) and a > 0):
         raise ConfigError(f"must be a positive number [m], got {amplitude!r}",
@@ -677,13 +734,35 @@ def measure_felt_ports(scene, amplitude: float = 1e-8, samples: int | None = Non
         if progress is not None:
             progress(j + 1, len(starts))
     fit = fit_felt_nd(recs, port_loop(scene)[0].mass, T, order)
-    s = continuous_poles(chk.render.rendered_poles, T)
-    damping = float(np.max(np.abs(s) / (2 * np.abs(s.real)))) if s.size else math.nan
-    scale = max([abs(float(m.x0)) for m in scene.masses] + [0.0])
-    bound = LinearisationBound(amplitude=a, kinematic=0.0, link=0.0, link_name=None,
-                               depth=math.inf, depth_name=None, damping_factor=damping,
-                               position_scale=scale)
+    bound = ports_bound(scene, chk, a)
     dev = felt_deviation(fit, chk)
     return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
             "verdict": felt_verdict(dev, bound), "order": order, "records": len(recs),
             "samples": N}
+
+
+def ports_bound(scene, chk, amplitude: float):
+    """The linearisation bound of a scene with several ports: a linear loop (spring-dampers
+    between ports and to grounds), so its round-off allowance only.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.ScenePorts
+    chk : hapsim.analysis.ports.PortsCheck
+    amplitude : float
+        The excitation ``a`` [m].
+
+    Returns
+    -------
+    hapsim.analysis.linearisation.LinearisationBound
+        No kinematic or link term; the damping factor ``max |s| / (2 |Re s|)`` of the
+        rendered poles and the position scale of the grounds (the round-off's).
+    """
+    from hapsim.analysis.linearisation import LinearisationBound
+    from hapsim.analysis.ths_nd import continuous_poles
+    s = continuous_poles(chk.render.rendered_poles, scene.period)
+    damping = float(np.max(np.abs(s) / (2 * np.abs(s.real)))) if s.size else math.nan
+    scale = max([abs(float(m.x0)) for m in scene.masses] + [0.0])
+    return LinearisationBound(amplitude=float(amplitude), kinematic=0.0, link=0.0,
+                              link_name=None, depth=math.inf, depth_name=None,
+                              damping_factor=damping, position_scale=scale)

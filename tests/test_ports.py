@@ -9,6 +9,7 @@ eigen-equations of its own modes (tests/test_ths_nd.py's reference_felt)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -221,7 +222,6 @@ devices:
   b: {mass: 0.2, friction: 0.3, delay: 2, protocol: firefader}
 """
 
-
 def test_a_two_port_scene_reads_each_port_with_its_device():
     s = parse_scene_ports(TWO, "two.yaml")
     assert s.ports == ("a", "b")
@@ -293,7 +293,8 @@ def test_commands_without_several_ports_refuse_them_in_one_line(tmp_path, capsys
     """Every command of the parser that takes a scene file (a new one fails here until it
     is listed) either takes several ports or refuses them: exit 2, one line naming the
     command, "several ports" and what takes them. ``run`` without ``--lockstep`` refuses
-    the real-time run."""
+    the real-time run of ports of different protocols (only the FireFader's two faders
+    run in real time: tests/test_faders_realtime.py)."""
     from hapsim.cli import main
     assert _scene_commands() == set(SCENE_COMMANDS)
     f = tmp_path / "two.yaml"
@@ -387,11 +388,21 @@ def test_run_lockstep_on_two_ports_and_its_refusals(tmp_path, capsys):
     assert d["verdict"] == "within" and d["ports"] == ["a", "b"] and d["dof"] == 2
     assert max(d["deviation"].values()) <= ISSUE_BOUND   # derived above: round-off allowed
     assert all(s["verdict"] == "within" for s in d["statements"])
-    for argv, flag in ((["run", str(f)], "--lockstep"),
-                       (["run", str(f), "--lockstep", "--duration", "2"], "--duration")):
+    faders = str(Path(__file__).resolve().parents[1] / "configs" / "two_faders.yaml")
+    # in real time: ports of different protocols, another driver, the lockstep's own
+    # options: refused by name, before any board starts (three faders: the API test)
+    for argv, flag, words in (
+            (["run", str(f)], "devices", "different protocols"),
+            (["run", str(f), "--port", "/dev/null"], "devices", "different protocols"),
+            (["run", faders, "--driver", "haply"], "--driver", "firefader"),
+            (["run", faders, "--duration", "2"], "--duration", "two faders"),
+            (["run", faders, "--port", "/dev/null", "--lockstep"], "--lockstep",
+             "two faders"),
+            (["run", str(f), "--lockstep", "--duration", "2"], "--duration",
+             "several ports")):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and flag in err[0] and "several ports" in err[0], err
+        assert len(err) == 1 and flag in err[0] and words in err[0], err
 
 
 # --------------------------------------------------------------------------- the shipped scene
@@ -430,7 +441,7 @@ def test_two_faders_modes_are_the_1d_loops_of_their_common_and_differential_moti
 def test_the_api_takes_a_scene_of_several_ports(tmp_path):
     """hapsim.load_scene reads it, hapsim.check gives its PortsCheck, hapsim.run measures it
     in lockstep (the command's report: a RunReportND of P axes) and refuses the real-time
-    run by name."""
+    run of ports of different protocols by name."""
     import hapsim
     from hapsim.analysis.ports import PortsCheck
     f = tmp_path / "two.yaml"
@@ -443,8 +454,18 @@ def test_the_api_takes_a_scene_of_several_ports(tmp_path):
     assert r.extra["ports"] == ["a", "b"] and r.extra["delays"] == [1.0, 2.0]
     assert r.k.shape == (2, 2)
     with pytest.raises(ConfigError) as e:
-        hapsim.run(s)
-    assert e.value.key == "lockstep" and "not built" in str(e.value)
+        hapsim.run(s)                         # real time: a and b of two protocols
+    assert e.value.key == "devices" and "not built" in str(e.value)
+    # three faders (two FireFader boards: one carries two) in real time
+    ff = Device(mass=0.05, friction=0.1, delay=0.725, protocol="firefader")
+    three = ScenePorts(rate_hz=250.0, masses=tuple(Mass(n, "port") for n in "abc")
+                       + (Mass("g", "ground"),),
+                       links=tuple(Link(f"w{n}", "spring_damper", n, "g", 15.0, 0.1)
+                                   for n in "abc"),
+                       devices=tuple((n, ff) for n in "abc"))
+    with pytest.raises(ConfigError) as e:
+        hapsim.run(three)
+    assert e.value.key == "devices" and "several boards" in str(e.value)
     with pytest.raises(ConfigError) as e:
         hapsim.run(s, lockstep=True, duration=2.0)
     assert e.value.key == "duration" and "several ports" in str(e.value)

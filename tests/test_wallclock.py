@@ -405,9 +405,9 @@ def test_a_host_pause_moves_the_fader_as_the_held_force_over_real_time():
     starts = []
     orig = dev._pass
 
-    def spy(count, ticks, start=None):
+    def spy(count, ticks, start=None, **kw):      # (kw: fader B's count)
         starts.append(start)
-        return orig(count, ticks, start)
+        return orig(count, ticks, start, **kw)
     dev._pass = spy
     host, board = socket.socketpair()
     stop = threading.Event()

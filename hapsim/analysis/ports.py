@@ -35,7 +35,8 @@ import numpy as np
 from hapsim.analysis.scene_check import felt_summary
 from hapsim.analysis.ths_nd import LoopModelND, RenderND, render_state, state_matrix
 
-__all__ = ["port_matrices", "port_loop", "ports_state_matrix", "PortsCheck", "check_ports"]
+__all__ = ["port_matrices", "port_loop", "ports_state_matrix", "PortsCheck", "check_ports",
+           "stable_ports_check"]
 
 
 def port_matrices(scene) -> tuple[np.ndarray, np.ndarray]:
@@ -182,3 +183,38 @@ def check_ports(scene) -> PortsCheck:
     return PortsCheck(ports=scene.ports, render=r, port_stiffness=K, port_damping=B,
                       delays=tuple(float(d.delay) for _, d in scene.devices),
                       states=A.shape[0])
+
+
+def stable_ports_check(scene, allow_unstable: bool = False,
+                       override: str = "allow_unstable") -> PortsCheck:
+    """:func:`check_ports`, refused when the coupled loop is unstable unless
+    ``allow_unstable`` (every run of several ports: in lockstep and in real time).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.ScenePorts
+        Two or three ports, each its own device.
+    allow_unstable : bool, optional
+        Measure an unstable coupled loop anyway (its check is returned).
+    override : str, optional
+        The user's name for ``allow_unstable`` (a flag or a field), named in the refusal.
+
+    Returns
+    -------
+    PortsCheck
+        The check (:func:`check_ports`).
+
+    Raises
+    ------
+    UnstableConfigError
+        A spectral radius of the coupled loop of 1 or more, unless ``allow_unstable``
+        (the n-D scenes' twin: :func:`hapsim.api.running.stable_prediction_nd`).
+    """
+    from hapsim.errors import UnstableConfigError
+    chk = check_ports(scene)
+    if not chk.stable and not allow_unstable:
+        raise UnstableConfigError(
+            f"the coupled loop of {', '.join(chk.ports)} is unstable (spectral radius "
+            f"{chk.render.spectral_radius:.9g}); {override} runs it anyway",
+            spectral_radius=chk.render.spectral_radius)
+    return chk

@@ -370,13 +370,16 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
                     by: str = "field") -> RunReportND:
     """:func:`hapsim.api.run` of a scene with several ports: the felt matrices across the
     ports measured in lockstep, in-process, each port its own device model
-    (:func:`hapsim.lockstep.measure_felt_ports`; ``hapsim run SCENE --lockstep``).
+    (:func:`hapsim.lockstep.measure_felt_ports`; ``hapsim run SCENE --lockstep``), or,
+    without ``lockstep`` or with a ``port`` or a ``driver``, the FireFader's two faders in
+    real time (:func:`hapsim.pipeline.faders_run.run_faders`).
 
     Parameters
     ----------
     scene : hapsim.scene.ScenePorts
     options : hapsim.pipeline.options.RunOptions
-        ``lockstep`` (required) and ``allow_unstable``; any other option set is refused
+        ``lockstep`` and ``allow_unstable`` (in real time:
+        :data:`hapsim.pipeline.faders_run.FADERS_TAKES`); any other option set is refused
         by name.
     amplitude : float, optional
         The excitation ``a`` [m] (default
@@ -393,29 +396,33 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
     Raises
     ------
     ConfigError
-        No ``lockstep``, or a ``port`` or a ``driver``: the real-time run of several
-        devices is not built; another option set.
+        In real time, ports that are not the two faders of one FireFader (several boards,
+        other protocols: :func:`hapsim.pipeline.faders_run.faders_refusal`); another
+        option set.
     UnstableConfigError
         The coupled loop is unstable and ``allow_unstable`` is false.
     """
-    from hapsim.analysis.ports import check_ports
-    from hapsim.errors import UnstableConfigError
+    from hapsim.analysis.ports import stable_ports_check
     from hapsim.lockstep import measure_felt_ports
     from hapsim.pipeline.felt_run import DEFAULT_AMPLITUDE, refuse_options
     opts = options.check_values()
-    name = (lambda f: "--" + f.replace("_", "-")) if by == "flag" else (lambda f: f)
     if not opts.lockstep or opts.port or opts.driver is not None:
-        raise ConfigError("a scene with several ports runs in lockstep, in-process: the "
-                          "real-time run of several devices, each on its own clock and "
-                          "link (a port, a driver), is not built yet", key=name("lockstep"))
+        # in real time: the FireFader's two faders (refused by name otherwise)
+        from hapsim.pipeline.faders_run import run_faders
+        res = run_faders(scene, opts, amplitude, by=by)
+        v = res["verdict"]
+        rep = run_report_nd(scene, res, False).to_dict()
+        # the verdict of the records (a stopped run's says why it is not measurable)
+        rep.update({k: v[k] for k in ("verdict", "within", "reason", "statements",
+                                      "not_stated")})
+        return RunReportND.from_dict({**rep, "ports": list(res["predicted"].ports),
+                                      "delays": [float(d) for d in res["predicted"].delays],
+                                      "realtime": res["realtime"],
+                                      "amplitude": res["amplitude"]})
+    name = (lambda f: "--" + f.replace("_", "-")) if by == "flag" else (lambda f: f)
     refuse_options(opts, by, PORTS_TAKES, "a scene with several ports",
                    f"it takes {', '.join(name(f) for f in PORTS_TAKES + ('amplitude',))}")
-    chk = check_ports(scene)
-    if not chk.stable and not opts.allow_unstable:
-        raise UnstableConfigError(
-            f"the coupled loop of {', '.join(chk.ports)} is unstable (spectral radius "
-            f"{chk.render.spectral_radius:.9g}); {name('allow_unstable')} runs it anyway",
-            spectral_radius=chk.render.spectral_radius)
+    chk = stable_ports_check(scene, opts.allow_unstable, name("allow_unstable"))
     res = measure_felt_ports(scene, DEFAULT_AMPLITUDE if amplitude is None else amplitude)
     return RunReportND.from_dict({**run_report_nd(scene, res, True).to_dict(),
                                   "ports": list(chk.ports),

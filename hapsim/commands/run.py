@@ -671,13 +671,16 @@ def run_nd(args) -> int:
 
 def run_ports(args) -> int:
     """Measure the felt matrices across the ports of a scene with several ports, in
-    lockstep (:func:`hapsim.api.running.run_scene_ports`: each port its own device model).
+    lockstep (:func:`hapsim.api.running.run_scene_ports`: each port its own device model)
+    or, for the FireFader's two faders, in real time
+    (:func:`hapsim.pipeline.faders_run.run_faders`).
 
     Parameters
     ----------
     args : argparse.Namespace
-        ``scene``, ``lockstep`` (required), ``amplitude`` [m] (None: 1e-8), ``json``,
-        ``allow_unstable``; run's other options refused by flag.
+        ``scene``, ``lockstep``, ``amplitude`` [m] (None: 1e-8 in lockstep, 4e-3 in real
+        time), ``json``, ``allow_unstable`` (in real time also ``port``, ``driver``,
+        ``rt_priority``); run's other options refused by flag.
 
     Returns
     -------
@@ -687,8 +690,8 @@ def run_ports(args) -> int:
     Raises
     ------
     ConfigError
-        No ``--lockstep`` or a ``--port`` / ``--driver`` (the real-time run of several
-        ports is not built), another option a run of several ports does not take, a bad
+        In real time, ports that are not the FireFader's two faders (several boards,
+        other protocols); another option a run of several ports does not take, a bad
         amplitude or scene (file, line, key).
     UnstableConfigError
         The coupled loop is unstable without ``--allow-unstable`` (exit 1).
@@ -708,9 +711,16 @@ def run_ports(args) -> int:
         return 0
     o = sys.stdout
     x = rep.extra
-    print(f"{scene.path}: {len(x['ports'])} ports ({', '.join(x['ports'])}) in lockstep at "
-          f"{scene.rate_hz:g} Hz, in-process, each port its own device (delays "
+    rt = x.get("realtime")
+    how = (f"in lockstep at {scene.rate_hz:g} Hz, in-process, each port its own device"
+           if rt is None else
+           f"in real time at {scene.rate_hz:g} Hz over {rt['port']}, one board for both")
+    print(f"{scene.path}: {len(x['ports'])} ports ({', '.join(x['ports'])}) {how} (delays "
           f"{', '.join(f'{d:g}' for d in x['delays'])})", file=o)
+    if rt is not None:
+        print(f"  loop: stop {rt['stop']}; writes off by more than half a period per "
+              f"record {rt['late_ticks']} (latest {rt['latest'] * 1e3:.1f} ms); rows used "
+              f"{rt['usable']}; force left on the faders {rt['held_at_end']} N", file=o)
     print(f"  excitation: {rep.records} free responses of {rep.samples} samples, amplitude "
           f"a = {rep.linearisation_bound['amplitude']:g} m (minus the response from rest)",
           file=o)
@@ -727,5 +737,8 @@ def run_ports(args) -> int:
               f"k {rep.deviation['felt_stiffness']:.2e}, b {rep.deviation['felt_damping']:.2e}"
               f" (round-off allowed {rep.linearisation_bound['roundoff']:.2e}: a linear "
               "loop)", file=o)
+    if rt is not None:
+        from hapsim.pipeline.felt_run import print_statements
+        print_statements(rep.to_dict(), o)
     print(f"  verdict: {rep.verdict}: {rep.reason}", file=o)
     return 0

@@ -239,6 +239,10 @@ class Driver:
     #: The device's position scale can be found by a sweep between its end stops
     #: (``hapsim identify --travel``; :mod:`hapsim.drivers.firefader_travel`).
     travel_sweep = False
+    #: The ports one board carries in every command and record: a scene with that many
+    #: ports whose devices all speak this protocol runs them on one board, in real time
+    #: (:mod:`hapsim.pipeline.faders_run`); 1: a board per port.
+    ports_per_board = 1
     #: The device answers each command with one record (request-reply): a command whose
     #: answer is overdue is a missing sample that the host loop steps through with an
     #: estimated position (:meth:`hapsim.drivers.transport.DriverTransport.overdue`,

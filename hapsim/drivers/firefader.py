@@ -67,7 +67,7 @@ from hapsim.drivers.base import FLAG_ESTIMATED, Driver, MappedDecoder
 
 __all__ = ["FireFader", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",
            "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
-           "force_counts", "RecordDecoder", "PacketDecoder"]
+           "force_counts", "RecordDecoder", "PacketDecoder", "HAND_PASSES"]
 
 HOST_START = 127
 DEVICE_START = 255
@@ -100,6 +100,12 @@ ENABLE_FULL = 129
 ENABLE_GATE = 20
 #: Passes with zero force after the enable was zeroed (0, 5, 9, 13, 17: below the gate).
 GATE_PASSES = 5
+#: The two faders' real-time run (:mod:`hapsim.pipeline.faders_run`): after its pause
+#: between records the host sends this many zero packets, the last one's record the
+#: record's first row; the hand (a person's, or the emulated board's) holds the faders
+#: still at the record's start until that pass and lets go (the enables' 5 passes below
+#: their gate and 3 more).
+HAND_PASSES = 8
 
 LIMITS = """\
 FireFader protocol limits (hapsim --driver firefader):
@@ -400,6 +406,8 @@ class FireFader(Driver):
 
     name = "firefader"
     travel_sweep = True
+    #: Both faders in every packet and record (:mod:`hapsim.pipeline.faders_run`).
+    ports_per_board = 2
     baud = 57600
     rtscts = True
     position_scale = METRES_PER_COUNT

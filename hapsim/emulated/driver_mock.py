@@ -208,7 +208,8 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             handled.publish(n_read, n_written)
     n = dev.commands()
     extra = {}
-    for k in ("merged", "passes", "firmware", "host_ticks", "frame_walk", "tick_arrivals"):
+    for k in ("merged", "passes", "firmware", "host_ticks", "frame_walk", "tick_arrivals",
+              "held_b_at_end"):
         if hasattr(dev, k):
             extra[k] = getattr(dev, k)
     if getattr(dev, "enables", None):
@@ -365,6 +366,12 @@ def main(argv=None) -> int:
         exc["impulse"] = Impulse(**exc["impulse"])
     excitation = Excitation(**{k: v for k, v in exc.items() if k in fields})
     cls = MOCKS[spec["driver"]]
+    if isinstance(opt.get("device_b"), dict):
+        # a second handle's device (the FireFader's fader B), as the first one's
+        b = opt["device_b"]
+        if b.get("force_limit") is None:
+            b["force_limit"] = math.inf
+        opt["device_b"] = Device(**b)
     dev = cls(device, a.rate, excitation, seed=a.seed, **opt)
     _above_the_hosts()
     flag = {"stop": False}

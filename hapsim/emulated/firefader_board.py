@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+from hapsim.drivers.firefader import HAND_PASSES
 from hapsim.emulated.actuated import Actuated
 
 __all__ = ["FireFaderDevice"]
@@ -70,6 +71,27 @@ class FireFaderDevice(Actuated):
     force and swallow that packet's forces (the pass applies fader A's byte of the damaged
     packet: the other fader's, 0, when a is lost; a, when b is).
 
+    Fader B (``device_b``): the ``.ino`` drives both faders alike, each with its own
+    enable filter and touch sense (``setPWM`` for motor B, line 321; ``forceBEnableLPF``,
+    lines 383-385; ``capSenseLPFB``, line 325), so fader B is a second handle
+    (:class:`hapsim.emulated.actuated.Actuated`, its own mass and friction) whose force is
+    each packet's byte B, set in the same pass as A's, and whose pot is read just before
+    pot A's (lines 339-343: "channel A is sampled last so that the feedback control delay
+    for it is slightly lower"), :data:`POT_S` earlier: on the wall clock fader B's own
+    loop delay is ``1 - (adc_s - POT_S) / T`` periods (0.7625 at 250 Hz, A's 0.725). Its
+    heat estimate adds fader A's PWM, not B's (line 371, ``heatB + (signedForceA >>
+    5)``: the firmware's, kept). The silence rule zeroes both (lines 264-277). Without
+    ``device_b`` fader B stays at rest and reads the centre, as before.
+
+    The hand (``hand``, for a measurement of several records on one board): a list of
+    starts ``(xA, xB, vA, vB)`` [m, m/s]. Each time the host has been silent
+    :data:`HAND_SILENCE_S` (it paused between records; the silence rule has zeroed the
+    forces by then) the hand takes both faders to the next start and holds them still
+    there while the enable climbs back (:data:`HAND_PASSES` passes); at the
+    :data:`HAND_PASSES`-th pass it lets go, the faders moving at ``(vA, vB)``: that
+    pass's record is the record's first row. A shorter silence (a host late) leaves the
+    faders where they are.
+
     End stops: with ``travel`` the fader's position is held within
     ``[stop_low, stop_low + travel]`` (an inelastic stop: the velocity is zeroed there);
     the pot reads ``CENTRE + x / metres_per_count`` clipped to 0..254.
@@ -116,6 +138,10 @@ class FireFaderDevice(Actuated):
         :data:`REPLY_S`); at least ``adc_s``.
     clock : {"wall", "lockstep"}
         The board's clock (above; :class:`hapsim.emulated.actuated.Actuated`).
+    device_b : hapsim.scene.Device, optional
+        Fader B's mass, friction, delay and force limit (None: fader B at rest).
+    hand : sequence of 4-tuples of float, optional
+        The hand's starts ``(xA, xB, vA, vB)`` [m, m/s], one per silence (above).
 
     Attributes
     ----------
@@ -134,6 +160,12 @@ class FireFaderDevice(Actuated):
         times the period, from the first write).
     silent_ticks : int
         Lockstep: host writes in a row of which no byte arrived.
+    fader_b : hapsim.emulated.actuated.Actuated or None
+        Fader B's handle (with ``device_b``): its physics, its clock, its force held.
+    enable_b, heat_b, cap_b, pwm_b : int
+        Fader B's enable, heat and touch filters and its PWM (0 without ``device_b``).
+    adc_b_s : float
+        Wall clock, with ``device_b``: from the packet to pot B's read [s].
 
     Raises
     ------
@@ -146,6 +178,16 @@ class FireFaderDevice(Actuated):
     #: (the ``.ino``'s reads before pot A's last conversion sum to ~0.8 ms of the pass by
     #: its comments, lines 324-343; the pass starts when the packet's last byte is in).
     ADC_S = 1.1e-3
+    #: Pot B's reading ends this long before pot A's [s]: pot A's eight conversions
+    #: ("This takes about 150 microseconds", ``.ino`` lines 341-343) come after pot B's.
+    POT_S = 150e-6
+    #: Passes the hand holds the faders still after a silence before it lets go: the run's
+    #: convention (:data:`hapsim.drivers.firefader.HAND_PASSES`).
+    HAND_PASSES = HAND_PASSES
+    #: The host's silence after which the hand takes the faders to its next start [s]:
+    #: longer than the silence rule and its doubt band
+    #: (:data:`hapsim.drivers.firefader.SILENCE_DOUBT_S`).
+    HAND_SILENCE_S = 0.3
     #: From the packet to the record's last byte on the wire [s]: the issue's measured
     #: board (the read, pot A's remaining conversions and the 7-byte record's 1.22 ms at
     #: 57600 baud, which ``Serial.flush`` waits out, line 358).
@@ -156,7 +198,7 @@ class FireFaderDevice(Actuated):
                  touch: bool = True, boot_s: float = 0.0, pass_time: bool = True,
                  travel: float | None = None, stop_low: float | None = None,
                  adc_s: float | None = None, reply_s: float | None = None,
-                 clock: str = "wall", seed: int = 0) -> None:
+                 clock: str = "wall", seed: int = 0, device_b=None, hand=None) -> None:
         import dataclasses
 
         from hapsim.drivers import firefader as ff
@@ -188,6 +230,9 @@ class FireFaderDevice(Actuated):
             # the fader holds the old force for T - adc_s, the new one for adc_s: the
             # split hold of a delay 1 - adc_s / T (0 whole periods)
             device = dataclasses.replace(device, delay=1.0 - self.adc_s / T)
+            if device_b is not None:
+                device_b = dataclasses.replace(
+                    device_b, delay=1.0 - max(self.adc_s - self.POT_S, 0.0) / T)
         elif wall:
             self.adc_s = self.ADC_S if firmware != "pde" else 0.0
         if wall:
@@ -221,12 +266,31 @@ class FireFaderDevice(Actuated):
         self._busy_until = 0.0                # wall clock: the pass running ends then
         self._quiet_from = 0.0                # wall clock: no byte waiting since then
         self._last_now = 0.0
+        self.fader_b = None
+        self.enable_b = self.heat_b = self.cap_b = self.pwm_b = 0
+        self._hand = [tuple(float(v) for v in h) for h in (hand or ())]
+        self._holding = None                  # (start, passes left) while the hand holds
+        self._hand_quiet = None               # the silence the hand last acted in
+        if device_b is not None:
+            self.fader_b = Actuated(device_b, rate_hz, None, math.inf, seed + 1, clock=clock)
+            if wall:
+                # pot B read POT_S before pot A: fader B's own loop delay is longer
+                self.adc_b_s = max(self.adc_s - self.POT_S, 0.0)
+                self.fader_b.extra_latency_s = max(
+                    0.0, float(device_b.delay) - (1.0 - self.adc_b_s / T)) / float(rate_hz)
 
-    def position_count(self) -> int:
-        """Fader A's reading: the sampled position in counts from the centre, 0..254."""
+    def position_count(self, physics=None) -> int:
+        """A fader's reading (fader A's by default, or that of ``physics``): the sampled
+        position in counts from the centre, 0..254."""
         ff = self._ff
-        c = ff.CENTRE + round(self.physics.sample() / self.mpc)
+        c = ff.CENTRE + round((physics or self.physics).sample() / self.mpc)
         return int(min(max(c, 0), ff.POSITION_MAX))
+
+    @property
+    def held_b_at_end(self):
+        """The force fader B is left holding once its queue is applied [N] (None without
+        fader B)."""
+        return None if self.fader_b is None else self.fader_b.settles_on()
 
     def _force(self, pwm: int) -> float:
         return pwm / 254.0 * self.full_scale
@@ -236,10 +300,11 @@ class FireFaderDevice(Actuated):
         self.apply(force)
         self._at_the_stops()
 
-    def _at_the_stops(self) -> None:
-        """The end stops: a fader at or beyond one is held there, at rest."""
+    def _at_the_stops(self, ph=None) -> None:
+        """The end stops: a fader (A, or the one of physics ``ph``) at or beyond one is
+        held there, at rest."""
         if self.stops is not None:
-            ph = self.physics
+            ph = ph or self.physics
             lo, hi = self.stops
             if ph.x <= lo or ph.x >= hi:
                 ph.x = min(max(ph.x, lo), hi)
@@ -248,12 +313,15 @@ class FireFaderDevice(Actuated):
     def _run_to(self, t: float) -> None:
         """Wall clock: the fader integrated to the board's time ``t`` [s], the motor's
         force held, the end stops enforced at each period's end (and at ``t``)."""
-        w = self.wall
         T = self.physics.period
-        while w.t < t:
-            w.run_to(min(t, w.t + T))
-            self._at_the_stops()
-        self.held = w.held
+        for a in (self, self.fader_b):
+            if a is None:
+                continue
+            w = a.wall
+            while w.t < t:
+                w.run_to(min(t, w.t + T))
+                self._at_the_stops(a.physics)
+            a.held = w.held
 
     def _silence(self, now: float) -> None:
         """Wall clock: the ``.ino``'s silence rule up to the board's time ``now`` [s]: no
@@ -262,44 +330,111 @@ class FireFaderDevice(Actuated):
         if self.firmware == "pde":
             return
         at = self._quiet_from + self._ff.SILENCE_S
-        if now > at and (self.enable or self.pwm or self.wall.settles_on()):
+        b = self.fader_b
+        if now > at and (self.enable or self.pwm or self.wall.settles_on()
+                         or (b is not None and (self.enable_b or self.pwm_b
+                                                or b.wall.settles_on()))):
             self._run_to(at)
-            self.enable = 0
-            self.pwm = 0
-            self.apply_now(0.0)
+            self._silenced()
             self.silences.append(at)
+        at = self._quiet_from + self.HAND_SILENCE_S
+        if now > at and self._hand and self._hand_quiet != self._quiet_from:
+            self._run_to(at)
+            self._hand_quiet = self._quiet_from
+            self._take()
 
-    def _pass(self, count_a: int, ticks: int, start: float | None = None) -> bytes:
-        """One pass of the firmware's loop for a packet whose force byte A is ``count_a``
-        (signed): lockstep, over ``ticks`` host periods (the ones before its last held);
-        wall clock, starting at the board's time ``start`` [s]."""
+    def _silenced(self) -> None:
+        """``waitForSerialInput``'s 65000th poll (lines 264-277): both enables and both
+        motors to 0."""
+        self.enable = self.enable_b = 0
+        self.pwm = self.pwm_b = 0
+        self.apply_now(0.0)
+        if self.fader_b is not None:
+            self.fader_b.apply_now(0.0)
+
+    def _take(self) -> None:
+        """The hand takes the faders to its next start and holds them there."""
+        self._holding = [self._hand.pop(0), self.HAND_PASSES]
+        self._place(still=True)
+
+    def _place(self, still: bool) -> None:
+        """The hand puts the faders at its start: still (held) or let go at its velocities."""
+        xa, xb, va, vb = self._holding[0]
+        for ph, x, v in ((self.physics, xa, va),
+                         (None if self.fader_b is None else self.fader_b.physics, xb, vb)):
+            if ph is not None:
+                ph.x, ph.v = x, (0.0 if still else v)
+
+    def _pass(self, count_a: int, ticks: int, start: float | None = None,
+              count_b: int = 0) -> bytes:
+        """One pass of the firmware's loop for a packet whose force bytes A and B are
+        ``count_a`` and ``count_b`` (signed): lockstep, over ``ticks`` host periods (the
+        ones before its last held); wall clock, starting at the board's time ``start``
+        [s]. Fader B moves only with ``device_b`` (class notes)."""
         ff = self._ff
+        fb = self.fader_b
+        scaled = self.firmware == "ino-scaled"
         if self.firmware == "pde":
-            self.pwm = 2 * count_a
+            self.pwm, self.pwm_b = 2 * count_a, 2 * count_b
         else:
-            self.pwm = ff.pass_pwm(count_a, self.enable, self.firmware == "ino-scaled")
+            self.pwm = ff.pass_pwm(count_a, self.enable, scaled)
+            self.pwm_b = ff.pass_pwm(count_b, self.enable_b, scaled)
         f = self._force(self.pwm)
+        hold = self._holding
+        pot_b = ff.CENTRE
         if self.wall is not None:
             self._run_to(start)
-            self.apply(f, now=start)          # setPWM: the duty from the pass's start
-            self._run_to(start + self.adc_s)  # ... held to pot A's read
+            if hold is not None:              # the hand, at the pass's start
+                self._hand_step()
+            self.apply(f, now=start)          # setPWM (lines 320-321): the duties from
+            if fb is not None:                # the pass's start
+                fb.apply(self._force(self.pwm_b), now=start)
+                self._run_to(start + self.adc_b_s)     # pot B read first (line 341)
+                pot_b = self.position_count(fb.physics)
+            self._run_to(start + self.adc_s)  # ... held to pot A's read (line 343)
             self._busy_until = self.ready_at = start + self.reply_s
             self._quiet_from = self.ready_at
         else:
             for _ in range(ticks - 1):        # host ticks merged into this pass
                 self._advance(None)
+                if fb is not None:
+                    fb.apply(None)
+                    self._at_the_stops(fb.physics)
             self._advance(f)
+            if fb is not None:
+                fb.apply(self._force(self.pwm_b))
+                self._at_the_stops(fb.physics)
+            if hold is not None:              # the hand, at the sample the pass reads
+                self._hand_step()
+            if fb is not None:
+                pot_b = self.position_count(fb.physics)
         pot = self.position_count()
         self.enables.append(self.enable)
+        cap_b = 0
         if self.firmware != "pde":
             self.cap = ((self.cap * 7) >> 3) + (10 if self.touch else 1)
-            self.enable, self.heat = ff.enable_step(self.enable, self.heat, self.pwm, pot,
-                                                    self.cap > 30)
+            self.enable, heat = ff.enable_step(self.enable, self.heat, self.pwm, pot,
+                                               self.cap > 30)
+            if fb is not None:
+                # lines 369-371 and 383-385: heat B adds fader A's PWM (the firmware's)
+                self.cap_b = ((self.cap_b * 7) >> 3) + (10 if self.touch else 1)
+                self.enable_b, self.heat_b = ff.enable_step(
+                    self.enable_b, self.heat_b, self.pwm, pot_b, self.cap_b > 30)
+                cap_b = min(self.cap_b, 254)
+            self.heat = heat
             cap = min(self.cap, 254)
         else:
             cap = 0
         self.passes += 1
-        return ff.encode_record(pot, ff.CENTRE, (0, 0, cap, 0))
+        return ff.encode_record(pot, pot_b, (0, 0, cap, cap_b))
+
+    def _hand_step(self) -> None:
+        """One pass of the hand after a silence: hold the faders still at its start, or
+        let them go at its velocities once :data:`HAND_PASSES` passes have run."""
+        self._holding[1] -= 1
+        self._place(still=self._holding[1] > 0)
+        if self._holding[1] <= 0:
+            self._holding = None
 
     def step(self, count_a: int) -> bytes:
         """One packet: one pass of the firmware, one record."""
@@ -383,10 +518,8 @@ class FireFaderDevice(Actuated):
                 # over its period; SILENCE_S of them zero the enable and the motor
                 self.silent_ticks += 1
                 if (self.silent_ticks * self.physics.period >= self._ff.SILENCE_S - 1e-12
-                        and (self.enable or self.pwm)):
-                    self.enable = 0
-                    self.pwm = 0
-                    self.apply_now(0.0)
+                        and (self.enable or self.pwm or self.enable_b or self.pwm_b)):
+                    self._silenced()
                     self.silences.append((self.host_ticks - ticks + i) * self.physics.period)
             for b in w:
                 pk = self._parse(b)
@@ -402,7 +535,7 @@ class FireFaderDevice(Actuated):
             return b""                        # no pass: the motor holds its PWM (the
             #                                   periods are advanced at the next pass)
         n, self._owed = max(self._owed, 1), 0
-        return self._pass(done[0], n)
+        return self._pass(done[0], n, count_b=done[1])
 
     def _feed_wall(self, data: bytes, now: float) -> bytes:
         """:meth:`feed` on the wall clock (class notes): the bytes came at the board's time
@@ -432,7 +565,7 @@ class FireFaderDevice(Actuated):
         if end is None:
             return b""
         self._ready = None
-        return self._pass(end[0], 1, start=max(now, self._busy_until))
+        return self._pass(end[0], 1, start=max(now, self._busy_until), count_b=end[1])
 
     def idle(self, silent_s: float) -> bytes:
         """The host has been silent for ``silent_s`` [s] since its last bytes: ``.ino``
@@ -451,8 +584,8 @@ class FireFaderDevice(Actuated):
             return b""
         if self.firmware == "pde":
             return self._pass(getattr(self, "last_count", 0), 1)
-        if silent_s > 0.1 and (self.enable or self.pwm):
-            self.enable = 0
-            self.pwm = 0
-            self.apply_now(0.0)
+        if silent_s > 0.1 and (self.enable or self.pwm or self.enable_b or self.pwm_b):
+            self._silenced()
+        if silent_s >= self.HAND_SILENCE_S and self._hand:
+            self._take()
         return b""
