@@ -12,10 +12,10 @@ its tiny stated interval (2.6e-8 relative on an emulated record).
 Measured on the generator below (:func:`_holds`, seeds 0-199, matching paddles, the
 offline board on a simulated clock): main (55b5101, the search and the shift rule) said
 "differs" of 12 of them (seeds 8, 24, 42, 71, 83, 112, 129, 139, 143, 150, 167, 181) and
-"not measurable" of 3; this change none "differs", 200 within. Seeds 0-39 with 30 % more mass,
-0.3 N s/m or 0.03 N of Coulomb friction the scene does not state: 40, 40 and 38 "differs"
-before and after (the other 2 Coulomb paddles stop within 1.3 cycles: "not identified"
-with that reason, before and after).
+"not measurable" of 3; this change none "differs", 200 within. Seeds 0-39 with 30 % more
+mass, 0.3 N s/m or 0.03 N of Coulomb friction the scene does not state: 40, 40 and 38
+"differs" before and after (the other 2 Coulomb paddles stop within 1.3 cycles: "not
+identified" with that reason, before and after).
 """
 
 from __future__ import annotations

@@ -448,7 +448,7 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
         measured["_unseen"] = {
             "fitted": fitted, "fit": last[0], "exclude": last[1], "position": x,
             "poles": poles, "floor": floor,
-            "drop": math.ceil(float(scene.device.delay)) + 2 + int(measured.get("skipped", 0))}
+            "drop": math.ceil(float(scene.device.delay)) + 2}
     if rows:
         seq = np.asarray(cols["seq"], np.int64)
         measured["unseen_hold_seqs"] = [int(seq[j]) for j in rows[:100]]
