@@ -531,7 +531,9 @@ assert all(k.type in TYPES for k in _KEYS)
 #: Rules that span several keys, checked in code (hapsim.scene.rules.check_scene), stated once here.
 CROSS_RULES = (
     "Names of masses are unique, names of links are unique.",
-    "At most one mass of kind `port`; a scene with a port needs a `device` section.",
+    "At most one mass of kind `port`; a scene with a port needs a `device` section. A "
+    "scene with 2 or 3 ports gives each its own device under `devices:` instead "
+    "([Several ports](ports.md)).",
     "`mass` is given for kind `mass` only; a `ground` or a `port` has no inertia and no v0.",
     "A link joins two different existing masses.",
     "A link needs `stiffness` and/or `damping`, or a `target` (not both).",

@@ -187,6 +187,53 @@ def pytest_xdist_auto_num_workers(config):
     return 1 if n < 2 else n + 1
 
 
+#: Longest silence [s] the README's test command leaves on a terminal before it shows that
+#: tests are still running (issue 31: nothing a newcomer runs is silent over 2 s).
+HEARTBEAT_S = 1.0
+
+
+class _Heartbeat:
+    """On a terminal, a dim ``·`` for every :data:`HEARTBEAT_S` in which no test reported.
+
+    With ``-q`` pytest prints a character per result; the tests that wait on real time (a
+    JACK server, a device on the wall clock, a browser) can hold every worker for several
+    seconds, and the workers' start-up prints nothing for ~5 s: a newcomer saw a terminal
+    stand still for up to 5 s. The controller's own thread writes the mark through the
+    terminal reporter (its line width counted, so the ``[ NN%]`` column stays aligned)
+    only while the main thread waits on the workers. Nothing in a log (not a terminal)
+    or in a worker."""
+
+    def __init__(self, config) -> None:
+        self.config = config
+        self.last = time.monotonic()
+        self.done = threading.Event()
+        threading.Thread(target=self._beat, name="pytest-heartbeat", daemon=True).start()
+
+    def pytest_runtest_logreport(self, report) -> None:
+        self.last = time.monotonic()
+
+    def pytest_collectreport(self, report) -> None:
+        self.last = time.monotonic()
+
+    def pytest_unconfigure(self, config) -> None:
+        self.done.set()
+
+    def _beat(self) -> None:
+        while not self.done.wait(0.25):
+            now = time.monotonic()
+            if now - self.last < HEARTBEAT_S:
+                continue
+            tr = self.config.pluginmanager.get_plugin("terminalreporter")
+            if tr is None:
+                continue
+            self.last = now
+            try:
+                tr.write("\u00b7", light=True)
+                tr.flush()
+            except (OSError, ValueError):      # the terminal closed under pytest
+                return
+
+
 def pytest_configure(config):
     """One BLAS thread in every pytest process, as every ``hapsim`` command runs
     (hapsim.blas): two workers on two cores, each with an OpenBLAS pool as large as the
@@ -194,6 +241,9 @@ def pytest_configure(config):
     way; the first in-process ``hapsim.cli.main`` of a worker used to shrink its pool, so
     a test's cost depended on which tests the worker had run before). Children keep the
     sizing of their own command line (nothing is put in the environment)."""
+    import sys
+    if not hasattr(config, "workerinput") and sys.stdout.isatty():
+        config.pluginmanager.register(_Heartbeat(config), "heartbeat")
     from hapsim.blas import limit_blas_threads
     import numpy  # noqa: F401  (loads numpy's OpenBLAS: its pool is limited below)
     import scipy.linalg  # noqa: F401  (and scipy's)

@@ -15,7 +15,8 @@ import hapsim
 from hapsim.errors import ConfigError
 from hapsim.scene import Scene
 from hapsim.scene import load_scene as load_1d
-from hapsim.scene import SceneND, load_scene_nd, scene_dimension
+from hapsim.scene import (SceneND, ScenePorts, load_scene_nd, load_scene_ports, scene_dimension,
+                          scene_has_ports)
 
 CONFIGS = sorted((Path(__file__).resolve().parent.parent / "configs").glob("*.yaml"))
 
@@ -25,7 +26,9 @@ def test_load_scene_picks_the_dimension(path):
     """Every shipped scene: the type follows the file's dimension, and the result equals
     the dimension's own reader's."""
     s = hapsim.load_scene(path)
-    if scene_dimension(path) == 1:
+    if scene_has_ports(path):                   # several ports: tests/test_ports.py
+        assert type(s) is ScenePorts and s == load_scene_ports(path) and s.dimension == 1
+    elif scene_dimension(path) == 1:
         assert type(s) is Scene and s == load_1d(str(path)) and s.dimension == 1
     else:
         assert type(s) is SceneND

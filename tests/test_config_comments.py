@@ -40,6 +40,7 @@ def test_every_config_comment_with_a_figure_is_pinned():
               "hapkit_serial.yaml",      # its figure: tests/test_drivers.py
               "firefader.yaml",          # its figure: tests/test_drivers.py (rate refusal)
               "hand_wall.yaml", "membrane.yaml",
+              "falcon_spring.yaml",      # its figures: tests/test_falcon_spring.py
               "first_wall.yaml"}         # its figures: tests/test_first_run.py
     for f in sorted(CONFIGS.glob("*.yaml")):
         if re.search(r"\d\s*(N/m|N s/m|Hz|1/s)", _comments(f.name)):

@@ -133,18 +133,19 @@ def test_stretches_of_free_responses_fit_exactly_and_a_cut_is_needed():
 
 
 def _measure(monkeypatch, seed, *, loss=0.0, stalls=None, clock="wall", inertia=1.0,
-             N=200):
+             N=200, friction=1.0):
     """The whole measurement (five records) on the emulated board, the host's stalls
     injected by sleeping ``stalls[n]`` [s] of simulated time inside its ``n``-th 10-byte
     write (on the wall clock the board holds the torque meanwhile), ``loss`` of the bytes
-    lost each way, the board's joint inertia ``inertia`` times the scene's (a hidden
-    difference)."""
+    lost each way, the board's joint inertia ``inertia`` and friction ``friction`` times
+    the scene's (a hidden difference)."""
     clk = SimClock()
     monkeypatch.setattr(record, "time", types.SimpleNamespace(
         perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep))
     sc = load_scene_nd(WALL)
     plant = dataclasses.replace(sc, device=dataclasses.replace(
-        sc.device, joint_inertia=sc.device.joint_inertia * inertia))
+        sc.device, joint_inertia=sc.device.joint_inertia * inertia,
+        joint_friction=sc.device.joint_friction * friction))
     board = Haply2DIYBoard(plant, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock=clock)
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     link = SimLink(board, clk, f.rx, f.tx)
@@ -194,14 +195,18 @@ def test_host_stalls_on_the_boards_own_clock_are_cut_and_measured_simulated_time
     assert h["deviation"]["felt_stiffness"] > 0.05
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1, 2, 9])
 def test_resynchronised_records_are_cut_and_a_hidden_difference_still_differs_lockstep(
         monkeypatch, seed):
     """1 byte in 200 lost each way, the board in lockstep: 4-10 re-synchronisations per
     record, each cut with the missing replies before it; a correct loop is never
     "differs" (before: "not measurable" whatever the stretches), and a board whose joint
     inertia is 30 % above the scene's is "differs", the felt stiffness off by more than
-    its stated uncertainty."""
+    its stated uncertainty. Seed 9's heavier board kept three estimated rows (late
+    replies in step) 1e-5 m off: with them in the records' own-stretch fit it said
+    "partly within" (``haply2_verdict._without_estimates`` leaves them out). Over seeds
+    1-20 (simulated): 19 "differs" (17 before the own-stretch fit), the other an arming
+    the stream corrupted."""
     r = _measure(monkeypatch, seed, loss=1 / 200, clock="lockstep")
     assert sum(r["resyncs"]) > 0
     assert r["verdict"] != "differs", (r["reason"], r["deviation"], r["uncertainty"])

@@ -55,10 +55,11 @@ def test_huge_whole_number_at_every_scalar_is_one_line():
     key in the same line goes through the same check; 1,500 loads were 500)."""
     from hapsim.errors import ConfigError
     from hapsim.scene import parse_scene
-    from hapsim.scene import parse_scene_nd
+    from hapsim.scene import parse_scene_nd, parse_scene_ports
     n = 0
     for text in BASES:
         nd = re.search(r"^dimension: [23]\b", text, re.M) is not None
+        ports = re.search(r"^devices:", text, re.M) is not None
         seen = set()
         for m in SCALAR.finditer(text):
             # the line's shape with this scalar marked, numbers and names out
@@ -71,7 +72,7 @@ def test_huge_whole_number_at_every_scalar_is_one_line():
             seen.add(shape)
             for value in ("9" * 400, "-" + "9" * 400):
                 try:
-                    (parse_scene_nd if nd else parse_scene)(
+                    (parse_scene_nd if nd else parse_scene_ports if ports else parse_scene)(
                         text[:m.start()] + value + text[m.end():], "s.yaml")
                 except ConfigError as exc:
                     msg = str(exc)

@@ -113,6 +113,8 @@ def test_identify_over_a_real_time_port_ends_without_a_safety_stop(tmp_path):
         mock.terminate()
         mock.wait(10)
     out = json.loads(stdout)
+    # (a run that identified nothing has no loop section: its reason and exit are shown)
+    assert "loop" in out, (code, out, stderr[-2000:])
     # the loop at SCHED_FIFO where permitted, as hapsim run's (preempted mid-push beside a
     # CPU-bound process, it held its force and passed the envelope: -0.0100663 m, a
     # fresh-clone suite at normal scheduling), or the reason it was refused

@@ -15,7 +15,7 @@ from hapsim.pipeline.options import RunOptions
 from hapsim.pipeline.precheck import predict_comparable
 from hapsim.pipeline.runner import prepare_run, run_scene
 from hapsim.scene import load_scene, parse_scene
-from hapsim.scene import scene_dimension
+from hapsim.scene import scene_dimension, scene_has_ports
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
@@ -23,7 +23,7 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 def _with_port(dim: int) -> list:
     out = []
     for path in sorted(CONFIGS.glob("*.yaml")):
-        if scene_dimension(path) != dim:
+        if scene_dimension(path) != dim or scene_has_ports(path):
             continue
         if "kind: port" in path.read_text():
             out.append(path)
@@ -72,6 +72,21 @@ def test_every_shipped_nd_scene_measures_in_lockstep(path):
         v is None or math.isfinite(v) for v in r.deviation.values()), r.deviation
     assert r.within is True, (path.name, r.verdict, r.reason)
     assert r.statements and all(s["verdict"] == "within" for s in r.statements)
+
+
+@pytest.mark.parametrize("path", [p for p in sorted(CONFIGS.glob("*.yaml"))
+                                  if scene_has_ports(p)], ids=lambda p: p.name)
+def test_every_shipped_scene_of_several_ports_measures_in_lockstep(path):
+    """Several ports (docs/ports.md): the lockstep run (``hapsim run SCENE --lockstep``,
+    each port its own device model) measures the felt matrices across the ports within
+    the linear loop's round-off allowance (LinearisationBound.roundoff, derived there) of
+    the prediction, on a stable loop: verdict "within"."""
+    from hapsim.lockstep import measure_felt_ports
+    from hapsim.scene import load_scene_ports
+    res = measure_felt_ports(load_scene_ports(path))
+    assert res["predicted"].stable
+    assert res["verdict"]["verdict"] == "within", res["verdict"]
+    assert max(res["deviation"].values()) <= res["bound"].roundoff <= 1e-6
 
 
 def test_string_preload_figures_of_its_comments():

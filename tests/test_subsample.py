@@ -452,6 +452,10 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
         if "dimension: 2" in text or "dimension: 3" in text:
             dev = load_scene_nd(str(path)).device
             assert dev is None or isinstance(dev.delay, int)
+        elif "devices:" in text:          # several ports (two_faders.yaml: the
+            from hapsim.scene import load_scene_ports   # FireFader's real delay, 0.725)
+            if any(d.delay % 1 for _, d in load_scene_ports(str(path)).devices):
+                continue
         else:
             sc = load_scene(str(path))
             if sc.device is None or sc.port is None or sc.device.delay % 1:

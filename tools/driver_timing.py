@@ -5,7 +5,8 @@ Usage::
 
     nice python tools/driver_timing.py [--drivers haply haply2 firefader hapkit-serial falcon]
                                        [--seeds 1 2 ... 10] [--loss 0 0.005] [--hogs 2]
-                                       [--duration 1.5] [--json PATH]
+                                       [--duration 1.5] [--falcon-scene PATH]
+                                       [--json PATH]
 
 For each driver, each loss (the probability that a byte is lost, each way: 0 and 1 in
 200 by default) and each seed, one run beside ``--hogs`` CPU-bound processes (started
@@ -19,9 +20,11 @@ here, ended here by their pids):
   (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`) against the emulated board
   in process behind a link that loses bytes (seeded; the board on its own clock, the
   wall clock: each write fed at its time, its replies readable when the board made them);
-- ``falcon`` (``configs/delta_sphere.yaml``): :func:`hapsim.pipeline.falcon_run.run_falcon`
-  over pyftdi and the emulated FT232R, the loss on its UART, the Falcon on its own clock
-  (its firmware's ticks) and the run paced as a real one's.
+- ``falcon`` (``configs/falcon_spring.yaml``, ``--falcon-scene`` another, e.g.
+  ``configs/delta_sphere.yaml``): :func:`hapsim.pipeline.falcon_run.run_falcon` over
+  pyftdi and the emulated FT232R, the loss on its UART, the Falcon on its own clock (its
+  firmware's ticks) and the run paced as a real one's; then the felt matrices' records
+  (:func:`hapsim.pipeline.falcon_run.felt_statement`), the same loss on each.
 
 Each row: safety stop, re-synchronisations, host stalls, the largest excursion (the
 device's own where its model reports it, ``true_excursion``; else the host's readings),
@@ -201,20 +204,29 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
             "hold_s": (r.get("wire") or {}).get("hold_s")}
 
 
-def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:
-    """One Falcon run over the emulated FT232R with seeded loss on its UART.
+def run_falcon_once(seed: int, loss: float, clock: str = "wall",
+                    scene: str = "configs/falcon_spring.yaml") -> dict:
+    """One Falcon run over the emulated FT232R with seeded loss on its UART, as
+    ``hapsim run SCENE --driver falcon`` runs it: the loop from rest (the link's verdict,
+    ``link_verdict``), then the felt matrices' statement
+    (:func:`hapsim.pipeline.falcon_run.felt_statement`: where the Falcon's counts allow,
+    the identification's records from the hand's starts, each on a fresh emulated Falcon
+    with the same loss, seeded ``100 seed + record``), whose verdict is the row's.
 
     The emulated Falcon on its own clock (its firmware's ticks, the default; lockstep by
     name), the run paced as a real Falcon's is (a host stall is the firmware holding the
-    last command: "degraded"), as ``hapsim run --driver falcon`` runs it.
-    ``excursion_true`` is the legs' largest departure from the operating point over the
-    loop [rad], ``workspace`` the bound it is held to
+    last command: "degraded"; in the records, a row cut). ``excursion_true`` is the legs'
+    largest departure from the operating point [rad] over the loop (the emulator's
+    truth) and the records (their readings; ``felt_excursion_true``: the emulator's,
+    which adds the free coast after each record's zero commands, no hand holding the
+    handle), ``workspace`` the bound it is held to
     (:data:`hapsim.pipeline.falcon_run.WORKSPACE_RAD`)."""
-    from hapsim.pipeline.falcon_run import WORKSPACE_RAD, emulated_falcon, run_falcon
+    from hapsim.pipeline.falcon_run import (WORKSPACE_RAD, emulated_falcon, felt_statement,
+                                            run_falcon)
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene_nd
-    sc = load_scene_nd("configs/delta_sphere.yaml")
+    sc = load_scene_nd(scene)
     image = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
     faults = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     link, dev, chip = emulated_falcon(sc, image, faults=faults, clock=clock)
@@ -231,18 +243,36 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall") -> dict:
                 "excursion_true": dev.excursion, "workspace": WORKSPACE_RAD}
     finally:
         link.close()
+    try:
+        felt = felt_statement(sc, image, clock=clock, faults=lambda i: ByteFaults(
+            {"drop_rx": loss, "drop_tx": loss, "seed": 100 * seed + i}) if loss else None)
+    except DeviceError as exc:
+        felt = {"verdict": None, "reason": f"DeviceError: {exc}", "error": True}
+    recs = felt.get("records") or []
     pos = res["position"]
     stopped = res.get("stopped")
-    return {"clock": clock, "safety_stop": bool(stopped),
-            "stop": stopped[1] if stopped else "end",
+    stops = [r["stopped"] for r in recs if r["stopped"]]
+    exc_true = max([dev.excursion] + [r["excursion_rad"] for r in recs])
+    return {"clock": clock, "scene": scene,
+            "safety_stop": bool(stopped) or bool(stops),
+            "stop": stopped[1] if stopped else (stops[0][1] if stops else "end"),
             "resyncs": 0, "stalls": res.get("stalls"), "waits": res.get("waits"),
-            "excursion_true": dev.excursion,
+            "excursion_true": exc_true,
+            "felt_excursion_true": max([r["excursion_true_rad"] for r in recs],
+                                       default=None),
             "excursion_host": float(np.nanmax(np.abs(pos - pos[0]))) if pos.size else None,
-            "workspace": WORKSPACE_RAD, "beyond_workspace": dev.excursion > WORKSPACE_RAD,
-            "verdict": res["verdict"], "within": None,
+            "workspace": WORKSPACE_RAD, "beyond_workspace": exc_true > WORKSPACE_RAD,
+            "verdict": felt["verdict"], "within": felt.get("within"),
+            "felt_reason": felt["reason"],
+            "deviation": felt.get("deviation"), "uncertainty": felt.get("uncertainty"),
+            "wire_term": felt.get("wire"), "amplitude_m": felt.get("amplitude_m"),
+            "felt_missing": felt.get("missing"), "felt_late_rows": felt.get("late_rows"),
+            "felt_stalls": sum(r["stalls"] for r in recs),
+            "felt_link_verdicts": [r["link_verdict"] for r in recs],
+            "link_verdict": res["verdict"],
             "exit_code": 0, "missing": res["missing"], "reason": res["reason"],
             "held_zero": res["held_zero"],
-            "truth": res["truth"], "error": None}
+            "truth": res["truth"], "error": felt["reason"] if felt.get("error") else None}
 
 
 def main(argv=None) -> int:
@@ -256,6 +286,10 @@ def main(argv=None) -> int:
                    help="SCHED_FIFO priority of the host loops (and the boards' processes) "
                         "where the OS permits it: 10, as 'hapsim run' takes by default; 0 "
                         "for normal scheduling")
+    p.add_argument("--falcon-scene", default="configs/falcon_spring.yaml", metavar="PATH",
+                   help="the Falcon's scene (configs/falcon_spring.yaml: its felt "
+                        "matrices measurable; configs/delta_sphere.yaml: the contact's "
+                        "link verdict, its felt matrices not measurable by its depth)")
     p.add_argument("--json", default=None, metavar="PATH")
     a = p.parse_args(argv)
     from hapsim.host.realtime import RealtimePriority
@@ -277,7 +311,8 @@ def main(argv=None) -> int:
                         rt = RealtimePriority(a.rt_priority)
                         with rt:
                             row = (run_haply2(seed, loss) if drv == "haply2"  # else falcon
-                                   else run_falcon_once(seed, loss))
+                                   else run_falcon_once(seed, loss,
+                                                        scene=a.falcon_scene))
                         sched = rt.note
                     else:
                         row = run_1d(drv, seed, loss, a.duration, a.rt_priority)
@@ -288,7 +323,8 @@ def main(argv=None) -> int:
                     print(json.dumps({k: row.get(k) for k in (
                         "driver", "loss", "seed", "clock", "safety_stop", "resyncs", "stalls",
                         "excursion_true", "excursion_host", "verdict", "exit_code",
-                        "error", "board_off_period", "unseen_holds")}, default=str),
+                        "error", "board_off_period", "unseen_holds", "link_verdict")},
+                                     default=str),
                           file=sys.stderr, flush=True)
     finally:
         for h in hogs:

@@ -149,6 +149,41 @@ def spring() -> str:
         + pantograph_device(q, (0.05, 0.05, 0.07, 0.07, 0.02)))
 
 
+#: The Falcon's spring field: stiffness [N/m] and damping [N s/m] (configs/falcon_spring.yaml;
+#: the figures in its comments are tools/falcon_felt_figures.py's, pinned by
+#: tests/test_falcon_spring.py).
+FALCON_K, FALCON_B = 1000.0, 3.0
+
+
+def falcon_spring() -> str:
+    q = [20.0, 25.0, 15.0]
+    h = device("delta", "falcon").forward(np.radians(q))
+    return (
+        "# A spring field felt through a Novint Falcon (delta, libnifalcon's geometry): the\n"
+        "# handle held where it rests by a 3-D spring-damper of rest length 0 to an anchor\n"
+        "# there (the same law along every axis). No contact to open, so a hand start may be\n"
+        "# millimetres, up to the run's envelope of 0.1 rad at a leg (3.8 mm here, about 95\n"
+        "# encoder counts of 27-47 um): there the readings' rounding may move the felt\n"
+        "# stiffness by at most 0.19 of itself (first order, about the exact records), below\n"
+        "# the 0.25 a statement allows, and 'hapsim run --driver falcon' measures the felt\n"
+        "# matrices on the emulated Falcon (docs/devices.md). The damping is not measurable\n"
+        "# at any start (python tools/falcon_felt_figures.py configs/falcon_spring.yaml).\n"
+        "# 1000 N/m is 0.5 of the stiffness limit along the device's lightest mass axis\n"
+        "# (2029 N/m); 3 N s/m keeps the loop stable with one period more of delay (a packet\n"
+        "# lost on the link: the firmware holds the last command), and no more: a larger\n"
+        "# damping lets the records fade into the counts, which then state less.\n"
+        "# Written by tools/make_nd_scenes.py.\n"
+        "dimension: 3\n"
+        "rate_hz: 1000\n"
+        "masses:\n"
+        "  - {name: hand, kind: port}\n"
+        f"  - {{name: anchor, kind: ground, x0: {v(h)}}}\n"
+        "links:\n"
+        "  - {name: field, kind: spring_damper, between: [hand, anchor], stiffness: "
+        f"{FALCON_K:g}, damping: {FALCON_B:g}}}\n"
+        + delta_device(q))
+
+
 def sphere() -> str:
     q = [20.0, 25.0, 15.0]
     h = device("delta").forward(np.radians(q))
@@ -293,7 +328,8 @@ def membrane() -> str:
 
 SCENES = {"pantograph_wall.yaml": wall, "pantograph_circle.yaml": circle,
           "pantograph_spring.yaml": spring,
-          "delta_sphere.yaml": sphere, "delta_mesh.yaml": mesh, "membrane.yaml": membrane}
+          "delta_sphere.yaml": sphere, "delta_mesh.yaml": mesh,
+          "falcon_spring.yaml": falcon_spring, "membrane.yaml": membrane}
 
 if __name__ == "__main__":
     for name, make in SCENES.items():

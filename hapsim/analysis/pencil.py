@@ -35,6 +35,18 @@ inverse quadratic eigenvalue problem). Several records (free responses from diff
 initial states) are fitted together, so every mode is excited. The fit's first-order
 sensitivity to the records (:func:`felt_sensitivity_nd`) and its worst case under bounded
 errors (:func:`worst_case_nd`) bound what the wire's errors can do to the measurement.
+
+A common equilibrium ``c`` (records of absolute handle positions, not differences against
+a record from rest) is taken by an affine prediction, ``offset=True``:
+``y[k] - c = sum_j C_j (y[k-j] - c)``, i.e. ``y[k] = sum_j C_j y[k-j] + g`` with
+``g = (I - sum_j C_j) c`` one more unknown per coordinate, shared by every record and
+stretch (the vector autoregression with intercept, whose mean is
+``(I - sum_j C_j)^-1 g``: H. Luetkepohl, *New Introduction to Multiple Time Series
+Analysis*, 2005, Sec. 2.1.1 and 3.2). On exact data of the loop it holds exactly (as
+the differencing of the 1-D fit does), and it costs no row of a stretch: a first
+difference would cost each stretch one equation, and subtracting a record from rest
+would leave only the rows usable in both records (each record's cuts made the other's
+too).
 :mod:`hapsim.analysis.ths_nd` is imported on call (importing :mod:`hapsim.analysis` does
 not load it).
 """
@@ -258,7 +270,28 @@ def _equations(recs, p: int, usable):
     return out
 
 
-def fit_felt_nd(records, mass, period: float, order: int, *, usable=None) -> dict:
+def _regression(recs, p: int, usable, offset: bool):
+    """The prediction's regression: rows ``R`` (the ``p`` lagged samples, newest first,
+    then a 1 with ``offset``), right-hand sides ``Y``, the equations per record and the
+    samples' reference (0 without ``offset``).
+
+    With ``offset`` every sample is taken relative to the mean of the right-hand sides
+    (the affine prediction's ``C`` does not depend on a common shift: only ``g`` does),
+    so that the column of ones is not nearly collinear with records of absolute
+    positions far from 0."""
+    eqs = _equations(recs, p, usable)
+    ref = 0.0
+    if offset:
+        ys = [r[ks] for r, ks in zip(recs, eqs) if ks.size]
+        ref = np.mean(np.concatenate(ys), axis=0) if ys else 0.0
+    rows = [np.concatenate([(r[k - p:k][::-1] - ref).ravel(), [1.0] if offset else []])
+            for r, ks in zip(recs, eqs) for k in ks]
+    rhs = [r[k] - ref for r, ks in zip(recs, eqs) for k in ks]
+    return rows, rhs, eqs, ref
+
+
+def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
+                offset: bool = False) -> dict:
     """Measured poles and felt matrices from free responses at the handle.
 
     Parameters
@@ -279,6 +312,11 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None) -> dic
         same loop from its own initial state: row ``k``'s equation is formed only when
         rows ``k - p .. k`` are all usable, so a stretch shorter than ``p + 1`` rows
         gives none. Default: every row.
+    offset : bool, optional
+        The records are positions about a common equilibrium ``c`` not at 0 (module
+        notes: the affine prediction, one more unknown per coordinate): e.g. every
+        record of a run taken whole, the record from rest among them, instead of the
+        differences against that record. Default False: free responses about 0.
 
     Returns
     -------
@@ -286,7 +324,9 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None) -> dic
         ``poles`` (every measured pole, largest ``|z|`` first), ``rendered_poles``,
         ``felt_stiffness`` [N/m] and ``felt_damping`` [N s/m] (n x n, None when fewer
         than n rendered pairs), ``residual`` (largest prediction error over the largest
-        position [-]) and ``rank`` of the regression.
+        position [-]; with ``offset``, over the largest departure from the mean of the
+        rows predicted) and ``rank`` of the regression; with ``offset``, ``equilibrium``
+        (shape (n,), [m]: ``c``, None when ``I - sum_j C_j`` is singular).
 
     Raises
     ------
@@ -299,22 +339,20 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None) -> dic
         raise ConfigError("records must be arrays of shape (N, n) with one n", key="records")
     n = recs[0].shape[1]
     p = int(order)
-    rows, rhs = [], []
-    for r, ks in zip(recs, _equations(recs, p, usable)):
-        if not np.all(np.isfinite(r)):
-            raise ConfigError("records must be finite", key="records")
-        for k in ks:
-            rows.append(r[k - p:k][::-1].ravel())
-            rhs.append(r[k])
-    if len(rows) < n * p:
-        raise ConfigError(f"{len(rows)} equations for {n * p} unknowns per coordinate: "
+    if not all(np.all(np.isfinite(r)) for r in recs):
+        raise ConfigError("records must be finite", key="records")
+    rows, rhs, _, ref = _regression(recs, p, usable, offset)
+    unknowns = n * p + int(bool(offset))
+    if len(rows) < unknowns:
+        raise ConfigError(f"{len(rows)} equations for {unknowns} unknowns per coordinate: "
                           "longer or more records"
                           + ("" if usable is None else " (or longer undisturbed stretches)"),
                           key="records")
     R, Y = np.array(rows), np.array(rhs)
-    C, _, rank, _ = np.linalg.lstsq(R, Y, rcond=None)
+    Ca, _, rank, _ = np.linalg.lstsq(R, Y, rcond=None)
+    C = Ca[:n * p]
     scale = float(np.max(np.abs(Y))) or 1.0
-    residual = float(np.max(np.abs(R @ C - Y))) / scale
+    residual = float(np.max(np.abs(R @ Ca - Y))) / scale
     comp = np.zeros((n * p, n * p))
     comp[:n, :] = C.T
     comp[n:, :-n] = np.eye(n * (p - 1))
@@ -322,6 +360,13 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None) -> dic
     zr, U, poles = rendered_pairs_of(comp, n, period)
     out = {"poles": poles, "rendered_poles": zr, "felt_stiffness": None,
            "felt_damping": None, "residual": residual, "rank": int(rank)}
+    if offset:
+        # c = (I - sum_j C_j)^-1 g, back in the records' coordinates
+        A = np.eye(n) - C.reshape(p, n, n).sum(axis=0).T
+        try:
+            out["equilibrium"] = ref + np.linalg.solve(A, Ca[n * p])
+        except np.linalg.LinAlgError:
+            out["equilibrium"] = None
     if zr.size == n:
         z = zr.astype(complex)
         s = continuous_poles(z, period)
@@ -348,7 +393,7 @@ def _felt_of(C, n: int, p: int, mass, period: float):
 
 
 def felt_sensitivity_nd(records, mass, period: float, order: int, *,
-                        step: float = 1e-7, usable=None) -> list | None:
+                        step: float = 1e-7, usable=None, offset: bool = False) -> list | None:
     """First-order sensitivity of the measured felt matrices to each sample of the records.
 
     The fit (:func:`fit_felt_nd`) is ``C = R^+ Y`` (``R`` the lagged samples, ``Y`` the
@@ -371,6 +416,11 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
     usable : optional
         As :func:`fit_felt_nd`: the equations fitted; a row no equation uses has
         sensitivity 0.
+    offset : bool, optional
+        As :func:`fit_felt_nd`: the affine prediction, ``C`` the first ``n p`` rows of
+        ``R^+ Y`` with ``R`` holding the column of ones (an error of the samples does not
+        enter that column: ``eps[k]`` as above, ``dC`` the first ``n p`` rows of
+        ``R^+ eps``).
 
     Returns
     -------
@@ -385,13 +435,12 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
         As :func:`fit_felt_nd`.
     """
     recs = [np.asarray(r, float) for r in records]
-    fit_felt_nd(recs, mass, period, order, usable=usable)   # validates
+    fit_felt_nd(recs, mass, period, order, usable=usable, offset=offset)   # validates
     n = recs[0].shape[1]
     p = int(order)
-    eqs = _equations(recs, p, usable)
-    R = np.array([r[k - p:k][::-1].ravel() for r, ks in zip(recs, eqs) for k in ks])
-    Y = np.array([r[k] for r, ks in zip(recs, eqs) for k in ks])
-    P = np.linalg.pinv(R)                                   # (n p, rows)
+    rows, rhs, eqs, _ = _regression(recs, p, usable, offset)
+    R, Y = np.array(rows), np.array(rhs)
+    P = np.linalg.pinv(R)[:n * p]                           # (n p, rows)
     C = P @ Y
     if _felt_of(C, n, p, mass, period) is None:
         return None

@@ -66,7 +66,7 @@ from hapsim.errors import ConfigError
 
 __all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL",
            "OBSERVABLE_TOL", "DEFECTIVE_COND", "closed_loop_nd", "SceneCheckND",
-           "check_scene_nd", "WorkspaceFelt", "felt_over_workspace"]
+           "check_scene_nd", "WorkspaceFelt", "felt_over_workspace", "felt_summary"]
 
 # STABILITY_TOL (re-exported): spectral radius accepted as stable, ``max |z| <= 1 +
 # STABILITY_TOL``; defined once in :mod:`hapsim.analysis.loop` and shared with ``render``.
@@ -420,6 +420,29 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
     return A, names
 
 
+def felt_summary(r: dict) -> dict:
+    """The verdict and the felt matrices of a :class:`~hapsim.analysis.ths_nd.RenderND`'s
+    dict, as every n-D check's ``--json`` says them.
+
+    Parameters
+    ----------
+    r : dict
+        :meth:`hapsim.analysis.ths_nd.RenderND.to_dict`.
+
+    Returns
+    -------
+    dict
+        ``stable``, ``verdict`` (``stable`` or ``unstable``), ``spectral_radius``,
+        ``felt_stiffness`` [N/m] and ``felt_damping`` [N s/m] (n x n),
+        ``principal_directions``, ``direction_stiffness``, ``direction_damping``,
+        ``direction_mass`` [kg].
+    """
+    keys = ("spectral_radius", "felt_stiffness", "felt_damping", "principal_directions",
+            "direction_stiffness", "direction_damping", "direction_mass")
+    return {"stable": bool(r["stable"]), "verdict": "stable" if r["stable"] else "unstable",
+            **{k: r[k] for k in keys}}
+
+
 @dataclass(frozen=True)
 class SceneCheckND:
     """The n-D check of a scene (:func:`check_scene_nd`).
@@ -462,14 +485,7 @@ class SceneCheckND:
         ``felt_damping`` (n x n), ``principal_directions``, the per-direction pairs,
         ``port_stiffness``, ``port_damping``, ``states``, ``rendered_poles``, ``note``."""
         r = self.render.to_dict()
-        out = {"dof": self.dof, "stable": bool(self.stable),
-               "verdict": "stable" if self.stable else "unstable",
-               "spectral_radius": r["spectral_radius"],
-               "felt_stiffness": r["felt_stiffness"], "felt_damping": r["felt_damping"],
-               "principal_directions": r["principal_directions"],
-               "direction_stiffness": r["direction_stiffness"],
-               "direction_damping": r["direction_damping"],
-               "direction_mass": r["direction_mass"],
+        out = {"dof": self.dof, **felt_summary(r),
                "port_stiffness": self.port_stiffness.tolist(),
                "port_damping": self.port_damping.tolist(),
                "states": self.states, "rendered_poles": r["rendered_poles"],

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hapsim.analysis.loop import MASS_RANGE, RATE_RANGE, STABILITY_TOL
+from hapsim.analysis.loop import MASS_RANGE, MAX_DELAY, RATE_RANGE, STABILITY_TOL
 from hapsim.analysis.subsample import split_delay
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
@@ -375,7 +375,7 @@ def gain_matrices(loop: LoopModelND, K, B) -> tuple[np.ndarray, np.ndarray]:
     return _matrix("K", K, n), _matrix("B", B, n)
 
 
-def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
+def state_matrix(loop: LoopModelND, K, B=0.0, delays=None) -> np.ndarray:
     """The closed loop's state matrix (plant + delay line + virtual coupling).
 
     Parameters
@@ -385,6 +385,10 @@ def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
         Virtual stiffness matrix [N/m].
     B : array_like, shape (n, n) (or (n,), or a scalar), optional
         Virtual damping matrix [N s/m].
+    delays : sequence of int, shape (n,), optional
+        A whole delay per axis [periods] (several ports, each its own device): row ``i``
+        of ``F`` is computed from ``x[n-d_i]`` and applied by axis ``i``'s hold; ``d`` is
+        then ``max d_i`` (``loop.delay`` is not used). Default: ``loop.delay`` on every axis.
 
     Returns
     -------
@@ -399,12 +403,18 @@ def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
     Raises
     ------
     ConfigError
-        ``K`` or ``B`` not finite or of the wrong shape (key ``K`` / ``B``).
+        ``K`` or ``B`` not finite or of the wrong shape (key ``K`` / ``B``); ``delays``
+        not ``n`` whole numbers in ``[0, MAX_DELAY]`` (key ``delays``).
     """
     Kq, Bq = gain_matrices(loop, K, B)
     n, d, T = loop.dof, loop.delay, loop.period
-    if d % 1:
+    if delays is None and d % 1:
         return _split_state_matrix(loop, Kq, Bq)
+    per = [d] * n if delays is None else list(delays)
+    if len(per) != n or not all(isinstance(x, int) and 0 <= x <= MAX_DELAY for x in per):
+        raise ConfigError(f"must be {n} whole delays in [0, {MAX_DELAY}], got {delays!r}",
+                          key="delays")
+    d = max(per)
     Ad, Bd = zoh_matrices(loop)
     N = n * (d + 3)
     A = np.zeros((N, N))
@@ -412,9 +422,11 @@ def state_matrix(loop: LoopModelND, K, B=0.0) -> np.ndarray:
 
     def pos(k):   # block of x[n - k]
         return slice(0, n) if k == 0 else slice((k + 1) * n, (k + 2) * n)
-    # F = -(K + B/T) x[n-d] + (B/T) x[n-d-1]
-    A[:2 * n, pos(d)] += Bd @ (-(Kq + Bq / T))
-    A[:2 * n, pos(d + 1)] += Bd @ (Bq / T)
+    # F = -(K + B/T) x[n-d] + (B/T) x[n-d-1], the rows of the axes of each delay
+    for dk in sorted(set(per)):
+        rows = np.array([[float(x == dk)] for x in per])
+        A[:2 * n, pos(dk)] += Bd @ (rows * -(Kq + Bq / T))
+        A[:2 * n, pos(dk + 1)] += Bd @ (rows * (Bq / T))
     for k in range(1, d + 2):     # x[n+1-k] <- x[n-(k-1)]
         A[pos(k), pos(k - 1)] = np.eye(n)
     return A

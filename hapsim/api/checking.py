@@ -130,7 +130,9 @@ def check(scene, progress=None):
 
     Returns
     -------
-    CheckReport, CheckReportND or ModesReportND
+    CheckReport, CheckReportND, ModesReportND or hapsim.analysis.ports.PortsCheck
+        The last for a scene with several ports (its ``to_dict`` is ``hapsim check
+        --json``'s, without the devices).
 
     Raises
     ------
@@ -152,6 +154,10 @@ def check(scene, progress=None):
 
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)               # in the dimension it declares
+    from hapsim.scene import ScenePorts
+    if isinstance(scene, ScenePorts):           # several ports: the felt matrices across
+        from hapsim.analysis.ports import check_ports
+        return check_ports(scene)
     if getattr(scene, "dimension", 1) != 1:
         return check_nd(scene, progress) if scene.port is not None else modes_nd(scene)
     scene, cals = apply_targets(scene)

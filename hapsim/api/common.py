@@ -11,7 +11,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["load_scene", "load_scene_nd", "known_digits", "known_decimals", "draw_report",
+__all__ = ["load_scene", "load_scene_nd", "refuse_ports", "known_digits", "known_decimals", "draw_report",
            "MeasuredPair",
            "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
 
@@ -26,11 +26,13 @@ def load_scene(path: str | os.PathLike):
 
     Returns
     -------
-    hapsim.scene.Scene or hapsim.scene.SceneND
+    hapsim.scene.Scene, hapsim.scene.SceneND or hapsim.scene.ScenePorts
         A :class:`~hapsim.scene.Scene` for a 1-D scene (no ``dimension`` key, or 1: as
         before), a :class:`~hapsim.scene.SceneND` for a 2-D or 3-D one, whose
         ``dimension`` says which (the functions taking it: :func:`check_nd`,
-        :func:`modes_nd`, :func:`run_nd`).
+        :func:`modes_nd`, :func:`run_nd`), a :class:`~hapsim.scene.ScenePorts` for one
+        with several ports (``devices:``; :func:`check` takes it, the other functions
+        refuse it by name: :func:`refuse_ports`).
 
     Raises
     ------
@@ -38,8 +40,11 @@ def load_scene(path: str | os.PathLike):
         An unreadable or invalid file: the message names the file, the line and the key,
         with the valid keys or choices.
     """
-    from hapsim.scene import scene_dimension
+    from hapsim.scene import scene_dimension, scene_has_ports
     p = os.fspath(path)
+    if scene_has_ports(p):
+        from hapsim.scene import load_scene_ports
+        return load_scene_ports(p)
     if scene_dimension(p) != 1:
         from hapsim.scene import load_scene_nd as _load_nd
         return _load_nd(p)
@@ -78,6 +83,30 @@ def draw_report(report, draw, path_or_ax):
     return draw(report, ax=path_or_ax)
 
 
+def refuse_ports(scene, what: str) -> None:
+    """Refuse a scene with several ports by name, for a function that takes one port.
+
+    Parameters
+    ----------
+    scene : object
+        A loaded scene (anything but a :class:`~hapsim.scene.ScenePorts` passes).
+    what : str
+        The function's name (``"run"``), said in the refusal.
+
+    Raises
+    ------
+    ConfigError
+        ``scene`` has several ports (key ``devices``, its file): the reason, and what takes
+        it (``hapsim.check``; ``hapsim run SCENE --lockstep``).
+    """
+    from hapsim.scene import ScenePorts
+    if isinstance(scene, ScenePorts):
+        raise ConfigError(f"a scene with several ports ({', '.join(scene.ports)}): "
+                          f"hapsim.{what} takes one port; hapsim.check and 'hapsim run "
+                          "SCENE --lockstep' take several (docs/ports.md)",
+                          file=scene.path, key="devices")
+
+
 def one_d_scene(scene, what: str, why: str):
     """A 1-D scene from a scene or a path, for a function that takes dimension 1 only.
 
@@ -100,6 +129,7 @@ def one_d_scene(scene, what: str, why: str):
     """
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)
+    refuse_ports(scene, what)
     if getattr(scene, "dimension", 1) != 1:
         raise ConfigError(f"a {scene.dimension}-D scene: hapsim.{what} takes dimension 1 "
                           f"({why})", file=getattr(scene, "path", None), key="dimension")

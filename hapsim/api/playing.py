@@ -10,7 +10,7 @@ from typing import Any
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
-from hapsim.api.common import MeasuredPair, load_scene
+from hapsim.api.common import MeasuredPair, load_scene, refuse_ports
 from hapsim.results import Report
 
 
@@ -173,6 +173,7 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
         scene = load_scene(path)
     else:
         path = scene.path
+    refuse_ports(scene, "play")
     args = types.SimpleNamespace(scene=path, json=False, **opts)
     stop = StopFlag()
     if handle_signals:

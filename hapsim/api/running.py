@@ -131,21 +131,22 @@ def run(scene, options=None, *, amplitude: float | None = None, **changes: Any):
     """Close the loop of a scene on a device (``port``) or on its mock, and measure it.
 
     A scene of any dimension: a 2-D or 3-D one measures its felt matrices
-    (:func:`hapsim.api.run_scene_nd`, a :class:`RunReportND`), a 1-D one its felt pair
-    (below).
+    (:func:`hapsim.api.run_scene_nd`, a :class:`RunReportND`), one with several ports
+    the felt matrices across them in lockstep (:func:`run_scene_ports`, a
+    :class:`RunReportND`), a 1-D one its felt pair (below).
 
     ``hapsim run`` is this function with the options of its command line
     (:meth:`hapsim.pipeline.options.RunOptions.from_args`); it prints the result.
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene or str
+    scene : hapsim.scene.Scene, hapsim.scene.SceneND, hapsim.scene.ScenePorts or str
     options : hapsim.pipeline.options.RunOptions, optional
         All the options at once (default: ``RunOptions(handle_signals=False)``: a library
         leaves SIGINT to its caller).
     amplitude : float, optional
-        A 2-D or 3-D scene's excitation [m] (default 1e-8); a 1-D scene refuses it (its
-        hand's start is the scene's ``excitation``).
+        A 2-D or 3-D scene's or several ports' excitation [m] (default 1e-8); a 1-D
+        scene refuses it (its hand's start is the scene's ``excitation``).
     **changes
         Options by name, over ``options`` (:func:`run_options`): ``port`` (None: the
         embedded mock on a pseudo-terminal), ``duration`` [s], ``lockstep`` (deterministic
@@ -157,7 +158,8 @@ def run(scene, options=None, *, amplitude: float | None = None, **changes: Any):
     -------
     RunReport or RunReportND
         Also when the run ended on a safety stop or a device fault (``ok`` False; a device
-        lost beyond recovery: ``error``). A 2-D/3-D scene's :class:`RunReportND`.
+        lost beyond recovery: ``error``). A 2-D/3-D scene's, or several ports',
+        :class:`RunReportND`.
 
     Raises
     ------
@@ -186,6 +188,9 @@ def run(scene, options=None, *, amplitude: float | None = None, **changes: Any):
         scene = load_scene(scene)               # in the dimension it declares
     opts = dataclasses.replace(options if options is not None
                                else RunOptions(handle_signals=False), **changes)
+    from hapsim.scene import ScenePorts
+    if isinstance(scene, ScenePorts):
+        return run_scene_ports(scene, opts, amplitude)
     if getattr(scene, "dimension", 1) != 1:
         return run_scene_nd(scene, opts, amplitude)
     if amplitude is not None:
@@ -332,7 +337,7 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     else:
         v = felt_verdict(res["deviation"], res["bound"], res.get("wire"),
                          directions=felt_directions(fit, chk))
-    d = {"scene": scene.path, "dof": scene.dimension, "lockstep": bool(lockstep),
+    d = {"scene": scene.path, "dof": chk.render.dof, "lockstep": bool(lockstep),
          "stable": bool(chk.stable),
          "predicted": {"felt_stiffness": matrix_list(chk.render.felt_stiffness),
                        "felt_damping": matrix_list(chk.render.felt_damping),
@@ -355,6 +360,66 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     if res.get("wire") is not None:
         d.update(wire=res["wire"], uncertainty=v["uncertainty"])
     return RunReportND.from_dict(d)
+
+
+#: What a run of a scene with several ports takes (every other option refused by name).
+PORTS_TAKES = ("lockstep", "allow_unstable")
+
+
+def run_scene_ports(scene, options, amplitude: float | None = None,
+                    by: str = "field") -> RunReportND:
+    """:func:`hapsim.api.run` of a scene with several ports: the felt matrices across the
+    ports measured in lockstep, in-process, each port its own device model
+    (:func:`hapsim.lockstep.measure_felt_ports`; ``hapsim run SCENE --lockstep``).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.ScenePorts
+    options : hapsim.pipeline.options.RunOptions
+        ``lockstep`` (required) and ``allow_unstable``; any other option set is refused
+        by name.
+    amplitude : float, optional
+        The excitation ``a`` [m] (default
+        :data:`hapsim.pipeline.felt_run.DEFAULT_AMPLITUDE`, 1e-8).
+    by : {"field", "flag"}
+        Name a refused option by its field (the API) or its flag (``hapsim run``).
+
+    Returns
+    -------
+    RunReportND
+        ``dof`` the number of ports; ``ports`` and ``delays`` [periods] beside the
+        fields (rows and columns of the matrices in port order).
+
+    Raises
+    ------
+    ConfigError
+        No ``lockstep``, or a ``port`` or a ``driver``: the real-time run of several
+        devices is not built; another option set.
+    UnstableConfigError
+        The coupled loop is unstable and ``allow_unstable`` is false.
+    """
+    from hapsim.analysis.ports import check_ports
+    from hapsim.errors import UnstableConfigError
+    from hapsim.lockstep import measure_felt_ports
+    from hapsim.pipeline.felt_run import DEFAULT_AMPLITUDE, refuse_options
+    opts = options.check_values()
+    name = (lambda f: "--" + f.replace("_", "-")) if by == "flag" else (lambda f: f)
+    if not opts.lockstep or opts.port or opts.driver is not None:
+        raise ConfigError("a scene with several ports runs in lockstep, in-process: the "
+                          "real-time run of several devices, each on its own clock and "
+                          "link (a port, a driver), is not built yet", key=name("lockstep"))
+    refuse_options(opts, by, PORTS_TAKES, "a scene with several ports",
+                   f"it takes {', '.join(name(f) for f in PORTS_TAKES + ('amplitude',))}")
+    chk = check_ports(scene)
+    if not chk.stable and not opts.allow_unstable:
+        raise UnstableConfigError(
+            f"the coupled loop of {', '.join(chk.ports)} is unstable (spectral radius "
+            f"{chk.render.spectral_radius:.9g}); {name('allow_unstable')} runs it anyway",
+            spectral_radius=chk.render.spectral_radius)
+    res = measure_felt_ports(scene, DEFAULT_AMPLITUDE if amplitude is None else amplitude)
+    return RunReportND.from_dict({**run_report_nd(scene, res, True).to_dict(),
+                                  "ports": list(chk.ports),
+                                  "delays": [float(d) for d in chk.delays]})
 
 
 def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False

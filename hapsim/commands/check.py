@@ -126,7 +126,9 @@ def run(args: argparse.Namespace) -> int:
     UnrenderableTargetError
         A target that is not renderable (a negative verdict: exit code 1).
     """
-    from hapsim.scene import scene_dimension
+    from hapsim.scene import scene_dimension, scene_has_ports
+    if scene_has_ports(args.scene):            # several ports: the felt matrices across them
+        return _run_ports(args)
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: its felt matrices
         return _run_nd(args)
     if getattr(args, "plot", None) is not None:
@@ -263,14 +265,8 @@ def _run_nd(args) -> int:
     print(f"  verdict: {'stable' if chk.stable else 'UNSTABLE'} (spectral radius "
           f"{r.spectral_radius:.9f}, MIMO characteristic)", file=o)
 
-    def mat(name, a, unit):
-        if a is None:
-            return
-        print(f"  {name} [{unit}]", file=o)
-        for row in a:
-            print("    " + "  ".join(f"{v:+14.6g}" for v in row), file=o)
-    mat("felt stiffness k", r.felt_stiffness, "N/m")
-    mat("felt damping b", r.felt_damping, "N s/m")
+    _print_matrix("felt stiffness k", r.felt_stiffness, "N/m", o)
+    _print_matrix("felt damping b", r.felt_damping, "N s/m", o)
     if r.directions is not None:
         print("  principal directions (least damped first):", file=o)
         for i in range(n):
@@ -284,6 +280,58 @@ def _run_nd(args) -> int:
         for i in range(n):
             e = "(" + ", ".join(f"{v:+.4f}" for v in chk.limit_directions[:, i]) + ")"
             print(f"    {e}  K_max = {chk.stiffness_limits[i]:.6g} N/m", file=o)
+    if r.note:
+        print(f"  {r.note}", file=o)
+    return 0 if chk.stable else 1
+
+
+def _print_matrix(name: str, a, unit: str, o) -> None:
+    """Print matrix ``a`` under its name and unit, one row a line (nothing when None)."""
+    if a is None:
+        return
+    print(f"  {name} [{unit}]", file=o)
+    for row in a:
+        print("    " + "  ".join(f"{v:+14.6g}" for v in row), file=o)
+
+
+def _run_ports(args) -> int:
+    """``check`` on a scene with several ports: the felt matrices across them and the
+    coupled loop's verdict (:func:`hapsim.analysis.ports.check_ports`)."""
+    if getattr(args, "plot", None) is not None:
+        raise ConfigError("draws a 2-D or 3-D scene; a scene with several ports has no "
+                          "chart yet", key="--plot")
+    from hapsim.analysis.ports import check_ports
+    from hapsim.scene import load_scene_ports
+    scene = load_scene_ports(args.scene)
+    chk = check_ports(scene)
+    if args.json:
+        devices = [{"port": n, "mass": d.mass, "friction": d.friction,
+                    "delay": float(d.delay), "hold": d.hold, "protocol": d.protocol}
+                   for n, d in scene.devices]
+        print(json.dumps({**chk.to_dict(), "rate_hz": scene.rate_hz, "devices": devices,
+                          "scene": args.scene}))
+        return 0 if chk.stable else 1
+    o = sys.stdout
+    r = chk.render
+    print(f"scene {args.scene}: {scene.rate_hz:g} Hz, {len(chk.ports)} ports, "
+          f"{plural(len(scene.links), 'link')}, {chk.states} states", file=o)
+    for n, d in scene.devices:
+        print(f"  port {n}: device m = {d.mass:g} kg, b0 = {d.friction:g} N s/m, delay "
+              f"d = {d.delay}, hold {d.hold}, protocol {d.protocol}", file=o)
+    print(f"  verdict: {'stable' if chk.stable else 'UNSTABLE'} (spectral radius "
+          f"{r.spectral_radius:.9f}, the coupled loop's MIMO characteristic)", file=o)
+    print(f"  rows and columns: {', '.join(chk.ports)}", file=o)
+    _print_matrix("port stiffness K", chk.port_stiffness, "N/m", o)
+    _print_matrix("port damping B", chk.port_damping, "N s/m", o)
+    _print_matrix("felt stiffness k", r.felt_stiffness, "N/m", o)
+    _print_matrix("felt damping b", r.felt_damping, "N s/m", o)
+    if r.directions is not None:
+        print("  principal directions across the ports (least damped first):", file=o)
+        for i in range(len(chk.ports)):
+            e = "(" + ", ".join(f"{v:+.4f}" for v in r.directions[:, i]) + ")"
+            print(f"    {e}  m = {r.direction_mass[i]:.6g} kg  k = "
+                  f"{r.direction_stiffness[i]:.6g} N/m  b = {r.direction_damping[i]:.6g} "
+                  "N s/m", file=o)
     if r.note:
         print(f"  {r.note}", file=o)
     return 0 if chk.stable else 1

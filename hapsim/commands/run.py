@@ -324,7 +324,9 @@ def run(args) -> int:
         Port failure, device lost beyond recovery, or a device hapsim cannot drive (exit 1).
     """
     from hapsim.scene import load_scene
-    from hapsim.scene import scene_dimension
+    from hapsim.scene import scene_dimension, scene_has_ports
+    if scene_has_ports(args.scene):            # several ports: in lockstep, in-process
+        return run_ports(args)
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: in lockstep, in-process
         return run_nd(args)
     if getattr(args, "amplitude", None) is not None:
@@ -664,4 +666,66 @@ def run_nd(args) -> int:
     from hapsim.pipeline.felt_run import print_statements
     print_statements(v, o)
     print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
+    return 0
+
+
+def run_ports(args) -> int:
+    """Measure the felt matrices across the ports of a scene with several ports, in
+    lockstep (:func:`hapsim.api.running.run_scene_ports`: each port its own device model).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene``, ``lockstep`` (required), ``amplitude`` [m] (None: 1e-8), ``json``,
+        ``allow_unstable``; run's other options refused by flag.
+
+    Returns
+    -------
+    int
+        0 when the loop is stable (the measurement reported, whatever it finds).
+
+    Raises
+    ------
+    ConfigError
+        No ``--lockstep`` or a ``--port`` / ``--driver`` (the real-time run of several
+        ports is not built), another option a run of several ports does not take, a bad
+        amplitude or scene (file, line, key).
+    UnstableConfigError
+        The coupled loop is unstable without ``--allow-unstable`` (exit 1).
+    """
+    from hapsim.api.running import run_scene_ports
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.scene import load_scene_ports
+    for attr, flag in _REFUSED_ND:
+        if getattr(args, attr, None) is not None and getattr(args, attr) is not False:
+            raise ConfigError(f"a scene with several ports does not take {flag} yet",
+                              key=flag)
+    opts = RunOptions.from_args(args)
+    scene = load_scene_ports(args.scene)
+    rep = run_scene_ports(scene, opts, getattr(args, "amplitude", None), by="flag")
+    if args.json:
+        print(json.dumps(rep.to_dict()))
+        return 0
+    o = sys.stdout
+    x = rep.extra
+    print(f"{scene.path}: {len(x['ports'])} ports ({', '.join(x['ports'])}) in lockstep at "
+          f"{scene.rate_hz:g} Hz, in-process, each port its own device (delays "
+          f"{', '.join(f'{d:g}' for d in x['delays'])})", file=o)
+    print(f"  excitation: {rep.records} free responses of {rep.samples} samples, amplitude "
+          f"a = {rep.linearisation_bound['amplitude']:g} m (minus the response from rest)",
+          file=o)
+    for name, m, unit in (("predicted felt stiffness k", rep.predicted["felt_stiffness"],
+                           "N/m"),
+                          ("measured felt stiffness k", rep.measured["felt_stiffness"], "N/m"),
+                          ("predicted felt damping b", rep.predicted["felt_damping"], "N s/m"),
+                          ("measured felt damping b", rep.measured["felt_damping"], "N s/m")):
+        print(f"  {name} [{unit}]" + ("" if m is not None else ": none"), file=o)
+        for row in (m or ()):
+            print("    " + "  ".join(f"{v:+14.8g}" for v in row), file=o)
+    if rep.deviation is not None:
+        print(f"  measured - predicted (largest entry over the largest predicted): "
+              f"k {rep.deviation['felt_stiffness']:.2e}, b {rep.deviation['felt_damping']:.2e}"
+              f" (round-off allowed {rep.linearisation_bound['roundoff']:.2e}: a linear "
+              "loop)", file=o)
+    print(f"  verdict: {rep.verdict}: {rep.reason}", file=o)
     return 0

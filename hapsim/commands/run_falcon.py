@@ -24,9 +24,9 @@ _REFUSED = (("--baud", "baud", "the Falcon's rates are its loader's and firmware
              "already: the firmware answers each packet"),
             ("--faults", "faults", "the Falcon's hostile streams are injected by its "
              "emulated FT232R in the tests (tests/test_falcon_usb.py)"),
-            ("--amplitude", "amplitude", "the run takes no hand starts: the felt "
-             "matrices' statement in its report says whether the Falcon's counts could "
-             "measure them (docs/devices.md)"))
+            ("--amplitude", "amplitude", "the run's hand starts are the largest the "
+             "scene's linear range allows (the felt matrices' feasibility: the Falcon's "
+             "counts need them; docs/devices.md)"))
 
 
 def _image(path) -> bytes:
@@ -59,7 +59,8 @@ def run_falcon_command(args) -> int:
     -------
     int
         0 when the loop ran (verdict ``ok`` or ``degraded``, said; the felt matrices'
-        statement beside it, :func:`hapsim.pipeline.falcon_run.felt_statement`); 1 when the device
+        statement beside it, :func:`hapsim.pipeline.falcon_run.felt_statement`: on the
+        emulated Falcon, where its counts allow, measured); 1 when the device
         failed (not found, no permission, the loader's handshake, unplugged: the message
         says what to check) or the loop is unstable without ``--allow-unstable``.
 
@@ -120,8 +121,15 @@ def run_falcon_command(args) -> int:
         if link is not None:
             link.close()
     # the felt matrices: whether the Falcon's counts can measure them here (computed
-    # after the loop, the Falcon at zero commands: ~2 s of CPU)
-    felt = felt_statement(scene)
+    # after the loop, the Falcon at zero commands: ~2 s of CPU) and, where they can, on
+    # the emulated Falcon, measured: the identification's records, each from a hand's
+    # start on a fresh emulated Falcon on the same clock (~7 x 0.3 s)
+    try:
+        felt = felt_statement(scene, image if emulated else None,
+                              clock=dev.clock if emulated else "wall")
+    except DeviceError as exc:
+        print(f"hapsim run: the felt matrices' records: {exc}", file=sys.stderr)
+        return 1
     where = ("the emulated Falcon (an emulated FT232R under pyftdi's code)" if emulated
              else f"the Falcon at {args.port}")
     pos = res["position"]
@@ -176,6 +184,18 @@ def run_falcon_command(args) -> int:
               f"command {out['max_command']} counts", file=o)
     if res["brake"]:
         print("  " + brake_text(res["brake"], "N m s/rad", "rad/s"), file=o)
+    if "records" in felt:
+        d, u = felt["deviation"] or {}, felt["uncertainty"] or {}
+        print(f"  felt matrices measured: {len(felt['records'])} records of the hand let go "
+              f"{felt['amplitude_m'] * 1e3:.2f} mm from rest, each on a fresh emulated "
+              f"Falcon; replies missing {felt['missing']}, rows after a host stall "
+              f"{felt['late_rows']} (both cut)", file=o)
+        for q in ("felt_stiffness", "felt_damping"):
+            dv, uc = d.get(q), u.get(q)
+            print(f"    {q.replace('_', ' ')}: measured - predicted "
+                  + ("-" if dv is None else f"{dv:.3g}") + " of the predicted, stated "
+                  "uncertainty " + ("none (not measurable)" if uc is None else f"{uc:.3g}"),
+                  file=o)
     print(f"  felt matrices: {felt['verdict']}: {felt['reason']}", file=o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
     return 0

@@ -189,6 +189,8 @@ def _run_scene(args) -> int:
         if not args.grid:
             raise ConfigError("a chart needs --grid N", key="--out")
     scene = api.load_scene(args.scene)
+    from hapsim.api.common import refuse_ports
+    refuse_ports(scene, "stability")
     if not hasattr(scene, "dimension") or scene.dimension == 1:
         raise ConfigError("a 1-D scene: 'hapsim check SCENE' gives its K_max, or give the "
                           "loop as --mass --rate", key="--scene")

@@ -266,6 +266,10 @@ class Driver:
     #: The run's board keeps its own clock (set by the run's transport; a lockstep mock,
     #: stepped one period per command, does not).
     own_clock = False
+    #: A lockstep mock's time per command [s] (set by the run's transport; None for a
+    #: board on its own clock): what its firmware's silence rule counts, not the host's
+    #: wall clock, which a loaded host stretches.
+    command_period: float | None = None
 
     def mistimed_rows(self, columns: dict):
         """Rows whose force was held a tick longer or shorter than the loop's period, left

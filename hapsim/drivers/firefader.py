@@ -499,8 +499,14 @@ class FireFader(Driver):
         seq = columns.get("seq")
         if d is None or t is None or seq is None or len(seq) < 2:
             return acc
-        t = np.asarray(t, float)
         seq = np.asarray(seq, np.int64)
+        # the board's time: the wall clock of the host's rows, or, on a lockstep mock
+        # (command_period), its commands' (a period each; its silence rule counts
+        # those): a host descheduled for 0.1 s was no silence of that board, and
+        # measuring one from the rows' wall times made the same record measure otherwise
+        # on a loaded host (tests/test_subsample.py's lockstep run: b within, then not)
+        T_cmd = getattr(self, "command_period", None)
+        t = (seq - seq[0]) * T_cmd if T_cmd else np.asarray(t, float)
         gap = np.diff(t)
         # the enable also falls while the fader reads outside 4 < pot < 251 (the
         # firmware's range gate) or once the heat estimate reaches 40 << 10 (at most

@@ -276,8 +276,9 @@ class DriverTransport(TickAligned):
         driver.mistimed_seqs = self.mistimed
         # the board keeps its own tick (no lockstep mock): its unseen holds are sought
         driver.own_tick = bool(self._tick_ns) and handled is None and board_period is None
-        # the board keeps its own clock (no lockstep mock): Driver.holds_from_write
+        # its own clock (Driver.holds_from_write), or a lockstep mock's, its commands'
         driver.own_clock = handled is None and board_period is None
+        driver.command_period = None if handled is None else self._board_T
         self._tick_probed = False           # probed at the first arming
         self._stray = False                 # the last bytes read made no record
         self._t_write = -1.0                # time.monotonic() of the last write [s]

@@ -313,7 +313,13 @@ class FalconDevice:
         x0, v0 : array_like, shape (3,)
             The handle's displacement [m] and velocity [m/s]
             (:func:`hapsim.lockstep.excitation_starts`).
+
+        On the wall clock the hand lets go now: the legs run to the device's time first
+        (:meth:`run_to`), so the next packet's tick integrates the start from this instant,
+        not from the last packet's tick.
         """
+        if self.wall is not None:
+            self.run_to(self.now())
         self.plant = LocalJointDeviceND(self.scene, x0, v0)
         self.commands = (0, 0, 0)
         self._fifo = deque([(0, 0, 0)] * self.delay)
@@ -495,7 +501,7 @@ def brake_legs(send, scene, q_last, t_last: float, *,
 def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0x2,
                  decoder=None, hold_bound_s: float | None = None,
                  late_stop: bool = False, envelope_rad: float | None = None,
-                 brake: bool = False) -> dict:
+                 brake: bool = False, start=None) -> dict:
     """Drive a homed Falcon over its packets in lockstep, one packet per sample.
 
     Each sample: the reply's encoder counts are the legs' angles (``theta_deg``), the
@@ -544,6 +550,10 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     brake : bool
         After a stop (the late-stop rule's or the envelope's: both on the motion), brake
         the legs to rest before the caller's zero commands (:func:`brake_legs`).
+    start : callable, optional
+        Called just before the loop's first packet, after its warm-up: the hand's start
+        of an identification record (:meth:`FalconDevice.let_go`), so that on the wall
+        clock the legs coast unheld for no longer than the first packet takes.
 
     Returns
     -------
@@ -587,6 +597,8 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         warm.step()
         warm.set_port_position(warm.x[:, warm.port].copy())
         warm.step()
+    if start is not None:
+        start()
     got = dec.feed(tx(device_feed(rx(host_packet((0, 0, 0), leds)))))
     x = J = None
     started = False

@@ -27,9 +27,16 @@ tools/falcon_felt_figures.py, for comparison only).
 **Missing samples.** A reply that did not come (lost or mangled bytes; the engine held
 the last reading) leaves its row out with the rows its stale force acted on: rows
 ``r0 - 1 .. r1 + d + 1`` of a run ``r0 .. r1`` of missing rows (:func:`falcon_usable_rows`,
-the 2DIY's rule of :func:`hapsim.pipeline.haply2_host.usable_rows` for estimated rows),
-and the stretches between the cuts are fitted jointly; too few rows left is "not
-measurable" with the reason. A command at the int16 clamp in a row fitted is "not
+the 2DIY's rule of :func:`hapsim.pipeline.haply2_host.usable_rows` for estimated rows).
+Records so cut are not differenced against the record from rest (a difference would take
+on that record's cuts as its own): each record, the one from rest too, is fitted on its
+own stretches about the fitted equilibrium, every stretch jointly
+(:func:`hapsim.analysis.pencil.fit_felt_nd`'s ``offset``; the wire's term
+:func:`hapsim.analysis.felt_records.wire_terms_records`), its rows after its first cut
+that lie farther from rest than the undisturbed records go left out
+(:func:`hapsim.analysis.felt_records.within_excursion`), as the 2DIY's
+(:mod:`hapsim.emulated.haply2_verdict`); too few rows left is "not measurable" with the
+reason. A command at the int16 clamp in a row fitted is "not
 measurable" too (the loop not the linear one).
 """
 
@@ -106,7 +113,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
         ``within``, ``uncertainty``, ``reason``, ``statements``, ``not_stated``
         (:func:`hapsim.analysis.felt_matrices.felt_verdict`), ``clamped`` (commands at
         the clamp in rows fitted), ``missing`` (rows missing over the records),
-        ``fitted_rows`` (per difference, the rows fitted; None for whole records),
+        ``fitted_rows`` (records cut at missing replies: per record, the one from rest
+        first, the equations its own stretches gave the fit; None for whole records),
         ``quantum`` (one count at the handle over ``a``, ``|J(q0)| q / a`` [-]),
         ``excursion`` (the largest distance of a record from the rest record [m]).
 
@@ -116,6 +124,7 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
         As :func:`hapsim.analysis.pencil.fit_felt_nd` for whole records.
     """
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.felt_records import window_rows, wire_terms_records, within_excursion
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.drivers.falcon import DEG_PER_TICK, TORQUE_PER_COUNT
@@ -132,17 +141,30 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
     usable = None if all(u.all() for u in ok) else [ok[0] & u for u in ok[1:]]
     # a missing row's position is NaN: the fit never reads it (cut), held at 0 here
     diffs = [np.where(np.isfinite(p - rest), p - rest, 0.0) for p in pos[1:]]
+    q0 = np.asarray(scene.device.joints, float)
+    kin = device("delta", scene.device.geometry)
+    J = kin.jacobian(q0)
+    x_eq = kin.forward(q0)
+    # records cut at their missing replies: each record (the one from rest too) fitted
+    # on its own stretches about the fitted equilibrium (module notes), its rows beyond
+    # the undisturbed records' excursion after its first cut left out
+    own = None
+    if usable is not None:
+        held = [np.where(np.isfinite(p), p, x_eq) for p in pos]
+        own = within_excursion(scene, [p - x_eq for p in held], ok, amplitude)
     short = None
     try:
-        fit = fit_felt_nd(diffs, scene.device.mass, scene.period, order, usable=usable)
+        if own is not None:
+            fit = fit_felt_nd(held, scene.device.mass, scene.period, order, usable=own,
+                              offset=True)
+        else:
+            fit = fit_felt_nd(diffs, scene.device.mass, scene.period, order)
     except ConfigError as exc:
         if usable is None:
             raise
         short = (f"the records cut at their missing replies leave too few undisturbed "
                  f"stretches of more than {order} rows for the fit ({exc})")
-        usable, fit = None, None
-    q0 = np.asarray(scene.device.joints, float)
-    J = device("delta", scene.device.geometry).jacobian(q0)
+        usable, own, fit = None, None, None
     delta = math.radians(DEG_PER_TICK) / 2.0
     tq = TORQUE_PER_COUNT / 2.0
     excursion = float(max(np.nanmax(np.linalg.norm(d_, axis=1)) for d_ in diffs))
@@ -150,8 +172,7 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta, "torque_bound_nm": tq}
     cmds = [np.asarray(r["commands"])[:N] for r in runs]
-    fitted = ([np.logical_or.reduce(usable)] + list(usable) if usable is not None
-              else [np.ones(N, bool)] * len(runs))
+    fitted = own if own is not None else [np.ones(N, bool)] * len(runs)
     clamped = int(sum(np.count_nonzero((np.abs(c) >= COMMAND_CLAMP) & u[:, None])
                       for c, u in zip(cmds, fitted)))
     if fit is None:
@@ -160,15 +181,23 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
                         "reason": short}
     else:
         dev = felt_deviation(fit, chk)
-        wire.update(wire_terms_nd(scene, diffs, chk, order,
-                                  [("reading", J, np.full(n, delta)),
-                                   ("force", np.linalg.inv(J).T, np.full(n, tq))],
-                                  usable=usable))
+        errors = [("reading", J, np.full(n, delta)),
+                  ("force", np.linalg.inv(J).T, np.full(n, tq))]
+        if own is not None:
+            # a row no stretch holds changes only the initial state of the stretches
+            # after it (a free response the fit does not see to first order): its errors
+            # are left out, each record's own rows kept (hapsim.emulated.haply2_verdict)
+            errors = [(kind, G, [np.where(u[:, None], np.broadcast_to(b, (N, n)), 0.0)
+                                 for u in own]) for kind, G, b in errors]
+            wire.update(wire_terms_records(scene, held, chk, order, errors, usable=own))
+        else:
+            wire.update(wire_terms_nd(scene, diffs, chk, order, errors))
         v = felt_verdict(dev, bound, wire, estimated=0,
                          directions=felt_directions(fit, chk))
         if usable is not None:
-            v["reason"] += (f"; {missing} missing replies: the records cut there, "
-                            "their undisturbed stretches fitted jointly")
+            v["reason"] += (f"; {missing} missing replies: the records cut there, each "
+                            "fitted on its own undisturbed stretches about the fitted "
+                            "equilibrium, every stretch jointly")
     if clamped:
         v = {"verdict": "not measurable", "within": None, "uncertainty": None,
              "statements": [], "not_stated": ["felt stiffness", "felt damping"],
@@ -176,7 +205,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
                        f"{clamped} rows fitted: the loop was not the linear one predicted"}
     return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,
             "wire": wire, **v, "clamped": clamped, "missing": missing,
-            "fitted_rows": (None if usable is None else [int(u.sum()) for u in usable]),
+            "fitted_rows": (None if own is None
+                            else [int(np.count_nonzero(window_rows(u, order))) for u in own]),
             "quantum": float(np.linalg.norm(J, 2)) * 2.0 * delta / amplitude,
             "excursion": excursion}
 

@@ -32,7 +32,8 @@ import numpy as np
 from hapsim.drivers.falcon import ENVELOPE_RAD, WORKSPACE_RAD
 from hapsim.errors import DeviceError
 
-__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "felt_statement", "reply_timeout",
+__all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "felt_statement",
+           "measure_felt_emulated", "reply_timeout",
            "FIRMWARE_PROBES", "REPLY_SLACK_S", "WORKSPACE_RAD", "ENVELOPE_RAD"]
 
 #: Packets sent after the load before concluding the firmware does not run.
@@ -44,6 +45,14 @@ ZERO_PACKETS = 5
 #: firmware, on its own clock, held the last command over them (counted in ``stalls``;
 #: on a paced Falcon the verdict is "degraded" then: another loop than the scene's).
 HELD_PERIODS = 2.0
+#: Periods between two of the loop's packets beyond which the second may have missed the
+#: firmware's tick after the first (the first's command held two ticks): its row is
+#: ``late`` (:func:`run_falcon`'s ``late_rows``, cut from the felt matrices' records).
+#: Measured against the emulated Falcon's own ticks at load 12 on 2 cores (1,023 rows, 419
+#: ticks missed): 1.25 caught 413-414 of them, cutting ~55 rows that missed none; 2 (the
+#: stalls' :data:`HELD_PERIODS`) caught 375, and a packet sent more than a period after the
+#: last reply was read (certain) only 8 of 470.
+SKIP_PERIODS = 1.25
 #: Longest time [s] a paced Falcon (its firmware on its own clock, no watchdog published)
 #: is left with a command computed from a reading older than this: the loop then sends
 #: zero commands until a reply comes (``held_zero``); the 1-DoF drivers' bound
@@ -166,29 +175,39 @@ def falcon_verdict(res: dict) -> dict:
             f"missing sample holds the last reading); {caveat}"}
 
 
-def felt_statement(scene) -> dict:
+def felt_statement(scene, image: bytes | None = None, *, clock: str = "wall",
+                   faults=None) -> dict:
     """What a Falcon run says of the felt matrices: whether they can be measured through
     the Falcon's counts at all (:func:`hapsim.emulated.falcon_felt.felt_feasibility`: the
     readings' and commands' rounding at the largest hand start the scene's linear range
-    allows, against the limit of a statement), never a verdict the stated uncertainty
-    does not cover.
+    allows, against the limit of a statement) and, where they can and the Falcon is the
+    emulated one (``image`` given), their measurement (:func:`measure_felt_emulated` at
+    that start); never a verdict the stated uncertainty does not cover.
 
     Parameters
     ----------
     scene : hapsim.scene.SceneND
         A 3-D delta scene.
+    image : bytes, optional
+        The firmware image of the emulated Falcon the records are taken on; None (a real
+        Falcon): no records (no host can start a hand).
+    clock : {"wall", "lockstep"}
+        The emulated Falcon's clock (:class:`hapsim.emulated.falcon_device.FalconDevice`).
+    faults : callable, optional
+        ``record index -> ByteFaults or None``, as :func:`measure_felt_emulated`.
 
     Returns
     -------
     dict
         ``verdict``: ``"not measurable"`` (the counts too coarse for this scene: the
-        reason gives the figures) or ``"not measured"`` (they would do, but the run
-        closes the loop from rest, with no hand starts to fit; or the loop has more
-        than :data:`FEASIBILITY_STATES` states, ``states``, and the figures are not
-        computed in a run); ``reason``; and the
+        reason gives the figures), ``"not measured"`` (they would do, but no hand can be
+        started on a real Falcon; or the loop has more than :data:`FEASIBILITY_STATES`
+        states, ``states``, and the figures are not computed in a run), or the measured
+        verdict (``"within"``, ``"partly within"``, ``"differs"``, ``"not measurable"``:
+        :func:`measure_felt_emulated`'s ``summary``, its keys here); ``reason``; and the
         feasibility's figures (``amplitude_m``, ``count_at_handle_m``, ``worst``,
         ``widrow_kollar``, ``limit``, ``needed_amplitude_m``, ``needed_count_rad``, when
-        computed).
+        computed; the measured summary's ``feasibility`` then holds its reason).
     """
     from hapsim.emulated.falcon_felt import felt_feasibility
     from hapsim.lockstep import identification_plan
@@ -201,11 +220,138 @@ def felt_statement(scene) -> dict:
                           "tools/falcon_felt_figures.py computes them"}
     f = felt_feasibility(scene, plan)
     out = {k: v for k, v in f.items() if k not in ("worst_reading", "worst_command")}
-    if f["verdict"] == "measurable":
+    if f["verdict"] != "measurable":
+        return out
+    if image is None:
         out["verdict"] = "not measured"
-        out["reason"] = ("the run closes the loop from rest and takes no hand starts to "
-                         "fit (tools/falcon_felt_figures.py measures them on the emulated "
-                         "Falcon); at its counts: " + f["reason"])
+        out["reason"] = ("no host can start a hand on a real Falcon: the records are taken "
+                         "on the emulated one (hapsim run --driver falcon without --port); "
+                         "at its counts: " + f["reason"])
+        return out
+    m = measure_felt_emulated(scene, image, f["amplitude_m"], plan=plan, clock=clock,
+                              faults=faults)
+    out.update(m["summary"])
+    out["feasibility"] = f["reason"]
+    return out
+
+
+def _number(v):
+    """A JSON-able copy of a verdict's value (numpy scalars as floats, inf as None)."""
+    if isinstance(v, dict):
+        return {k: _number(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_number(x) for x in v]
+    if isinstance(v, (bool, str)) or v is None:
+        return v
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        return str(v)
+    return x if np.isfinite(x) else None
+
+
+def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
+                          clock: str = "wall", faults=None) -> dict:
+    """The felt matrices of a delta scene measured as a run takes them: the
+    identification's ``2n + 1`` records (:func:`hapsim.lockstep.excitation_starts` at
+    ``amplitude``, the one from rest first), each one :func:`run_falcon` over pyftdi and
+    an emulated FT232R on a fresh emulated Falcon (:func:`emulated_falcon`: the firmware
+    loaded, the legs homed, the hand's start, ``N`` packets of the loop), fitted and
+    stated by :func:`hapsim.emulated.falcon_felt.falcon_felt_verdict`.
+
+    On the Falcon's own clock (``clock="wall"``) the loop is paced as a real Falcon's: a
+    row whose packet left more than :data:`SKIP_PERIODS` periods after the one before
+    (``late_rows``: the firmware may have held the last command over a tick, the record not
+    the scene's loop there) is cut as a missing reply is, with the rows its held command
+    acted on (:func:`hapsim.emulated.falcon_felt.falcon_usable_rows`); a record stopped
+    on the motion (a leg beyond :data:`ENVELOPE_RAD`) or by the late-stop rule leaves
+    its rows after the stop missing. ``clock="lockstep"`` (named, deterministic): one
+    period a packet.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 3-D delta scene (the plant and the host's scene).
+    image : bytes
+        The firmware image the emulated loader accepts.
+    amplitude : float
+        The hand's ``a`` [m] (:func:`hapsim.emulated.falcon_felt.felt_feasibility`'s
+        ``amplitude_m`` in a run).
+    plan : tuple, optional
+        :func:`hapsim.lockstep.identification_plan` of ``scene``.
+    clock : {"wall", "lockstep"}
+        The emulated Falcon's clock.
+    faults : callable, optional
+        ``record index -> hapsim.emulated.driver_mock.ByteFaults or None``: byte faults
+        on the UART during that record's loop (the load and the homing clean).
+
+    Returns
+    -------
+    dict
+        :func:`hapsim.emulated.falcon_felt.falcon_felt_verdict`'s, and ``records``
+        (per record: ``missing``, ``late_rows``, ``stalls``, ``waits``, ``held_zero``,
+        ``stopped``, ``link_verdict``, ``link_reason``, ``excursion_rad``: the legs'
+        largest departure from the operating point read over the loop,
+        ``excursion_true_rad``: the emulated legs' own from the start to the end of the
+        zero commands, the free coast after the loop included), ``summary`` (JSON-able: ``verdict``,
+        ``reason``, ``amplitude_m``, ``deviation``, ``uncertainty``, ``wire``,
+        ``statements``, ``not_stated``, ``missing``, ``late_rows``, ``fitted_rows``,
+        ``records``).
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        As :func:`run_falcon` (the firmware load, the homing, the link).
+    """
+    from hapsim.emulated.falcon_felt import falcon_felt_verdict
+    from hapsim.lockstep import excitation_starts, identification_plan
+    if plan is None:
+        plan = identification_plan(scene)
+    N = plan[2]
+    runs, recs = [], []
+    for i, (x0, v0) in enumerate(excitation_starts(3, amplitude, scene.period)):
+        f = None if faults is None else faults(i)
+        link, dev, chip = emulated_falcon(scene, image, faults=f, clock=clock)
+        chip.faults_on = False
+
+        def start(dev=dev, chip=chip, f=f, x0=x0, v0=v0):
+            dev.let_go(x0, v0)
+            chip.faults_on = f is not None
+            dev.excursion = 0.0                  # the record's, not the homing's
+        try:
+            res = run_falcon(scene, link, image, N, start=start, paced=clock == "wall")
+        finally:
+            link.close()
+        q = np.array(res["joints"], float)
+        # lockstep: one period a packet whatever the host's gaps
+        late = np.asarray(res["late_rows"], bool) & (clock == "wall")
+        q[late] = np.nan                         # cut as a missing reply (notes)
+        if res["stopped"]:
+            q[res["stopped"][0]:] = np.nan
+        runs.append({"position": res["position"], "joints": q, "commands": res["commands"]})
+        recs.append({"missing": int(res["missing"]), "late_rows": int(late.sum()),
+                     "stalls": int(res["stalls"]), "waits": int(res["waits"]),
+                     "held_zero": int(res["held_zero"]), "stopped": res["stopped"],
+                     "link_verdict": res["verdict"], "link_reason": res["reason"],
+                     "excursion_rad": float(np.nanmax(np.abs(
+                         np.asarray(res["joints"], float)
+                         - np.asarray(scene.device.joints, float)), initial=0.0)),
+                     "excursion_true_rad": float(dev.excursion)})
+    out = falcon_felt_verdict(scene, runs, plan, amplitude)
+    out["records"] = recs
+    out["summary"] = _number({
+        "verdict": out["verdict"], "within": out["within"], "reason": out["reason"],
+        "amplitude_m": amplitude,
+        "deviation": out["deviation"], "uncertainty": out["uncertainty"],
+        "wire": {k: out["wire"][k] for k in ("felt_stiffness", "felt_damping")},
+        "statements": [{k: st.get(k) for k in ("name", "verdict", "deviation",
+                                               "uncertainty", "wire")}
+                       for st in out["statements"]],
+        "not_stated": out["not_stated"], "missing": out["missing"],
+        "late_rows": sum(r["late_rows"] for r in recs), "fitted_rows": out["fitted_rows"],
+        "records": recs})
     return out
 
 
@@ -229,7 +375,7 @@ def _reply_end(b: bytes) -> bool:
 def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=None,
                timeout: float | None = None, before_loop=None,
                homing_limit: int = 20000, paced: bool = False,
-               load_attempts: int = 3) -> dict:
+               load_attempts: int = 3, start=None) -> dict:
     """Load the firmware, home the legs, run the scene's loop over ``samples`` packets.
 
     Parameters
@@ -264,6 +410,15 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         scene's rate is ``slow`` (each command held that many periods: another loop
         than the scene's) and the verdict says so; the emulator steps one period per
         packet, whatever the pace.
+    start : callable, optional
+        The hand's start of an identification record (the emulated Falcon's
+        :meth:`~hapsim.emulated.falcon_device.FalconDevice.let_go`), called once the legs
+        are homed, after ``before_loop``, just before the loop's first packet
+        (:func:`hapsim.emulated.falcon_device.drive_falcon`); the loop's reply decoder
+        then starts afresh (the
+        start is a jump from the homing's last counts: its first reply taken unchecked,
+        the steps after it checked), as :func:`hapsim.emulated.falcon_felt.
+        measure_felt_falcon` does.
 
     Returns
     -------
@@ -283,7 +438,12 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         gap [s]), ``paced``, ``stopped`` (None, or the packet and the reason of a stop on
         the motion: a leg beyond :data:`ENVELOPE_RAD`, a paced host too late), ``brake``
         (None, or the braking after that stop,
-        :func:`hapsim.emulated.falcon_device.brake_legs`), ``verdict``, ``reason``.
+        :func:`hapsim.emulated.falcon_device.brake_legs`), ``joints`` (N, 3) [rad] read
+        (NaN where missing), ``late_rows`` (N,) bool (the rows whose packet left more
+        than :data:`SKIP_PERIODS` periods after the one before, or more than one after the
+        previous reply was read: the firmware's tick may have passed without a packet,
+        the last command held over it, so the row not one period after the last),
+        ``verdict``, ``reason``.
 
     Raises
     ------
@@ -317,14 +477,14 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
     gc.disable()
     try:
         return _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
-                                 homing_limit, before_loop, progress)
+                                 homing_limit, before_loop, progress, start)
     finally:
         if gc_was:
             gc.enable()
 
 
 def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
-                      homing_limit, before_loop, progress):
+                      homing_limit, before_loop, progress, start=None):
     """:func:`run_falcon` after the firmware load: the probes, the homing, the loop."""
     from hapsim.emulated.falcon_device import drive_falcon, home
     from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, ticks_of
@@ -333,6 +493,8 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     # the loop's exchanges on the host's clock: a gap of more than HELD_PERIODS periods
     # between two packets is a host stall (the firmware held the last command over it)
     stamps = []
+    # when each exchange returned (its reply read, or its wait over)
+    replied = []
     # whether each exchange's reply came before its timeout: a gap after one that did
     # not is the host waiting for a lost reply, not the host stalled
     answered = []
@@ -360,6 +522,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             # would otherwise leave the next reply one byte behind, read one packet late)
             ans = late + link.exchange(packet, 32, _reply_end, wait[0])
             answered.append(_reply_end(ans))
+            replied.append(time.perf_counter())
         except DeviceError as exc:
             raise DeviceError(f"{exc} (after {sent[0] - 1} packets since the firmware "
                               "load)") from None
@@ -389,8 +552,11 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         dec.stats[k] = 0
     if before_loop is not None:
         before_loop()
+    if start is not None:
+        dec = DevicePacketDecoder()
     t0 = time.perf_counter()
     stamps.clear()
+    replied.clear()
     answered.clear()
     try:
         # a stop on the motion (the legs out of their envelope, a paced host too late)
@@ -398,7 +564,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
                            hold_bound_s=HOLD_BOUND_S if paced else None,
                            late_stop=paced, envelope_rad=ENVELOPE_RAD,
-                           brake=scene.safety.brake)
+                           brake=scene.safety.brake, start=start)
     finally:
         # the firmware holds the last command (no watchdog is published): zero torque
         # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
@@ -412,8 +578,23 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
            "position": res["position"], "commands": res["commands"], "truth": None,
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
            "held_zero": res["held_zero"], "stopped": res["stopped"],
-           "brake": res["brake"]}
+           "brake": res["brake"], "joints": res["joints"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
+    # sample k reads the reply of exchange k (stamps[0]: the loop's priming packet). The
+    # firmware takes a packet at its next tick, so packet k missed a tick (the command of
+    # packet k - 1 held over two: row k not one period after row k - 1) when it left more
+    # than a period after the tick packet k - 1 took, which lies between that packet's
+    # sending and its reply's reading: certainly when it left more than a period after
+    # that reply was read, possibly when it left more than a period after packet k - 1.
+    # Rows whose packet left more than SKIP_PERIODS after the last are cut, and those
+    # certain ones (module constants: the rule measured against the emulator's ticks)
+    late = np.zeros(int(samples), bool)
+    sent_after = (np.asarray(stamps[1:]) - np.asarray(replied[:len(stamps) - 1])) \
+        * scene.rate_hz                                   # [periods]
+    m = min(sent_after.size, gaps.size, late.size - 1)
+    if m > 0:
+        late[1:m + 1] = (gaps[:m] > SKIP_PERIODS) | (sent_after[:m] > 1.0)
+    out["late_rows"] = late
     # gap k follows exchange k: after a reply that never came (lost bytes) the host
     # waited its timeout for it; after one that came, a long gap is the host's own
     waited = ~np.asarray(answered[:gaps.size], bool)

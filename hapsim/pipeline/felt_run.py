@@ -37,7 +37,8 @@ ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver
 DEFAULT_AMPLITUDE = 1e-8
 
 
-def refuse_options(opts, by: str = "flag") -> None:
+def refuse_options(opts, by: str = "flag", takes: tuple = ND_TAKES,
+                   what: str = "a 2-D or 3-D scene", why: str = "1-D scenes only") -> None:
     """Refuse every run option an n-D run does not take (:data:`ND_TAKES`), by name.
 
     Parameters
@@ -49,6 +50,10 @@ def refuse_options(opts, by: str = "flag") -> None:
     by : {"flag", "field"}
         Name an option by its command-line flag (``--duration``: ``hapsim run``) or its
         field (``duration``: :func:`hapsim.api.run`).
+    takes : tuple of str, optional
+        The fields the run takes (a scene with several ports takes fewer).
+    what, why : str, optional
+        The run's scene and what takes the option instead, for the message.
 
     Raises
     ------
@@ -61,15 +66,14 @@ def refuse_options(opts, by: str = "flag") -> None:
         return type(v) is type(d) and v == d
     given = []
     for f in command_line_fields():
-        if f.name in ND_TAKES:
+        if f.name in takes:
             continue
         v = getattr(opts, f.name)
         # the command line's default (--loop auto) or the field's (a Python caller's)
         if not same(v, f.metadata["cli"]["cli_default"] if by == "flag" else f.default):
             given.append(f.metadata["cli"]["flag"] if by == "flag" else f.name)
     if given:
-        raise ConfigError(f"a 2-D or 3-D scene does not take {given[0]} yet (1-D scenes "
-                          "only)", key=given[0])
+        raise ConfigError(f"{what} does not take {given[0]} yet ({why})", key=given[0])
 
 
 def scene_for_run(scene, amplitude: float | None, rate_hz: float | None,

@@ -124,9 +124,10 @@ from hapsim.scene.devices import DEVICE_KINDS
 from hapsim.scene.elements import (CORRECTIONS, Audio, Device, DeviceND, Excitation, ExcitationND,
                                    Hand, Impulse, Link, LinkND, Listen, ListenND, Mass, MassND,
                                    PlaneND, Safety, SafetyND, audio_substeps)
-from hapsim.scene.model import Scene, SceneND
-from hapsim.scene.reader import (load_scene, load_scene_nd, parse_scene, parse_scene_nd,
-                                 scene_dimension)
+from hapsim.scene.model import Scene, SceneND, ScenePorts
+from hapsim.scene.reader import (load_scene, load_scene_nd, load_scene_ports, parse_scene,
+                                 parse_scene_nd, parse_scene_ports, scene_dimension,
+                                 scene_has_ports)
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
                                  PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS)
 
@@ -137,4 +138,5 @@ __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitati
            "PROTOCOLS", "audio_substeps",
            "MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "ExcitationND", "SafetyND",
            "SceneND",
-           "scene_dimension", "load_scene_nd", "parse_scene_nd", "DEVICE_KINDS"]
+           "scene_dimension", "load_scene_nd", "parse_scene_nd", "DEVICE_KINDS",
+           "ScenePorts", "load_scene_ports", "parse_scene_ports", "scene_has_ports"]

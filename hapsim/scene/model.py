@@ -12,13 +12,53 @@ from dataclasses import dataclass, field
 from hapsim.errors import ConfigError
 from hapsim.scene.elements import (Audio, Device, DeviceND, Excitation, ExcitationND, Link, Mass,
                                    MassND, Safety, SafetyND)
-from hapsim.scene.rules import Invalid, check_scene, code_line, coerce
+from hapsim.scene.rules import Invalid, check_scene, check_scene_ports, code_line, coerce
 
-__all__ = ["Scene", "SceneND"]
+__all__ = ["Scene", "SceneND", "ScenePorts"]
+
+
+def _validate(scene, sequences: tuple, check) -> None:
+    """Turn the ``sequences`` fields given as lists into tuples, then ``check(scene)``; a
+    broken rule raised as a :class:`ConfigError` with the entry's line, and the path of
+    the value (``scene_where``) that lets the reader name the line of the key itself."""
+    for name in sequences:
+        value = getattr(scene, name)
+        if isinstance(value, list):
+            object.__setattr__(scene, name, tuple(value))
+    try:
+        check(scene)
+    except Invalid as bad:
+        line = code_line(scene, bad.where)
+        shown = scene.path if (line is not None or scene.path != "<string>") else None
+        err = ConfigError(bad.message, file=shown, line=line, key=bad.key)
+        err.scene_where = bad.where
+        raise err from None
+
+
+def _link_named(links, name: str) -> Link:
+    """The link called ``name`` in ``links`` (KeyError when none)."""
+    for lk in links:
+        if lk.name == name:
+            return lk
+    raise KeyError(name)
+
+
+class _OneAxis:
+    """What a 1-D scene (:class:`Scene`, :class:`ScenePorts`) says of its time and axes."""
+
+    @property
+    def dimension(self) -> int:
+        """Degrees of freedom of each port: 1 (a 2-D or 3-D scene is a :class:`SceneND`)."""
+        return 1
+
+    @property
+    def period(self) -> float:
+        """Sample period T = 1 / rate_hz [s]."""
+        return 1.0 / self.rate_hz
 
 
 @dataclass(frozen=True)
-class Scene:
+class Scene(_OneAxis):
     """A validated scene: read it with :func:`load_scene` or :func:`parse_scene`, or build it.
 
     Every scene is checked when it is constructed (in code, by :func:`dataclasses.replace`
@@ -79,28 +119,7 @@ class Scene:
     audio: Audio | None = None
 
     def __post_init__(self) -> None:
-        for name in ("masses", "links"):
-            value = getattr(self, name)
-            if isinstance(value, list):
-                object.__setattr__(self, name, tuple(value))
-        try:
-            check_scene(self)
-        except Invalid as bad:
-            line = code_line(self, bad.where)
-            shown = self.path if (line is not None or self.path != "<string>") else None
-            err = ConfigError(bad.message, file=shown, line=line, key=bad.key)
-            err.scene_where = bad.where  # lets parse_scene name the line of the key itself
-            raise err from None
-
-    @property
-    def dimension(self) -> int:
-        """Degrees of freedom of the scene: 1 (a 2-D or 3-D one is a :class:`SceneND`)."""
-        return 1
-
-    @property
-    def period(self) -> float:
-        """Sample period T = 1 / rate_hz [s]."""
-        return 1.0 / self.rate_hz
+        _validate(self, ("masses", "links"), check_scene)
 
     @property
     def port(self) -> Mass | None:
@@ -153,10 +172,7 @@ class Scene:
         KeyError
             When no link has that name.
         """
-        for lk in self.links:
-            if lk.name == name:
-                return lk
-        raise KeyError(name)
+        return _link_named(self.links, name)
 
     @property
     def kinds(self) -> frozenset[str]:
@@ -257,3 +273,101 @@ class SceneND:
     def port(self) -> MassND | None:
         """The port mass, or None."""
         return next((m for m in self.masses if m.kind == "port"), None)
+
+
+@dataclass(frozen=True)
+class ScenePorts(_OneAxis):
+    """A validated 1-D scene with several ports, each felt through its own device (issue 30
+    item 3): read it with :func:`hapsim.scene.load_scene_ports`, or build it.
+
+    Checked when constructed (:func:`hapsim.scene.rules.check_scene_ports`), as
+    :class:`Scene` is.
+
+    Parameters
+    ----------
+    rate_hz : float
+        The one sample rate of every port's loop [Hz] (several rates: not built).
+    masses : tuple of Mass
+        Ports and grounds, in file order (2 to 3 ports).
+    links : tuple of Link
+        Spring-dampers between ports and to grounds, in file order.
+    devices : tuple of (str, Device)
+        Each port's name and its device (mass [kg], friction [N s/m], delay [periods],
+        protocol), in port order.
+    path : str
+        File the scene came from.
+    integrator : str
+        As :class:`Scene` (no virtual mass moves by it here).
+
+    Raises
+    ------
+    ConfigError
+        A broken rule, naming the key (``devices.fader_b.delay``) and, from a file, the
+        file and the line.
+    """
+
+    rate_hz: float
+    masses: tuple[Mass, ...]
+    links: tuple[Link, ...]
+    devices: tuple
+    path: str = "<string>"
+    integrator: str = "centred"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.devices, (dict, list)):
+            object.__setattr__(self, "devices", tuple(
+                self.devices.items() if isinstance(self.devices, dict) else self.devices))
+        masses = self.masses if isinstance(self.masses, (list, tuple)) else ()
+        order = [m.name for m in masses if getattr(m, "kind", None) == "port"
+                 and isinstance(getattr(m, "name", None), str)]
+        if isinstance(self.devices, tuple) and all(
+                isinstance(p, tuple) and len(p) == 2 and isinstance(p[0], str)
+                for p in self.devices):
+            rank = {n: i for i, n in enumerate(order)}
+            object.__setattr__(self, "devices", tuple(sorted(
+                self.devices, key=lambda p: rank.get(p[0], len(rank)))))
+        _validate(self, ("masses", "links"), check_scene_ports)
+
+    @property
+    def ports(self) -> tuple[str, ...]:
+        """The ports' names, in file order (the axes of the coupled loop)."""
+        return tuple(n for n, _ in self.devices)
+
+    def device(self, port: str) -> Device:
+        """The device of the port called ``port``.
+
+        Parameters
+        ----------
+        port : str
+            A port's name.
+
+        Returns
+        -------
+        Device
+
+        Raises
+        ------
+        KeyError
+            No port has that name.
+        """
+        return dict(self.devices)[port]
+
+    def link(self, name: str) -> Link:
+        """The link called ``name``.
+
+        Parameters
+        ----------
+        name : str
+            Link name.
+
+        Returns
+        -------
+        Link
+            The link as stored (K [N/m], B [N s/m]).
+
+        Raises
+        ------
+        KeyError
+            When no link has that name.
+        """
+        return _link_named(self.links, name)

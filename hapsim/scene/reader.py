@@ -27,10 +27,12 @@ from hapsim.scene.elements import (Audio, Device, Excitation, ExcitationND, Hand
                                    LinkND, Listen, ListenND, Mass, MassND, PlaneND, Safety,
                                    SafetyND)
 from hapsim.scene.lines import LineContext, read_text
-from hapsim.scene.model import Scene, SceneND
+from hapsim.scene.model import Scene, SceneND, ScenePorts
 from hapsim.scene.rules import Invalid, check_key, check_products_nd, coerce
 
 __all__ = ["load_scene", "parse_scene", "read_device", "scene_dimension", "load_scene_nd",
+           "load_scene_ports", "parse_scene_ports", "scene_has_ports", "PORTS_REFUSAL",
+           "PORTS_TOP_KEYS",
            "parse_scene_nd", "TOP_KEYS_ND", "MASS_KEYS_ND", "LINK_KEYS_ND", "PLANE_KEYS_ND",
            "EXCITATION_KEYS_ND", "IMPULSE_KEYS_ND", "LISTEN_KEYS_ND", "ENGINE_KEYS_ND",
            "PRECISIONS_ND", "SAFETY_KEYS_ND"]
@@ -142,6 +144,8 @@ def parse_scene(text: str, path: str = "<string>",
                             "reads every dimension, as `hapsim check`, `simulate`, `run`, "
                             "`play` and `mock` do",
                             ctx.line_of(doc, "dimension"), "dimension")
+    if "devices" in doc:
+        raise ctx.error(PORTS_REFUSAL, ctx.line_of(doc, "devices"), "devices")
     ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
     masses = _read_masses(ctx, doc)
     links = _read_links(ctx, doc, masses)
@@ -149,17 +153,136 @@ def parse_scene(text: str, path: str = "<string>",
     excitation = _read_excitation(ctx, doc, path) if "excitation" in doc else Excitation()
     safety = _read_safety(ctx, doc) if "safety" in doc else Safety()
     audio = _read_audio(ctx, doc) if "audio" in doc else None
+    return _built(ctx, doc, lambda: Scene(
+        rate_hz=coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
+        device=device, excitation=excitation, path=path,
+        integrator=doc.get("integrator", _key("integrator").default), safety=safety,
+        audio=audio))
+
+
+def _built(ctx: LineContext, doc: LDict, make: Callable):
+    """``make()``, a scene checked as it is built; a broken rule named at the line of its
+    key in the document (the entry's line is all the scene itself knows)."""
     try:
-        return Scene(rate_hz=coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
-                     device=device, excitation=excitation, path=path,
-                     integrator=doc.get("integrator", _key("integrator").default), safety=safety,
-                     audio=audio)
+        return make()
     except ConfigError as exc:
         where = getattr(exc, "scene_where", None)
         if where is None:
             raise
-        raise ConfigError(exc.reason, file=path, line=ctx.doc_line(doc, where),
+        raise ConfigError(exc.reason, file=ctx.path, line=ctx.doc_line(doc, where),
                           key=exc.key) from None
+
+
+#: What the one-port reader, and every command that takes it, says of a scene with
+#: several ports (``devices:``).
+PORTS_REFUSAL = ("a scene with several ports (devices:, one device per port): this takes one "
+                 "port (a device: section); 'hapsim check' and 'hapsim run --lockstep' take "
+                 "several (docs/ports.md)")
+#: The top-level keys of a scene with several ports.
+PORTS_TOP_KEYS = ("rate_hz", "integrator", "masses", "links", "devices")
+#: Top-level keys of a one-port scene a scene with several ports refuses, and why.
+_PORTS_REFUSED = {
+    "device": "give every port's device under devices: (one device: section is a one-port "
+              "scene), not both",
+    "excitation": "an excitation of several ports is not built yet ('hapsim run --lockstep' "
+                  "excites each port in turn)",
+    "audio": "the sound of a scene with several ports is not built yet",
+    "safety": "the safety limits of a run on several ports are not built yet (its real-time "
+              "run is not built)",
+    "dimension": "several ports move along one axis each: a scene with devices: is 1-D",
+}
+
+
+def scene_has_ports(path: str | os.PathLike) -> bool:
+    """Whether a scene file has several ports (a top-level ``devices`` key), read cheaply.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Scene file.
+
+    Returns
+    -------
+    bool
+        True when its top mapping holds ``devices`` (:func:`load_scene_ports` reads it);
+        False otherwise, or when the file cannot be read or parsed (the reader that reads
+        it then says why).
+    """
+    return "devices" in _top_keys(path, "devices")
+
+
+def load_scene_ports(path: str | os.PathLike) -> ScenePorts:
+    """Read and validate a scene file with several ports (:func:`parse_scene_ports`).
+
+    Parameters
+    ----------
+    path : str or path-like
+        YAML scene with a ``devices:`` section.
+
+    Returns
+    -------
+    ScenePorts
+
+    Raises
+    ------
+    ConfigError
+        As :func:`parse_scene_ports`, or an unreadable file.
+    """
+    path = os.fspath(path)
+    return parse_scene_ports(read_text(path), path)
+
+
+def parse_scene_ports(text: str, path: str = "<string>") -> ScenePorts:
+    """Parse and validate a scene with several ports, each with its own device.
+
+    The one-port format (docs/scenes.md) with ``devices:`` instead of ``device:``: a
+    mapping from each port's name to a ``device`` section of the one-port format (mass,
+    friction, delay, protocol, ...); the scene's ``rate_hz`` drives every port.
+
+    Parameters
+    ----------
+    text : str
+        YAML text.
+    path : str
+        Name used in messages.
+
+    Returns
+    -------
+    ScenePorts
+
+    Raises
+    ------
+    ConfigError
+        The one-port reader's errors (file, line, key, the valid keys or choices); a
+        top-level key this format does not take, with its reason; a ``rate_hz`` in a
+        device (several rates: not built); a broken rule of
+        :func:`hapsim.scene.rules.check_scene_ports`.
+    """
+    doc = load_yaml(text, path)
+    ctx = LineContext(path)
+    if doc is None:
+        raise ctx.error("the scene is empty", 1, "devices")
+    doc = ctx.mapping(doc, "", 1)
+    for k, why in _PORTS_REFUSED.items():
+        if k in doc:
+            raise ctx.error(why, ctx.line_of(doc, k), k)
+    ctx.keys(doc, PORTS_TOP_KEYS, "", required=("rate_hz", "masses", "devices"))
+    masses = _read_masses(ctx, doc)
+    links = _read_links(ctx, doc, masses)
+    devs = ctx.mapping(doc["devices"], "devices", ctx.line_of(doc, "devices"))
+    devices = []
+    for name in devs:
+        key = f"devices.{name}"
+        block = ctx.mapping(devs[name], key, ctx.line_of(devs, name))
+        if "rate_hz" in block:
+            raise ctx.error("a rate per port: multi-rate ports are not built; the scene's "
+                            "rate_hz drives every port", ctx.line_of(block, "rate_hz"),
+                            f"{key}.rate_hz")
+        devices.append((name, read_device(ctx, devs, key)))
+    return _built(ctx, doc, lambda: ScenePorts(
+        rate_hz=coerce(doc["rate_hz"]), masses=tuple(masses), links=tuple(links),
+        devices=tuple(devices), path=path,
+        integrator=doc.get("integrator", _key("integrator").default)))
 
 
 def _read_values(ctx: LineContext, d: LDict, section: str, key: str,
@@ -231,7 +354,7 @@ def _read_links(ctx: LineContext, doc: LDict, masses: list[Mass]) -> list[Link]:
     return out
 
 
-def read_device(ctx: LineContext, doc: LDict) -> Device:
+def read_device(ctx: LineContext, doc: LDict, key: str = "device") -> Device:
     """The ``device`` section of a document (a scene or a device file).
 
     Parameters
@@ -239,7 +362,10 @@ def read_device(ctx: LineContext, doc: LDict) -> Device:
     ctx : LineContext
         The file read.
     doc : LDict
-        The document's top mapping, holding ``device``.
+        The mapping holding the section (a document's top mapping, holding ``device``).
+    key : str, optional
+        The section's path in messages: ``device``, or ``devices.NAME`` (the mapping's
+        key is its last part).
 
     Returns
     -------
@@ -253,24 +379,25 @@ def read_device(ctx: LineContext, doc: LDict) -> Device:
         A section that is not a mapping, an unknown or missing key, ``null`` where a value
         is needed (file, line and key named).
     """
-    d = ctx.mapping(doc["device"], "device", ctx.line_of(doc, "device"))
-    vals = _read_values(ctx, d, "device", "device")
+    last = key.rsplit(".", 1)[-1]
+    d = ctx.mapping(doc[last], key, ctx.line_of(doc, last))
+    vals = _read_values(ctx, d, "device", key)
     if isinstance(vals["delay"], float) and vals["delay"].is_integer():
         vals["delay"] = int(vals["delay"])   # a whole delay: the plain hold's int, as before
-    vals["hand"] = _read_hand(ctx, d) if "hand" in d else None
-    vals["correction"] = (dict(ctx.mapping(d["correction"], "device.correction",
+    vals["hand"] = _read_hand(ctx, d, key) if "hand" in d else None
+    vals["correction"] = (dict(ctx.mapping(d["correction"], f"{key}.correction",
                                            ctx.line_of(d, "correction")))
                           if "correction" in d else None)
     vals["protocol_options"] = (dict(ctx.mapping(d["protocol_options"],
-                                                 "device.protocol_options",
+                                                 f"{key}.protocol_options",
                                                  ctx.line_of(d, "protocol_options")))
                                 if "protocol_options" in d else None)
     return Device(**vals)
 
 
-def _read_hand(ctx: LineContext, dev: LDict) -> Hand:
-    h = ctx.mapping(dev["hand"], "device.hand", ctx.line_of(dev, "hand"))
-    ctx.keys(h, _HAND_KEYS, "device.hand", required=("mass",))
+def _read_hand(ctx: LineContext, dev: LDict, key: str = "device") -> Hand:
+    h = ctx.mapping(dev["hand"], f"{key}.hand", ctx.line_of(dev, "hand"))
+    ctx.keys(h, _HAND_KEYS, f"{key}.hand", required=("mass",))
 
     def val(key, default):
         v = h.get(key, default)
@@ -331,31 +458,38 @@ def scene_dimension(path: str | os.PathLike) -> int:
         reader then reads the file and reports any other problem, including a bad
         ``dimension``).
     """
+    d = _top_keys(path, "dimension").get("dimension")
+    return d if d in (2, 3) and not isinstance(d, bool) else 1
+
+
+def _top_keys(path: str | os.PathLike, word: str) -> dict:
+    """The top mapping of the scene file, cheaply: empty when the file cannot be read or
+    parsed (the reader that reads it then says why) or its text lacks ``word``."""
     try:
         text = read_text(path)
     except ConfigError:
-        return 1                       # the 1-D reader reports it
-    if "dimension" not in text:
-        return 1
-    got = _DIMENSIONS.get(text)
+        return {}
+    if word not in text:
+        return {}
+    got = _TOPS.get(text)
     if got is not None:
         return got
     try:
         doc = load_yaml(text, os.fspath(path))
     except ConfigError:
-        doc = None                     # the 1-D reader reports it
-    d = doc.get("dimension") if isinstance(doc, dict) else None
-    got = d if d in (2, 3) and not isinstance(d, bool) else 1
-    if len(_DIMENSIONS) >= 16:         # a few texts: a command asks two or three times
-        _DIMENSIONS.clear()
-    _DIMENSIONS[text] = got
+        doc = None
+    got = doc if isinstance(doc, dict) else {}
+    if len(_TOPS) >= 16:               # a few texts: a command asks two or three times
+        _TOPS.clear()
+    _TOPS[text] = got
     return got
 
 
-#: :func:`scene_dimension`'s answers by the file's text: a command of an n-D scene asked
-#: it two or three times (``check`` in the command and again in ``api.load_scene``), and
-#: each time parsed the whole file (a membrane's ~14 ms); the same text, the same answer.
-_DIMENSIONS: dict = {}
+#: :func:`_top_keys`'s answers by the file's text: a command of an n-D scene asked its
+#: dimension two or three times (``check`` in the command and again in
+#: ``api.load_scene``), and each time parsed the whole file (a membrane's ~14 ms); the
+#: same text, the same answer.
+_TOPS: dict = {}
 
 
 def load_scene_nd(path: str | os.PathLike) -> SceneND:

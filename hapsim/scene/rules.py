@@ -21,7 +21,7 @@ from hapsim.scene_schema import key as _key
 from hapsim.scene.elements import (CORRECTIONS, Audio, Device, Excitation, Hand, Impulse, Link,
                                    Listen, Mass, Safety, audio_substeps)
 
-__all__ = ["Invalid", "check_scene", "check_device", "check_key", "check_choice", "coerce",
+__all__ = ["Invalid", "check_scene", "check_scene_ports", "PORTS_NOT_BUILT", "MAX_PORTS", "check_device", "check_key", "check_choice", "coerce",
            "code_line", "bare_name", "check_products_nd"]
 
 
@@ -223,6 +223,108 @@ def check_scene(s) -> None:
     Invalid
         On the first broken rule, in scene order.
     """
+    names, ports = _check_masses(s)
+    if len(ports) > 1:
+        raise Invalid(f"at most one port per scene (1-DoF device); found {len(ports)}: "
+                       + ", ".join(bare_name(s.masses[p].name) for p in ports), ("masses", ports[1]),
+                       key="masses")
+    _check_links(s, names)
+    if s.device is not None:
+        check_device(s.device)
+    elif ports:
+        raise Invalid("a scene with a port needs a device section "
+                       "(mass, friction, delay, hold, ...)", ("device",))
+    _check_products(s)
+    _check_excitation(s.excitation)
+    _check_safety(s.safety)
+    if s.audio is not None:
+        _check_audio(s, names)
+
+
+#: What a scene with several ports does not take yet, each with its reason (issue 30 item
+#: 3, first slice: ports coupled through links to each other and to grounds).
+PORTS_NOT_BUILT = {
+    "mass": "virtual masses in a scene with several ports are not built yet: the ports "
+            "couple through links to each other and to grounds",
+    "contact": "contacts in a scene with several ports are not built yet: use a "
+               "spring_damper",
+    "target": "calibrating a felt target across several ports is not built yet: give "
+              "stiffness and damping",
+    "hold": "the n-D loop models the zero-order hold only: hold: zoh",
+    "hand": "a hand model per port is not built yet",
+    "correction": "a correction per port is not built yet",
+    "delay": "a sub-sample delay (the split hold) takes one delay for every port: unequal "
+             "delays must be whole periods",
+}
+#: Most ports one scene takes: the n-D loop (hapsim.analysis.ths_nd.LoopModelND) has at
+#: most 3 axes.
+MAX_PORTS = 3
+
+
+def check_scene_ports(s) -> None:
+    """Every rule of a scene with several ports (:class:`hapsim.scene.ScenePorts`).
+
+    The rules of a one-port scene's masses, links and devices (each port's device is a
+    ``device`` section, at ``devices.NAME``), with the loop's products at each port's
+    device mass, and what this slice does not build refused with its reason
+    (:data:`PORTS_NOT_BUILT`): 2 to :data:`MAX_PORTS` ports, each with a device and no
+    device for another name, no virtual mass, no contact, no target, ``hold: zoh``, no
+    hand or correction, and unequal delays whole.
+
+    Raises
+    ------
+    Invalid
+        On the first broken rule, in scene order.
+    """
+    names, ports = _check_masses(s)
+    for i, m in enumerate(s.masses):
+        if m.kind == "mass":
+            raise Invalid(PORTS_NOT_BUILT["mass"], ("masses", i, "kind"))
+    if not 2 <= len(ports) <= MAX_PORTS:
+        raise Invalid(f"a scene with devices: takes 2 to {MAX_PORTS} ports (the n-D loop's "
+                      f"axes), got {len(ports)}; one port is the device: section",
+                      ("masses",), key="masses")
+    _check_links(s, names)
+    for i, lk in enumerate(s.links):
+        if lk.kind == "contact":
+            raise Invalid(PORTS_NOT_BUILT["contact"], ("links", i, "kind"))
+        if lk.target is not None:
+            raise Invalid(PORTS_NOT_BUILT["target"], ("links", i, "target"))
+    if not (isinstance(s.devices, tuple) and all(
+            isinstance(p, tuple) and len(p) == 2 and isinstance(p[0], str)
+            for p in s.devices)):
+        raise Invalid("must be pairs (port name, hapsim.scene.Device)", ("devices",))
+    port_names = [s.masses[p].name for p in ports]
+    given = [n for n, _ in s.devices]
+    for n in given:
+        if n not in port_names:
+            raise Invalid(f"no port named {show(n)}; ports: {', '.join(port_names)}",
+                          ("devices", n), key="devices")
+    for n in port_names:
+        if n not in given:
+            raise Invalid(f"port {show(n)} has no device: give one under devices.{n}",
+                          ("devices",), key="devices")
+    for n, d in s.devices:
+        try:
+            check_device(d)
+        except Invalid as bad:
+            raise Invalid(bad.message, ("devices", n) + tuple(bad.where[1:])) from None
+        for k in ("hand", "correction"):
+            if getattr(d, k) is not None:
+                raise Invalid(PORTS_NOT_BUILT[k], ("devices", n, k))
+        if d.hold != "zoh":
+            raise Invalid(PORTS_NOT_BUILT["hold"], ("devices", n, "hold"))
+    delays = [float(d.delay) for _, d in s.devices]
+    if len(set(delays)) > 1 and any(x % 1 for x in delays):
+        n = next(n for n, d in s.devices if float(d.delay) % 1)
+        raise Invalid(PORTS_NOT_BUILT["delay"] + f"; got {', '.join(f'{x:g}' for x in delays)}",
+                      ("devices", n, "delay"))
+    _check_products(s)
+
+
+def _check_masses(s) -> tuple[dict[str, int], list[int]]:
+    """The rules of the rate, the integrator, the path and the masses; the masses' names
+    (name -> index) and the ports' indices."""
     check_key(_key("rate_hz"), s.rate_hz, "rate_hz")
     check_key(_key("integrator"), s.integrator, "integrator")
     if not isinstance(s.path, str):
@@ -245,21 +347,7 @@ def check_scene(s) -> None:
                            f"got {show(m.v0)}", ("masses", i, "v0"))
         if m.kind == "port":
             ports.append(i)
-    if len(ports) > 1:
-        raise Invalid(f"at most one port per scene (1-DoF device); found {len(ports)}: "
-                       + ", ".join(bare_name(s.masses[p].name) for p in ports), ("masses", ports[1]),
-                       key="masses")
-    _check_links(s, names)
-    if s.device is not None:
-        check_device(s.device)
-    elif ports:
-        raise Invalid("a scene with a port needs a device section "
-                       "(mass, friction, delay, hold, ...)", ("device",))
-    _check_products(s)
-    _check_excitation(s.excitation)
-    _check_safety(s.safety)
-    if s.audio is not None:
-        _check_audio(s, names)
+    return names, ports
 
 
 def _check_products(s) -> None:
@@ -279,28 +367,30 @@ def _check_products(s) -> None:
             raise Invalid(exc.reason, where) from None
 
     inertia = {m.name: float(m.mass) for m in s.masses if m.kind == "mass"}
-    d = s.device
     port = next((m.name for m in s.masses if m.kind == "port"), None)
-    if d is not None and port is not None:
+    # each port with its device, and the path of that device's section
+    devices = (((n, d, ("devices", n)) for n, d in s.devices) if hasattr(s, "devices") else
+               (((port, s.device, ("device",)),) if s.device is not None and port else ()))
+    for port, d, at in devices:
         m_dev = float(d.mass)
         inertia[port] = m_dev
-        refuse(d.friction, T / m_dev, "N s/m", "b0 T/m", ("device", "friction"))
+        refuse(d.friction, T / m_dev, "N s/m", "b0 T/m", (*at, "friction"))
         h = d.hand
         if h is not None:
             hi = lambda v: float(v[1]) if isinstance(v, tuple) else float(v)  # noqa: E731
             lo = lambda v: float(v[0]) if isinstance(v, tuple) else float(v)  # noqa: E731
             if hi(h.stiffness) > 0:
                 refuse(hi(h.stiffness), T * T / lo(h.mass), "N/m", "kh T^2/m",
-                       ("device", "hand", "stiffness"))
+                       (*at, "hand", "stiffness"))
             refuse(hi(h.damping), T / lo(h.mass), "N s/m", "bh T/m",
-                   ("device", "hand", "damping"))
+                   (*at, "hand", "damping"))
             # the grip joins the hand and the handle: the lighter of the two moves most
             m_grip = min(lo(h.mass), m_dev)
             if math.isfinite(hi(h.grip_stiffness)):       # inf: a rigid grip
                 refuse(hi(h.grip_stiffness), T * T / m_grip, "N/m", "kg T^2/m",
-                       ("device", "hand", "grip_stiffness"))
+                       (*at, "hand", "grip_stiffness"))
             refuse(hi(h.grip_damping), T / m_grip, "N s/m", "bg T/m",
-                   ("device", "hand", "grip_damping"))
+                   (*at, "hand", "grip_damping"))
     for i, lk in enumerate(s.links):
         ends = [inertia[n] for n in (lk.m1, lk.m2) if n in inertia]
         if not ends:

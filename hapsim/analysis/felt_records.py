@@ -1,0 +1,188 @@
+"""The felt matrices of records cut at their disturbances, each record fitted on its own
+undisturbed stretches (issue 29): the wire's term of such a fit.
+
+A measurement of the n-D felt matrices takes ``2n + 1`` free responses of the loop, the
+first from rest (:func:`hapsim.lockstep.excitation_starts`). Whole records are fitted as
+their differences against the record from rest
+(:func:`hapsim.lockstep.wire_terms_nd`), which removes the equilibrium. A record cut
+where a disturbance acted (a lost byte's re-synchronisation, a host stall: its
+undisturbed stretches fitted jointly, :func:`hapsim.analysis.pencil.fit_felt_nd`'s
+``usable``) cannot be differenced so: a difference holds only the rows undisturbed in
+*both* records, so each record's cuts are the other's too. Measured on the Haply 2DIY's
+records with 1 byte in 200 lost each way (``tools/driver_timing.py --drivers haply2
+--loss 0.005``, seeds 1-6, about 5 re-synchronisations a record): the differences kept 1
+to 53 equations of the 194 to 363 the records' own stretches hold; 2 of the 6 runs were
+"not measurable", one of them with its fit off by 7e4 % in the felt stiffness, and none
+stated the damping.
+
+Here every record, the one from rest among them, is fitted on its own stretches, the
+equilibrium taken by the affine prediction (:func:`hapsim.analysis.pencil.fit_felt_nd`
+with ``offset=True``: one unknown more per coordinate, shared by every stretch; exact on
+exact data, the equilibrium of a loop whose force is computed from its readings being
+where that force is zero, whatever an encoder's offset). Each record's errors then enter
+its own fit only (no record from rest's errors in every difference).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from hapsim.errors import ConfigError
+
+__all__ = ["wire_terms_records", "within_excursion", "window_rows"]
+
+#: The error kinds (:func:`hapsim.lockstep.wire_terms_nd`'s).
+_KINDS = ("reading", "force", "position", "velocity")
+
+
+def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> dict:
+    """The wire's term of the felt matrices fitted on records cut at their disturbances,
+    each record on its own stretches about a common equilibrium (module notes): as
+    :func:`hapsim.lockstep.wire_terms_nd` (the first-order worst case, Hoelder's
+    inequality on the fit's sensitivity times each error's response through the loop,
+    as a whole and along each principal direction), the fit the affine one
+    (:func:`hapsim.analysis.pencil.felt_sensitivity_nd` with ``offset=True``) and each
+    record's errors in its own fit only. Sources: the least-squares estimate's
+    first-order perturbation (G. A. F. Seber and C. J. Wild, *Nonlinear Regression*,
+    1989, Sec. 2.1) and Hoelder's inequality for the worst case over bounded errors of
+    any sign (:func:`hapsim.analysis.pencil.worst_case_nd`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+    records : sequence of ndarray, each shape (N, n)
+        The records as fitted: handle positions [m] (absolute: the equilibrium is
+        fitted).
+    chk : hapsim.analysis.scene_check.SceneCheckND
+        The prediction.
+    order : int
+        The fit's order.
+    errors : sequence of (str, array_like, bounds)
+        As :func:`hapsim.lockstep.wire_terms_nd`'s, the bounds a list with one array per
+        record in the order of ``records`` (shape (N, m) or (m,)), or one array for
+        every record.
+    usable : sequence of array_like of bool, shape (N,)
+        Per record, the rows of its undisturbed stretches, as fitted.
+
+    Returns
+    -------
+    dict
+        ``felt_stiffness``, ``felt_damping`` [-] and ``directions``, as
+        :func:`hapsim.lockstep.wire_terms_nd`'s (every term inf when the records give no
+        felt matrices).
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.pencil.fit_felt_nd`; an error ``kind`` not one of
+        ``"reading"``, ``"force"``, ``"position"``, ``"velocity"``.
+    """
+    from hapsim.analysis.felt_matrices import FELT_QUANTITIES
+    from hapsim.analysis.pencil import felt_sensitivity_nd, worst_case_nd
+    from hapsim.lockstep import error_responses, state_responses
+    for kind, _, _ in errors:
+        if kind not in _KINDS:
+            raise ConfigError(f"an error's kind must be one of {', '.join(_KINDS)}, got "
+                              f"{kind!r}", key="errors")
+    n = scene.dimension
+    r = chk.render
+    inf = {"felt_stiffness": math.inf, "felt_damping": math.inf,
+           "directions": {q: [math.inf] * n for q in FELT_QUANTITIES}}
+    if r.felt_stiffness is None or r.directions is None:
+        return inf
+    N = int(np.asarray(records[0]).shape[0])
+    sens = felt_sensitivity_nd(records, scene.device.mass, scene.period, order,
+                               usable=usable, offset=True)
+    if sens is None:
+        return inf
+    E = np.asarray(r.directions, float)
+    # the entries, then the directional forms e_i^T X e_i: one worst case over them all
+    comb = [np.concatenate([s.reshape(2 * n * n, N, n),
+                            np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, N, n)]
+                           )[:, None, None] for s in sens]
+    resp = dict(zip(_KINDS[:2], error_responses(scene, N)))
+    if any(kind in _KINDS[2:] for kind, _, _ in errors):
+        resp.update(zip(_KINDS[2:], state_responses(scene, N)))
+    wc = np.zeros(2 * n * n + 2 * n)
+    for kind, G, bounds in errors:
+        b = list(bounds) if isinstance(bounds, (list, tuple)) else [bounds] * len(sens)
+        wc = wc + worst_case_nd(comb, resp[kind] @ np.asarray(G, float), b)[:, 0, 0]
+    out = {"directions": {}}
+    for qi, q in enumerate(FELT_QUANTITIES):
+        P = np.asarray(getattr(r, q), float)
+        out[q] = float(np.max(wc[qi * n * n:(qi + 1) * n * n]) / np.max(np.abs(P)))
+        wd = wc[2 * n * n + qi * n: 2 * n * n + (qi + 1) * n]
+        along = [abs(float(E[:, i] @ P @ E[:, i])) for i in range(n)]
+        out["directions"][q] = [float(w / a) if a > 0 else math.inf
+                                for w, a in zip(wd, along)]
+    return out
+
+
+def within_excursion(scene, diffs, usable, amplitude: float) -> list:
+    """``usable`` with the rows after a record's first cut left out where the handle is
+    farther from rest than any undisturbed record goes (the largest excursion of the
+    loop predicted in lockstep from the hand's starts, :class:`hapsim.lockstep.LockstepND`).
+
+    A stretch after a host stall starts where the torque held over the stall left the
+    handle, not from one of the hand's starts: its rows beyond the undisturbed excursion
+    are at an amplitude the linearisation bound (stated at ``a``, as for a record without
+    a cut) does not cover. Measured on the emulated board (configs/pantograph_wall.yaml,
+    the 2DIY's board on its own clock): a 30 ms stall carried a record to 1.0 mm from rest,
+    2.9 times the undisturbed excursion and out of the wall (its depth 0.5 mm), and the
+    felt stiffness fitted there was 14 % off the prediction. The rows before the first
+    cut are the hand's start's, as in a record without one (kept whatever their
+    excursion).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+    diffs : list of ndarray, each shape (N, n)
+        The records minus the record from rest [m].
+    usable : list of ndarray of bool, each shape (N,)
+    amplitude : float
+        The hand's ``a`` [m].
+
+    Returns
+    -------
+    list of ndarray of bool, each shape (N,)
+    """
+    from hapsim.lockstep import LockstepND, excitation_starts
+    N = diffs[0].shape[0]
+    rest = LockstepND(scene).step(N, record=True)
+    nominal = 0.0
+    for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)[1:]:
+        r = LockstepND(scene, x0=x0, v0=v0).step(N, record=True)
+        nominal = max(nominal, float(np.max(np.linalg.norm(r - rest, axis=1))))
+    out = []
+    for d_, u in zip(diffs, usable):
+        u = np.asarray(u, bool).copy()
+        cut = np.flatnonzero(~u)
+        if cut.size:
+            after = np.arange(N) > cut[0]
+            u &= ~(after & (np.linalg.norm(d_, axis=1) > nominal))
+        out.append(u)
+    return out
+
+
+def window_rows(usable, order: int) -> np.ndarray:
+    """Rows ``k >= order`` whose rows ``k - order .. k`` are all usable (the equations
+    :func:`hapsim.analysis.pencil.fit_felt_nd` forms), as a mask.
+
+    Parameters
+    ----------
+    usable : array_like of bool, shape (N,)
+        The rows of a record's undisturbed stretches.
+    order : int
+        The fit's prediction order ``p``.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True where row ``k`` closes an equation of the fit.
+    """
+    u = np.asarray(usable, bool)
+    bad = np.concatenate(([0], np.cumsum(~u)))
+    k = np.arange(u.size)
+    return (k >= order) & (bad[k + 1] - bad[np.maximum(k - order, 0)] == 0)
