@@ -157,37 +157,3 @@ def test_with_no_hold_the_measurement_is_unchanged(seed, tmp_path):
     assert m.keys() == plain.keys()
     for q in ("k", "b", "k_unc", "b_unc", "samples_used"):
         assert m[q] == plain[q], q
-
-
-def test_a_differs_within_twice_the_found_holds_shift_is_not_measurable(tmp_path):
-    """The rule after the search (``hapsim.pipeline.measure.UNSEEN_SHIFT_FACTOR``): where
-    holds were found and cut, a departure from the prediction beyond the stated interval
-    but within twice the move their cut made to the fit is "not measurable" (a hold not
-    found may make it), one beyond both is "differs". Tested on real records of the
-    property test's paddles (matching, holds found), the prediction moved by a known
-    amount on each side of the rule's boundary; both cases must occur. (Without the rule
-    the first case says "differs": checked. Measured on seed 16: the cut moved k by
-    0.019 N/m against a stated interval of 2.8e-6 N/m.)"""
-    from hapsim.pipeline.measure import UNSEEN_SHIFT_FACTOR
-    tested = 0
-    for seed in range(16, 32):
-        prep, n, late = _random_case(seed, tmp_path)
-        cols, drv, _ = hapkit_serial_offline_loop(prep.scene, n, read_late=late)
-        m = _measure(prep, cols, drv)
-        shift = m.get("unseen_hold_shift")
-        if shift is None or "k" not in m or not m.get("within"):
-            continue
-        reach = UNSEEN_SHIFT_FACTOR * shift["k"]
-        if not reach > 1.5 * m["k_interval"]:         # the rule cannot act on k here
-            continue
-        for dk, want in (((m["k_interval"] + reach) / 2, "not measurable: the board mistimed"),
-                         (2.0 * reach, "measured differs")):
-            moved = dataclasses.replace(prep, pred=dict(prep.pred, k=m["k"] - dk))
-            got = _measure(moved, cols, drv)
-            # the fit does not read the prediction: the same k, bit for bit
-            assert got["k"] == m["k"] and str(got["verdict"]).startswith(want), (
-                seed, dk, reach, m["k_interval"], got["verdict"])
-        tested += 1
-        if tested == 2:
-            break
-    assert tested == 2, tested

@@ -208,7 +208,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                 if b is not None:
                     unread = unread | (np.asarray(b, float) > 0)
             measured = _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum,
-                                         driver, unread)
+                                         driver, unread, poles)
         else:
             measured = fitted(exclude)
         if holds is not None and "k" in measured:
@@ -273,15 +273,12 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             f"by up to {LINK_JITTER_S * 1e6:.0f} us between writes could make (k +-"
             f"{measured['link_k_unc']:.3g}, b +-{measured['link_b_unc']:.3g}); rerun "
             "with the board in lockstep to measure the loop")
-    shift = measured.get("unseen_hold_shift")
-    if shift is not None and measured.get("within") is False and _within_unseen(
-            pred, measured, (shift["k"], shift["b"])):
-        measured["verdict"] = (
-            f"not measurable: the board mistimed holds no host saw "
-            f"({measured['unseen_holds']} found in the record and cut, which moved the "
-            f"fit by k {shift['k']:.3g}, b {shift['b']:.3g}); the departure left is within "
-            f"{UNSEEN_SHIFT_FACTOR:g} times that, what a hold the search did not find "
-            f"could make; rerun, or with the board in lockstep")
+    review = measured.pop("_unseen", None)
+    if review is not None and measured.get("within") is False:
+        # a board on its own tick: the "differs" stands only where the predicted loop,
+        # broken where its unseen holds may have struck, does not explain the record
+        from hapsim.pipeline.unseen_review import review_differs
+        measured = review_differs(pred, measured, review)
     if "k" in measured:
         measured.setdefault("comparable", True)
         measured["rel_err"] = {q: relative_error(measured[q], pred.get(q))
@@ -336,25 +333,6 @@ def _write_holds(scene, cols: dict, driver, quantum: float):
     return terms(0.0), lambda: terms(LINK_JITTER_S)
 
 
-#: A "differs" on a board whose record had holds off its tick that no host saw (found and
-#: cut, :func:`_cut_unseen_holds`) stands only beyond this many times the shift their cut
-#: made to the fit: a hold the search did not find (smaller, or near a cut) is taken to
-#: move the fit by no more than those found did, twice for the several it may be. A rule
-#: of thumb, not a bound: it turns a departure of that size into "not measurable" (a
-#: matching paddle said "differs" once, 1 of 10 seeds beside two CPU-bound processes,
-#: with 2 of its 6 holds found), and leaves a device off by far more "differs".
-UNSEEN_SHIFT_FACTOR = 2.0
-
-
-def _within_unseen(pred, measured, shift) -> bool:
-    """Whether the departure of ``measured`` (k [N/m], b [N s/m]) from ``pred`` is within
-    the stated interval or :data:`UNSEEN_SHIFT_FACTOR` times ``shift`` (the found holds'
-    cut's move of the fit, (k, b)), on both."""
-    dk, db = abs(measured["k"] - pred["k"]), abs(measured["b"] - pred["b"])
-    return (dk <= max(measured["k_interval"], UNSEEN_SHIFT_FACTOR * shift[0])
-            and db <= max(measured["b_interval"], UNSEEN_SHIFT_FACTOR * shift[1]))
-
-
 def _link_check(pred, measured, fitted, exclude, bounds, holds) -> None:
     """A "differs" of a board on its own clock stands only beyond the uncertainty with the
     link's unseen latency varying too (as :func:`hapsim.pipeline.haply2_host.
@@ -377,7 +355,7 @@ def _link_check(pred, measured, fitted, exclude, bounds, holds) -> None:
 
 
 def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
-                      unread) -> dict:
+                      unread, poles) -> dict:
     """:func:`identify_run`'s fit of a board on its own tick, with the holds it mistimed
     that no host saw cut out (:func:`hapsim.analysis.unseen_holds.find_unseen_holds`).
 
@@ -407,6 +385,9 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
         Rows whose error the stated uncertainty bounds already (an estimated position, a
         force the account cannot name, a late tick's accounted force): no hold is sought
         near them (:func:`~hapsim.analysis.unseen_holds.find_unseen_holds`' ``unread``).
+    poles : array_like of complex
+        The predicted closed-loop poles (for a "differs"'s review,
+        :func:`hapsim.pipeline.unseen_review.review_differs`).
 
     Returns
     -------
@@ -414,9 +395,9 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
         The measurement; with ``unseen_holds`` (how many were cut, 0 if none) and, when
         some were, ``unseen_hold_seqs`` (the ``seq`` of each one's first disturbed row,
         at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], whole ticks:
-        positive, taken late); ``unseen_hold_shift``, ``{"k": [N/m], "b": [N s/m]}``,
-        how far cutting them moved the fit, when it moved a fit (read by the "differs"
-        rule, :data:`UNSEEN_SHIFT_FACTOR`).
+        positive, taken late); ``_unseen``, what a "differs"'s review needs
+        (:func:`hapsim.pipeline.unseen_review.review_differs`' ``state``), popped by
+        :func:`identify_run`.
     """
     from hapsim.analysis.error_response import force_error_response, sensor_error_response
     from hapsim.analysis.identify import sensor_sd
@@ -429,7 +410,6 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
     tried = [s * k * tick for k in range(1, per + 1) for s in (1, -1)]
     fit: dict = {}
     measured = fitted(exclude, fit)
-    first = (measured.get("k"), measured.get("b"))
     if not fit:                        # no variable projection: an exact record, or none
         measured["unseen_holds"] = 0
         return measured
@@ -444,6 +424,7 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
                        pr * float(np.max(np.abs(x))) / math.sqrt(3.0) if n else 0.0)
     rows, taus = [], []
     ex = np.asarray(exclude, bool).copy()
+    last = (fit, ex.copy(), measured)
     for _ in range(MAX_PASSES):
         got = find_unseen_holds(x, cols["force"], fit, scene.period, S, H, tried,
                                 floor=floor, lead=math.ceil(float(scene.device.delay)) + 3,
@@ -461,12 +442,13 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
         measured = fitted(ex, fit)
         if not fit:
             break
+        last = (fit, ex.copy(), measured)
     measured["unseen_holds"] = len(rows)
-    if rows and None not in first and "k" in measured:
-        # how far cutting the holds found moved the fit: the scale of what one not found
-        # can do (identify_run's "differs" stands only beyond UNSEEN_SHIFT_FACTOR of it)
-        measured["unseen_hold_shift"] = {"k": abs(measured["k"] - first[0]),
-                                         "b": abs(measured["b"] - first[1])}
+    if last[2] is measured and "k" in measured:
+        measured["_unseen"] = {
+            "fitted": fitted, "fit": last[0], "exclude": last[1], "position": x,
+            "poles": poles, "floor": floor,
+            "drop": math.ceil(float(scene.device.delay)) + 2}
     if rows:
         seq = np.asarray(cols["seq"], np.int64)
         measured["unseen_hold_seqs"] = [int(seq[j]) for j in rows[:100]]
