@@ -30,6 +30,7 @@ from hapsim.joint_device import JointDeviceND
 
 __all__ = ["LockstepND", "measure_felt_lockstep", "excitation_starts", "default_samples",
            "identification_plan", "error_responses", "state_responses", "wire_terms_nd",
+           "relative_terms",
            "PortDevice", "LockstepPorts", "measure_felt_ports"]
 
 
@@ -404,6 +405,14 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
     A rounding of a smooth signal a few counts wide is not white noise, so no
     statistical interval is taken for it.
 
+    The fit is so ill-conditioned that errors within the bounds leave the region where
+    its first-order sensitivity holds (:mod:`hapsim.analysis.wire_box`): the worst case
+    stated is the largest of this first-order worst case taken at the records and at
+    each statement's worst errors inside the bounds (the mean value theorem's bound
+    with its supremum over the error box sampled,
+    :func:`hapsim.analysis.wire_box.box_worst_case`); the one at the records alone is
+    reported as ``first_order``.
+
     Parameters
     ----------
     scene : hapsim.scene.SceneND
@@ -437,8 +446,10 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         ``felt_stiffness``, ``felt_damping``: the worst case over the entries, over the
         predicted matrix's largest entry [-]; ``directions``: for each of the two, a list
         of n relative terms along the principal directions of :func:`felt_directions`
-        (over ``|e_i^T X e_i|``; inf when it is 0). Every term inf when the records give
-        no sensitivity (no felt matrices).
+        (over ``|e_i^T X e_i|``; inf when it is 0); ``first_order``: the same terms at
+        the records alone (:func:`relative_terms`). Every term inf (``first_order``
+        None) when the records, or a copy moved within the bounds, give no sensitivity
+        (no felt matrices).
 
     Raises
     ------
@@ -446,25 +457,17 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         As :func:`error_responses`; an error ``kind`` not ``"reading"``, ``"force"``,
         ``"position"`` or ``"velocity"``.
     """
-    from hapsim.analysis.pencil import felt_sensitivity_nd, worst_case_nd
+    from hapsim.analysis.pencil import felt_sensitivity_nd, filtered_sensitivity_nd
+    from hapsim.analysis.wire_box import box_worst_case
     n = scene.dimension
     r = chk.render
     inf = {"felt_stiffness": math.inf, "felt_damping": math.inf,
-           "directions": {q: [math.inf] * n for q in FELT_QUANTITIES}}
+           "directions": {q: [math.inf] * n for q in FELT_QUANTITIES},
+           "first_order": None}
     if r.felt_stiffness is None or r.directions is None:
         return inf
     N = int(np.asarray(diffs[0]).shape[0])
-    sens = felt_sensitivity_nd(diffs, scene.device.mass, scene.period, order, usable=usable)
-    if sens is None:
-        return inf
-    sens = [s for s in sens] + [-sum(sens)]          # the rest record's, in each
     E = np.asarray(r.directions, float)
-    # the entries, then the directional forms: one worst case over all of them
-    comb = []
-    for s in sens:
-        S = s.reshape(2 * n * n, s.shape[-2], n)
-        D = np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, s.shape[-2], n)
-        comb.append(np.concatenate([S, D])[:, None, None])
     kinds = ("reading", "force", "position", "velocity")
     for kind, _, _ in errors:
         if kind not in kinds:
@@ -473,17 +476,61 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
     resp = dict(zip(kinds[:2], error_responses(scene, N)))
     if any(kind in kinds[2:] for kind, _, _ in errors):
         resp.update(zip(kinds[2:], state_responses(scene, N)))
-    wc = 0.0
-    for kind, G, bounds in errors:
-        H = resp[kind] @ np.asarray(G, float)
-        if isinstance(bounds, (list, tuple)):
-            b = list(bounds[1:]) + [bounds[0]]       # the order of ``sens``
-        else:
-            b = [bounds] * len(sens)
-        wc = wc + worst_case_nd(comb, H, b)[:, 0, 0]
-    wc = np.asarray(wc, float) * np.ones(2 * n * n + 2 * n)
-    out = {}
-    dirs = {}
+    # per kind: its response through G, and the bounds in the order of ``sens`` (the
+    # differences, then the rest record)
+    plan = [(resp[kind] @ np.asarray(G, float),
+             list(bounds[1:]) + [bounds[0]] if isinstance(bounds, (list, tuple))
+             else [bounds] * (len(diffs) + 1)) for kind, G, bounds in errors]
+
+    def terms_at(d):
+        sens = felt_sensitivity_nd(d, scene.device.mass, scene.period, order,
+                                   usable=usable)
+        if sens is None:
+            return None
+        sens = list(sens) + [-sum(sens)]          # the rest record's, in each
+        # the entries, then the directional forms: one worst case over all of them
+        comb = [np.concatenate([s.reshape(2 * n * n, N, n),
+                                np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, N, n)])
+                for s in sens]
+        wc, out = 0.0, []
+        for H, b in plan:
+            fil = filtered_sensitivity_nd(comb, H)
+            wc = wc + sum(np.einsum("otj,tj->o", np.abs(S), np.broadcast_to(
+                np.asarray(e, float), S.shape[1:])) for S, e in zip(fil, b))
+            out.append((H, fil, b))
+        return wc, out
+    got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True)
+    if got is None:
+        return inf
+    return relative_terms(chk, got[1], got[0])
+
+
+def relative_terms(chk, wc, first=None) -> dict:
+    """The wire's relative terms of the felt statements from their worst cases.
+
+    Parameters
+    ----------
+    chk : hapsim.analysis.scene_check.SceneCheckND
+        The prediction (its felt matrices and principal directions ``e_i``).
+    wc : ndarray, shape (2 n^2 + 2 n,)
+        The worst-case change of the felt stiffness entries [N/m], the damping entries
+        [N s/m], then of ``e_i^T k e_i`` and ``e_i^T b e_i`` (:func:`wire_terms_nd`).
+    first : ndarray, optional
+        The same at first order at the records (reported as ``first_order``).
+
+    Returns
+    -------
+    dict
+        ``felt_stiffness``, ``felt_damping`` (the largest entry's over the predicted
+        matrix's largest entry [-]), ``directions`` (per quantity, over
+        ``|e_i^T X e_i|``, inf when it is 0) and ``first_order`` (the same dict of
+        ``first``, or None).
+    """
+    r = chk.render
+    n = np.asarray(r.felt_stiffness).shape[0]
+    E = np.asarray(r.directions, float)
+    wc = np.asarray(wc, float)
+    out, dirs = {}, {}
     for qi, q in enumerate(FELT_QUANTITIES):
         P = np.asarray(getattr(r, q), float)
         out[q] = float(np.max(wc[qi * n * n:(qi + 1) * n * n]) / np.max(np.abs(P)))
@@ -494,6 +541,7 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
             row.append(float(wd[i] / p) if p > 0 else math.inf)
         dirs[q] = row
     out["directions"] = dirs
+    out["first_order"] = None if first is None else relative_terms(chk, first)
     return out
 
 
