@@ -370,9 +370,17 @@ def test_cli_run_driver_haply_json(capsys):
     assert out["driver"] == "haply" and out["generation"] == "gen3" and out["dof"] == 2
     b, dev, u, w = (out["linearisation_bound"], out["deviation"], out["uncertainty"],
                     out["wire"])
-    assert out["verdict"] == "within" and out["within"] is True
+    # the wire's term over the error box (hapsim.analysis.wire_box) leaves the damping
+    # along one principal direction unstated (measured 0.36, beyond 0.25):
+    # what is stated is within, only a damping is not
+    assert out["verdict"] in ("within", "partly within") and out["within"] is True
+    assert all(s["quantity"] == "felt_damping" for s in out["statements"]
+               if s["verdict"] == "not measurable")
     mat = {s["quantity"]: s for s in out["statements"] if s["direction"] is None}
+    assert mat["felt_stiffness"]["verdict"] == "within"
     for key in ("felt_stiffness", "felt_damping"):
+        if mat[key]["verdict"] == "not measurable":
+            continue
         # linearisation + wire + the matrix statement's round-off term: derived rel_tol(2)
         assert dev[key] <= u[key] == pytest.approx(
             b[key] + w[key] + (mat[key]["roundoff"] or 0.0), rel=rel_tol(2))
