@@ -385,7 +385,8 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
                                             ("state_error", 2 * n, n, size / scene.period)))
 
 
-def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict:
+def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
+                  box: bool = False) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces, and changes of the device's state.
@@ -406,10 +407,10 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
     statistical interval is taken for it.
 
     The fit is so ill-conditioned that errors within the bounds leave the region where
-    its first-order sensitivity holds (:mod:`hapsim.analysis.wire_box`): the worst case
-    stated is the largest of this first-order worst case taken at the records and at
-    each statement's worst errors inside the bounds (the mean value theorem's bound
-    with its supremum over the error box sampled,
+    its first-order sensitivity holds (:mod:`hapsim.analysis.wire_box`): with ``box``
+    the worst case stated is the largest of this first-order worst case taken at the
+    records and at each statement's worst errors inside the bounds (the mean value
+    theorem's bound with its supremum over the error box sampled,
     :func:`hapsim.analysis.wire_box.box_worst_case`); the one at the records alone is
     reported as ``first_order``.
 
@@ -439,6 +440,11 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
         cut out or not, enters the rows fitted through the loop's response (one that
         ended before a stretch only changes its initial state, which a free response's
         fit hardly sees).
+    box : bool, optional
+        State the worst case over the error box (above; the 2DIY's measurement) instead
+        of the first-order one at the records (default: the first-order term, whose
+        callers, the Falcon's feasibility among them, scale it linearly with the
+        errors' size).
 
     Returns
     -------
@@ -499,6 +505,9 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None) -> dict
                 np.asarray(e, float), S.shape[1:])) for S, e in zip(fil, b))
             out.append((H, fil, b))
         return wc, out
+    if not box:
+        got = terms_at(diffs)
+        return inf if got is None else relative_terms(chk, got[0], got[0])
     got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True)
     if got is None:
         return inf

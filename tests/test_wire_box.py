@@ -101,7 +101,7 @@ def test_refits_within_the_bounds_stay_within_what_is_stated(seed):
     X0 = _records(sc, a, N)
     s0 = _statements(X0, sc, p, E)
     wire = wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
-                         [("reading", J, np.full(2, delta))])
+                         [("reading", J, np.full(2, delta))], box=True)
     stated = _stated(wire)
     first = _stated(wire["first_order"])
     # the box states at least the first-order term at the records (it is one of its points)
@@ -152,7 +152,8 @@ def test_a_correct_device_is_never_differs_and_more_inertia_still_is(seed):
         recs = _records(loop, a, N, errs)
         diffs = [r - recs[0] for r in recs[1:]]
         fit = fit_felt_nd(diffs, sc.device.mass, sc.period, p)
-        wire = wire_terms_nd(sc, diffs, chk, p, [("reading", J, np.full(2, step / 2))])
+        wire = wire_terms_nd(sc, diffs, chk, p, [("reading", J, np.full(2, step / 2))],
+                             box=True)
         dev, dirs = felt_deviation(fit, chk), felt_directions(fit, chk)
         verdicts.append((felt_verdict(dev, bound, wire, directions=dirs),
                          felt_verdict(dev, bound, dict(wire["first_order"]),
@@ -185,7 +186,7 @@ def test_the_first_order_term_at_the_records_alone_was_exceeded():
     X0 = _records(sc, a, N)
     s0 = _statements(X0, sc, p, E)
     wire = wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
-                         [("reading", J, np.full(2, delta))])
+                         [("reading", J, np.full(2, delta))], box=True)
     first, stated = _stated(wire["first_order"]), _stated(wire)
 
     def worst_signs(X, o):
