@@ -463,8 +463,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         As :func:`error_responses`; an error ``kind`` not ``"reading"``, ``"force"``,
         ``"position"`` or ``"velocity"``.
     """
-    from hapsim.analysis.pencil import felt_sensitivity_nd, filtered_sensitivity_nd
-    from hapsim.analysis.wire_box import box_worst_case
+    from hapsim.analysis.pencil import felt_sensitivity_nd
+    from hapsim.analysis.wire_box import box_worst_case, statement_terms
     n = scene.dimension
     r = chk.render
     inf = {"felt_stiffness": math.inf, "felt_damping": math.inf,
@@ -493,18 +493,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
                                    usable=usable)
         if sens is None:
             return None
-        sens = list(sens) + [-sum(sens)]          # the rest record's, in each
-        # the entries, then the directional forms: one worst case over all of them
-        comb = [np.concatenate([s.reshape(2 * n * n, N, n),
-                                np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, N, n)])
-                for s in sens]
-        wc, out = 0.0, []
-        for H, b in plan:
-            fil = filtered_sensitivity_nd(comb, H)
-            wc = wc + sum(np.einsum("otj,tj->o", np.abs(S), np.broadcast_to(
-                np.asarray(e, float), S.shape[1:])) for S, e in zip(fil, b))
-            out.append((H, fil, b))
-        return wc, out
+        # the rest record's errors enter each difference
+        return statement_terms(list(sens) + [-sum(sens)], E, plan)
     if not box:
         got = terms_at(diffs)
         return inf if got is None else relative_terms(chk, got[0], got[0])

@@ -82,8 +82,8 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
         ``"reading"``, ``"force"``, ``"position"``, ``"velocity"``.
     """
     from hapsim.analysis.felt_matrices import FELT_QUANTITIES
-    from hapsim.analysis.pencil import felt_sensitivity_nd, filtered_sensitivity_nd
-    from hapsim.analysis.wire_box import box_worst_case
+    from hapsim.analysis.pencil import felt_sensitivity_nd
+    from hapsim.analysis.wire_box import box_worst_case, statement_terms
     from hapsim.lockstep import error_responses, relative_terms, state_responses
     for kind, _, _ in errors:
         if kind not in _KINDS:
@@ -111,17 +111,7 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
                                    usable=usable, offset=True)
         if sens is None:
             return None
-        # the entries, then the directional forms e_i^T X e_i: one worst case over them
-        comb = [np.concatenate([s.reshape(2 * n * n, N, n),
-                                np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, N, n)])
-                for s in sens]
-        wc, out = 0.0, []
-        for H, b in plan:
-            fil = filtered_sensitivity_nd(comb, H)
-            wc = wc + sum(np.einsum("otj,tj->o", np.abs(S), np.broadcast_to(
-                np.asarray(e, float), S.shape[1:])) for S, e in zip(fil, b))
-            out.append((H, fil, b))
-        return wc, out
+        return statement_terms(sens, E, plan)
     got = box_worst_case(terms_at, recs)
     if got is None:
         return inf

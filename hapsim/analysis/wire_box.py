@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["box_worst_case", "moved_records", "BOX_MARGIN"]
+__all__ = ["box_worst_case", "moved_records", "statement_terms", "BOX_MARGIN"]
 
 #: The factor over the sampled supremum that is stated [-]. Measured over 40 seeded loops
 #: (the 2DIY's wall with its joint inertia, friction, wall, press spring and delay drawn,
@@ -129,3 +129,43 @@ def box_worst_case(terms_at, records, *, rest_last: bool = False):
             return None
         sup = np.maximum(sup, np.asarray(moved[0], float))
     return wc0, BOX_MARGIN * sup
+
+
+def statement_terms(sens, directions, plan):
+    """The first-order worst case of every felt statement and each error kind's filtered
+    sensitivity: what :func:`box_worst_case`'s ``terms_at`` returns.
+
+    Parameters
+    ----------
+    sens : list of ndarray, each shape (2, n, n, N, n)
+        Per record, :func:`hapsim.analysis.pencil.felt_sensitivity_nd`'s (the rest
+        record's appended by a caller fitting differences).
+    directions : ndarray, shape (n, n)
+        The principal directions ``e_i`` (columns).
+    plan : list of (ndarray, list)
+        Per error kind ``(H, bounds)``: the response (L, n, m) and per record its bounds,
+        (N, m) or (m,).
+
+    Returns
+    -------
+    (ndarray, list)
+        ``wc`` shape (2 n^2 + 2 n,): Hoelder's worst case of the felt entries [N/m],
+        [N s/m], then of ``e_i^T k e_i`` and ``e_i^T b e_i``
+        (:func:`hapsim.analysis.pencil.worst_case_nd`); and per kind ``(H, filtered,
+        bounds)``, ``filtered`` per record the (O, N, m) sensitivity through the loop.
+    """
+    from hapsim.analysis.pencil import filtered_sensitivity_nd
+    E = np.asarray(directions, float)
+    n = E.shape[0]
+    N = sens[0].shape[-2]
+    # the entries, then the directional forms: one worst case over all of them
+    comb = [np.concatenate([s.reshape(2 * n * n, N, n),
+                            np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, N, n)])
+            for s in sens]
+    wc, out = 0.0, []
+    for H, b in plan:
+        fil = filtered_sensitivity_nd(comb, H)
+        wc = wc + sum(np.einsum("otj,tj->o", np.abs(S), np.broadcast_to(
+            np.asarray(e, float), S.shape[1:])) for S, e in zip(fil, b))
+        out.append((H, fil, b))
+    return wc, out
