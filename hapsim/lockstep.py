@@ -30,6 +30,7 @@ from hapsim.joint_device import JointDeviceND
 
 __all__ = ["LockstepND", "measure_felt_lockstep", "excitation_starts", "default_samples",
            "identification_plan", "error_responses", "state_responses", "wire_terms_nd",
+           "relative_terms",
            "PortDevice", "LockstepPorts", "measure_felt_ports", "port_error_responses",
            "ports_bound"]
 
@@ -386,7 +387,7 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 
 
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
-                  mass=None, responses=None, period=None) -> dict:
+                  mass=None, responses=None, period=None, box: bool = False) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces, and changes of the device's state.
@@ -405,6 +406,14 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
     smaller where the entries' changes cancel along ``e``); likewise for the damping.
     A rounding of a smooth signal a few counts wide is not white noise, so no
     statistical interval is taken for it.
+
+    The fit is so ill-conditioned that errors within the bounds leave the region where
+    its first-order sensitivity holds (:mod:`hapsim.analysis.wire_box`): with ``box``
+    the worst case stated is the largest of this first-order worst case taken at the
+    records and at each statement's worst errors inside the bounds (the mean value
+    theorem's bound with its supremum over the error box sampled,
+    :func:`hapsim.analysis.wire_box.box_worst_case`); the one at the records alone is
+    reported as ``first_order``.
 
     Parameters
     ----------
@@ -441,6 +450,11 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
     period : float, optional
         The records' sample period [s] (default ``scene.period``; records taken every
         ``D``-th sample: ``D T``, with ``responses`` sampled likewise).
+    box : bool, optional
+        State the worst case over the error box (above; the 2DIY's measurement) instead
+        of the first-order one at the records (default: the first-order term, whose
+        callers, the Falcon's feasibility among them, scale it linearly with the
+        errors' size).
 
     Returns
     -------
@@ -448,8 +462,10 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         ``felt_stiffness``, ``felt_damping``: the worst case over the entries, over the
         predicted matrix's largest entry [-]; ``directions``: for each of the two, a list
         of n relative terms along the principal directions of :func:`felt_directions`
-        (over ``|e_i^T X e_i|``; inf when it is 0). Every term inf when the records give
-        no sensitivity (no felt matrices).
+        (over ``|e_i^T X e_i|``; inf when it is 0); ``first_order``: the same terms at
+        the records alone (:func:`relative_terms`). Every term inf (``first_order``
+        None) when the records, or a copy moved within the bounds, give no sensitivity
+        (no felt matrices).
 
     Raises
     ------
@@ -457,27 +473,18 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         As :func:`error_responses`; an error ``kind`` not ``"reading"``, ``"force"``,
         ``"position"`` or ``"velocity"``.
     """
-    from hapsim.analysis.pencil import felt_sensitivity_nd, worst_case_nd
+    from hapsim.analysis.pencil import felt_sensitivity_nd
+    from hapsim.analysis.wire_box import box_worst_case, statement_terms
     r = chk.render
     n = r.dof
     mass = scene.device.mass if mass is None else mass
     inf = {"felt_stiffness": math.inf, "felt_damping": math.inf,
-           "directions": {q: [math.inf] * n for q in FELT_QUANTITIES}}
+           "directions": {q: [math.inf] * n for q in FELT_QUANTITIES},
+           "first_order": None}
     if r.felt_stiffness is None or r.directions is None:
         return inf
     N = int(np.asarray(diffs[0]).shape[0])
-    sens = felt_sensitivity_nd(diffs, mass, scene.period if period is None else period,
-                               order, usable=usable)
-    if sens is None:
-        return inf
-    sens = [s for s in sens] + [-sum(sens)]          # the rest record's, in each
     E = np.asarray(r.directions, float)
-    # the entries, then the directional forms: one worst case over all of them
-    comb = []
-    for s in sens:
-        S = s.reshape(2 * n * n, s.shape[-2], n)
-        D = np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, s.shape[-2], n)
-        comb.append(np.concatenate([S, D])[:, None, None])
     kinds = ("reading", "force", "position", "velocity")
     for kind, _, _ in errors:
         if kind not in kinds:
@@ -487,17 +494,54 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
                     else responses))
     if any(kind in kinds[2:] for kind, _, _ in errors):
         resp.update(zip(kinds[2:], state_responses(scene, N)))
-    wc = 0.0
-    for kind, G, bounds in errors:
-        H = resp[kind] @ np.asarray(G, float)
-        if isinstance(bounds, (list, tuple)):
-            b = list(bounds[1:]) + [bounds[0]]       # the order of ``sens``
-        else:
-            b = [bounds] * len(sens)
-        wc = wc + worst_case_nd(comb, H, b)[:, 0, 0]
-    wc = np.asarray(wc, float) * np.ones(2 * n * n + 2 * n)
-    out = {}
-    dirs = {}
+    # per kind: its response through G, and the bounds in the order of ``sens`` (the
+    # differences, then the rest record)
+    plan = [(resp[kind] @ np.asarray(G, float),
+             list(bounds[1:]) + [bounds[0]] if isinstance(bounds, (list, tuple))
+             else [bounds] * (len(diffs) + 1)) for kind, G, bounds in errors]
+
+    def terms_at(d):
+        sens = felt_sensitivity_nd(d, mass, scene.period if period is None else period,
+                                   order, usable=usable)
+        if sens is None:
+            return None
+        # the rest record's errors enter each difference
+        return statement_terms(list(sens) + [-sum(sens)], E, plan)
+    if not box:
+        got = terms_at(diffs)
+        return inf if got is None else relative_terms(chk, got[0], got[0])
+    got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True)
+    if got is None:
+        return inf
+    return relative_terms(chk, got[1], got[0])
+
+
+def relative_terms(chk, wc, first=None) -> dict:
+    """The wire's relative terms of the felt statements from their worst cases.
+
+    Parameters
+    ----------
+    chk : hapsim.analysis.scene_check.SceneCheckND
+        The prediction (its felt matrices and principal directions ``e_i``).
+    wc : ndarray, shape (2 n^2 + 2 n,)
+        The worst-case change of the felt stiffness entries [N/m], the damping entries
+        [N s/m], then of ``e_i^T k e_i`` and ``e_i^T b e_i`` (:func:`wire_terms_nd`).
+    first : ndarray, optional
+        The same at first order at the records (reported as ``first_order``).
+
+    Returns
+    -------
+    dict
+        ``felt_stiffness``, ``felt_damping`` (the largest entry's over the predicted
+        matrix's largest entry [-]), ``directions`` (per quantity, over
+        ``|e_i^T X e_i|``, inf when it is 0) and ``first_order`` (the same dict of
+        ``first``, or None).
+    """
+    r = chk.render
+    n = np.asarray(r.felt_stiffness).shape[0]
+    E = np.asarray(r.directions, float)
+    wc = np.asarray(wc, float)
+    out, dirs = {}, {}
     for qi, q in enumerate(FELT_QUANTITIES):
         P = np.asarray(getattr(r, q), float)
         out[q] = float(np.max(wc[qi * n * n:(qi + 1) * n * n]) / np.max(np.abs(P)))
@@ -508,6 +552,7 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
             row.append(float(wd[i] / p) if p > 0 else math.inf)
         dirs[q] = row
     out["directions"] = dirs
+    out["first_order"] = None if first is None else relative_terms(chk, first)
     return out
 
 

@@ -259,8 +259,10 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
     and its wire term exceeds the measurable limit: the felt damping (as a matrix and
     along each principal direction) is "not measurable" (not "differs", not "within" with
     a vacuous interval), while the felt stiffness, whose wire term is small, is stated
-    "within": the run's verdict is "partly within", the damping named as not measurable
-    (never a bare "within" that a reader could take for a checked damping)."""
+    "within" (as a matrix and along y; along x its term over the error box, 0.30, is
+    beyond the limit: not stated, never a wrong verdict): the run's verdict is "partly
+    within", the damping named as not measurable (never a bare "within" that a reader
+    could take for a checked damping)."""
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
     _, r = _wire_res("gen3", 22, 5e-5, "pantograph_circle.yaml")
     lin = r["bound"].to_dict()
@@ -279,8 +281,12 @@ def test_the_wire_term_decides_the_verdict_at_small_amplitudes():
     assert "felt damping" in r["not_stated"] and r["uncertainty"]["felt_damping"] is None
     for s in damping:
         assert s["verdict"] != "within" or s["wire"] <= MEASURABLE_WIRE
+    assert by["felt stiffness"]["verdict"] == "within"
     for s in stiffness:
-        assert s["verdict"] == "within" and s["deviation"] <= s["uncertainty"], s
+        assert s["verdict"] in ("within", "not measurable"), s
+        assert (s["verdict"] == "within") == (s["wire"] <= MEASURABLE_WIRE), s
+        if s["verdict"] == "within":
+            assert s["deviation"] <= s["uncertainty"], s
     assert r["verdict"] == "partly within" and r["within"] is True
     assert "not measurable" in r["reason"] and "felt damping" in r["reason"]
 
@@ -331,13 +337,15 @@ def test_verdict_over_amplitudes_and_encoders(bits, quanta, gen, name):
 
 
 def test_a_device_unlike_the_scenes_differs():
-    """The board's joint inertia 3 % above the scene's (a mis-declared device): the
-    measured felt stiffness departs by ~2 %, beyond the stated uncertainty: "differs" (the
-    bound with the wire's term is not so wide that it cannot fail)."""
+    """The board's joint inertia 10 % above the scene's (a mis-declared device): the
+    measured felt stiffness departs by ~6.7 %, beyond the stated uncertainty (3.7 %):
+    "differs" (the bound with the wire's term is not so wide that it cannot fail). At 3 %
+    (2.2 % off) the stated uncertainty, since the wire's term is taken over the error box
+    (3.2 %: hapsim.analysis.wire_box), no longer resolves it: "partly within"."""
     import dataclasses
     sc, plan = _plan("pantograph_wall.yaml")
     plant = dataclasses.replace(sc, device=dataclasses.replace(
-        sc.device, joint_inertia=sc.device.joint_inertia * 1.03))
+        sc.device, joint_inertia=sc.device.joint_inertia * 1.1))
     _, r = _wire_res("gen3", 22, 1e-4, plant=plant)
     assert r["verdict"] == "differs" and r["within"] is False
     assert r["deviation"]["felt_stiffness"] > r["uncertainty"]["felt_stiffness"]
@@ -370,9 +378,18 @@ def test_cli_run_driver_haply_json(capsys):
     assert out["driver"] == "haply" and out["generation"] == "gen3" and out["dof"] == 2
     b, dev, u, w = (out["linearisation_bound"], out["deviation"], out["uncertainty"],
                     out["wire"])
-    assert out["verdict"] == "within" and out["within"] is True
+    # the wire's term over the error box (hapsim.analysis.wire_box) leaves the damping
+    # as a matrix and along one principal direction unstated (measured 0.45 and 0.72,
+    # beyond 0.25):
+    # what is stated is within, only a damping is not
+    assert out["verdict"] in ("within", "partly within") and out["within"] is True
+    assert all(s["quantity"] == "felt_damping" for s in out["statements"]
+               if s["verdict"] == "not measurable")
     mat = {s["quantity"]: s for s in out["statements"] if s["direction"] is None}
+    assert mat["felt_stiffness"]["verdict"] == "within"
     for key in ("felt_stiffness", "felt_damping"):
+        if mat[key]["verdict"] == "not measurable":
+            continue
         # linearisation + wire + the matrix statement's round-off term: derived rel_tol(2)
         assert dev[key] <= u[key] == pytest.approx(
             b[key] + w[key] + (mat[key]["roundoff"] or 0.0), rel=rel_tol(2))

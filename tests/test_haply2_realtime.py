@@ -86,7 +86,11 @@ def test_scripted_missing_replies_are_estimated_and_bounded_lockstep():
         (r["reason"], r["deviation"])
     assert (r["verdict"] == "partly within") == bool(r["not_stated"])
     for k in ("felt_stiffness", "felt_damping"):
-        assert r["deviation"][k] <= r["uncertainty"][k]
+        # a matrix not stated (its wire term over the error box beyond the limit,
+        # hapsim.analysis.wire_box) has no uncertainty
+        if r["uncertainty"][k] is not None:
+            assert r["deviation"][k] <= r["uncertainty"][k]
+    assert r["uncertainty"]["felt_stiffness"] is not None
 
 
 def test_over_a_pty_in_real_time():

@@ -347,15 +347,23 @@ def _sim_measure(monkeypatch, loss=0.0, seed=0, N=200):
 def test_own_clock_punctual_host_measures_within_simulated_time(monkeypatch):
     """The 2DIY's whole measurement (five records) closed on the board's own clock, the
     host punctual (simulated time): no stall, no estimated sample, no re-synchronisation,
-    and the verdict is "within": measured = predicted within the stated uncertainty, with
+    and the verdict is "within" (or "partly within", a damping not stated): measured =
+    predicted within the stated uncertainty, with
     the board holding each torque over the real interval to the next write (its own
     delay of one period, as the scene states). The joints stay in the measurement's
     envelope and the board is left at zero torque."""
     r, board, _ = _sim_measure(monkeypatch)
     assert sum(r["stalls"]) == sum(r["estimated"]) == sum(r["resyncs"]) == 0
-    assert r["verdict"] == "within" and r["within"] is True, (r["reason"], r["deviation"])
+    # the wire's term over the error box (hapsim.analysis.wire_box) may leave a damping
+    # unstated ("partly within"); the stiffness is stated, and nothing differs
+    assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
+        (r["reason"], r["deviation"])
+    assert all(s["quantity"] == "felt_damping" for s in r["statements"]
+               if s["verdict"] == "not measurable")
+    assert r["uncertainty"]["felt_stiffness"] is not None
     for k in ("felt_stiffness", "felt_damping"):
-        assert r["deviation"][k] <= r["uncertainty"][k]
+        if r["uncertainty"][k] is not None:
+            assert r["deviation"][k] <= r["uncertainty"][k]
     assert board.excursion <= record.ENVELOPE_RAD
     assert board.settles_on() == 0.0
 

@@ -314,15 +314,23 @@ def test_a_correct_loop_with_the_hosts_jitter_is_within_simulated_time(monkeypat
 def test_a_board_with_30_percent_more_inertia_differs_on_its_own_clock_simulated_time(
         monkeypatch):
     """The same host jitter against a board whose joints carry 30 % more inertia than the
-    scene says: "differs" (the felt stiffness 17 % off), beyond the stated uncertainty
-    even with the board's take of each write varying by a firmware pass more than the
-    host's write times show (``LINK_JITTER_S``); never "within". Before, any departure
-    on a board on its own clock was "not measurable" (this run too)."""
+    scene says: never "within"; "differs" (the felt stiffness 17 % off) when beyond the
+    stated uncertainty even with the board's take of each write varying by a firmware
+    pass more than the host's write times show (``LINK_JITTER_S``), else "not
+    measurable" with the departure named (so since the wire's term is taken over the
+    error box: with that allowance it is beyond the measurable limit)."""
     h = _measure(monkeypatch, inertia=1.3)
     # measured over seeds 1-3: 0.175 off against 0.130-0.131 with the pass's allowance;
-    # with the holds corrected against 0.095-0.098
-    assert h["verdict"] == "differs", (h["reason"], h["deviation"], h["uncertainty"])
-    assert h["deviation"]["felt_stiffness"] > h["link_uncertainty"]["felt_stiffness"]
+    # with the holds corrected against 0.095-0.098. Since the wire's term is taken over
+    # the error box (hapsim.analysis.wire_box, its margin 2) the stiffness's term with the
+    # pass's allowance is 0.28 (0.095 at first order at the records), beyond the
+    # measurable limit: "not measurable", the departure kept in the reason; without the
+    # allowance it is 0.023 and the run "differs" before that check
+    assert h["verdict"] in ("differs", "not measurable"), (h["reason"], h["deviation"])
+    if h["verdict"] == "differs":
+        assert h["deviation"]["felt_stiffness"] > h["link_uncertainty"]["felt_stiffness"]
+    else:
+        assert "link's latency" in h["reason"] and "0.175" in h["reason"], h["reason"]
 
 
 def test_late_writes_corrected_within_and_30_percent_inertia_differs_simulated_time(
@@ -331,20 +339,31 @@ def test_late_writes_corrected_within_and_30_percent_inertia_differs_simulated_t
     then descheduled for up to 400 us (a write that late, the next hold short by as much;
     below the cut, :data:`~hapsim.pipeline.haply2_host.HOLD_CUT_PERIODS`). With the holds'
     known departures corrected (``hold_corrections``) a correct loop is "within", every
-    statement made and no row cut; a board with 30 % more inertia still "differs", beyond
-    the uncertainty with a firmware pass of unseen latency too. Before the correction
+    stiffness stated and no row cut (a damping direction may not be stated since the wire's
+    term is taken over the error box); a board with 30 % more inertia is never "within"
+    ("differs" beyond the uncertainty with a firmware pass of unseen latency too, or "not
+    measurable" where that allowance's term is beyond the limit). Before the correction
     (each hold's worst case, holds over 100 us cut) the same correct runs were "partly
     within" (seeds 1-3: the damping not stated, 5-10 rows a record cut) and the heavier
     board "not measurable" in 2 of 3."""
     r = _measure(monkeypatch, spread=2e-5, late=(3e-4, 4e-4))
     # measured over seeds 1-3: holds up to 200-270 us off; the largest deviation over its
-    # uncertainty 0.12 (stiffness) and 0.05 (damping)
-    assert r["verdict"] == "within", (r["reason"], r["deviation"], r["uncertainty"])
+    # uncertainty 0.12 (stiffness) and 0.05 (damping). Since the wire's term is taken over
+    # the error box (hapsim.analysis.wire_box) a damping direction may not be stated:
+    # "partly within", the stiffness stated and within
+    assert r["verdict"] in ("within", "partly within"), (r["reason"], r["deviation"])
+    assert all(s["quantity"] == "felt_damping" for s in r["statements"]
+               if s["verdict"] == "not measurable")
     assert r["wire"]["hold_s"] > 1e-4
     assert r["usable"] == [200] * 5
     for k in ("felt_stiffness", "felt_damping"):
-        assert r["deviation"][k] <= r["uncertainty"][k]
+        if r["uncertainty"][k] is not None:
+            assert r["deviation"][k] <= r["uncertainty"][k]
+    assert r["uncertainty"]["felt_stiffness"] is not None
     h = _measure(monkeypatch, spread=2e-5, late=(3e-4, 4e-4), inertia=1.3)
     # measured over seeds 1-3: 0.175 off against 0.098-0.100 with the pass's allowance
-    assert h["verdict"] == "differs", (h["reason"], h["deviation"], h["uncertainty"])
-    assert h["deviation"]["felt_stiffness"] > h["link_uncertainty"]["felt_stiffness"]
+    # (first order); over the error box that allowance leaves the stiffness unstated, as
+    # in the test above: never "within"
+    assert h["verdict"] in ("differs", "not measurable"), (h["reason"], h["deviation"])
+    if h["verdict"] == "differs":
+        assert h["deviation"]["felt_stiffness"] > h["link_uncertainty"]["felt_stiffness"]

@@ -188,7 +188,10 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     * the wire (:func:`wire_terms_nd`): the first-order worst case of the same quantity's
       change under the readings' and the forces' rounding, whatever their signs and
       correlation: for a direction, Hoelder's inequality on the linear form
-      ``e_i^T dX e_i`` of the fit's first-order change ``dX``, over ``|e_i^T X_pred e_i|``.
+      ``e_i^T dX e_i`` of the fit's first-order change ``dX``, over ``|e_i^T X_pred e_i|``
+      (for the 2DIY taken over the errors' box with a margin,
+      :mod:`hapsim.analysis.wire_box`: the fit is too ill-conditioned for the first-order
+      term at the records alone to bound what errors within the bounds do).
 
     **When a statement is made.** Not at all when no felt matrices were measured, or
     when the amplitude reaches a contact's or a plane's depth (the law is not smooth:

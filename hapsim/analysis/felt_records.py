@@ -42,7 +42,9 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
     each record on its own stretches about a common equilibrium (module notes): as
     :func:`hapsim.lockstep.wire_terms_nd` (the first-order worst case, Hoelder's
     inequality on the fit's sensitivity times each error's response through the loop,
-    as a whole and along each principal direction), the fit the affine one
+    as a whole and along each principal direction, taken at the records and at each
+    statement's worst errors within the bounds, the largest:
+    :func:`hapsim.analysis.wire_box.box_worst_case`), the fit the affine one
     (:func:`hapsim.analysis.pencil.felt_sensitivity_nd` with ``offset=True``) and each
     record's errors in its own fit only. Sources: the least-squares estimate's
     first-order perturbation (G. A. F. Seber and C. J. Wild, *Nonlinear Regression*,
@@ -69,7 +71,7 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
     Returns
     -------
     dict
-        ``felt_stiffness``, ``felt_damping`` [-] and ``directions``, as
+        ``felt_stiffness``, ``felt_damping`` [-], ``directions`` and ``first_order``, as
         :func:`hapsim.lockstep.wire_terms_nd`'s (every term inf when the records give no
         felt matrices).
 
@@ -80,8 +82,9 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
         ``"reading"``, ``"force"``, ``"position"``, ``"velocity"``.
     """
     from hapsim.analysis.felt_matrices import FELT_QUANTITIES
-    from hapsim.analysis.pencil import felt_sensitivity_nd, worst_case_nd
-    from hapsim.lockstep import error_responses, state_responses
+    from hapsim.analysis.pencil import felt_sensitivity_nd
+    from hapsim.analysis.wire_box import box_worst_case, statement_terms
+    from hapsim.lockstep import error_responses, relative_terms, state_responses
     for kind, _, _ in errors:
         if kind not in _KINDS:
             raise ConfigError(f"an error's kind must be one of {', '.join(_KINDS)}, got "
@@ -89,35 +92,30 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
     n = scene.dimension
     r = chk.render
     inf = {"felt_stiffness": math.inf, "felt_damping": math.inf,
-           "directions": {q: [math.inf] * n for q in FELT_QUANTITIES}}
+           "directions": {q: [math.inf] * n for q in FELT_QUANTITIES},
+           "first_order": None}
     if r.felt_stiffness is None or r.directions is None:
         return inf
-    N = int(np.asarray(records[0]).shape[0])
-    sens = felt_sensitivity_nd(records, scene.device.mass, scene.period, order,
-                               usable=usable, offset=True)
-    if sens is None:
-        return inf
+    recs = [np.asarray(x, float) for x in records]
+    N = int(recs[0].shape[0])
     E = np.asarray(r.directions, float)
-    # the entries, then the directional forms e_i^T X e_i: one worst case over them all
-    comb = [np.concatenate([s.reshape(2 * n * n, N, n),
-                            np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(2 * n, N, n)]
-                           )[:, None, None] for s in sens]
     resp = dict(zip(_KINDS[:2], error_responses(scene, N)))
     if any(kind in _KINDS[2:] for kind, _, _ in errors):
         resp.update(zip(_KINDS[2:], state_responses(scene, N)))
-    wc = np.zeros(2 * n * n + 2 * n)
-    for kind, G, bounds in errors:
-        b = list(bounds) if isinstance(bounds, (list, tuple)) else [bounds] * len(sens)
-        wc = wc + worst_case_nd(comb, resp[kind] @ np.asarray(G, float), b)[:, 0, 0]
-    out = {"directions": {}}
-    for qi, q in enumerate(FELT_QUANTITIES):
-        P = np.asarray(getattr(r, q), float)
-        out[q] = float(np.max(wc[qi * n * n:(qi + 1) * n * n]) / np.max(np.abs(P)))
-        wd = wc[2 * n * n + qi * n: 2 * n * n + (qi + 1) * n]
-        along = [abs(float(E[:, i] @ P @ E[:, i])) for i in range(n)]
-        out["directions"][q] = [float(w / a) if a > 0 else math.inf
-                                for w, a in zip(wd, along)]
-    return out
+    plan = [(resp[kind] @ np.asarray(G, float),
+             list(bounds) if isinstance(bounds, (list, tuple)) else [bounds] * len(recs))
+            for kind, G, bounds in errors]
+
+    def terms_at(x):
+        sens = felt_sensitivity_nd(x, scene.device.mass, scene.period, order,
+                                   usable=usable, offset=True)
+        if sens is None:
+            return None
+        return statement_terms(sens, E, plan)
+    got = box_worst_case(terms_at, recs)
+    if got is None:
+        return inf
+    return relative_terms(chk, got[1], got[0])
 
 
 def within_excursion(scene, diffs, usable, amplitude: float) -> list:

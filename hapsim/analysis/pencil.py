@@ -59,7 +59,8 @@ from hapsim.analysis.modes import Mode, modes_from_poles, rendered_pair
 from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "thin_pencil", "RANK_TOL",
-           "fit_felt_nd", "felt_sensitivity_nd", "worst_case_nd"]
+           "fit_felt_nd", "felt_sensitivity_nd", "worst_case_nd",
+           "filtered_sensitivity_nd"]
 
 
 #: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
@@ -471,6 +472,43 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
     return out
 
 
+def filtered_sensitivity_nd(sensitivity, response) -> list:
+    """The felt entries' sensitivity to each error input, through the loop: per record,
+    ``(s_r * response)[o, tau, j] = sum_t sum_c s_r[o, t, c] response[t - tau, c, j]``,
+    the first-order change of felt entry ``o`` per unit error ``u_r[tau, j]``
+    (superposition of the records' impulse responses, causal: ``response[t] = 0`` for
+    ``t < 0``).
+
+    Parameters
+    ----------
+    sensitivity : list of ndarray, each shape (..., N_r, n)
+        :func:`felt_sensitivity_nd`'s result (any leading shape of felt entries).
+    response : ndarray, shape (L, n, m)
+        The records' response to a unit error of each of the ``m`` inputs.
+
+    Returns
+    -------
+    list of ndarray, each shape (O, N_r, m)
+        Per record, ``O`` the leading entries flattened.
+    """
+    from hapsim.analysis.fftconv import fftconvolve
+    H = np.asarray(response, float)
+    out = []
+    for s in sensitivity:
+        sh = s.shape
+        S = s.reshape(-1, sh[-2], sh[-1])                 # (O, N, n)
+        N = S.shape[1]
+        L = min(N, H.shape[0])
+        Su = np.zeros((S.shape[0], N, H.shape[2]))
+        rev = S[:, ::-1, :]
+        for c in range(S.shape[2]):
+            for j in range(H.shape[2]):
+                Su[:, :, j] += fftconvolve(rev[:, :, c], H[None, :L, c, j],
+                                           axes=1)[:, :N][:, ::-1]
+        out.append(Su)
+    return out
+
+
 def worst_case_nd(sensitivity, response, bounds) -> np.ndarray:
     """Worst case, to first order, of the felt entries' change under bounded errors.
 
@@ -479,7 +517,8 @@ def worst_case_nd(sensitivity, response, bounds) -> np.ndarray:
     ``sum_{tau <= t} response[t - tau] u_r[tau]``); with the sensitivity ``s_r`` of
     :func:`felt_sensitivity_nd`, the felt entry ``o`` moves by at most
     ``sum_r sum_(tau, j) |(s_r * response)[o, tau, j]| bounds_r[tau, j]`` (Hoelder's
-    inequality on the linear map).
+    inequality on the linear map; :func:`filtered_sensitivity_nd`). The errors that
+    reach it are ``bounds_r * sign((s_r * response)[o])``.
 
     Parameters
     ----------
@@ -495,20 +534,9 @@ def worst_case_nd(sensitivity, response, bounds) -> np.ndarray:
     ndarray, shape (2, n, n)
         The worst-case change of each felt stiffness [N/m] and damping [N s/m] entry.
     """
-    from hapsim.analysis.fftconv import fftconvolve
-    H = np.asarray(response, float)
+    m = np.asarray(response).shape[2]
     out = 0.0
-    for s, e in zip(sensitivity, bounds):
-        sh = s.shape
-        S = s.reshape(-1, sh[-2], sh[-1])                 # (O, N, n)
-        N = S.shape[1]
-        L = min(N, H.shape[0])
-        Su = np.zeros((S.shape[0], N, H.shape[2]))
-        rev = S[:, ::-1, :]
-        for c in range(S.shape[2]):
-            for j in range(H.shape[2]):
-                Su[:, :, j] += fftconvolve(rev[:, :, c], H[None, :L, c, j],
-                                           axes=1)[:, :N][:, ::-1]
-        eb = np.broadcast_to(np.asarray(e, float), (N, H.shape[2]))
+    for Su, e in zip(filtered_sensitivity_nd(sensitivity, response), bounds):
+        eb = np.broadcast_to(np.asarray(e, float), (Su.shape[1], m))
         out = out + np.einsum("otj,tj->o", np.abs(Su), eb)
     return np.asarray(out).reshape(sensitivity[0].shape[:3])

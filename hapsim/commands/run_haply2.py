@@ -124,6 +124,11 @@ def run_haply2_command(args) -> int:
                      "felt_damping": num(wire["felt_damping"]),
                      "reading_bound_rad": wire["reading_bound_rad"],
                      "torque_rel": wire["torque_rel"],
+                     # the same terms at the records alone, first order (the stated
+                     # ones are over the error box: hapsim.analysis.wire_box)
+                     "first_order": None if not wire.get("first_order") else {
+                         q: num(wire["first_order"][q])
+                         for q in ("felt_stiffness", "felt_damping")},
                      # the host's write timing on a board on its own clock: the largest
                      # hold's departure from a period, corrected (None: exact periods)
                      "hold_s": wire.get("hold_s")},

@@ -187,7 +187,10 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     ``J(q0)^-T``), and the fit to first order
     (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`); their worst case, whatever
     their signs and correlation (:func:`hapsim.analysis.pencil.worst_case_nd`; the
-    rest record's errors enter every difference), is the wire's term. A rounding of a
+    rest record's errors enter every difference), taken at the records and at each
+    statement's worst errors within the bounds, the largest
+    (:func:`hapsim.analysis.wire_box.box_worst_case`: the fit is too ill-conditioned for
+    the first-order term at the records alone to bound them), is the wire's term. A rounding of a
     smooth signal a few counts wide is not white noise, so no statistical interval is
     taken for it.
 

@@ -154,7 +154,10 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         wire.update(wire_terms_records(scene, [r["position"] for r in runs], chk, order,
                                        errors, usable=own))
     else:
-        wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable))
+        # over the error box (hapsim.analysis.wire_box): the first-order term at the
+        # records alone did not bound what errors within the bounds do to the fit
+        wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable,
+                                  box=True))
     # a torque at the clamp in a row fitted (a record cut there has none in its
     # stretches: hapsim.pipeline.haply2_host.usable_rows)
     clamped = int(sum(np.count_nonzero(

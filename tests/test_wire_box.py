@@ -1,0 +1,209 @@
+"""The n-D felt fit's stated wire term beyond first order (:mod:`hapsim.analysis.wire_box`):
+refits of records moved by errors inside the stated bounds stay within what is stated,
+over seeded random loops that really differ (the scene's text changed, so its Cartesian
+mass and friction are recomputed); a correct device is never "differs", one with 30 %
+more inertia still is.
+
+The records are the loop's own free responses in lockstep (:class:`hapsim.lockstep.LockstepND`,
+the 2DIY's wall scene, ``configs/pantograph_wall.yaml``); the errors enter them through
+the loop as :class:`LockstepND` feeds a reading error back (an independent path from the
+superposition :func:`hapsim.analysis.wire_box.moved_records` uses)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hapsim.analysis.felt_matrices import (MEASURABLE_WIRE, felt_deviation,
+                                           felt_directions, felt_verdict)
+from hapsim.analysis.linearisation import linearisation_bound
+from hapsim.analysis.pencil import felt_sensitivity_nd, filtered_sensitivity_nd, fit_felt_nd
+from hapsim.kinematics import device
+from hapsim.lockstep import (LockstepND, error_responses, excitation_starts,
+                             identification_plan, wire_terms_nd)
+from hapsim.scene import parse_scene_nd
+
+WALL = (Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml").read_text()
+
+
+def _loop(seed, inertia=1.0):
+    """The wall scene with its joint inertia and friction, the wall's and the press
+    spring's stiffness and damping and the delay drawn from ``seed`` (the joint inertia
+    times ``inertia`` more: a device unlike the drawn scene)."""
+    rng = np.random.default_rng(seed)
+    ji = 2e-4 * rng.uniform(0.5, 2.0, 2) * inertia
+    jf = 1e-3 * rng.uniform(0.2, 5.0, 2)
+    kw, bw = 1000 * rng.uniform(0.3, 3.0), 2.0 * rng.uniform(0.2, 3.0)
+    kp, bp = 200 * rng.uniform(0.3, 3.0), 0.5 * rng.uniform(0.2, 3.0)
+    text = (WALL.replace("joint_inertia: [2.0e-4, 2.0e-4]",
+                         f"joint_inertia: [{float(ji[0])!r}, {float(ji[1])!r}]")
+            .replace("joint_friction: [1.0e-3, 1.0e-3]",
+                     f"joint_friction: [{float(jf[0])!r}, {float(jf[1])!r}]")
+            .replace("stiffness: 1000, damping: 2.0", f"stiffness: {float(kw)!r}, damping: {float(bw)!r}")
+            .replace("stiffness: 200, damping: 0.5", f"stiffness: {float(kp)!r}, damping: {float(bp)!r}")
+            .replace("delay: 1}", f"delay: {int(rng.integers(1, 3))}}}"))
+    return parse_scene_nd(text), rng
+
+
+def _records(sc, a, N, errors=None):
+    """The ``2n + 1`` records (rest first) with a reading error (N, n) [m] each."""
+    return [LockstepND(sc, x0=x0, v0=v0).step(
+        N, record=True, reading_error=None if errors is None else errors[j])
+        for j, (x0, v0) in enumerate(excitation_starts(2, a, sc.period))]
+
+
+def _statements(recs, sc, p, E):
+    """The felt entries, then ``e_i^T X e_i``: what is stated (None: no felt matrices)."""
+    f = fit_felt_nd([r - recs[0] for r in recs[1:]], sc.device.mass, sc.period, p)
+    if f["felt_stiffness"] is None:
+        return None
+    X = np.stack([f["felt_stiffness"], f["felt_damping"]])
+    return np.concatenate([X.ravel(), np.einsum("ai,bi,qab->qi", E, E, X).ravel()])
+
+
+def _stated(wire):
+    """The stated term of each statement of :func:`_statements`, relative."""
+    d = wire["directions"]
+    return np.array([wire["felt_stiffness"]] * 4 + [wire["felt_damping"]] * 4
+                    + d["felt_stiffness"] + d["felt_damping"])
+
+
+def _scales(chk, E):
+    """What each statement's term is relative to: the predicted matrix's largest entry,
+    ``|e_i^T X_pred e_i|`` along a direction."""
+    P = np.stack([chk.render.felt_stiffness, chk.render.felt_damping])
+    big = np.repeat(np.max(np.abs(P), axis=(1, 2)), 4)
+    return np.concatenate([big, np.abs(np.einsum("ai,bi,qab->qi", E, E, P)).ravel()])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_refits_within_the_bounds_stay_within_what_is_stated(seed):
+    """Random loops, excitations and encoders (2^20 to 2^22 counts per revolution, half a
+    count per joint reading): the records moved by errors inside the bounds (each
+    statement's worst signs at the records, both ways; random errors, uniform and at the
+    box's corners), fed back through the loop, refitted: every stated component moved by
+    no more than its stated term; a component whose term is beyond the measurable limit
+    is not stated. Measured over seeds 0-9 of this family (docs/dimensions.md, 'The
+    wire's term beyond first order'): the first-order term at the records was exceeded
+    up to 3.0 times by a component it stated (seed 5: a=1e-4 m, N=300, 2^20), the
+    sampled box without its margin up to 1.27 times (seed 9, likewise), the box with its
+    margin (hapsim.analysis.wire_box.BOX_MARGIN) at most 0.40 of it."""
+    sc, rng = _loop(seed)
+    a = float(rng.uniform(3e-5, 1e-4))
+    cpr = 2.0 ** int(rng.integers(20, 23))
+    N = 150
+    chk, p, _ = identification_plan(sc, N)
+    E = np.asarray(chk.render.directions, float)
+    J = device("pantograph", sc.device.geometry).jacobian(np.asarray(sc.device.joints))
+    delta = math.pi / cpr                                   # half a count [rad]
+    X0 = _records(sc, a, N)
+    s0 = _statements(X0, sc, p, E)
+    wire = wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
+                         [("reading", J, np.full(2, delta))], box=True)
+    stated = _stated(wire)
+    first = _stated(wire["first_order"])
+    # the box states at least the first-order term at the records (it is one of its points)
+    assert np.all(stated >= first)
+    scale = _scales(chk, E)
+    # each statement's worst signs at the records: the first-order map's maximisers
+    sens = felt_sensitivity_nd([r - X0[0] for r in X0[1:]], sc.device.mass, sc.period, p)
+    sens = [-sum(sens)] + list(sens)                       # the rest record's first
+    comb = [np.concatenate([s.reshape(8, N, 2),
+                            np.einsum("ai,bi,qabtc->qitc", E, E, s).reshape(4, N, 2)])
+            for s in sens]
+    fil = filtered_sensitivity_nd(comb, error_responses(sc, N)[0] @ J)
+    trials = [[sg * delta * np.sign(S[o]) for S in fil] for o in range(12) for sg in (1, -1)]
+    trials += [list(rng.uniform(-delta, delta, (5, N, 2))) for _ in range(2)]
+    trials += [list(delta * rng.choice([-1.0, 1.0], (5, N, 2))) for _ in range(2)]
+    worst = np.zeros(12)
+    for u in trials:
+        s = _statements(_records(sc, a, N, [ui @ J.T for ui in u]), sc, p, E)
+        worst = np.maximum(worst, np.inf if s is None else np.abs(s - s0) / scale)
+    ok = stated <= MEASURABLE_WIRE
+    assert np.all(worst[ok] <= stated[ok]), (worst / stated, stated)
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_a_correct_device_is_never_differs_and_more_inertia_still_is(seed):
+    """The readings rounded to whole counts (2^20 per revolution, each joint's motion at
+    the operating point's Jacobian, fed back through the loop): the scene's own device is never
+    "differs"; the device with 30 % more joint inertia than the scene states "differs"
+    wherever the first-order term said it (the felt stiffness, ~15 % off against a
+    stated term of a few per cent)."""
+    sc, _ = _loop(seed)
+    plant, _ = _loop(seed, inertia=1.3)
+    a, N, cpr = 1e-4, 150, 2.0 ** 20
+    chk, p, _ = identification_plan(sc, N)
+    J = device("pantograph", sc.device.geometry).jacobian(np.asarray(sc.device.joints))
+    Ji = np.linalg.inv(J)
+    step = 2 * math.pi / cpr
+    bound = linearisation_bound(sc, a, chk.render.rendered_poles)
+    verdicts = []
+    for loop in (sc, plant):
+        exact = _records(loop, a, N)
+        # each joint's motion J^-1 x rounded to whole counts, back at the handle: an
+        # error of half a count at most per joint, as the stated bounds
+        errs = []
+        for r in exact:
+            dq = r @ Ji.T
+            errs.append((np.round(dq / step) * step - dq) @ J.T)
+        recs = _records(loop, a, N, errs)
+        diffs = [r - recs[0] for r in recs[1:]]
+        fit = fit_felt_nd(diffs, sc.device.mass, sc.period, p)
+        wire = wire_terms_nd(sc, diffs, chk, p, [("reading", J, np.full(2, step / 2))],
+                             box=True)
+        dev, dirs = felt_deviation(fit, chk), felt_directions(fit, chk)
+        verdicts.append((felt_verdict(dev, bound, wire, directions=dirs),
+                         felt_verdict(dev, bound, dict(wire["first_order"]),
+                                      directions=dirs)))
+    (match, _), (more, more_first) = verdicts
+    assert match["verdict"] != "differs", match["reason"]
+    assert all(s["verdict"] != "differs" for s in match["statements"])
+    assert more["verdict"] == "differs", more["reason"]
+    was = {s["name"] for s in more_first["statements"] if s["verdict"] == "differs"}
+    now = {s["name"] for s in more["statements"] if s["verdict"] == "differs"}
+    assert "felt stiffness" in now and was <= now | set(more["not_stated"]), (was, now)
+
+
+def test_the_first_order_term_at_the_records_alone_was_exceeded():
+    """The helper's report, at its cause (the loop of seed 5, a = 1e-4 m, N = 300, 2^20
+    counts per revolution): the felt damping matrix's first-order term at the records is
+    0.204, inside the measurable limit, so it was stated; the errors of the worst signs
+    for one entry, re-linearised once at the records they moved (still inside the
+    bounds), move another entry by 1.24 times that term (measured: 0.253 relative; three
+    re-linearisations reach 2.8 times). The box's term, the first-order worst case also
+    taken at each statement's worst errors, is beyond the limit: the felt damping is not
+    stated."""
+    sc, _ = _loop(5)
+    a, N, cpr = 1e-4, 300, 2.0 ** 20
+    chk, p, _ = identification_plan(sc, N)
+    E = np.asarray(chk.render.directions, float)
+    J = device("pantograph", sc.device.geometry).jacobian(np.asarray(sc.device.joints))
+    delta = math.pi / cpr
+    H = error_responses(sc, N)[0] @ J
+    X0 = _records(sc, a, N)
+    s0 = _statements(X0, sc, p, E)
+    wire = wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
+                         [("reading", J, np.full(2, delta))], box=True)
+    first, stated = _stated(wire["first_order"]), _stated(wire)
+
+    def worst_signs(X, o):
+        sens = felt_sensitivity_nd([r - X[0] for r in X[1:]], sc.device.mass, sc.period, p)
+        comb = [np.concatenate([s.reshape(8, N, 2), np.einsum(
+            "ai,bi,qabtc->qitc", E, E, s).reshape(4, N, 2)]) for s in [-sum(sens)] + sens]
+        return [delta * np.sign(S[o]) for S in filtered_sensitivity_nd(comb, H)]
+    X1 = _records(sc, a, N, [u @ J.T for u in worst_signs(X0, 6)])
+    s1 = _statements(X1, sc, p, E)
+    u = worst_signs(X1, 6)
+    if s1[6] < s0[6]:
+        u = [-v for v in u]
+    moved = np.abs(_statements(_records(sc, a, N, [v @ J.T for v in u]), sc, p, E) - s0)
+    moved /= _scales(chk, E)
+    assert first[7] <= MEASURABLE_WIRE                      # first order stated it
+    # measured 1.24 times the first-order term; 1.1 leaves the margin of the refits'
+    # round-off (the records' 1e-16 relative, far under the 0.14 above 1.1)
+    assert moved[7] > 1.1 * first[7], (moved[7], first[7])
+    assert stated[7] > MEASURABLE_WIRE                      # the box does not state it
