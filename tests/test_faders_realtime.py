@@ -5,7 +5,7 @@ measurement and its verdict.
 
 - In lockstep, asked for by name (the board in-process, one period per host write): the
   real-time path's record, replayed through independent device models (each fader its
-  own exact hold and sub-sample delay, hapsim.lockstep.PortDevice, started at the hand's
+  own exact hold and sub-sample delay, hapsim.lockstep_ports.PortDevice, started at the hand's
   start and driven by the record's forces), gives the record's pot readings back count
   for count, and its forces are the links' law on the readings (the port matrices of
   hapsim.analysis.ports, not the host's code) rounded to the protocol's counts; over
@@ -89,7 +89,8 @@ def test_the_records_replayed_through_each_faders_own_model_give_them_back(seed)
     these cases)."""
     from hapsim.analysis.ports import port_matrices
     from hapsim.emulated.firefader_board import FireFaderDevice
-    from hapsim.lockstep import PortDevice, excitation_starts
+    from hapsim.lockstep import excitation_starts
+    from hapsim.lockstep_ports import PortDevice
     from hapsim.pipeline.faders_run import record_faders
     rng = np.random.default_rng(seed)
     sc = random_faders(rng)
@@ -132,14 +133,15 @@ def test_the_records_replayed_through_each_faders_own_model_give_them_back(seed)
 def test_the_decimated_second_order_fit_is_exact_on_the_lockstep_loop(seed):
     """The run's fit (every D-th sample, the rendered pairs only: order 2, the first
     decimated sample skipped) on the exact lockstep loop's free responses
-    (hapsim.lockstep.LockstepPorts, no quantiser) gives the predicted felt matrices to
+    (hapsim.lockstep_ports.LockstepPorts, no quantiser) gives the predicted felt matrices to
     the linear loop's round-off allowance (LinearisationBound.roundoff, the lockstep
     measurement's own): the hold's and the delay's fast modes it leaves out are gone
     after one decimated sample, at 0.09^D of their start."""
     from hapsim.analysis.felt_matrices import felt_deviation
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.ports import check_ports, port_loop
-    from hapsim.lockstep import LockstepPorts, excitation_starts, ports_bound
+    from hapsim.lockstep import excitation_starts
+    from hapsim.lockstep_ports import LockstepPorts, ports_bound
     from hapsim.pipeline.faders_run import FIT_ORDER, _decimated, decimation
     sc = random_faders(np.random.default_rng(100 + seed))
     chk = check_ports(sc)
@@ -258,7 +260,9 @@ def test_two_faders_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs):  
         # silence rule, none) carried the fader out; seen once beside another session's
         # SCHED_FIFO process (fader A 42.2 mm out after a 163 ms stall)
         assert "workspace" in rt["stop"] and rt["latest"] > CUT_PERIODS / 250.0, rt
-    assert rep.verdict in ("within", "differs", "not measurable") and rep.reason
+    # the scene's own faders: a verdict is made, never "differs" (a wrong verdict); the
+    # 8-bit pots' rounding may leave every quantity unstated, or only some
+    assert rep.verdict in ("within", "partly within", "not measurable") and rep.reason
     assert rep.dof == 2 and rep.extra["ports"] == ["fader_a", "fader_b"]
     if rt["stop"] == "end":
         # both faders: the two 2 x 2 matrices and the two principal directions, each

@@ -70,7 +70,7 @@ LAYERS = (
     # the scene package stands with the models: its n-D reader takes a kinematic device's
     # Cartesian mass at its joints from the kinematics and hapsim.analysis.ths_nd
     ("models", ("hapsim.scene", "hapsim.device_file", "hapsim.engine", "hapsim.engine_nd",
-                "hapsim.lockstep", "hapsim.joint_device",
+                "hapsim.lockstep", "hapsim.lockstep_ports", "hapsim.joint_device",
                 "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plots",
                 "hapsim.plots.bench", "hapsim.plots.family", "hapsim.plots.telemetry",
                 "hapsim.plots.workspace", "hapsim.plots.zwidth")),

@@ -331,7 +331,7 @@ def test_each_ports_device_keeps_its_own_hold_and_time():
     ``m x'' + b0 x' = 0``, ``x(t) = x0 + v0 (m / b0) (1 - exp(-b0 t / m))``, to the
     hold's round-off (expm's bound times the state's size over the record); it counts its
     own ticks."""
-    from hapsim.lockstep import PortDevice
+    from hapsim.lockstep_ports import PortDevice
     rng = np.random.default_rng(7)
     for _ in range(8):
         m, b0 = float(rng.uniform(0.05, 0.5)), float(rng.uniform(0.1, 2.0))
@@ -362,7 +362,7 @@ def test_lockstep_measures_the_predicted_felt_matrices_across_ports(whole):
     linear loop: the binary64 round-off allowance of
     hapsim.analysis.linearisation.LinearisationBound.roundoff, derived there) and within
     the issue's 1e-6, and the run's verdict is "within"."""
-    from hapsim.lockstep import measure_felt_ports
+    from hapsim.lockstep_ports import measure_felt_ports
     rng = np.random.default_rng(50 + whole)
     measured_n = 0
     for _ in range(6):

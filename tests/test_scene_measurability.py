@@ -81,7 +81,7 @@ def test_every_shipped_scene_of_several_ports_measures_in_lockstep(path):
     each port its own device model) measures the felt matrices across the ports within
     the linear loop's round-off allowance (LinearisationBound.roundoff, derived there) of
     the prediction, on a stable loop: verdict "within"."""
-    from hapsim.lockstep import measure_felt_ports
+    from hapsim.lockstep_ports import measure_felt_ports
     from hapsim.scene import load_scene_ports
     res = measure_felt_ports(load_scene_ports(path))
     assert res["predicted"].stable

@@ -370,7 +370,7 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
                     by: str = "field") -> RunReportND:
     """:func:`hapsim.api.run` of a scene with several ports: the felt matrices across the
     ports measured in lockstep, in-process, each port its own device model
-    (:func:`hapsim.lockstep.measure_felt_ports`; ``hapsim run SCENE --lockstep``), or,
+    (:func:`hapsim.lockstep_ports.measure_felt_ports`; ``hapsim run SCENE --lockstep``), or,
     without ``lockstep`` or with a ``port`` or a ``driver``, the FireFader's two faders in
     real time (:func:`hapsim.pipeline.faders_run.run_faders`).
 
@@ -403,7 +403,7 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
         The coupled loop is unstable and ``allow_unstable`` is false.
     """
     from hapsim.analysis.ports import stable_ports_check
-    from hapsim.lockstep import measure_felt_ports
+    from hapsim.lockstep_ports import measure_felt_ports
     from hapsim.pipeline.felt_run import DEFAULT_AMPLITUDE, refuse_options
     opts = options.check_values()
     if not opts.lockstep or opts.port or opts.driver is not None:

@@ -15,7 +15,7 @@ port (``--port``).
 clock (:func:`hapsim.host.realtime.sleep_until_ns` on an absolute grid, as the 1-D loop
 paces itself): packet ``w`` is written at ``t0 + w T``; its record is read; the forces on
 the two ports are the links' law on the two readings and the ones before
-(:meth:`hapsim.lockstep.LockstepPorts.forces`, docs/design.md 'The scheme'), clamped to
+(:meth:`hapsim.lockstep_ports.LockstepPorts.forces`, docs/design.md 'The scheme'), clamped to
 each device's ``force_limit`` and the protocol's 126 counts, and go out with the next
 packet. Between records the host is silent longer than the ``.ino``'s silence rule
 (:data:`hapsim.drivers.firefader.SILENCE_S`): the board zeroes both forces; a hand (the
@@ -215,7 +215,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     from hapsim.drivers.firefader import (CENTRE, FORCE_MAX, HAND_PASSES, METRES_PER_COUNT,
                                           RecordDecoder, encode_packet, force_counts)
     from hapsim.host.realtime import sleep_until_ns
-    from hapsim.lockstep import LockstepPorts
+    from hapsim.lockstep_ports import LockstepPorts
     T = scene.period
     Tns = int(round(T * 1e9))
     P = 2
@@ -391,7 +391,7 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
     Returns
     -------
     dict
-        As :func:`hapsim.lockstep.measure_felt_ports`'s (``measured``, ``predicted``,
+        As :func:`hapsim.lockstep_ports.measure_felt_ports`'s (``measured``, ``predicted``,
         ``deviation``, ``bound``, ``verdict``, ``order``, ``records``, ``samples``; an
         incomplete run's ``measured`` has None matrices) with
         ``wire`` (:func:`hapsim.lockstep.wire_terms_nd`'s, ``reading_bound_m``,
@@ -402,7 +402,8 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.ports import check_ports, port_loop
     from hapsim.drivers.firefader import METRES_PER_COUNT
-    from hapsim.lockstep import port_error_responses, ports_bound, wire_terms_nd
+    from hapsim.lockstep import wire_terms_nd
+    from hapsim.lockstep_ports import port_error_responses, ports_bound
     chk = check_ports(scene) if chk is None else chk
     T = scene.period
     delay = max(float(d.delay) for _, d in scene.devices)
@@ -483,7 +484,8 @@ def _decimated_wire(scene, chk, diffs, use, mass, bounds, D: int, Nd: int) -> di
     convolution in ``j - j'`` (:func:`hapsim.lockstep.wire_terms_nd` with the responses
     ``R[D m + o]`` and the bounds of rows ``D j' - o``); the classes of rows are
     disjoint, so their worst cases add (Hoelder over all rows)."""
-    from hapsim.lockstep import port_error_responses, wire_terms_nd
+    from hapsim.lockstep import wire_terms_nd
+    from hapsim.lockstep_ports import port_error_responses
     Rr, Rf = port_error_responses(scene, D * Nd)
     T = scene.period
     out = None
