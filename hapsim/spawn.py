@@ -196,11 +196,18 @@ class PtyChild:
         OSError
             The child cannot be started.
         """
+        # a SIGINT or SIGTERM inside Popen (after the fork, before it returns) raised
+        # there and lost the child: no handle to end it, and its report, written when
+        # it exited, was left in /tmp (a Ctrl-C 0.23 s into `hapsim run`, once in a
+        # fresh-clone suite). Held until self.proc is set, then delivered: the stop's
+        # close() ends the child and removes the report.
+        held = _hold_stop_signals()
         try:
             self.proc = subprocess.Popen(cmd, pass_fds=(master,), env=child_env(),
                                          stdin=subprocess.DEVNULL, start_new_session=True)
         finally:
             os.close(master)
+            _deliver_stop_signals(held)
 
     def release_slave(self) -> None:
         """Close this object's copy of the slave (once the host has opened the port)."""
@@ -255,6 +262,36 @@ class PtyChild:
         except OSError:
             pass
         done(getattr(self, "_stop_token", None))
+
+
+def _hold_stop_signals():
+    """SIGINT and SIGTERM recorded, not acted on, until :func:`_deliver_stop_signals`
+    (main thread only: elsewhere Python runs no handler); the previous handlers and the
+    signals that came, or None."""
+    import signal
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    came: list = []
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        old[sig] = signal.getsignal(sig)
+        if old[sig] in (signal.SIG_IGN, None):
+            continue
+        signal.signal(sig, lambda s, f: came.append(s))
+    return old, came
+
+
+def _deliver_stop_signals(held) -> None:
+    """The previous handlers back, then each signal that came while held sent again."""
+    import signal
+    if held is None:
+        return
+    old, came = held
+    for sig, h in old.items():
+        if h not in (signal.SIG_IGN, None):
+            signal.signal(sig, h)
+    for sig in dict.fromkeys(came):
+        signal.raise_signal(sig)
 
 
 class StopFlag:

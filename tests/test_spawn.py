@@ -43,3 +43,46 @@ def test_the_report_is_the_childs_json_and_close_removes_it(tmp_path):
     assert not path.exists() and c._slave is None
     c.close()
     assert json.dumps(c.report(timeout=0.0)) == "null"   # no file: None
+
+
+#: A child that writes its report when it ends (SIGTERM) or after 1 s on its own.
+REPORTER = ("import json, signal, sys, time\n"
+            "def bye(*a):\n"
+            "    json.dump({'ended': True}, open(sys.argv[1], 'w')); sys.exit(0)\n"
+            "signal.signal(signal.SIGTERM, bye)\n"
+            "time.sleep(1.0); bye()\n")
+
+
+def test_a_stop_signal_inside_the_childs_start_ends_it_and_leaves_no_report(monkeypatch,
+                                                                           tmp_path):
+    """A Ctrl-C that lands inside ``subprocess.Popen`` (after the fork, before it returns)
+    used to raise there and lose the child: nothing could end it, and the report it wrote
+    on its own end was left in the temporary directory (once in a fresh-clone suite, a
+    SIGINT 0.23 s into ``hapsim run``). Now the signal is held until ``proc`` is set and
+    then delivered: the stop's :meth:`PtyChild.close` ends the child and removes the
+    report. The signal is sent from inside Popen, after the child exists, every time."""
+    import hapsim.spawn as spawn
+    real = subprocess.Popen
+
+    def popen_then_sigint(*a, **k):
+        p = real(*a, **k)
+        signal.raise_signal(signal.SIGINT)     # Ctrl-C while Popen has not returned
+        return p
+
+    monkeypatch.setattr(spawn.subprocess, "Popen", popen_then_sigint)
+    c = PtyChild()
+    master = c.open_pty("hapsim-test-")
+    path = c.report_path
+    try:
+        try:
+            c.start([sys.executable, "-c", REPORTER, path], master)
+        except KeyboardInterrupt:
+            interrupted = True
+        else:
+            interrupted = False
+        assert interrupted and c.proc is not None      # delivered once the child is known
+    finally:
+        c.close()                                      # what the command's stop runs
+    assert c.proc.returncode is not None               # ended and reaped
+    assert not os.path.exists(path)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
