@@ -682,16 +682,17 @@ def test_firefader_answers_read_after_a_stop_are_no_streaming_firmware():
     assert rep["unprompted_before_arming"] == 0
     assert rep["firmware"].startswith("haptics_firmware.ino"), rep
 
-def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
-    """A FireFader record taken in-process: the host believes 0.39 N full scale, the
-    fader has ``fs_true``; a random force with a weak centring spring (counts). Returns
-    the positions, the force computed from each row (sent with the next command) and
-    the driver's account of the force applied (the firmware's enable replayed: the
-    fader reaches its ends, where the range gate cuts the force)."""
+def ff_lockstep_drive(mass: float, fs_true: float | None = None, n: int = 1500,
+                      seed: int = 1):
+    """A FireFader board on its lockstep clock, in-process, driven by random counts with a
+    weak centring spring: the positions [m] of its ``n`` records and the force computed
+    from each row [N] (sent with the next command). ``fs_true``: the fader's full scale
+    [N] (None: the board's default)."""
     from hapsim.emulated.driver_mock import FireFaderDevice
     drv = get_driver("firefader")
+    extra = {} if fs_true is None else {"full_scale": fs_true}
     mk = FireFaderDevice(Device(mass=mass, friction=0.5, delay=1, force_limit=10.0), 250.0,
-                         Excitation(), full_scale=fs_true, clock="lockstep")   # in-process
+                         Excitation(), clock="lockstep", **extra)   # in-process
     for _ in range(72):
         mk.step(0)                                  # the enable comes up
     rng = np.random.default_rng(seed)
@@ -703,8 +704,17 @@ def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
         x = (r[1] - 127) * drv.position_scale
         xs.append(x)
         fs.append(c * drv.force_scale)
-    x = np.array(xs)
-    force = np.append(np.array(fs)[1:], 0.0)        # row k's force goes with command k+1
+    return np.array(xs), np.append(np.array(fs)[1:], 0.0)   # row k's force: command k+1
+
+
+def _ff_record(mass: float, fs_true: float, n: int = 1500, seed: int = 1):
+    """A FireFader record taken in-process: the host believes 0.39 N full scale, the
+    fader has ``fs_true``; a random force with a weak centring spring (counts). Returns
+    the positions, the force computed from each row (sent with the next command) and
+    the driver's account of the force applied (the firmware's enable replayed: the
+    fader reaches its ends, where the range gate cuts the force)."""
+    drv = get_driver("firefader")
+    x, force = ff_lockstep_drive(mass, fs_true, n, seed)
     drv.loop_delay = 1
     acc = drv.account({"seq": np.arange(n), "time": np.arange(n) / 250.0, "position": x,
                        "flags": np.zeros(n, np.int64)}, force)

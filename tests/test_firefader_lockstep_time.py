@@ -25,30 +25,15 @@ import pytest
 
 from hapsim.drivers import get_driver
 from hapsim.drivers.firefader import SILENCE_DOUBT_S
-from hapsim.scene import Device, Excitation
 
 RATE = 250.0
 
 
 def _record(seed: int, n: int = 400):
     """A lockstep in-process FireFader board driven by random counts (its rows' positions
-    [m] and each row's force [N])."""
-    from hapsim.emulated.driver_mock import FireFaderDevice
-    drv = get_driver("firefader")
-    mk = FireFaderDevice(Device(mass=0.05, friction=0.5, delay=1, force_limit=10.0), RATE,
-                         Excitation(), clock="lockstep")
-    for _ in range(72):
-        mk.step(0)                                  # the enable comes up
-    rng = np.random.default_rng(seed)
-    xs, fs, x, c = [], [], 0.0, 0
-    for k in range(n):
-        if k % 5 == 0:
-            c = int(np.clip(rng.normal(0, 40) - 400 * x / 0.05, -126, 126))
-        r = mk.step(c)
-        x = (r[1] - 127) * drv.position_scale
-        xs.append(x)
-        fs.append(c * drv.force_scale)
-    return np.array(xs), np.append(np.array(fs)[1:], 0.0)
+    [m] and each row's force [N]): test_drivers' drive, at the default full scale."""
+    from test_drivers import ff_lockstep_drive
+    return ff_lockstep_drive(0.05, None, n, seed)
 
 
 def _account(x, force, times, command_period):
