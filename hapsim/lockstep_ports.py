@@ -110,6 +110,7 @@ class LockstepPorts:
         self.i2 = np.array([at[lk.m2] for lk in scene.links], int)
         self.K = np.array([lk.stiffness for lk in scene.links], float)
         self.B = np.array([lk.damping for lk in scene.links], float)
+        self._buffers = None                 # :meth:`forces`' scratch, made at first use
 
     def step(self, samples: int, *, reading_error=None, force_error=None) -> np.ndarray:
         """Advance the loop and record the ports.
@@ -142,16 +143,42 @@ class LockstepPorts:
                 dev.tick(force[i])
         return out
 
-    def forces(self) -> np.ndarray:
+    def forces(self, out: np.ndarray | None = None) -> np.ndarray:
         """The links' forces on every mass at the current positions ``x`` and the previous
-        ``xp`` [N], shape (P + grounds,): ports first (the scheme's law, class notes)."""
-        d = self.x[self.i1] - self.x[self.i2]
-        dp = self.xp[self.i1] - self.xp[self.i2]
-        F = self.K * d + self.B * (d - dp) / self.T
-        force = np.zeros(self.x.size)
-        np.add.at(force, self.i1, -F)
-        np.add.at(force, self.i2, F)
-        return force
+        ``xp`` [N], shape (P + grounds,): ports first (the scheme's law, class notes).
+
+        With ``out`` (shape (P + grounds,), float) the forces are written there through
+        buffers held by the loop, so a real-time caller allocates nothing per sample;
+        the operations and their order are the same, so the result is the same to the bit.
+        """
+        if out is None:
+            d = self.x[self.i1] - self.x[self.i2]
+            dp = self.xp[self.i1] - self.xp[self.i2]
+            F = self.K * d + self.B * (d - dp) / self.T
+            force = np.zeros(self.x.size)
+            np.add.at(force, self.i1, -F)
+            np.add.at(force, self.i2, F)
+            return force
+        b = self._buffers
+        if b is None:
+            b = self._buffers = tuple(np.empty(self.K.size) for _ in range(5))
+        d, dp, F, t, u = b
+        np.take(self.x, self.i1, out=t)
+        np.take(self.x, self.i2, out=u)
+        np.subtract(t, u, out=d)
+        np.take(self.xp, self.i1, out=t)
+        np.take(self.xp, self.i2, out=u)
+        np.subtract(t, u, out=dp)
+        np.subtract(d, dp, out=t)
+        np.multiply(self.B, t, out=t)
+        np.divide(t, self.T, out=t)
+        np.multiply(self.K, d, out=F)
+        np.add(F, t, out=F)
+        out[:] = 0.0
+        np.negative(F, out=u)
+        np.add.at(out, self.i1, u)
+        np.add.at(out, self.i2, F)
+        return out
 
 
 def port_error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:

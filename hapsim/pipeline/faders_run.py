@@ -253,6 +253,9 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
         clamped = np.zeros(samples, bool)
         f = np.zeros(P)
         t0 = time.monotonic_ns()
+        # the loop's buffers, made once per record: a sample allocates no array
+        x = np.empty(P)
+        raw = np.empty(host.x.size)
         for w in range(H - 1 + samples):
             k = w - (H - 1)                   # the row this write's pass reads
             due = t0 + w * Tns
@@ -271,20 +274,26 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
                 break
             if k < 0:
                 continue
-            x = (np.array(rec, float) - CENTRE) * METRES_PER_COUNT
+            for i in range(P):
+                x[i] = (float(rec[i]) - CENTRE) * METRES_PER_COUNT
             pos[k], late[k] = x, lag
-            if np.any(np.abs(x) > WORKSPACE_M):
-                stop = (f"safety: fader {'AB'[int(np.argmax(np.abs(x)))]} "
-                        f"{float(np.max(np.abs(x))) * 1e3:.1f} mm from the centre, beyond "
-                        f"the workspace's {WORKSPACE_M * 1e3:.1f} mm")
+            far = max(range(P), key=lambda i: abs(x[i]))
+            if abs(x[far]) > WORKSPACE_M:
+                stop = (f"safety: fader {'AB'[far]} {abs(x[far]) * 1e3:.1f} mm from the "
+                        f"centre, beyond the workspace's {WORKSPACE_M * 1e3:.1f} mm")
                 break
             host.xp[:P] = pos[k - 1] if k > 0 else x
             host.x[:P] = x
-            raw = host.forces()[:P]
-            f = np.clip(raw, -lim, lim)
-            clamped[k] = bool(np.any(np.abs(raw) >= lim) or np.any(
-                np.abs(np.round(f / force_scale)) > FORCE_MAX))
-            frc[k] = [max(force_counts(v, fs), -FORCE_MAX) * force_scale for v in f]
+            host.forces(out=raw)
+            hit = False
+            for i in range(P):
+                r, m = float(raw[i]), float(lim[i])
+                v = min(max(r, -m), m)
+                f[i] = v
+                c = max(force_counts(v, fs), -FORCE_MAX)
+                frc[k, i] = c * force_scale
+                hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
+            clamped[k] = hit
         _zero(ser, dec)                       # both faders at zero force
         out.append({"position": pos, "force": frc, "late": late, "clamped": clamped})
         if progress is not None:
