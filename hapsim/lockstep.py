@@ -461,9 +461,9 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         predicted matrix's largest entry [-]; ``directions``: for each of the two, a list
         of n relative terms along the principal directions of :func:`felt_directions`
         (over ``|e_i^T X e_i|``; inf when it is 0); ``first_order``: the same terms at
-        the records alone (:func:`relative_terms`). Every term inf (``first_order``
-        None) when the records, or a copy moved within the bounds, give no sensitivity
-        (no felt matrices).
+        the records alone (:func:`relative_terms`); ``box`` True with ``box``. Every
+        term inf (``first_order`` None) when the records, or a copy moved within the
+        bounds, give no sensitivity (no felt matrices).
 
     Raises
     ------
@@ -510,8 +510,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         return inf if got is None else relative_terms(chk, got[0], got[0])
     got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True)
     if got is None:
-        return inf
-    return relative_terms(chk, got[1], got[0])
+        return {**inf, "box": True}
+    return {**relative_terms(chk, got[1], got[0]), "box": True}
 
 
 def relative_terms(chk, wc, first=None) -> dict:

@@ -45,7 +45,16 @@ its time (:func:`departures`: from the record's median lateness, which shifts th
 loop and changes no hold) reads its pot ``delta`` off (a reading error up to ``|v|
 |delta|``) and leaves the force before it on ``delta`` longer or shorter (an impulse
 ``|du| |delta|``, stated as a force error ``|du| |delta| / T`` over the period: first
-order in ``delta / T``).
+order in ``delta / T``). The wire's term is the worst case over the error box
+(:mod:`hapsim.analysis.wire_box`, ``box=True``), not the first-order one at the records:
+measured on the lockstep board (the shipped scene and random soft ones, each error
+coordinate's effect on the decimated fit by finite differences, then the records moved
+by each statement's first-order worst errors and refitted), the errors moved a stated
+felt stiffness by 0.17-0.90 of its first-order term and an unstated damping by up to
+1.36 of it, and the sensitivity sampled over the box was 1.06-1.95 times the one at the
+records: the first-order term was no bound, and a "differs" built on it could be wrong.
+With the box the 8-bit pots state nothing at the shipped amplitude; the run says so
+before it starts (:func:`faders_feasibility`).
 """
 
 from __future__ import annotations
@@ -61,7 +70,7 @@ from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["WORKSPACE_M", "LATE_STOP_S", "CUT_PERIODS", "FADERS_TAKES", "FADER_AMPLITUDE",
            "faders_refusal", "record_faders", "departures", "usable_rows", "measure_faders",
-           "run_faders", "decimation"]
+           "run_faders", "decimation", "faders_feasibility", "LockstepBoardLink"]
 
 #: The measurement's workspace [m] from the centre: 100 pot counts (39 mm), inside the
 #: ``.ino``'s enable range (``4 < pot < 251``, line 382) and the emulated board's end stops.
@@ -411,8 +420,7 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.ports import check_ports, port_loop
     from hapsim.drivers.firefader import METRES_PER_COUNT
-    from hapsim.lockstep import wire_terms_nd
-    from hapsim.lockstep_ports import port_error_responses, ports_bound
+    from hapsim.lockstep_ports import ports_bound
     chk = check_ports(scene) if chk is None else chk
     T = scene.period
     delay = max(float(d.delay) for _, d in scene.devices)
@@ -511,7 +519,7 @@ def _decimated_wire(scene, chk, diffs, use, mass, bounds, D: int, Nd: int) -> di
                           [("reading", eye, [at(b[0]) for b in bounds]),
                            ("force", eye, [at(b[1]) for b in bounds])],
                           usable=use, mass=mass, responses=(Rr[lag], Rf[lag]),
-                          period=D * T)
+                          period=D * T, box=True)
         if out is None:
             out = w
             continue
@@ -520,6 +528,99 @@ def _decimated_wire(scene, chk, diffs, use, mass, bounds, D: int, Nd: int) -> di
             out["directions"][q] = [a + b for a, b in zip(out["directions"][q],
                                                           w["directions"][q])]
     return out
+
+
+class LockstepBoardLink:
+    """The emulated FireFader in-process on its lockstep clock, as :func:`record_faders`'s
+    serial port: each write is one tick of the board (asked for by name: deterministic,
+    no pty), the host's silences told to it (``idle``).
+
+    Parameters
+    ----------
+    dev : hapsim.emulated.firefader_board.FireFaderDevice
+        Made with ``clock="lockstep"``.
+    """
+
+    def __init__(self, dev) -> None:
+        self.dev = dev
+        self.buf = bytearray()
+
+    def write(self, data: bytes) -> None:
+        """Feed one write to the board: one tick; its record waits to be read."""
+        self.buf += self.dev.feed(bytes(data), writes=[b"", bytes(data)])
+
+    def idle(self, s: float) -> None:
+        """The host silent for ``s`` [s] (the board's silence rule counts it)."""
+        self.dev.idle(s)
+
+    @property
+    def in_waiting(self) -> int:
+        """Bytes the board sent and the host has not read."""
+        return len(self.buf)
+
+    def read(self, n: int) -> bytes:
+        """Up to ``n`` bytes of what the board sent."""
+        out = bytes(self.buf[:n])
+        del self.buf[:n]
+        return out
+
+    def reset_input_buffer(self) -> None:
+        """Drop what the board sent and the host has not read."""
+        self.buf.clear()
+
+    def flush(self) -> None:
+        """Nothing waits to be written (each write is taken at once)."""
+
+
+def faders_feasibility(scene, amplitude: float, samples: int, chk=None) -> dict:
+    """What a run of the two faders can state, predicted before it: the same records and
+    measurement (:func:`record_faders`, :func:`measure_faders`) on the emulated board in
+    its lockstep clock, in-process (asked for by name: the pots' and the forces' rounding
+    alone, no host timing). In real time the host's late writes can only add to the
+    wire's term, so what is not stated here is not stated there.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.ScenePorts
+        The FireFader's two faders (:func:`faders_refusal` passed).
+    amplitude : float
+        ``a`` [m].
+    samples : int
+        Rows per record.
+    chk : hapsim.analysis.ports.PortsCheck, optional
+        The prediction (default :func:`hapsim.analysis.ports.check_ports`).
+
+    Returns
+    -------
+    dict
+        ``stated``, ``not_stated`` (the statements' names), ``verdict`` (the lockstep
+        run's) and ``statement``: None when something is stated, else the sentence the
+        run says before it starts.
+    """
+    from hapsim.analysis.ports import check_ports
+    from hapsim.drivers.firefader import FireFader
+    from hapsim.emulated.firefader_board import FireFaderDevice
+    from hapsim.lockstep import excitation_starts
+    chk = check_ports(scene) if chk is None else chk
+    drv = FireFader()
+    starts = excitation_starts(2, amplitude, scene.period)
+    (_, da), (_, db) = scene.devices
+    dev = FireFaderDevice(da, scene.rate_hz, None, clock="lockstep", device_b=db,
+                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
+                          **drv.mock_hardware())
+    run = record_faders(LockstepBoardLink(dev), scene, samples, len(starts),
+                        force_scale=drv.force_scale, pace=False)
+    v = measure_faders(scene, run, amplitude, samples=samples, order=chk.states // 2,
+                       chk=chk, force_scale=drv.force_scale)["verdict"]
+    stated = [st["name"] for st in v["statements"] if st["verdict"] != "not measurable"]
+    not_stated = [st["name"] for st in v["statements"] if st["verdict"] == "not measurable"]
+    said = None
+    if not stated:
+        said = ("not measurable, predicted before the run (the emulated board in lockstep, "
+                f"the 8-bit pots' and the forces' rounding alone, a = {amplitude:g} m): "
+                f"{v['reason']}")
+    return {"stated": stated, "not_stated": not_stated, "verdict": v["verdict"],
+            "statement": said}
 
 
 def run_faders(scene, options, amplitude: float | None = None, *, by: str = "field",
@@ -588,6 +689,11 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     N = default_samples(order, 2) if samples is None else int(samples)
     T = scene.period
     starts = excitation_starts(2, a, T)
+    # before the run: what can its records state at all (the pots' rounding alone)? Said
+    # first, then run (the real-time records may state less, never more)
+    pre = faders_feasibility(scene, a, N, chk)
+    if pre["statement"] is not None and getattr(options, "on_precheck", None) is not None:
+        options.on_precheck(pre["statement"])
     drv = FireFader()
     mock = None
     port = options.port
@@ -638,4 +744,6 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
                        "held_at_end": held,
                        "port": options.port or "embedded emulated FireFader (wall clock)"}
     res["amplitude"] = a
+    if pre["statement"] is not None:
+        res["stated_before_run"] = pre["statement"]
     return res
