@@ -52,7 +52,10 @@ def test_the_random_loops_are_different_loops():
     masses = [_random_loop(s)[0].device.mass for s in range(4)]
     for i in range(4):
         for j in range(i):
-            assert not np.allclose(masses[i], masses[j])
+            # the joint values differ by random factors 0.5-2: the Cartesian masses by
+            # far more than a per cent (measured: 13 % at the closest pair of seeds)
+            gap = np.max(np.abs(masses[i] - masses[j])) / np.max(np.abs(masses[j]))
+            assert gap > 0.01, (i, j, gap)
 
 
 def _cut_records(sc, rng, N, a=1e-4):
