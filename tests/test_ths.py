@@ -1,4 +1,4 @@
-"""The THS as a matrix (hapsim.analysis.ths_nd) against an independent MIMO reference
+"""The THS as a matrix (hapsim.analysis.ths) against an independent MIMO reference
 written here (continuous system, scipy.linalg.expm ZOH, a *force* delay line instead of
 hapsim's position delay line, eigenvalues; felt matrices by least squares on the quadratic
 eigen-equations), the 1-D prediction of hapsim.analysis.ths/loop, the 1-D answer per axis
@@ -14,11 +14,10 @@ from scipy.linalg import expm
 from scipy.optimize import linear_sum_assignment
 
 from hapsim.analysis.loop import LoopModel, characteristic
-from hapsim.analysis.loop_poles import closed_loop_poles, spectral_radius
-from hapsim.analysis.ths import render
+from hapsim.analysis.loop_poles import spectral_radius
 from hapsim.analysis.stability import stability_limit
 from hapsim.analysis.direction_limits import direction_limit, direction_limits, workspace_limits
-from hapsim.analysis.ths_nd import LoopModelND, closed_loop_poles_nd, render_nd, state_matrix
+from hapsim.analysis.ths import MatrixLoop, closed_loop_poles, render, state_matrix
 from hapsim.errors import ConfigError
 from hapsim.kinematics import Pantograph
 from tolerance import (BRENT_THETA, crossing_tol, eig_tol, expm_tol, measured, rel_tol,
@@ -104,7 +103,7 @@ def limit_tol(l1, K, B, dz):
 def limit_tol_1d(m, b0, rate, d, K, B):
     """:func:`limit_tol` of the 1-D loop (m, b0) with both paths' pole round-off."""
     l1 = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
-    ln = LoopModelND(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
+    ln = MatrixLoop(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
     return limit_tol(l1, K, B, pole_tol_1d_nd(l1, ln, K, B))
 
 
@@ -175,14 +174,14 @@ def test_eigenvalues_and_felt_matrices_equal_the_independent_reference(n):
     felt_checked = 0
     for _ in range(24):
         M, B0, rate, d, K, B = random_loop(rng, n)
-        loop = LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=d)
+        loop = MatrixLoop(mass=M, friction=B0, rate_hz=rate, delay=d)
         A = reference_state_matrix(M, B0, 1.0 / rate, d, K, B)
         z_ref, V = np.linalg.eig(A)
-        z = closed_loop_poles_nd(loop, K, B)
+        z = closed_loop_poles(loop, K, B)
         assert z.size == z_ref.size == n * (d + 3)
         dz = reference_pole_tol(loop, M, B0, 1.0 / rate, d, K, B)
         assert match(z, z_ref) <= dz
-        r = render_nd(loop, K, B)
+        r = render(loop, K, B)
         assert r.spectral_radius == pytest.approx(np.max(np.abs(z_ref)), rel=0, abs=dz)
         if r.felt_stiffness is None:
             continue
@@ -205,8 +204,8 @@ def test_felt_system_has_the_rendered_poles_and_shapes():
     rng = np.random.default_rng(7)
     for n in (2, 3):
         M, B0, rate, d, K, B = random_loop(rng, n)
-        loop = LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=min(d, 1))
-        r = render_nd(loop, K, B)
+        loop = MatrixLoop(mass=M, friction=B0, rate_hz=rate, delay=min(d, 1))
+        r = render(loop, K, B)
         Minv = np.linalg.inv(M)
         Ac = np.block([[np.zeros((n, n)), np.eye(n)],
                        [-Minv @ r.felt_stiffness, -Minv @ r.felt_damping]])
@@ -225,10 +224,10 @@ def test_one_dof_reproduces_the_1d_prediction(seed):
     rate, d = float(rng.choice([500.0, 1000.0, 10000.0])), int(rng.integers(0, 6))
     K, B = rng.uniform(10.0, 1500.0), rng.uniform(0.0, 3.0)
     l1 = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
-    ln = LoopModelND(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
+    ln = MatrixLoop(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
     dz = pole_tol_1d_nd(l1, ln, K, B)
-    assert match(closed_loop_poles(l1, K, B), closed_loop_poles_nd(ln, K, B)) <= dz
-    r1, rn = render(l1, K, B), render_nd(ln, K, B)
+    assert match(closed_loop_poles(l1, K, B), closed_loop_poles(ln, K, B)) <= dz
+    r1, rn = render(l1, K, B), render(ln, K, B)
     assert rn.spectral_radius == pytest.approx(r1.spectral_radius, rel=0, abs=dz)
     assert rn.stable == r1.stable
     if math.isfinite(r1.k):
@@ -249,8 +248,8 @@ def test_decoupled_loop_is_the_1d_answer_per_axis(n):
     rng = np.random.default_rng(20 + n)
     m, b0 = rng.uniform(0.05, 0.4, n), rng.uniform(0.1, 1.0, n)
     K, B = rng.uniform(100.0, 800.0, n), rng.uniform(0.5, 2.0, n)
-    loop = LoopModelND(mass=m, friction=b0, rate_hz=1000.0, delay=1)
-    r = render_nd(loop, K, B)
+    loop = MatrixLoop(mass=m, friction=b0, rate_hz=1000.0, delay=1)
+    r = render(loop, K, B)
     assert r.stable
     for i in range(n):
         l1 = LoopModel(mass=m[i], friction=b0[i], rate_hz=1000.0, delay=1)
@@ -275,16 +274,16 @@ def test_rotation_moves_the_felt_matrices_not_the_poles():
     rng = np.random.default_rng(8)
     M, B0, rate, d, K, B = random_loop(rng, 3)
     R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    a = render_nd(LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=1), K, B)
-    b = render_nd(LoopModelND(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
-                              delay=1), R @ K @ R.T, R @ B @ R.T)
+    a = render(MatrixLoop(mass=M, friction=B0, rate_hz=rate, delay=1), K, B)
+    b = render(MatrixLoop(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
+                          delay=1), R @ K @ R.T, R @ B @ R.T)
     # the rotated inputs carry a product's round-off (R X R^T: 2 x 3 terms, rel_tol(6))
     # into the state matrix, amplified by M^-1 (cond(M)); plus each eigenproblem's own
-    Ab = state_matrix(LoopModelND(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
-                                  delay=1), R @ K @ R.T, R @ B @ R.T)
+    Ab = state_matrix(MatrixLoop(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
+                                 delay=1), R @ K @ R.T, R @ B @ R.T)
     err = rel_tol(6) * np.linalg.cond(M) * np.linalg.norm(Ab, 2)
-    dz = eig_tol(Ab, err) + eig_tol(state_matrix(LoopModelND(mass=M, friction=B0,
-                                                             rate_hz=rate, delay=1), K, B))
+    dz = eig_tol(Ab, err) + eig_tol(state_matrix(MatrixLoop(mass=M, friction=B0,
+                                                            rate_hz=rate, delay=1), K, B))
     assert match(a.poles, b.poles) <= dz
     # felt matrices and directions: measured (4.9e-13, 8.9e-13 relative, 4.4e-16 on the
     # directions' cosines, on the kernels listed above), margin 1000
@@ -310,7 +309,7 @@ def test_axis_by_axis_stable_but_coupled_loop_unstable():
     lam = np.array([0.02, 0.3])
     M = R @ np.diag(lam) @ R.T
     b0, beta = 2.0, 10.0          # damping-heavy: the limit depends on the mass here
-    loop = LoopModelND(mass=M, friction=b0 * np.eye(2), rate_hz=1000.0, delay=1)
+    loop = MatrixLoop(mass=M, friction=b0 * np.eye(2), rate_hz=1000.0, delay=1)
     light = LoopModel(mass=lam[0], friction=b0, rate_hz=1000.0, delay=1)
     k_light = stability_limit(light, beta)
     k_axes = [stability_limit(LoopModel(mass=M[i, i], friction=b0, rate_hz=1000.0,
@@ -320,7 +319,7 @@ def test_axis_by_axis_stable_but_coupled_loop_unstable():
     for i in range(2):
         assert render(LoopModel(mass=M[i, i], friction=b0, rate_hz=1000.0, delay=1),
                       kappa, beta).stable
-    r = render_nd(loop, kappa * np.eye(2), beta * np.eye(2))
+    r = render(loop, kappa * np.eye(2), beta * np.eye(2))
     assert not r.stable and r.spectral_radius > 1.0
     limits = direction_limits(loop, None, beta * np.eye(2))
     # M = R diag(lam) R^T in floating point: its eigenvalues carry eig_tol(M), which
@@ -360,7 +359,7 @@ def test_workspace_limits_follow_the_configuration_dependent_mass():
     assert np.ptp(w.limits[:, 0]) > 0.05 * np.mean(w.limits[:, 0])
 
 
-def test_loop_model_nd_refuses_bad_input():
+def test_matrix_loop_refuses_bad_input():
     """Key-named refusals: a mass not SPD, friction not PSD, shapes, hold, delay."""
     for kw, key in [(dict(mass=[[1.0, 2.0], [2.0, 1.0]]), "mass"),
                     (dict(mass=[[1.0, 0.5], [0.0, 1.0]]), "mass"),
@@ -371,12 +370,13 @@ def test_loop_model_nd_refuses_bad_input():
                     (dict(mass=np.eye(4)), "dof"),
                     (dict(mass=0.1), "dof")]:
         with pytest.raises(ConfigError) as err:
-            LoopModelND(**kw)
+            MatrixLoop(**kw)
         assert err.value.key == key, (kw, err.value)
-    loop = LoopModelND(mass=np.eye(2) * 0.1)
+    loop = MatrixLoop(mass=np.eye(2) * 0.1)
     with pytest.raises(ConfigError) as err:
-        render_nd(loop, np.ones((3, 3)))
+        render(loop, np.ones((3, 3)))
     assert err.value.key == "K"
     with pytest.raises(ConfigError) as err:
         direction_limit(loop, [0.0, 0.0])
     assert err.value.key == "direction"
+
