@@ -531,3 +531,25 @@ def test_no_module_reads_another_objects_private_state():
     assert bad == {}
     assert set(PRIVATE_READS_ALLOWED) - seen == set()
 
+
+# --------------------------------------------------------------------- the THS package
+#: hapsim.analysis.ths, the THS of every dimension, is four rooms in a row, each importing
+#: only the rooms before it: the loop with matrices, the hold and delay as matrices (state
+#: matrix, poles), the felt matrices, render and calibrate (docs/design.md, 'Package
+#: layout'). The scene's device reader takes the first room alone.
+THS_ROOMS = ("hapsim.analysis.ths.matrix_loop", "hapsim.analysis.ths.holds",
+             "hapsim.analysis.ths.felt", "hapsim.analysis.ths.render")
+
+
+def test_the_ths_rooms_import_only_the_rooms_before_them():
+    """No module named ``*_nd`` in the analysis (issue 30: one THS for every dimension),
+    and the THS package's rooms stand in their row; the first imports nothing of the
+    analysis but the 1-D loop and the split hold's delay."""
+    graph = _house_graph()
+    assert not [m for m in graph if m.startswith("hapsim.analysis.") and m.endswith("_nd")]
+    assert set(THS_ROOMS) <= set(graph), "hapsim.analysis.ths lost a room"
+    for i, room in enumerate(THS_ROOMS):
+        inside = {m for m in graph[room] if m.startswith("hapsim.analysis.ths")}
+        assert inside <= set(THS_ROOMS[:i]), f"{room} imports {sorted(inside)}"
+    assert {m for m in graph[THS_ROOMS[0]] if m.startswith("hapsim.analysis")} == \
+        {"hapsim.analysis.loop", "hapsim.analysis.subsample"}

@@ -2,7 +2,10 @@
 written here (continuous system, scipy.linalg.expm ZOH, a *force* delay line instead of
 hapsim's position delay line, eigenvalues; felt matrices by least squares on the quadratic
 eigen-equations), the 1-D prediction of hapsim.analysis.ths/loop, the 1-D answer per axis
-of a decoupled loop, and coupling that axis-by-axis checks miss."""
+of a decoupled loop, and coupling that axis-by-axis checks miss; the entries of
+hapsim.analysis.ths (render, calibrate, state_matrix, closed_loop_poles, rendered_pairs)
+taking a 1-D loop and a matrix loop alike, and refusing by name what the matrix loop does
+not model."""
 
 from __future__ import annotations
 
@@ -17,7 +20,8 @@ from hapsim.analysis.loop import LoopModel, characteristic
 from hapsim.analysis.loop_poles import spectral_radius
 from hapsim.analysis.stability import stability_limit
 from hapsim.analysis.direction_limits import direction_limit, direction_limits, workspace_limits
-from hapsim.analysis.ths import MatrixLoop, closed_loop_poles, render, state_matrix
+from hapsim.analysis.ths import (MatrixLoop, as_matrix_loop, calibrate, closed_loop_poles,
+                                rendered_pairs, render, state_matrix)
 from hapsim.errors import ConfigError
 from hapsim.kinematics import Pantograph
 from tolerance import (BRENT_THETA, crossing_tol, eig_tol, expm_tol, measured, rel_tol,
@@ -380,3 +384,75 @@ def test_matrix_loop_refuses_bad_input():
         direction_limit(loop, [0.0, 0.0])
     assert err.value.key == "direction"
 
+
+# ------------------------------------------------------------- one entry, any dimension
+
+@pytest.mark.parametrize("seed", range(8))
+def test_one_entry_takes_a_1d_loop_as_the_case_n_equals_1(seed):
+    """The entries of hapsim.analysis.ths take a 1-D LoopModel where they take a matrix
+    loop: state_matrix and rendered_pairs see it as the matrix loop n = 1 (bit for bit the
+    same matrix), whose eigenvalues are the 1-D closed_loop_poles' to both paths' round-off;
+    calibrate of the matrix loop n = 1 is the 1-D calibration, exactly, and its (K, B)
+    render through the matrix form the felt target (k, b) to the poles' round-off."""
+    rng = np.random.default_rng(100 + seed)
+    m, b0 = rng.uniform(0.02, 1.0), rng.uniform(0.0, 3.0)
+    rate, d = float(rng.choice([500.0, 1000.0, 10000.0])), int(rng.integers(0, 6))
+    l1 = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
+    ln = MatrixLoop(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
+    assert as_matrix_loop(l1) == ln and as_matrix_loop(ln) is ln
+    assert ln.to_loop_model() == l1
+    T = 1.0 / rate
+    # a target the loop can render: a fraction of the loop's own first-order limits
+    k = rng.uniform(0.05, 0.3) * m / (T * T * (1 + d) ** 2)
+    b = b0 + rng.uniform(0.05, 0.3) * m / (T * (1 + d))
+    K, B = rng.uniform(0.1, 0.5) * stability_limit(l1, 0.0), 0.0
+    A = state_matrix(l1, K, B)
+    assert np.array_equal(A, state_matrix(ln, K, B))
+    dz = pole_tol_1d_nd(l1, ln, K, B)
+    assert match(np.linalg.eigvals(A), closed_loop_poles(l1, K, B)) <= dz
+    zr, U, _ = rendered_pairs(l1, K, B)
+    r1 = render(l1, K, B)
+    assert zr.size == 1 and r1.rendered is not None
+    assert abs(zr[0] - r1.rendered.z) <= dz
+    # the one shape is u / |u| turned real positive: a norm, a division, an abs and a
+    # product deep (4), unit to that
+    assert U.shape == (1, 1) and abs(U[0, 0] - 1.0) <= rel_tol(4)
+    c1, cn = calibrate(l1, k, b), calibrate(ln, k, b)
+    assert cn.to_dict() == c1.to_dict()
+    assert c1.renderable, c1.reason      # every seed's target is within the limits
+    rn, r1 = render(ln, c1.K, c1.B), render(l1, c1.K, c1.B)
+    # the 1-D render of the calibrated gains is at the target to its own round-off,
+    # measured here; the matrix form is within dz of the 1-D render (the two paths)
+    dz_c = pole_tol_1d_nd(l1, ln, c1.K, c1.B) + abs(r1.rendered.z - c1.target.z)
+    dk, db = felt_tols(rn.rendered_poles[0], dz_c, m, T)
+    assert rn.felt_stiffness[0, 0] == pytest.approx(k, rel=0, abs=dk)
+    assert rn.felt_damping[0, 0] == pytest.approx(b, rel=0, abs=db)
+
+
+def test_the_matrix_loop_refuses_by_name_what_it_does_not_model():
+    """A 1-D loop the matrix loop does not model (the paper's ideal hold, a compliant grip,
+    a real stiffness, a correction) is refused with the key named, never approximated;
+    calibrating felt matrices (more than one axis) is refused by name; the 1-D entries
+    still take such a loop by its closed forms."""
+    from hapsim.analysis.corrections import Correction
+    base = dict(mass=0.1, friction=0.5, rate_hz=1000.0, delay=1)
+    for kw, key in [(dict(hold="ideal"), "hold"),
+                    (dict(mass=0.1, hand_mass=0.05, grip_stiffness=2000.0), "loop"),
+                    (dict(stiffness=50.0), "loop"),
+                    (dict(correction=Correction(kind="velocity_sensor")), "loop")]:
+        lp = LoopModel(**{**base, **kw})
+        for call in (lambda: MatrixLoop.from_loop(lp), lambda: state_matrix(lp, 100.0),
+                     lambda: rendered_pairs(lp, 100.0)):
+            with pytest.raises(ConfigError) as err:
+                call()
+            assert err.value.key == key, (kw, err.value)
+        assert math.isfinite(render(lp, 100.0, 1.0).spectral_radius)
+        assert closed_loop_poles(lp, 100.0, 1.0).size >= 3
+    loop2 = MatrixLoop(mass=np.eye(2) * 0.1, friction=0.5, rate_hz=1000.0, delay=1)
+    for call in (lambda: calibrate(loop2, 500.0, 3.0), loop2.to_loop_model):
+        with pytest.raises(ConfigError) as err:
+            call()
+        assert err.value.key == "dof"
+    with pytest.raises(ConfigError) as err:
+        as_matrix_loop(object())
+    assert err.value.key == "loop"
