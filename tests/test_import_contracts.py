@@ -535,8 +535,8 @@ def test_no_module_reads_another_objects_private_state():
 # --------------------------------------------------------------------- the THS package
 #: hapsim.analysis.ths, the THS of every dimension, is four rooms in a row, each importing
 #: only the rooms before it: the loop with matrices, the hold and delay as matrices (state
-#: matrix, poles), the felt matrices, render and calibrate (docs/design.md, 'Package
-#: layout'). The scene's device reader takes the first room alone.
+#: matrix, poles), the felt matrices, render and calibrate
+#: (docs/design.md, 'Package layout'). The scene's device reader takes the first room alone.
 THS_ROOMS = ("hapsim.analysis.ths.matrix_loop", "hapsim.analysis.ths.holds",
              "hapsim.analysis.ths.felt", "hapsim.analysis.ths.render")
 

@@ -3,8 +3,8 @@
 
 The plant is :class:`hapsim.analysis.ths.matrix_loop.MatrixLoop`'s; a rigid 1-D
 :class:`~hapsim.analysis.loop.LoopModel` with the zero-order hold is its case n = 1
-(:func:`~hapsim.analysis.ths.matrix_loop.as_matrix_loop`). docs/design.md, 'A whole
-scene'; docs/dimensions.md, 'The THS as a matrix'.
+(:func:`~hapsim.analysis.ths.matrix_loop.as_matrix_loop`).
+docs/design.md, 'A whole scene'; docs/dimensions.md, 'The THS as a matrix'.
 """
 
 from __future__ import annotations

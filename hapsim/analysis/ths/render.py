@@ -148,8 +148,8 @@ def render(loop: LoopModel | MatrixLoop, K, B=0.0) -> RenderResult | MatrixRende
     RenderResult
         For a :class:`~hapsim.analysis.loop.LoopModel`: the rendered pair = least damped
         complex pair of the closed loop (largest ``|z|``); ``s = ln(z)/T``,
-        ``k = m|s|^2``, ``b = -2 m Re s`` (Florens et al. Sec. 5, docs/design.md, 'The
-        inverse map'). Other poles are reported as parasitic modes.
+        ``k = m|s|^2``, ``b = -2 m Re s`` (Florens et al. Sec. 5;
+        docs/design.md, 'The inverse map'). Other poles are reported as parasitic modes.
     MatrixRenderResult
         For a :class:`~hapsim.analysis.ths.matrix_loop.MatrixLoop`: the felt stiffness and
         damping matrices, principal directions and per-direction pairs
