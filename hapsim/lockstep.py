@@ -9,7 +9,7 @@ state matrix is exactly this loop's one-step map for a linear scene):
    port ``F[n]`` from the positions at ``n`` and ``n - 1``;
 3. ``F[n]`` enters the delay line; the device holds ``u[n] = F[n-d]`` over the period and
    advances exactly, ``[x, v][n+1] = Ad [x, v][n] + Bd u[n]``
-   (:func:`hapsim.analysis.ths_nd.zoh_matrices` of its Cartesian mass and friction).
+   (:func:`hapsim.analysis.ths.zoh_matrices` of its Cartesian mass and friction).
 
 No protocol and no pseudo-terminal yet: the n-axis device, its mock behind a port, the
 hand's excitation and the identification of the felt matrices from a record are what is
@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
+from hapsim.analysis.ths import MatrixLoop, split_hold_matrices, zoh_matrices
 from hapsim.engine_nd import EngineND
 from hapsim.errors import ConfigError
 from hapsim.analysis.felt_matrices import FELT_QUANTITIES, felt_deviation
@@ -61,11 +61,11 @@ class LockstepND:
         n = scene.dimension
         self.n = n
         dev = scene.device
-        lm = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
-                         delay=dev.delay)
+        lm = MatrixLoop(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
+                        delay=dev.delay)
         self.Ad, self.Bd = zoh_matrices(lm)
         # a sub-sample delay m + f: the device holds the previous force over the period's
-        # first f T (the split hold, hapsim.analysis.ths_nd.split_hold_matrices)
+        # first f T (the split hold, hapsim.analysis.ths.split_hold_matrices)
         self.split = float(dev.delay) % 1.0
         if self.split > 0:
             if joint_space:

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from hapsim.analysis.felt_matrices import felt_deviation
-from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices
+from hapsim.analysis.ths import MatrixLoop, split_hold_matrices
 from hapsim.errors import ConfigError
 from hapsim.lockstep import default_samples, excitation_starts
 
@@ -35,14 +35,14 @@ class PortDevice:
 
     Notes
     -----
-    The exact hold of the 1-DoF device (:func:`hapsim.analysis.ths_nd.split_hold_matrices`
+    The exact hold of the 1-DoF device (:func:`hapsim.analysis.ths.split_hold_matrices`
     of its own 1 x 1 loop, the zero-order hold for a whole delay): ``[x, v][n+1] = Ad [x,
     v][n] + Gamma0 F[n-m] + Gamma1 F[n-m-1]`` (docs/design.md, 'The timing convention').
     """
 
     def __init__(self, device, rate_hz: float, x0: float = 0.0, v0: float = 0.0) -> None:
-        lm = LoopModelND(mass=[[float(device.mass)]], friction=[[float(device.friction)]],
-                         rate_hz=rate_hz, delay=device.delay)
+        lm = MatrixLoop(mass=[[float(device.mass)]], friction=[[float(device.friction)]],
+                        rate_hz=rate_hz, delay=device.delay)
         self.Ad, self._G0, self._G1 = split_hold_matrices(lm)
         self.state = np.array([float(x0), float(v0)])
         self.fifo = [0.0] * int(math.floor(float(device.delay)))   # F[n-1], ..., F[n-m]
@@ -290,7 +290,7 @@ def ports_bound(scene, chk, amplitude: float):
         rendered poles and the position scale of the grounds (the round-off's).
     """
     from hapsim.analysis.linearisation import LinearisationBound
-    from hapsim.analysis.ths_nd import continuous_poles
+    from hapsim.analysis.ths import continuous_poles
     s = continuous_poles(chk.render.rendered_poles, scene.period)
     damping = float(np.max(np.abs(s) / (2 * np.abs(s.real)))) if s.size else math.nan
     scale = max([abs(float(m.x0)) for m in scene.masses] + [0.0])

@@ -1,10 +1,10 @@
 """Scenes with several ports (issue 30 item 3): the reader and its refusals, and the felt
-matrices across ports (hapsim.analysis.ports, on the n-D loop of hapsim.analysis.ths_nd)
+matrices across ports (hapsim.analysis.ports, on the n-D loop of hapsim.analysis.ths)
 against independent computations written here: each port's own 1-D prediction
 (hapsim.analysis.ths) when the ports are uncoupled, and, coupled, a state space assembled
 directly from each device's own expm zero-order hold and its own *force* delay line (not
 hapsim's position delay line), with its felt matrices by least squares on the quadratic
-eigen-equations of its own modes (tests/test_ths_nd.py's reference_felt)."""
+eigen-equations of its own modes (tests/test_ths.py's reference_felt)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from hapsim.analysis.ports import check_ports, ports_state_matrix
 from hapsim.analysis.ths import render
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Link, Mass, ScenePorts, parse_scene, parse_scene_ports
-from test_ths_nd import felt_tols, match, reference_felt   # the n-D reference's helpers
+from test_ths import felt_tols, match, reference_felt   # the n-D reference's helpers
 from tolerance import eig_bounds, eig_tol, expm_tol, measured, roots_tol
 
 pytestmark = pytest.mark.numerical

@@ -57,7 +57,7 @@ def felt_directions(fit: dict, chk) -> dict | None:
     [N/m] (the force per displacement the hand feels along ``e`` when it pushes along
     ``e``; only the symmetric part of ``k`` contributes) and the felt damping ``e^T b e``
     [N s/m]. The directions are the check's principal directions ``e_i``
-    (:mod:`hapsim.analysis.ths_nd`: the major axis of rendered mode ``i``); for a loop
+    (:mod:`hapsim.analysis.ths`: the major axis of rendered mode ``i``); for a loop
     that is symmetric in one basis (``M``, ``B0``, ``K``, ``B`` diagonal in it) they are
     the eigenvectors of ``k`` and ``b`` and ``e_i^T k e_i = m_i |s_i|^2`` (the check's
     ``direction_stiffness``); otherwise the two differ by the loop's asymmetric coupling

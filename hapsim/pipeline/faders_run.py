@@ -477,7 +477,7 @@ def decimation(chk, period: float) -> int:
     -------
     int
     """
-    from hapsim.analysis.ths_nd import continuous_poles
+    from hapsim.analysis.ths import continuous_poles
     s = continuous_poles(chk.render.rendered_poles, period)
     f = float(np.max(np.abs(s.imag))) / (2 * math.pi) if s.size else 0.0
     return max(1, int(1.0 / (SAMPLES_PER_CYCLE * f * period))) if f > 0 else 1

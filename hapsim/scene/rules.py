@@ -256,7 +256,7 @@ PORTS_NOT_BUILT = {
     "delay": "a sub-sample delay (the split hold) takes one delay for every port: unequal "
              "delays must be whole periods",
 }
-#: Most ports one scene takes: the n-D loop (hapsim.analysis.ths_nd.LoopModelND) has at
+#: Most ports one scene takes: the n-D loop (hapsim.analysis.ths.MatrixLoop) has at
 #: most 3 axes.
 MAX_PORTS = 3
 
