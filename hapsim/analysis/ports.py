@@ -16,8 +16,9 @@ A 1-D scene with P ports (:class:`hapsim.scene.ScenePorts`) is the n-D loop of
   (a link of ``(k, c)`` between ports ``i`` and ``j`` adds ``k`` at ``(i, i)`` and
   ``(j, j)`` and ``-k`` at ``(i, j)`` and ``(j, i)``; to a ground, ``k`` at ``(i, i)``).
 - **Delay.** Port ``i``'s device applies the force computed from the positions ``d_i``
-  samples before (:func:`hapsim.analysis.ths.state_matrix` with ``delays``); equal
-  delays may be sub-sample (the split hold of every axis), unequal ones are whole.
+  samples before (:func:`hapsim.analysis.ths.state_matrix` with ``delays``), whole or
+  sub-sample, each port its own (each axis its own split hold: the FireFader's fader B,
+  read 150 us before fader A, is 0.7625 periods behind at 250 Hz where A is 0.725).
 
 The felt matrices across ports, ``k`` and ``b`` (P x P), and the stability of the coupled
 loop (its spectral radius) are :func:`hapsim.analysis.ths.render_state`'s (Lancaster's
@@ -86,9 +87,9 @@ def port_loop(scene) -> tuple[MatrixLoop, tuple | None]:
     loop : hapsim.analysis.ths.MatrixLoop
         ``dof = P``, ``mass = diag(m_i)`` [kg], ``friction = diag(b0_i)`` [N s/m], the
         scene's rate, ``delay`` the ports' common delay (the largest when they differ).
-    delays : tuple of int or None
-        Each port's whole delay [periods] when they differ, else None (the loop's one
-        delay, sub-sample or not).
+    delays : tuple of int or float, or None
+        Each port's delay [periods] when they differ (ints when all are whole), else
+        None (the loop's one delay, sub-sample or not).
     """
     devs = [d for _, d in scene.devices]
     delays = [float(d.delay) for d in devs]
@@ -96,7 +97,10 @@ def port_loop(scene) -> tuple[MatrixLoop, tuple | None]:
     loop = MatrixLoop(mass=np.diag([float(d.mass) for d in devs]),
                       friction=np.diag([float(d.friction) for d in devs]),
                       rate_hz=scene.rate_hz, delay=devs[0].delay if same else max(delays))
-    return loop, None if same else tuple(int(x) for x in delays)
+    if same:
+        return loop, None
+    whole = all(x % 1 == 0 for x in delays)
+    return loop, tuple(int(x) if whole else x for x in delays)
 
 
 def ports_state_matrix(scene) -> np.ndarray:
@@ -108,7 +112,8 @@ def ports_state_matrix(scene) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape (P (d + 3), P (d + 3)); ``P (m + 4)`` for a common delay ``m + f``
+    ndarray, shape (P (d + 3), P (d + 3)); ``P (m + 4)`` for a sub-sample delay
+        ``m + f`` (the largest ``m``)
         ``s[n+1] = A s[n]``, the first P states the ports' positions [m], ``d`` the
         largest delay.
     """

@@ -142,10 +142,12 @@ def state_matrix(loop: MatrixLoop, K, B=0.0, delays=None) -> np.ndarray:
         Virtual stiffness matrix [N/m].
     B : array_like, shape (n, n) (or (n,), or a scalar), optional
         Virtual damping matrix [N s/m].
-    delays : sequence of int, shape (n,), optional
-        A whole delay per axis [periods] (several ports, each its own device): row ``i``
-        of ``F`` is computed from ``x[n-d_i]`` and applied by axis ``i``'s hold; ``d`` is
-        then ``max d_i`` (``loop.delay`` is not used). Default: ``loop.delay`` on every axis.
+    delays : sequence of float, shape (n,), optional
+        A delay per axis [periods] (several ports, each its own device): row ``i`` of
+        ``F`` is computed from ``x[n-d_i]`` and applied by axis ``i``'s hold; ``d`` is
+        then ``max d_i`` (``loop.delay`` is not used). Whole delays give the state
+        below; a sub-sample one on any axis, each axis its own split hold
+        (:func:`_per_axis_split_state_matrix`). Default: ``loop.delay`` on every axis.
 
     Returns
     -------
@@ -170,9 +172,13 @@ def state_matrix(loop: MatrixLoop, K, B=0.0, delays=None) -> np.ndarray:
     if delays is None and d % 1:
         return _split_state_matrix(loop, Kq, Bq)
     per = [d] * n if delays is None else list(delays)
+    if delays is not None and len(per) == n and all(
+            isinstance(x, (int, float)) and math.isfinite(x) and 0 <= x <= MAX_DELAY
+            for x in per) and any(float(x) % 1 for x in per):
+        return _per_axis_split_state_matrix(loop, Kq, Bq, [float(x) for x in per])
     if len(per) != n or not all(isinstance(x, int) and 0 <= x <= MAX_DELAY for x in per):
-        raise ConfigError(f"must be {n} whole delays in [0, {MAX_DELAY}], got {delays!r}",
-                          key="delays")
+        raise ConfigError(f"must be {n} delays in [0, {MAX_DELAY}] [periods], got "
+                          f"{delays!r}", key="delays")
     d = max(per)
     Ad, Bd = zoh_matrices(loop)
     N = n * (d + 3)
@@ -213,6 +219,53 @@ def _split_state_matrix(loop: MatrixLoop, Kq, Bq) -> np.ndarray:
     A[h, pos(m)] = Fx
     A[h, pos(m + 1)] = Fxp
     for k in range(1, m + 2):     # x[n+1-k] <- x[n-(k-1)]
+        A[pos(k), pos(k - 1)] = np.eye(n)
+    return A
+
+
+def _per_axis_split_state_matrix(loop: MatrixLoop, Kq, Bq, per) -> np.ndarray:
+    """:func:`state_matrix` with a delay ``m_i + f_i`` per axis (several ports, each its
+    own device and hold). Over ``[nT, (n+1)T)`` axis ``i``'s force is ``F_i[n-m_i-1]``
+    for the first ``f_i T``, then ``F_i[n-m_i]``: each is a column of the split hold
+    (:func:`split_hold_matrices` with axis ``i``'s ``f_i``: ``Gamma0`` over the last
+    ``(1 - f_i) T``, ``Gamma1`` over the first ``f_i T`` carried to the period's end;
+    modified z-transform, Franklin, Powell & Workman sec. 4.3), so
+    ``[x; v][n+1] = Ad [x; v] + sum_i Gamma0_i F_i[n-m_i] + Gamma1 h[n]`` with
+    ``h_i[n] = F_i[n-m_i-1]`` (zero columns for a whole ``f_i``), and
+    ``h_i[n+1] = F_i[n-m_i]``. State ``(x[n], v[n], x[n-1], ..., x[n-M-1], h[n])``,
+    ``M = max m_i``: ``n (M + 4)`` states. Whole delays on every axis give the same
+    poles as :func:`state_matrix`'s whole form (with ``n`` more zeros)."""
+    n, T = loop.dof, loop.period
+    ms = [int(math.floor(x)) for x in per]
+    fs = [x - m for x, m in zip(per, ms)]
+    M = max(ms)
+    Ad, Bd = _zoh_over(loop, T)
+    G0, G1 = np.zeros_like(Bd), np.zeros_like(Bd)
+    for f in sorted(set(fs)):
+        cols = [i for i in range(n) if fs[i] == f]
+        if f == 0.0:
+            G0[:, cols] = Bd[:, cols]
+            continue
+        A0, g0 = _zoh_over(loop, (1.0 - f) * T)
+        _, gf = _zoh_over(loop, f * T)
+        G0[:, cols] = g0[:, cols]
+        G1[:, cols] = (A0 @ gf)[:, cols]
+    N = n * (M + 4)
+    A = np.zeros((N, N))
+    A[:2 * n, :2 * n] = Ad
+
+    def pos(k):   # block of x[n - k]
+        return slice(0, n) if k == 0 else slice((k + 1) * n, (k + 2) * n)
+    h = slice((M + 3) * n, (M + 4) * n)
+    Fx, Fxp = -(Kq + Bq / T), Bq / T          # F[n-k] = Fx x[n-k] + Fxp x[n-k-1]
+    for m in sorted(set(ms)):
+        rows = np.array([[float(x == m)] for x in ms])
+        A[:2 * n, pos(m)] += G0 @ (rows * Fx)
+        A[:2 * n, pos(m + 1)] += G0 @ (rows * Fxp)
+        A[h, pos(m)] += rows * Fx
+        A[h, pos(m + 1)] += rows * Fxp
+    A[:2 * n, h] += G1
+    for k in range(1, M + 2):     # x[n+1-k] <- x[n-(k-1)]
         A[pos(k), pos(k - 1)] = np.eye(n)
     return A
 
