@@ -3,7 +3,12 @@ box (issue 29; :mod:`hapsim.analysis.wire_box`): refits of records moved by erro
 the bounds each device states never move a stated component by more than its stated term;
 a matching device is never "differs", one with 30 % more inertia still is where the
 statement is made; and the first-order term at the records alone, which both verdicts
-stated before, was exceeded on the Falcon's shipped spring field.
+stated before, was exceeded on each device's shipped spring field at its own counts. At
+the finer counts the refit tests draw, the search stays within the first-order term
+(measured over seeds 0-7 of the Falcon's family, 100 samples, and eight of the
+pantograph's, 150: at most 0.76 and 0.82 of it), and within 0.22 and 0.35 of the box's
+stated term (the box stating 89 of the 177 components the first-order term stated on
+the Falcon's, 48 of 58 on the pantograph's).
 
 The records are the loop's own free responses on the simulated lockstep clock (named:
 :class:`hapsim.lockstep.LockstepND`), the errors fed back through the loop by it (an
@@ -286,6 +291,40 @@ def test_the_first_order_term_was_exceeded_on_the_falcons_spring():
     # and any BLAS's refit far inside the 0.7 above it
     assert moved > 1.5 * first[o], (moved, first[o])
 
+
+
+def test_the_first_order_term_was_exceeded_on_the_pantographs_spring():
+    """Likewise the pantograph firmware's: on configs/pantograph_spring.yaml at 5 mm (the
+    loop in lockstep, the firmware's own sensor count and PWM step) the first-order term
+    at the records states the felt damping along x (0.18); errors within half a count
+    and half a step, its worst signs re-linearised once at the records they moved, move
+    it by 0.24 (measured: 1.34 times the term; three re-linearisations reach 1.9 times).
+    Over the box nothing is stated there (tests/test_pantograph_spring.py)."""
+    from hapsim.scene import load_scene_nd
+    sc = load_scene_nd(ROOT / "configs" / "pantograph_spring.yaml")
+    a = 5e-3
+    chk, p, N = identification_plan(sc)
+    q0 = np.asarray(sc.device.joints, float)
+    J = device("pantograph", sc.device.geometry).jacobian(q0)
+    ulp = np.spacing(np.abs(q0).astype(np.float32)).astype(float)
+    box = _Box(sc, a, N, p, J, HAPKIT_RAD_PER_COUNT / 2 + ulp,
+               HAPKIT_TORQUE_STEP / 2 + 2.0 ** -24 * 0.5)
+    E = box.E = np.asarray(chk.render.directions, float)
+    X0 = _records(sc, a, N)
+    s0 = _statements(X0, sc, p, E)
+    first = _stated(wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
+                                  [("reading", J, box.dq),
+                                   ("force", box.Jt, np.full(2, box.dt))]), 2)
+    o = 11                                            # b along the second direction
+    assert abs(E[0, 1]) > 0.99                        # x
+    assert first[o] <= MEASURABLE_WIRE                # first order stated it
+    moved = 0.0
+    for X in box.trials(X0, s0, [o], np.random.default_rng(0), relinearise=1):
+        s = _statements(X, sc, p, E)
+        moved = max(moved, math.inf if s is None else abs(s[o] - s0[o]) / _scales(chk, E)[o])
+    # measured 1.34 times the term; 1.2 leaves the records' round-off (1e-16 relative)
+    # and any BLAS's refit far inside the 0.14 above it
+    assert moved > 1.2 * first[o], (moved, first[o])
 
 @pytest.mark.parametrize("family", ["falcon", "pantograph"])
 def test_a_matching_device_is_never_differs_and_more_inertia_still_is(family, monkeypatch):
