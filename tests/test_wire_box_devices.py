@@ -259,6 +259,28 @@ def test_pantograph_firmware_refits_stay_within_what_is_stated(seed):
                   _scales(chk, box.E), rng)
 
 
+def _past_first_order(sc, a, kind, dq, dt, o, relinearise):
+    """Statement ``o`` on ``sc``'s exact records from starts at ``a`` [m], errors within
+    ``dq`` per joint reading [rad] and ``dt`` per joint torque [N m]: its first-order
+    term at the records (relative) and the largest change the box's search found (its
+    worst signs, re-linearised ``relinearise`` times)."""
+    chk, p, N = identification_plan(sc)
+    n = sc.dimension
+    J = device(kind, sc.device.geometry).jacobian(np.asarray(sc.device.joints, float))
+    box = _Box(sc, a, N, p, J, dq, dt)
+    E = box.E = np.asarray(chk.render.directions, float)
+    X0 = _records(sc, a, N)
+    s0 = _statements(X0, sc, p, E)
+    first = _stated(wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
+                                  [("reading", J, np.broadcast_to(dq, (n,))),
+                                   ("force", box.Jt, np.full(n, dt))]), n)
+    moved = 0.0
+    for X in box.trials(X0, s0, [o], np.random.default_rng(0), relinearise=relinearise):
+        s = _statements(X, sc, p, E)
+        moved = max(moved, math.inf if s is None else abs(s[o] - s0[o]) / _scales(chk, E)[o])
+    return first[o], moved, E
+
+
 def test_the_first_order_term_was_exceeded_on_the_falcons_spring():
     """Why the Falcon's verdict left the first-order term: on configs/falcon_spring.yaml
     at its largest start (3.77 mm) and the Falcon's own counts, the first-order term at
@@ -269,28 +291,13 @@ def test_the_first_order_term_was_exceeded_on_the_falcons_spring():
     entry's fit collapses, 1,800 times). The box's term there (tests/test_falcon_spring.py)
     is beyond the limit: nothing is stated."""
     from hapsim.drivers.falcon import DEG_PER_TICK, TORQUE_PER_COUNT
-    sc = parse_scene_nd(SPRING)
-    plan = identification_plan(sc)
-    chk, p, N = plan
-    J = device("delta", sc.device.geometry).jacobian(np.asarray(sc.device.joints, float))
-    dq, dt = math.radians(DEG_PER_TICK) / 2.0, TORQUE_PER_COUNT / 2.0
-    box = _Box(sc, SPRING_START, N, p, J, dq, dt)
-    E = box.E = np.asarray(chk.render.directions, float)
-    X0 = _records(sc, SPRING_START, N)
-    s0 = _statements(X0, sc, p, E)
-    first = _stated(wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
-                                  [("reading", J, np.full(3, dq)),
-                                   ("force", box.Jt, np.full(3, dt))]), 3)
-    o = 18                                            # k along the first direction
-    assert first[o] <= MEASURABLE_WIRE                # first order stated it
-    moved = 0.0
-    for X in box.trials(X0, s0, [o], np.random.default_rng(0), relinearise=2):
-        s = _statements(X, sc, p, E)
-        moved = max(moved, math.inf if s is None else abs(s[o] - s0[o]) / _scales(chk, E)[o])
+    first, moved, _ = _past_first_order(parse_scene_nd(SPRING), SPRING_START, "delta",
+                                        math.radians(DEG_PER_TICK) / 2.0,
+                                        TORQUE_PER_COUNT / 2.0, 18, 2)  # k along e_0
+    assert first <= MEASURABLE_WIRE                   # first order stated it
     # measured 2.2 times the term; 1.5 leaves the records' round-off (1e-16 relative)
     # and any BLAS's refit far inside the 0.7 above it
-    assert moved > 1.5 * first[o], (moved, first[o])
-
+    assert moved > 1.5 * first, (moved, first)
 
 
 def test_the_first_order_term_was_exceeded_on_the_pantographs_spring():
@@ -302,29 +309,18 @@ def test_the_first_order_term_was_exceeded_on_the_pantographs_spring():
     Over the box nothing is stated there (tests/test_pantograph_spring.py)."""
     from hapsim.scene import load_scene_nd
     sc = load_scene_nd(ROOT / "configs" / "pantograph_spring.yaml")
-    a = 5e-3
-    chk, p, N = identification_plan(sc)
     q0 = np.asarray(sc.device.joints, float)
-    J = device("pantograph", sc.device.geometry).jacobian(q0)
     ulp = np.spacing(np.abs(q0).astype(np.float32)).astype(float)
-    box = _Box(sc, a, N, p, J, HAPKIT_RAD_PER_COUNT / 2 + ulp,
-               HAPKIT_TORQUE_STEP / 2 + 2.0 ** -24 * 0.5)
-    E = box.E = np.asarray(chk.render.directions, float)
-    X0 = _records(sc, a, N)
-    s0 = _statements(X0, sc, p, E)
-    first = _stated(wire_terms_nd(sc, [r - X0[0] for r in X0[1:]], chk, p,
-                                  [("reading", J, box.dq),
-                                   ("force", box.Jt, np.full(2, box.dt))]), 2)
-    o = 11                                            # b along the second direction
-    assert abs(E[0, 1]) > 0.99                        # x
-    assert first[o] <= MEASURABLE_WIRE                # first order stated it
-    moved = 0.0
-    for X in box.trials(X0, s0, [o], np.random.default_rng(0), relinearise=1):
-        s = _statements(X, sc, p, E)
-        moved = max(moved, math.inf if s is None else abs(s[o] - s0[o]) / _scales(chk, E)[o])
+    first, moved, E = _past_first_order(sc, 5e-3, "pantograph",
+                                        HAPKIT_RAD_PER_COUNT / 2 + ulp,
+                                        HAPKIT_TORQUE_STEP / 2 + 2.0 ** -24 * 0.5,
+                                        11, 1)                  # b along e_1
+    assert abs(E[0, 1]) > 0.99                        # e_1 is x
+    assert first <= MEASURABLE_WIRE                   # first order stated it
     # measured 1.34 times the term; 1.2 leaves the records' round-off (1e-16 relative)
     # and any BLAS's refit far inside the 0.14 above it
-    assert moved > 1.2 * first[o], (moved, first[o])
+    assert moved > 1.2 * first, (moved, first)
+
 
 @pytest.mark.parametrize("family", ["falcon", "pantograph"])
 def test_a_matching_device_is_never_differs_and_more_inertia_still_is(family, monkeypatch):
