@@ -133,7 +133,7 @@ def test_a_matching_falcon_is_never_differs_and_its_counts_state_nothing(spring)
         w, first = r["wire"], r["wire"]["first_order"]
         assert min(w["felt_stiffness"], *w["directions"]["felt_stiffness"]) > MEASURABLE_WIRE
         assert min(first["directions"]["felt_stiffness"]) <= MEASURABLE_WIRE
-        assert "worst case over the errors' bounds" in r["reason"]
+        assert "over the errors' box" in r["reason"]
         assert r["excursion_rad"] < ENVELOPE_RAD          # the run's envelope kept
 
 

@@ -72,7 +72,7 @@ def test_the_firmware_renders_the_spring_never_differs_over_the_error_box(built,
     # what the first-order terms stated: every one under the limit
     assert max(first["felt_stiffness"], first["felt_damping"]) <= MEASURABLE_WIRE
     assert out["verdict"] == "not measurable" and out["within"] is None
-    assert "worst case over the errors' bounds" in out["reason"], out["reason"]
+    assert "over the errors' box" in out["reason"], out["reason"]
     assert text.rstrip().splitlines()[-1].startswith("  verdict: not measurable")
 
 
