@@ -50,6 +50,12 @@ INTEGRATORS = ("centred", "symplectic_euler", "exact")
 #: 1 kHz, 50 ms at 10 kHz: beyond the loops a haptic device closes (a 16 ms USB latency
 #: timer is 16 samples at 1 kHz, 80 at 5 kHz).
 MAX_DELAY = 500
+#: The smallest fraction of a period a sub-sample delay takes [-]: a delay whose fraction,
+#: or whose distance to the next whole period, is below it (``0 < f < MIN_DELAY_FRACTION``)
+#: is refused with its key. It is no timing a clock resolves (1 ps at 1 kHz), and near
+#: 1e-308 the split hold's first piece is a subnormal time whose matrices are NaN (the
+#: scene fuzz: ``delay: 1e-308`` gave ``hapsim check`` a linear-algebra traceback).
+MIN_DELAY_FRACTION = 1e-9
 #: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
 #: or ``1/T^2`` leave the double range long before any product is formed.
 RATE_RANGE = (1e-6, 1e9)

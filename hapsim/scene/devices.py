@@ -123,6 +123,10 @@ def read_device_nd(r: LineContext, doc, n: int, max_delay: int) -> DeviceND:
     # a real number of periods (hapsim.analysis.subsample); a whole one stays an int
     delay = r.number(d, "delay", key, default=1, minimum=0.0, maximum=float(max_delay),
                      unit="periods")
+    from hapsim.scene.rules import delay_fraction_refusal
+    why = delay_fraction_refusal(delay)
+    if why is not None:
+        raise r.error(why, r.line_of(d, "delay"), f"{key}.delay")
     if float(delay).is_integer():
         delay = int(delay)
     hold = r.choice(d, "hold", key, ("zoh",), default="zoh")

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from hapsim.errors import ConfigError, num, show, type_name
-from hapsim.scene_schema import MAX_PRODUCT, Key, check_product, section_keys
+from hapsim.scene_schema import (MAX_PRODUCT, MIN_DELAY_FRACTION, Key, check_product,
+                                  section_keys)
 from hapsim.scene_schema import key as _key
 from hapsim.scene.elements import (CORRECTIONS, Audio, Device, Excitation, Hand, Impulse, Link,
                                    Listen, Mass, Safety, audio_substeps)
@@ -585,6 +586,9 @@ def check_device(d: Any) -> None:
     if not isinstance(d, Device):
         raise Invalid(f"must be a hapsim.scene.Device, got {type_name(d)}", ("device",))
     _check_section(d, "device", "device")
+    why = delay_fraction_refusal(d.delay)
+    if why is not None:
+        raise Invalid(why, ("device", "delay"))
     if d.hold != "zoh" and float(d.delay) % 1.0:
         raise Invalid(f"a delay of {num(float(d.delay))} periods switches the force inside "
                       "the period (the split hold): it needs hold: zoh; the 'ideal' hold "
@@ -595,6 +599,29 @@ def check_device(d: Any) -> None:
         _check_correction(d.correction, d.hold)
     if d.protocol_options is not None:
         _check_protocol_options(d.protocol_options, d.protocol)
+
+
+def delay_fraction_refusal(delay) -> str | None:
+    """Why a delay's fraction of a period is refused, or None
+    (:data:`hapsim.scene_schema.MIN_DELAY_FRACTION`).
+
+    Parameters
+    ----------
+    delay : float
+        [periods], finite and >= 0 (its range checked already).
+
+    Returns
+    -------
+    str or None
+    """
+    d = float(delay)
+    f = d - math.floor(d)
+    if 0.0 < f < MIN_DELAY_FRACTION or 0.0 < 1.0 - f < MIN_DELAY_FRACTION:
+        whole = round(d)
+        return (f"a delay of {d!r} periods is {min(f, 1.0 - f):.3g} of a period from "
+                f"the whole {whole}: no clock resolves it; give {whole}, or a fraction of at "
+                f"least {MIN_DELAY_FRACTION:g} of a period")
+    return None
 
 
 def _check_protocol_options(o: Any, protocol: str) -> None:
