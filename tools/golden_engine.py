@@ -123,39 +123,23 @@ def drive(scene) -> dict[str, np.ndarray]:
         positions before the run and after every EVERY samples [m]; ``masses`` their
         indices.
     """
-    if scene.dimension == 1:
-        from hapsim.engine import Engine
-        eng = Engine(scene)
-        dim, port = 1, eng.port_index
-
-        def state():
-            return eng.positions[None, :]
-    else:
-        from hapsim.engine_nd import EngineND
-        eng = EngineND(scene)
-        dim, port = eng.dim, -1 if eng.port is None else eng.port
-
-        def state():
-            return eng.x
+    from hapsim.engine import Engine
+    eng = Engine(scene)
+    dim, port = eng.dim, eng.port_index
     idx = kept(len(eng.names))
     force = np.zeros((SAMPLES, dim))
-    xs = [state()[:, idx].T.copy()]
+    xs = [eng.x[:, idx].T.copy()]
     if port >= 0:
-        rest = state()[:, port].copy()
-        if dim == 1:
-            eng.set_port_position(float(rest[0]), at_rest=True)
+        rest = eng.x[:, port].copy()
+        eng.set_port_position(rest, at_rest=True)
         path = rest + trajectory(SAMPLES, dim, scene.rate_hz, SEED)
     for s in range(SAMPLES):
-        if port >= 0 and dim == 1:
-            force[s] = eng.port_step(float(path[s, 0]))
-        elif port >= 0:
-            eng.set_port_position(path[s])
-            eng.step(1)
-            force[s] = eng.port_force
+        if port >= 0:
+            force[s] = eng.port_step(path[s])
         else:
             eng.step(1)
         if (s + 1) % EVERY == 0:
-            xs.append(state()[:, idx].T.copy())
+            xs.append(eng.x[:, idx].T.copy())
     return {"force": force, "x": np.array(xs), "masses": idx}
 
 

@@ -111,7 +111,7 @@ class LiveSound:
         self._st = np.zeros(len(_S))
         self._st[_S["gain"]] = self._st[_S["gain_target"]] = 1.0
         p = engine.port_index
-        x0 = float(engine.positions[p]) if p >= 0 else 0.0
+        x0 = float(engine.x[0, p]) if p >= 0 else 0.0
         self._st[_S["p0"]] = self._st[_S["p1"]] = x0
         self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
         head, state = engine.multirate_pack
