@@ -10,7 +10,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hapsim.engine import Engine
-from hapsim.engine import Engine
 from hapsim.kernels.nd import stripes
 from hapsim.scene import parse_scene
 from hapsim.scene import parse_scene_nd

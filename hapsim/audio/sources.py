@@ -350,12 +350,12 @@ def sounding_engine(ring: FrameRing) -> type:
         from a scene.
     """
 
-    class SoundingEngine(Engine):
+    class SoundingEngine(Engine.layout(1)):      # multi-rate sound: the 1-D layout
         __doc__ = f"Engine whose device samples also feed a {type(ring).__name__}."
         frame_ring = ring
 
         def port_step(self, position: float) -> float:
-            f = Engine.port_step(self, position)
+            f = super().port_step(position)
             self.frame_ring.push(self.frames)
             return f
 

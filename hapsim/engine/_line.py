@@ -282,12 +282,12 @@ class Line(Engine):
             self._step_run = step1d.RUNNERS[self._kernel]
             return
         head, state = self._multi
-        # step: the port held, one period at a time on scratch position, frames and force
-        # (dropped); port_step: the position given, frames and force kept (self.frames)
-        self._step_scratch = pos, frames, force = (np.zeros(1), np.zeros_like(self.frames),
-                                                   np.zeros(1))       # kept alive here
+        # step: the port held, one period at a time on scratch position and frames
+        # (dropped), its force kept as port_step's; port_step: the position given, frames
+        # and force kept (self.frames, self._force1: port_force)
+        self._step_scratch = pos, frames = (np.zeros(1), np.zeros_like(self.frames))
         self._step_ctx, self._step_keep = step1d.context(
-            (pos,) + state + (frames, force, _EMPTY_REC, _EMPTY_OUT), head + (0,))
+            (pos,) + state + (frames, self._force1, _EMPTY_REC, _EMPTY_OUT), head + (0,))
         self._port_ctx, self._port_keep = step1d.context(
             (self._pos1,) + state + (self.frames, self._force1, _EMPTY_REC, _EMPTY_OUT),
             head + (1,))
@@ -527,7 +527,11 @@ class Line(Engine):
             self._xp[self._port] = position
 
     def _port_force_row(self) -> np.ndarray:
-        """The port's force [N] as a view of shape (1,)."""
+        """The port's force [N] as a view of shape (1,): the last sample's (with
+        ``audio``, the device period's, as :meth:`port_step` returns it: the sub-steps'
+        mean or last, ``audio.port_force``)."""
+        if self._multi is not None:
+            return self._force1
         return self._f[self._port:self._port + 1]
 
     @property
