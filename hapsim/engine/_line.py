@@ -264,8 +264,7 @@ class Line(Engine):
         self._multi = MultiRatePack(
             (self.substeps, audio.port_position == "linear", audio.port_force == "last",
              self._port),
-            (self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed)
-            + tuple(sd) + tuple(ct)
+            pack.state + tuple(sd) + tuple(ct)
             + (self._l_idx, self._l_code, self._l_gain, 1.0 / self.sim_period))
         self._pos1 = np.zeros(1)
         self._force1 = np.zeros(1)
