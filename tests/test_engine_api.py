@@ -72,6 +72,25 @@ def test_the_float_shorthand_is_the_array_form(seed):
     assert np.array_equal(a.x, b.x) and np.array_equal(a.xp, b.xp)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_port_step_after_a_multi_sample_step_advances_one_sample(seed):
+    """``step(n)`` then ``port_step`` advances n + 1 samples, as n single steps and the
+    port set then stepped once do (the 1-D step leaves its context at one sample), bit for
+    bit, over random networks and step counts."""
+    rng = np.random.default_rng(300 + seed)
+    scene = random_network(rng)
+    a, b = Engine(scene), Engine(scene)
+    for _ in range(5):
+        n, x = int(rng.integers(0, 40)), float(rng.normal(0, 0.005))
+        a.step(n)
+        f = a.port_step(x)
+        for _ in range(n):
+            b.step(1)
+        b.set_port_position(x)
+        b.step(1)
+        assert f == b.port_force[0] and np.array_equal(a.x, b.x) and a.sample == b.sample
+
+
 def _one_d_changed(scene, link, K, B):
     """``scene`` with ``link``'s (K, B) replaced (1-D)."""
     return scene.with_link(link, stiffness=K, damping=B)
