@@ -1,4 +1,4 @@
-"""The n-D engine (hapsim.kernels.nd, hapsim.engine_nd) against a plain-numpy step
+"""The n-D engine (hapsim.kernels.nd, the n-D layout of hapsim.engine) against a plain-numpy step
 written here over random meshes of both link kinds, the stripe layout's bookkeeping, and
 hapsim's 1-D engine on a 1-D scene laid along x."""
 

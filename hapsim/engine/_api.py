@@ -160,6 +160,23 @@ class Engine:
             raise ValueError(f"an engine has dimension 1, 2 or 3, got {dimension!r}")
         return LAYOUTS[dimension]()
 
+    # ------------------------------------------------------------------ stepping
+    def step(self, n: int = 1) -> None:
+        """Advance ``n`` samples, the port held where it is (no allocation: each layout
+        makes one compiled call with one argument).
+
+        Parameters
+        ----------
+        n : int
+            Number of samples, >= 0.
+
+        Raises
+        ------
+        ValueError
+            When ``n`` is negative.
+        """
+        raise NotImplementedError        # each layout's own (hapsim.engine._line, _space)
+
     # ------------------------------------------------------------------ state
     @property
     def port(self) -> int | None:

@@ -302,20 +302,9 @@ class Line(Engine):
 
     # ------------------------------------------------------------------ stepping
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` samples (no allocation: one compiled call with one argument,
+        """:meth:`Engine.step` on the 1-D kernels (one compiled call with one argument,
         :mod:`hapsim.kernels.step1d`; a multi-rate scene's port is held where it is and
-        its sound dropped, as :meth:`run`).
-
-        Parameters
-        ----------
-        n : int
-            Number of samples, >= 0.
-
-        Raises
-        ------
-        ValueError
-            When ``n`` is negative.
-        """
+        its sound dropped, as :meth:`run`)."""
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
         ctx = self._step_ctx

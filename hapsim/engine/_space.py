@@ -280,19 +280,8 @@ class Space(Engine):
         return self._X[:self.dim] - self._XP[:self.dim]
 
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` samples [-] (no allocation: one compiled call with one argument,
-        :func:`hapsim.kernels.nd.run_context`).
-
-        Parameters
-        ----------
-        n : int
-            Samples to advance (>= 0).
-
-        Raises
-        ------
-        ValueError
-            When ``n`` is negative.
-        """
+        """:meth:`Engine.step` on the n-D kernels (one compiled call with one argument,
+        :func:`hapsim.kernels.nd.run_context`)."""
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
         self._ctx[0] = n
