@@ -161,6 +161,23 @@ def test_unknown_names_and_wrong_scenes_are_refused():
         Engine(object())
 
 
+def test_one_dimension_s_capabilities_are_refused_by_name_in_the_other():
+    """What one layout has and the other lacks is a :class:`ConfigError` naming the
+    capability, the dimension and what to use instead, never an AttributeError."""
+    e1 = Engine(load_scene(CONFIGS / "wall.yaml"))
+    e3 = Engine(load_scene_nd(CONFIGS / "delta_sphere.yaml"))
+    one = np.zeros(1, np.int64)
+    for call, dim in ((lambda: e3.run(3), 3), (lambda: e3.play(np.zeros(3)), 3),
+                      (e3.energy, 3),
+                      (lambda: e1.listen(np.zeros((2, 1)), one, one, one.astype(bool),
+                                         np.ones(1)), 1),
+                      (lambda: e1.listener(one, one, one.astype(bool), np.ones(1)), 1)):
+        with pytest.raises(ConfigError, match=rf"dimension: \w+ is not built for a "
+                                              rf"{dim}-D engine: .+"):
+            call()
+    assert e3.sample == 0 and e1.sample == 0
+
+
 WALL_1D = """rate_hz: 1000
 masses:
   - {name: hand, kind: port}

@@ -177,6 +177,69 @@ class Engine:
         """
         raise NotImplementedError        # each layout's own (hapsim.engine._line, _space)
 
+    # ------------------------------------------------------------------ one dimension's
+    def _refuse(self, what: str, why: str):
+        """Raise the :class:`ConfigError` of a capability this dimension's layout lacks."""
+        raise ConfigError(f"{what} is not built for a {self.dim}-D engine: {why}",
+                          file=getattr(self.scene, "path", None), key="dimension")
+
+    def run(self, n: int, record=None, progress=None, chunk: int = 65536):
+        """Advance ``n`` samples recording positions in the compiled kernel: the 1-D
+        layout's (:meth:`hapsim.engine._line.Line.run`, positions ``(n + 1, R)``).
+
+        Raises
+        ------
+        ConfigError
+            On a 2-D or 3-D engine (key ``dimension``): record :attr:`x` after each
+            :meth:`step` (``hapsim simulate`` does).
+        """
+        self._refuse("run", "record x after each step (hapsim simulate does)")
+
+    def play(self, positions, progress=None, chunk: int = 1000):
+        """Render a port gesture with its multi-rate sound: the 1-D layout's
+        (:meth:`hapsim.engine._line.Line.play`).
+
+        Raises
+        ------
+        ConfigError
+            On a 2-D or 3-D engine (key ``dimension``): its sound is single-rate, read
+            by :meth:`listen`.
+        """
+        self._refuse("play", "its sound is single-rate, recorded by listen()")
+
+    def energy(self) -> float:
+        """The network's discrete energy [J]: the 1-D layout's
+        (:meth:`hapsim.engine._line.Line.energy`).
+
+        Raises
+        ------
+        ConfigError
+            On a 2-D or 3-D engine (key ``dimension``): not built there.
+        """
+        self._refuse("energy", "the Euclidean links' discrete energy is not derived")
+
+    def listen(self, out, axis, mass, velocity, gain) -> None:
+        """Advance recording listening points at the device rate: the n-D layout's
+        (:meth:`hapsim.engine._space.Space.listen`).
+
+        Raises
+        ------
+        ConfigError
+            On a 1-D engine (key ``dimension``): its sound is multi-rate, the frames of
+            :meth:`port_step` and :meth:`play`.
+        """
+        self._refuse("listen", "its sound is multi-rate: port_step's frames and play()")
+
+    def listener(self, axis, mass, velocity, gain):
+        """:meth:`listen` bound once: the n-D layout's.
+
+        Raises
+        ------
+        ConfigError
+            On a 1-D engine, as :meth:`listen`.
+        """
+        self._refuse("listener", "its sound is multi-rate: port_step's frames and play()")
+
     # ------------------------------------------------------------------ state
     @property
     def port(self) -> int | None:
