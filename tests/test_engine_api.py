@@ -197,6 +197,7 @@ device: {kind: cartesian, mass: 0.1, friction: 0.5, position: [0.0, 0.0], delay:
 """
 
 
+@pytest.mark.numerical
 @pytest.mark.parametrize("seed", range(3))
 def test_a_wall_felt_in_one_and_two_dimensions(seed):
     """The same spring-damper wall through a 1-D and a 2-D scene, the 2-D port driven
