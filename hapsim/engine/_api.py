@@ -111,7 +111,8 @@ class Engine:
     period : float
         The device's sample period ``T`` [s].
     sample : int
-        Device samples advanced since construction.
+        Device samples advanced since construction by the engine's own methods (a
+        compiled caller that steps its context or kernel pack itself does not count).
     precision : str
         ``"double"`` or ``"single"``; :attr:`dtype` its floating type.
 
