@@ -36,7 +36,7 @@ class JointDeviceND:
     joint torques ``tau = J(q_n)^T u`` are held over the period (a torque zero-order hold,
     as a device applies them). Classical fourth-order Runge-Kutta with ``substeps`` steps
     per period; for small motion it is the Cartesian loop of
-    :func:`hapsim.analysis.ths_nd.zoh_matrices` at rest (to the integrator's error,
+    :func:`hapsim.analysis.ths.zoh_matrices` at rest (to the integrator's error,
     ``O((w T / substeps)^4)`` relative), and for larger motion it carries the kinematic
     nonlinearity :mod:`hapsim.analysis.linearisation` bounds.
 

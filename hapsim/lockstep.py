@@ -9,7 +9,7 @@ state matrix is exactly this loop's one-step map for a linear scene):
    port ``F[n]`` from the positions at ``n`` and ``n - 1``;
 3. ``F[n]`` enters the delay line; the device holds ``u[n] = F[n-d]`` over the period and
    advances exactly, ``[x, v][n+1] = Ad [x, v][n] + Bd u[n]``
-   (:func:`hapsim.analysis.ths_nd.zoh_matrices` of its Cartesian mass and friction).
+   (:func:`hapsim.analysis.ths.zoh_matrices` of its Cartesian mass and friction).
 
 No protocol and no pseudo-terminal yet: the n-axis device, its mock behind a port, the
 hand's excitation and the identification of the felt matrices from a record are what is
@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
+from hapsim.analysis.ths import MatrixLoop, split_hold_matrices, zoh_matrices
 from hapsim.engine import Engine
 from hapsim.errors import ConfigError
 from hapsim.analysis.felt_matrices import FELT_QUANTITIES, felt_deviation
@@ -61,11 +61,11 @@ class LockstepND:
         n = scene.dimension
         self.n = n
         dev = scene.device
-        lm = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
-                         delay=dev.delay)
+        lm = MatrixLoop(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
+                        delay=dev.delay)
         self.Ad, self.Bd = zoh_matrices(lm)
         # a sub-sample delay m + f: the device holds the previous force over the period's
-        # first f T (the split hold, hapsim.analysis.ths_nd.split_hold_matrices)
+        # first f T (the split hold, hapsim.analysis.ths.split_hold_matrices)
         self.split = float(dev.delay) % 1.0
         if self.split > 0:
             if joint_space:
@@ -461,9 +461,9 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         predicted matrix's largest entry [-]; ``directions``: for each of the two, a list
         of n relative terms along the principal directions of :func:`felt_directions`
         (over ``|e_i^T X e_i|``; inf when it is 0); ``first_order``: the same terms at
-        the records alone (:func:`relative_terms`). Every term inf (``first_order``
-        None) when the records, or a copy moved within the bounds, give no sensitivity
-        (no felt matrices).
+        the records alone (:func:`relative_terms`); ``box`` True with ``box``. Every
+        term inf (``first_order`` None) when the records, or a copy moved within the
+        bounds, give no sensitivity (no felt matrices).
 
     Raises
     ------
@@ -510,8 +510,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         return inf if got is None else relative_terms(chk, got[0], got[0])
     got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True)
     if got is None:
-        return inf
-    return relative_terms(chk, got[1], got[0])
+        return {**inf, "box": True}
+    return {**relative_terms(chk, got[1], got[0]), "box": True}
 
 
 def relative_terms(chk, wc, first=None) -> dict:

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from hapsim.analysis.felt_matrices import felt_deviation
-from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices
+from hapsim.analysis.ths import MatrixLoop, split_hold_matrices
 from hapsim.errors import ConfigError
 from hapsim.lockstep import default_samples, excitation_starts
 
@@ -35,14 +35,14 @@ class PortDevice:
 
     Notes
     -----
-    The exact hold of the 1-DoF device (:func:`hapsim.analysis.ths_nd.split_hold_matrices`
+    The exact hold of the 1-DoF device (:func:`hapsim.analysis.ths.split_hold_matrices`
     of its own 1 x 1 loop, the zero-order hold for a whole delay): ``[x, v][n+1] = Ad [x,
     v][n] + Gamma0 F[n-m] + Gamma1 F[n-m-1]`` (docs/design.md, 'The timing convention').
     """
 
     def __init__(self, device, rate_hz: float, x0: float = 0.0, v0: float = 0.0) -> None:
-        lm = LoopModelND(mass=[[float(device.mass)]], friction=[[float(device.friction)]],
-                         rate_hz=rate_hz, delay=device.delay)
+        lm = MatrixLoop(mass=[[float(device.mass)]], friction=[[float(device.friction)]],
+                        rate_hz=rate_hz, delay=device.delay)
         self.Ad, self._G0, self._G1 = split_hold_matrices(lm)
         self.state = np.array([float(x0), float(v0)])
         self.fifo = [0.0] * int(math.floor(float(device.delay)))   # F[n-1], ..., F[n-m]
@@ -110,6 +110,7 @@ class LockstepPorts:
         self.i2 = np.array([at[lk.m2] for lk in scene.links], int)
         self.K = np.array([lk.stiffness for lk in scene.links], float)
         self.B = np.array([lk.damping for lk in scene.links], float)
+        self._buffers = None                 # :meth:`forces`' scratch, made at first use
 
     def step(self, samples: int, *, reading_error=None, force_error=None) -> np.ndarray:
         """Advance the loop and record the ports.
@@ -142,16 +143,42 @@ class LockstepPorts:
                 dev.tick(force[i])
         return out
 
-    def forces(self) -> np.ndarray:
+    def forces(self, out: np.ndarray | None = None) -> np.ndarray:
         """The links' forces on every mass at the current positions ``x`` and the previous
-        ``xp`` [N], shape (P + grounds,): ports first (the scheme's law, class notes)."""
-        d = self.x[self.i1] - self.x[self.i2]
-        dp = self.xp[self.i1] - self.xp[self.i2]
-        F = self.K * d + self.B * (d - dp) / self.T
-        force = np.zeros(self.x.size)
-        np.add.at(force, self.i1, -F)
-        np.add.at(force, self.i2, F)
-        return force
+        ``xp`` [N], shape (P + grounds,): ports first (the scheme's law, class notes).
+
+        With ``out`` (shape (P + grounds,), float) the forces are written there through
+        buffers held by the loop, so a real-time caller allocates nothing per sample;
+        the operations and their order are the same, so the result is the same to the bit.
+        """
+        if out is None:
+            d = self.x[self.i1] - self.x[self.i2]
+            dp = self.xp[self.i1] - self.xp[self.i2]
+            F = self.K * d + self.B * (d - dp) / self.T
+            force = np.zeros(self.x.size)
+            np.add.at(force, self.i1, -F)
+            np.add.at(force, self.i2, F)
+            return force
+        b = self._buffers
+        if b is None:
+            b = self._buffers = tuple(np.empty(self.K.size) for _ in range(5))
+        d, dp, F, t, u = b
+        np.take(self.x, self.i1, out=t)
+        np.take(self.x, self.i2, out=u)
+        np.subtract(t, u, out=d)
+        np.take(self.xp, self.i1, out=t)
+        np.take(self.xp, self.i2, out=u)
+        np.subtract(t, u, out=dp)
+        np.subtract(d, dp, out=t)
+        np.multiply(self.B, t, out=t)
+        np.divide(t, self.T, out=t)
+        np.multiply(self.K, d, out=F)
+        np.add(F, t, out=F)
+        out[:] = 0.0
+        np.negative(F, out=u)
+        np.add.at(out, self.i1, u)
+        np.add.at(out, self.i2, F)
+        return out
 
 
 def port_error_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
@@ -263,7 +290,7 @@ def ports_bound(scene, chk, amplitude: float):
         rendered poles and the position scale of the grounds (the round-off's).
     """
     from hapsim.analysis.linearisation import LinearisationBound
-    from hapsim.analysis.ths_nd import continuous_poles
+    from hapsim.analysis.ths import continuous_poles
     s = continuous_poles(chk.render.rendered_poles, scene.period)
     damping = float(np.max(np.abs(s) / (2 * np.abs(s.real)))) if s.size else math.nan
     scale = max([abs(float(m.x0)) for m in scene.masses] + [0.0])

@@ -68,7 +68,7 @@ LAYERS = (
     # hapsim.emulated.driver_mock (outside the folder: nothing under hapsim/drivers/ stands above)
     ("scene", ("hapsim.scene_schema", "hapsim.scene_doc", "hapsim.drivers")),
     # the scene package stands with the models: its n-D reader takes a kinematic device's
-    # Cartesian mass at its joints from the kinematics and hapsim.analysis.ths_nd
+    # Cartesian mass at its joints from the kinematics and hapsim.analysis.ths.matrix_loop
     ("models", ("hapsim.scene", "hapsim.device_file", "hapsim.engine", "hapsim.lockstep",
                 "hapsim.lockstep_ports", "hapsim.joint_device",
                 "hapsim.analysis", "hapsim.device_model", "hapsim.kinematics", "hapsim.plots",
@@ -280,8 +280,8 @@ SCENE_ROOMS = ("hapsim.scene.elements", "hapsim.scene.rules", "hapsim.scene.mode
 #: Modules outside the package that take a room directly, and which: a device file is a
 #: scene's device section, read and checked by the same code, in the same line-numbered
 #: context; the corrections take their table from the elements (through the package, the
-#: analysis and the n-D device reader, which takes hapsim.analysis.ths_nd, would import
-#: each other in a circle).
+#: analysis and the n-D device reader, which takes hapsim.analysis.ths.matrix_loop, would
+#: import each other in a circle).
 SCENE_ROOM_USERS = {"hapsim.device_file": {"hapsim.scene.lines", "hapsim.scene.reader",
                                            "hapsim.scene.rules"},
                     "hapsim.analysis.corrections": {"hapsim.scene.elements"}}
@@ -298,8 +298,9 @@ def test_the_scene_rooms_import_only_the_rooms_before_them():
 def test_only_the_device_room_reaches_the_models_and_only_inside_its_functions():
     """The scene package stands on the models floor for one room: the device reader of a
     2-D or 3-D scene (hapsim.scene.devices) takes a kinematic device's Cartesian mass at its
-    joints from hapsim.kinematics and hapsim.analysis.ths_nd, inside its functions. Every
-    other room imports from the scene floor or below, and importing the package loads
+    joints from hapsim.kinematics and hapsim.analysis.ths.matrix_loop (the loop room of
+    the THS package, not the package: its render reaches the scene), inside its functions.
+    Every other room imports from the scene floor or below, and importing the package loads
     neither the kinematics nor the analysis (a subprocess, from a fresh interpreter)."""
     import subprocess
     import sys
@@ -311,7 +312,8 @@ def test_only_the_device_room_reaches_the_models_and_only_inside_its_functions()
                  and not (d == "hapsim.scene" or d.startswith("hapsim.scene."))}
         if found:
             above[room] = found
-    assert above == {"hapsim.scene.devices": {"hapsim.kinematics", "hapsim.analysis.ths_nd"}}
+    assert above == {"hapsim.scene.devices": {"hapsim.kinematics",
+                                              "hapsim.analysis.ths.matrix_loop"}}
     tree = ast.parse((PACKAGE_DIR / "scene" / "devices.py").read_text())
     top = "\n".join(ast.unparse(n) for n in tree.body
                     if isinstance(n, (ast.Import, ast.ImportFrom)))
@@ -528,3 +530,26 @@ def test_no_module_reads_another_objects_private_state():
                 bad.setdefault(mod, set()).add(r)
     assert bad == {}
     assert set(PRIVATE_READS_ALLOWED) - seen == set()
+
+
+# --------------------------------------------------------------------- the THS package
+#: hapsim.analysis.ths, the THS of every dimension, is four rooms in a row, each importing
+#: only the rooms before it: the loop with matrices, the hold and delay as matrices (state
+#: matrix, poles), the felt matrices, render and calibrate
+#: (docs/design.md, 'Package layout'). The scene's device reader takes the first room alone.
+THS_ROOMS = ("hapsim.analysis.ths.matrix_loop", "hapsim.analysis.ths.holds",
+             "hapsim.analysis.ths.felt", "hapsim.analysis.ths.render")
+
+
+def test_the_ths_rooms_import_only_the_rooms_before_them():
+    """No module named ``*_nd`` in the analysis (issue 30: one THS for every dimension),
+    and the THS package's rooms stand in their row; the first imports nothing of the
+    analysis but the 1-D loop and the split hold's delay."""
+    graph = _house_graph()
+    assert not [m for m in graph if m.startswith("hapsim.analysis.") and m.endswith("_nd")]
+    assert set(THS_ROOMS) <= set(graph), "hapsim.analysis.ths lost a room"
+    for i, room in enumerate(THS_ROOMS):
+        inside = {m for m in graph[room] if m.startswith("hapsim.analysis.ths")}
+        assert inside <= set(THS_ROOMS[:i]), f"{room} imports {sorted(inside)}"
+    assert {m for m in graph[THS_ROOMS[0]] if m.startswith("hapsim.analysis")} == \
+        {"hapsim.analysis.loop", "hapsim.analysis.subsample"}

@@ -405,7 +405,7 @@ def test_cli_stiffness_limits_and_workspace_map(tmp_path, capsys):
     """--joint-inertia: the Cartesian mass J^-T M_q J^-1 + m_h I and K_max along its
     principal axes (= direction_limits of the same loop); --grid maps it over N^2
     configurations (one of them the given joints: the same K_max); --out charts it."""
-    from hapsim.analysis.ths_nd import LoopModelND
+    from hapsim.analysis.ths import MatrixLoop
     from hapsim.analysis.direction_limits import direction_limits
     argv = ["kinematics", "pantograph", "--joints", "130", "50", "--joint-inertia", "2e-4",
             "--joint-friction", "1e-3", "--hand-mass", "0.05", "--B", "1", "--json"]
@@ -413,7 +413,7 @@ def test_cli_stiffness_limits_and_workspace_map(tmp_path, capsys):
     lim = json.loads(capsys.readouterr().out)["limits"]
     dev = Pantograph("haply")
     q = np.radians([130, 50])
-    loop = LoopModelND.from_device(dev, q, [2e-4, 2e-4], [1e-3, 1e-3], hand_mass=0.05)
+    loop = MatrixLoop.from_device(dev, q, [2e-4, 2e-4], [1e-3, 1e-3], hand_mass=0.05)
     # measured 0 (generic 0): exact on both targets
     assert np.allclose(lim["mass"], loop.mass, rtol=1e-15)
     K = direction_limits(loop, np.array(lim["directions"]).T, np.eye(2))

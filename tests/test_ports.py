@@ -1,14 +1,15 @@
 """Scenes with several ports (issue 30 item 3): the reader and its refusals, and the felt
-matrices across ports (hapsim.analysis.ports, on the n-D loop of hapsim.analysis.ths_nd)
+matrices across ports (hapsim.analysis.ports, on the n-D loop of hapsim.analysis.ths)
 against independent computations written here: each port's own 1-D prediction
 (hapsim.analysis.ths) when the ports are uncoupled, and, coupled, a state space assembled
 directly from each device's own expm zero-order hold and its own *force* delay line (not
 hapsim's position delay line), with its felt matrices by least squares on the quadratic
-eigen-equations of its own modes (tests/test_ths_nd.py's reference_felt)."""
+eigen-equations of its own modes (tests/test_ths.py's reference_felt)."""
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,7 @@ from hapsim.analysis.ports import check_ports, ports_state_matrix
 from hapsim.analysis.ths import render
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Link, Mass, ScenePorts, parse_scene, parse_scene_ports
-from test_ths_nd import felt_tols, match, reference_felt   # the n-D reference's helpers
+from test_ths import felt_tols, match, reference_felt   # the n-D reference's helpers
 from tolerance import eig_bounds, eig_tol, expm_tol, measured, roots_tol
 
 pytestmark = pytest.mark.numerical
@@ -28,19 +29,29 @@ pytestmark = pytest.mark.numerical
 
 # --------------------------------------------------------------------------- scenes
 
-def random_ports(rng, *, coupled: bool, whole: bool = True) -> ScenePorts:
+#: Sub-sample delays drawn for a port (the FireFader's A and B at 250 Hz among them).
+FRACTIONS = (0.25, 0.725, 0.7625, 1.5, 2.3)
+
+
+def random_ports(rng, *, coupled: bool, whole: bool = True, own: bool = False) -> ScenePorts:
     """A random scene of 2 or 3 ports: device masses 0.05..0.5 kg, friction 0.1..2 N s/m,
-    each its own whole delay 0..3 (or one common sub-sample delay), links to ground and,
-    when ``coupled``, between ports."""
+    each its own whole delay 0..3 (or one common sub-sample delay; with ``own``, each
+    port its own delay, whole or sub-sample, at least one sub-sample), links to ground
+    and, when ``coupled``, between ports."""
     P = int(rng.choice([2, 3]))
     rate = float(rng.choice([500.0, 1000.0, 4000.0]))
     names = [f"p{i}" for i in range(P)]
     masses = [Mass(n, "port") for n in names] + [Mass("g", "ground")]
     common = float(rng.choice([0.25, 0.725, 1.5]))
+    if own:
+        delays = [float(rng.choice(FRACTIONS)) if rng.random() < 0.7
+                  else int(rng.integers(0, 3)) for _ in names]
+        delays[int(rng.integers(P))] = float(rng.choice(FRACTIONS))
+    else:
+        delays = [int(rng.integers(0, 4)) if whole else common for _ in names]
     devices = tuple((n, Device(mass=float(rng.uniform(0.05, 0.5)),
-                               friction=float(rng.uniform(0.1, 2.0)),
-                               delay=int(rng.integers(0, 4)) if whole else common))
-                    for n in names)
+                               friction=float(rng.uniform(0.1, 2.0)), delay=d))
+                    for n, d in zip(names, delays))
     links = [Link(f"w{i}", "spring_damper", n, "g", float(rng.uniform(0.0, 300.0)),
                   float(rng.uniform(0.0, 1.0))) for i, n in enumerate(names)]
     if coupled:
@@ -57,12 +68,25 @@ def random_ports(rng, *, coupled: bool, whole: bool = True) -> ScenePorts:
 ISSUE_BOUND = 1e-6
 
 
+def _hold(dv, tau: float, T: float):
+    """Device ``dv``'s exact hold over ``tau`` [s]: (transition 2 x 2, force response 2)."""
+    aug = np.array([[0.0, T, 0.0], [0.0, -dv.friction / dv.mass * T, T / dv.mass],
+                    [0.0, 0.0, 0.0]]) * (tau / T)
+    E = expm(aug)
+    return E[:2, :2], E[:2, 2]
+
+
 def reference_state_matrix(scene) -> np.ndarray:
     """Independent closed loop of the ports: each device ``m x'' + b0 x' = u`` held by its
     own expm ZOH; the force on the ports computed from the links one by one (the scheme's
     law, docs/design.md 'The scheme') from ``x[n]`` and ``x[n-1]``; port ``i`` applies it
     ``d_i`` samples later through its own *force* FIFO. State
-    ``(x, v, x[n-1], then per port F_i[n-1], ..., F_i[n-d_i])``."""
+    ``(x, v, x[n-1], then per port F_i[n-1], ..., F_i[n-L_i])``. A sub-sample delay
+    ``m + f``: over each period the device holds ``F_i[n-m-1]`` for ``f T``, then
+    ``F_i[n-m]`` (its FIFO ``L_i = m + 1`` long; the two pieces of its hold by expm over
+    their own lengths, the first carried to the period's end)."""
+    if any(float(dv.delay) % 1 for _, dv in scene.devices):
+        return _reference_split(scene)
     ports = [n for n, _ in scene.devices]
     P, T = len(ports), scene.period
     ax = {n: i for i, n in enumerate(ports)}
@@ -96,6 +120,64 @@ def reference_state_matrix(scene) -> np.ndarray:
             A[start[i], :P] = Cx[i]
             A[start[i], 2 * P:3 * P] = Cxp[i]
             for k in range(1, d[i]):
+                A[start[i] + k, start[i] + k - 1] = 1.0
+    A[2 * P:3 * P, :P] = np.eye(P)
+    return A
+
+
+def _force_law(scene):
+    """``F = Cx x[n] + Cxp x[n-1]`` on the ports, from the links one by one."""
+    ports = [n for n, _ in scene.devices]
+    P, T = len(ports), scene.period
+    ax = {n: i for i, n in enumerate(ports)}
+    Cx, Cxp = np.zeros((P, P)), np.zeros((P, P))
+    for lk in scene.links:
+        for a, b in ((lk.m1, lk.m2), (lk.m2, lk.m1)):      # the force on a
+            if a not in ax:
+                continue
+            Cx[ax[a], ax[a]] -= lk.stiffness + lk.damping / T
+            Cxp[ax[a], ax[a]] += lk.damping / T
+            if b in ax:
+                Cx[ax[a], ax[b]] += lk.stiffness + lk.damping / T
+                Cxp[ax[a], ax[b]] -= lk.damping / T
+    return Cx, Cxp
+
+
+def _reference_split(scene) -> np.ndarray:
+    """:func:`reference_state_matrix` with sub-sample delays (its notes): port ``i``'s
+    FIFO holds ``F_i[n-1] .. F_i[n-L_i]``, ``L_i = ceil(d_i)``; its plant takes
+    ``F_i[n-m]`` through the period's last ``(1-f) T`` and ``F_i[n-m-1]`` through the
+    first ``f T`` (``F_i[n]`` itself, from the positions, when ``m = 0``)."""
+    P, T = len(scene.devices), scene.period
+    Cx, Cxp = _force_law(scene)
+    d = [float(dv.delay) for _, dv in scene.devices]
+    L = [int(math.ceil(x)) for x in d]
+    N = 3 * P + sum(L)
+    A = np.zeros((N, N))
+    start = np.cumsum([3 * P] + L[:-1])
+
+    def force(i, k, rows, g):
+        """Add ``g F_i[n-k]`` to ``rows`` (k = 0: from the positions; else the FIFO)."""
+        if k == 0:
+            A[rows, :P] += np.outer(g, Cx[i])
+            A[rows, 2 * P:3 * P] += np.outer(g, Cxp[i])
+        else:
+            A[rows, start[i] + k - 1] += g
+    for i, (_, dv) in enumerate(scene.devices):
+        m, f = int(math.floor(d[i])), d[i] - math.floor(d[i])
+        rows = [i, P + i]
+        Ad, _ = _hold(dv, T, T)
+        A[np.ix_(rows, rows)] = Ad
+        if f == 0:
+            force(i, m, rows, _hold(dv, T, T)[1])
+        else:
+            A0, g0 = _hold(dv, (1 - f) * T, T)
+            force(i, m, rows, g0)                          # the period's last (1-f) T
+            force(i, m + 1, rows, A0 @ _hold(dv, f * T, T)[1])   # its first f T
+        if L[i]:
+            A[start[i], :P] = Cx[i]
+            A[start[i], 2 * P:3 * P] = Cxp[i]
+            for k in range(1, L[i]):
                 A[start[i] + k, start[i] + k - 1] = 1.0
     A[2 * P:3 * P, :P] = np.eye(P)
     return A
@@ -165,17 +247,19 @@ def test_uncoupled_ports_feel_each_ports_own_1d_pair(whole):
     assert checked >= 12
 
 
-def test_coupled_ports_equal_the_directly_assembled_loop():
-    """Coupled ports with each its own delay: the nonzero poles equal those of a state
+@pytest.mark.parametrize("own", [False, True])
+def test_coupled_ports_equal_the_directly_assembled_loop(own):
+    """Coupled ports with each its own delay (``own``: sub-sample ones among them, each
+    port its own split hold): the nonzero poles equal those of a state
     space assembled directly (each device's own expm hold, each port's own force FIFO,
     the links' forces one by one) to both eigenproblems' round-off, the spectral radius
     too; the felt matrices equal the reference's least-squares ones (measured 1.7e-12 (k) and
     2.8e-12 (b) relative at worst over these 24 scenes, margin 1000; a wrong coupling or
     delay moves them by >= 1e-3)."""
-    rng = np.random.default_rng(31)
+    rng = np.random.default_rng(31 + 100 * own)
     felt_checked = 0
     for _ in range(24):
-        scene = random_ports(rng, coupled=True)
+        scene = random_ports(rng, coupled=True, own=own)
         P = len(scene.devices)
         Ar = reference_state_matrix(scene)
         z_ref, V = np.linalg.eig(Ar)
@@ -236,8 +320,6 @@ def test_a_two_port_scene_reads_each_port_with_its_device():
      "masses[2].kind", "virtual masses"),
     (("kind: spring_damper, between: [a, b]", "kind: contact, threshold: 0.0, "
       "between: [a, b]"), 7, "links[0].kind", "contacts"),
-    (("  a: {mass: 0.1, friction: 0.5, delay: 1}", "  a: {mass: 0.1, delay: 0.5}"), 10,
-     "devices.a.delay", "whole periods"),
     (("  a: {mass: 0.1, friction: 0.5, delay: 1}", "  a: {mass: 0.1, hold: ideal}"), 10,
      "devices.a.hold", "zero-order hold"),
     (("  a: {mass: 0.1, friction: 0.5, delay: 1}", "  a: {mass: 0.1, frction: 1}"), 10,
@@ -354,19 +436,40 @@ def test_each_ports_device_keeps_its_own_hold_and_time():
         assert dev.ticks == n
 
 
-@pytest.mark.parametrize("whole", [True, False])
-def test_lockstep_measures_the_predicted_felt_matrices_across_ports(whole):
+def test_the_real_time_force_law_is_the_lockstep_one_to_the_bit():
+    """:meth:`LockstepPorts.forces` with ``out`` (the real-time loop's, through buffers
+    made once) does the same operations in the same order as without it: over random
+    scenes of 2-3 ports and random positions the forces are equal bit for bit, and a
+    second call through the same buffers is not disturbed by the first."""
+    from hapsim.lockstep_ports import LockstepPorts
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        host = LockstepPorts(random_ports(rng, coupled=bool(rng.integers(2))))
+        out = np.empty(host.x.size)
+        for _ in range(3):
+            P = host.P
+            host.x[:P] = rng.normal(0.0, 1e-2, P)
+            host.xp[:P] = host.x[:P] + rng.normal(0.0, 1e-4, P)
+            ref = host.forces()
+            got = host.forces(out=out)
+            assert got is out and np.array_equal(got, ref)
+
+
+@pytest.mark.parametrize("whole, own", [(True, False), (False, False), (False, True)])
+def test_lockstep_measures_the_predicted_felt_matrices_across_ports(whole, own):
     """Random coupled scenes, each port its own device (its own whole delay, or one
-    common sub-sample delay), closed in lockstep: the felt matrices fitted from the
+    common sub-sample delay, or each its own, sub-sample among them: each device model
+    its own split hold, hapsim.lockstep_ports.PortDevice), closed in lockstep: the felt
+    matrices fitted from the
     ports' free responses equal the prediction within the run's stated uncertainty (a
     linear loop: the binary64 round-off allowance of
     hapsim.analysis.linearisation.LinearisationBound.roundoff, derived there) and within
     the issue's 1e-6, and the run's verdict is "within"."""
     from hapsim.lockstep_ports import measure_felt_ports
-    rng = np.random.default_rng(50 + whole)
+    rng = np.random.default_rng(50 + whole + 10 * own)
     measured_n = 0
     for _ in range(6):
-        scene = random_ports(rng, coupled=True, whole=whole)
+        scene = random_ports(rng, coupled=True, whole=whole, own=own)
         res = measure_felt_ports(scene)
         if not res["predicted"].stable or res["deviation"] is None:
             continue
@@ -414,13 +517,18 @@ def test_two_faders_modes_are_the_1d_loops_of_their_common_and_differential_moti
     differential one (the 1-D loop of (K_a + 2 K_c, B_a + 2 B_c)), each through one
     fader's device (m, b0, the sub-sample delay): the felt pair along each principal
     direction is that 1-D loop's (hapsim.analysis.ths.render, numpy.roots of its
-    characteristic), to both paths' pole round-off."""
+    characteristic), to both paths' pole round-off. The shipped fader B is read 0.0375
+    periods earlier (its delay 0.7625): here both take fader A's device, the identical
+    faders the split into modes needs; with B's own delay the modes are no longer the
+    1-D loops, and the felt damping across the faders moves by several per cent."""
+    import dataclasses
     from pathlib import Path
     from hapsim.scene import load_scene_ports
     path = Path(__file__).resolve().parents[1] / "configs" / "two_faders.yaml"
-    scene = load_scene_ports(path)
-    dv = scene.device("fader_a")
-    assert dv == scene.device("fader_b")
+    shipped = load_scene_ports(path)
+    dv = shipped.device("fader_a")
+    assert shipped.device("fader_b") == dataclasses.replace(dv, delay=0.7625)
+    scene = dataclasses.replace(shipped, devices=tuple((n, dv) for n, _ in shipped.devices))
     Ka, Ba = scene.link("spring_a").stiffness, scene.link("spring_a").damping
     Kc, Bc = scene.link("coupling").stiffness, scene.link("coupling").damping
     r = check_ports(scene).render
@@ -436,6 +544,11 @@ def test_two_faders_modes_are_the_1d_loops_of_their_common_and_differential_moti
         dk, db = felt_tols(r.rendered_poles[i], dz, dv.mass, scene.period)
         assert r.direction_stiffness[i] == pytest.approx(r1.k, rel=0, abs=dk)
         assert r.direction_damping[i] == pytest.approx(r1.b, rel=0, abs=db)
+    # fader B's own delay: its damping entry moves by well over the poles' round-off
+    # (measured 9 % on b_BB, docs/ports.md)
+    own = check_ports(shipped).render
+    gap = abs(own.felt_damping[1, 1] - r.felt_damping[1, 1]) / abs(r.felt_damping[1, 1])
+    assert gap > 0.05, gap
 
 
 def test_the_api_takes_a_scene_of_several_ports(tmp_path):

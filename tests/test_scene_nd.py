@@ -1,7 +1,7 @@
 """2-D and 3-D scenes (hapsim.scene.SceneND) and their closed-loop check
 (hapsim.analysis.scene_check): the n-D check of a scene whose links are linear is the
 1-D check per axis; a port held by grounds and planes is the THS matrix of
-hapsim.analysis.ths_nd; Euclidean links linearise to the finite-difference Jacobian of
+hapsim.analysis.ths; Euclidean links linearise to the finite-difference Jacobian of
 their law; every rule is refused with file, line and key; `check --json` reports the
 felt matrices."""
 
@@ -16,7 +16,7 @@ from scipy.optimize import linear_sum_assignment
 from hapsim.analysis import check_scene
 from hapsim.analysis.scene_check import check_scene_nd
 from hapsim.analysis.virtual_network import link_blocks
-from hapsim.analysis.ths_nd import LoopModelND, render_nd
+from hapsim.analysis.ths import MatrixLoop, render
 from hapsim.cli import main
 from hapsim.errors import ConfigError
 from hapsim.kinematics import Pantograph, cartesian_mass
@@ -78,7 +78,7 @@ def test_linear_links_are_the_1d_scene_per_axis(dim, delay):
 
 def test_port_held_by_grounds_and_planes_is_the_ths_matrix():
     """A port tied to grounds (linear and Euclidean links) and pressed on planes: the
-    scene's closed loop has the poles and felt matrices of render_nd with the summed
+    scene's closed loop has the poles and felt matrices of render with the summed
     link blocks as (K, B) (two independent layouts: force delay line here, position delay
     line there)."""
     text = """\
@@ -98,11 +98,11 @@ device: {mass: [[0.12, 0.03], [0.03, 0.2]], friction: [0.4, 0.6], delay: 2}
 """
     scene = parse_scene_nd(text, "s.yaml")
     chk = check_scene_nd(scene)
-    loop = LoopModelND(mass=scene.device.mass, friction=scene.device.friction,
-                       rate_hz=2000.0, delay=2)
-    ref = render_nd(loop, chk.port_stiffness, chk.port_damping)
+    loop = MatrixLoop(mass=scene.device.mass, friction=scene.device.friction,
+                      rate_hz=2000.0, delay=2)
+    ref = render(loop, chk.port_stiffness, chk.port_damping)
     from hapsim.analysis.scene_check import closed_loop_nd
-    from hapsim.analysis.ths_nd import state_matrix
+    from hapsim.analysis.ths import state_matrix
     dz = (eig_tol(closed_loop_nd(scene)[0])
           + eig_tol(state_matrix(loop, chk.port_stiffness, chk.port_damping)))
     # the force delay line here has poles at z = 0 the position delay line has not: the
@@ -329,9 +329,9 @@ device: {mass: [0.08, 0.2], friction: [0.3, 0.6], delay: 1}
         # each method puts a pole on |z| = 1 to within its eigenvalue round-off and
         # Brent's angle tolerance: the two limits differ by that over d rho / d K, twice
         from hapsim.analysis.loop_poles import spectral_radius
-        from hapsim.analysis.ths_nd import state_matrix
+        from hapsim.analysis.ths import state_matrix
         l1 = LoopModel(mass=m[j], friction=b0[j], rate_hz=1000.0, delay=1)
-        ln = LoopModelND(mass=[[m[j]]], friction=[[b0[j]]], rate_hz=1000.0, delay=1)
+        ln = MatrixLoop(mass=[[m[j]]], friction=[[b0[j]]], rate_hz=1000.0, delay=1)
         dz = eig_tol(state_matrix(ln, ref, B[j])) + BRENT_THETA
         tol = 2 * crossing_tol(lambda K: spectral_radius(l1, K, B[j]), ref, dz)
         assert chk.stiffness_limits[i] == pytest.approx(ref, rel=0, abs=tol)

@@ -1,6 +1,6 @@
 """The shipped 2-D and 3-D scenes (configs/pantograph_*.yaml, configs/delta_*.yaml; issue 23
 item 7): `hapsim check --json` on each gives its dof and felt matrices, and for a handle held
-by grounds they are the THS matrix of hapsim.analysis.ths_nd with the device's Cartesian
+by grounds they are the THS matrix of hapsim.analysis.ths with the device's Cartesian
 mass built here from the kinematics' Jacobian and the link blocks from their laws; the
 files are what tools/make_nd_scenes.py writes; `simulate` runs each; `--plot` draws one and
 its ellipse at the operating point is the check's felt stiffness."""
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from hapsim.analysis.ths_nd import LoopModelND, render_nd
+from hapsim.analysis.ths import MatrixLoop, render
 from hapsim.cli import main
 from hapsim.kinematics import device
 from hapsim.scene import scene_dimension
@@ -83,8 +83,9 @@ def _port_blocks(doc, hand):
 def test_check_json_felt_matrices_are_the_ths_matrix(name, capsys):
     """`check --json`: exit 0 (stable), dof n, n x n felt matrices; when every port link
     ends on a ground the felt matrices, poles and spectral radius equal
-    ths_nd.render_nd of the loop M = J^-T M_q J^-1 + m_h I, B0 = J^-T B_q J^-1 (from
-    the kinematics' Jacobian) with the port's (K, B) from the links' laws (1e-9)."""
+    hapsim.analysis.ths.render of the matrix loop M = J^-T M_q J^-1 + m_h I,
+    B0 = J^-T B_q J^-1 (from the kinematics' Jacobian) with the port's (K, B) from the
+    links' laws (1e-9)."""
     assert main(["check", str(CONFIGS / name), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     doc = yaml.safe_load((CONFIGS / name).read_text())
@@ -110,8 +111,8 @@ def test_check_json_felt_matrices_are_the_ths_matrix(name, capsys):
         assert out["stiffness_limits"] is None
         return
     K, B = _port_blocks(doc, hand)
-    r = render_nd(LoopModelND(mass=M, friction=B0, rate_hz=doc["rate_hz"],
-                              delay=dev["delay"]), K, B)
+    r = render(MatrixLoop(mass=M, friction=B0, rate_hz=doc["rate_hz"],
+                          delay=dev["delay"]), K, B)
     # measured 6.4e-14 relative (generic 5.6e-14), margin 15000
     assert np.max(np.abs(k - r.felt_stiffness)) <= 1e-9 * np.max(np.abs(k))
     # measured 2.8e-13 relative (generic 2.7e-13), margin 3500

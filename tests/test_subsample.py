@@ -424,7 +424,7 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
     import hapsim.analysis.network as network
     import hapsim.analysis.scene_check as scene_check
     import hapsim.analysis.subsample as subsample
-    import hapsim.analysis.ths_nd as ths_nd
+    import hapsim.analysis.ths.holds as holds
     from hapsim.scene import load_scene
     from hapsim.scene import load_scene_nd
 
@@ -433,7 +433,7 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
     for mod, names in ((subsample, ("split_hold", "split_hold_body", "split_numerator_w",
                                     "held_plant")),
                        (network, ("split_plant_rows",)),
-                       (ths_nd, ("split_hold_matrices",)),
+                       (holds, ("split_hold_matrices",)),
                        (scene_check, ("split_hold_matrices",))):
         for name in names:
             monkeypatch.setattr(mod, name, boom)

@@ -26,9 +26,8 @@ from tolerance import measured
 import scipy.linalg as sl
 
 from hapsim.analysis import LoopModel, stability_limit
-from hapsim.analysis.loop_poles import closed_loop_poles
 from hapsim.analysis.direction_limits import direction_limit
-from hapsim.analysis.ths_nd import LoopModelND, closed_loop_poles_nd, state_matrix
+from hapsim.analysis.ths import MatrixLoop, closed_loop_poles, state_matrix
 from hapsim.errors import ConfigError
 
 pytestmark = pytest.mark.numerical
@@ -61,7 +60,7 @@ def test_one_dof_state_matrix_equals_the_1d_polynomial(seed):
     lp = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
     B = float(rng.uniform(0.0, 0.2)) * m * rate / (1 + d)
     K = float(rng.uniform(0.1, 0.8)) * stability_limit(lp, B)
-    lnd = LoopModelND(mass=m, friction=b0, rate_hz=rate, delay=d, dof=1)
+    lnd = MatrixLoop(mass=m, friction=b0, rate_hz=rate, delay=d, dof=1)
     A = state_matrix(lnd, K, B)
     assert A.shape == (int(d) + 4,) * 2
     z, tol = _eig_tol(A)
@@ -83,8 +82,8 @@ def test_decoupled_loop_is_the_1d_loop_per_axis(n):
     rate, d = 1000.0, 1.37
     K = rng.uniform(50.0, 300.0, n)
     B = rng.uniform(0.0, 1.0, n)
-    A = state_matrix(LoopModelND(mass=np.diag(m), friction=np.diag(b0), rate_hz=rate,
-                                 delay=d), np.diag(K), np.diag(B))
+    A = state_matrix(MatrixLoop(mass=np.diag(m), friction=np.diag(b0), rate_hz=rate,
+                                delay=d), np.diag(K), np.diag(B))
     z, tol = _eig_tol(A)
     ref = np.concatenate([closed_loop_poles(LoopModel(mass=m[i], friction=b0[i],
                                                       rate_hz=rate, delay=d), K[i], B[i])
@@ -205,5 +204,5 @@ def test_fractional_delay_read_and_refused_in_nd():
         with pytest.raises(ConfigError, match=frag) as e:
             _scene(2, 1000.0, 300.0, 1.0, M, B0, bad)
         assert e.value.key == "device.delay" and e.value.line is not None
-    lp = LoopModelND(mass=M, friction=B0, rate_hz=1000.0, delay=2.5)
-    assert closed_loop_poles_nd(lp, 300.0, 1.0).size == 2 * (2 + 4)
+    lp = MatrixLoop(mass=M, friction=B0, rate_hz=1000.0, delay=2.5)
+    assert closed_loop_poles(lp, 300.0, 1.0).size == 2 * (2 + 4)

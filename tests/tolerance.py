@@ -407,7 +407,7 @@ def recurrence_tol(A, steps: int, scale: float, ops: int | None = None) -> float
 
 
 #: Brent's tolerances hapsim passes to scipy.optimize.brentq for the angle ``theta`` of a
-#: pole on the unit circle (hapsim.analysis.ths, ths_nd): ``xtol + rtol * pi`` [rad].
+#: pole on the unit circle (hapsim.analysis.ths, its matrix loop): ``xtol + rtol * pi`` [rad].
 BRENT_THETA = 1e-15 + 1e-14 * math.pi
 
 

@@ -3,7 +3,7 @@
 e^T`` stays stable, found from the exact crossings of the unit circle, classified by the
 spectral radius between them, as :func:`hapsim.analysis.stability.stability_limit` does in 1-D),
 along several directions (:func:`direction_limits`), and over a device's workspace
-(:func:`workspace_limits`). The loop's model is :mod:`hapsim.analysis.ths_nd`."""
+(:func:`workspace_limits`). The loop's model is :mod:`hapsim.analysis.ths`."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.analysis.ths_nd import (LoopModelND, gain_matrices, split_hold_matrices, state_matrix,
-                                    zoh_matrices)
+from hapsim.analysis.ths import (MatrixLoop, gain_matrices, split_hold_matrices, state_matrix,
+                                 zoh_matrices)
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.errors import ConfigError
 
@@ -44,7 +44,7 @@ def _resolvent_scalar(A0: np.ndarray, b: np.ndarray, c: np.ndarray, z: np.ndarra
     return out
 
 
-def _rank_one(loop: LoopModelND, K0, B, e):
+def _rank_one(loop: MatrixLoop, K0, B, e):
     """``A(kappa) = A0 - kappa b c^T`` for ``K = K0 + kappa e e^T``."""
     n, d = loop.dof, loop.delay
     A0 = state_matrix(loop, K0, B)
@@ -65,13 +65,13 @@ def _rank_one(loop: LoopModelND, K0, B, e):
     return A0, bvec, cvec
 
 
-def direction_limit(loop: LoopModelND, direction, B=0.0, K0=0.0, *,
+def direction_limit(loop: MatrixLoop, direction, B=0.0, K0=0.0, *,
                     scan: int = 2048) -> float:
     """Largest stable stiffness added along one direction, ``K_max(e)`` [N/m].
 
     Parameters
     ----------
-    loop : LoopModelND
+    loop : MatrixLoop
     direction : array_like, shape (n,)
         The direction ``e`` (normalised here).
     B : array_like, optional
@@ -146,12 +146,12 @@ def direction_limit(loop: LoopModelND, direction, B=0.0, K0=0.0, *,
     return math.inf
 
 
-def direction_limits(loop: LoopModelND, directions=None, B=0.0, K0=0.0) -> np.ndarray:
+def direction_limits(loop: MatrixLoop, directions=None, B=0.0, K0=0.0) -> np.ndarray:
     """:func:`direction_limit` along several directions [N/m].
 
     Parameters
     ----------
-    loop : LoopModelND
+    loop : MatrixLoop
     directions : array_like, shape (n, m), optional
         Directions as columns; default the principal axes of the Cartesian mass
         (eigenvectors of ``M``, lightest first: where the limit is lowest for an
@@ -207,7 +207,7 @@ def workspace_limits(device, joints, joint_inertia, joint_friction=0.0, *,
     joints : array_like, shape (N, n)
         Joint configurations [rad].
     joint_inertia, joint_friction, hand_mass, hand_damping, rate_hz, delay
-        As :meth:`LoopModelND.from_device`.
+        As :meth:`MatrixLoop.from_device`.
     B : array_like, optional
         Virtual damping matrix [N s/m].
     progress : callable, optional
@@ -227,9 +227,9 @@ def workspace_limits(device, joints, joint_inertia, joint_friction=0.0, *,
     status = []
     for i, q in enumerate(Q):
         try:
-            loop = LoopModelND.from_device(device, q, joint_inertia, joint_friction,
-                                           hand_mass=hand_mass, hand_damping=hand_damping,
-                                           rate_hz=rate_hz, delay=delay)
+            loop = MatrixLoop.from_device(device, q, joint_inertia, joint_friction,
+                                          hand_mass=hand_mass, hand_damping=hand_damping,
+                                          rate_hz=rate_hz, delay=delay)
         except KinematicsError as exc:
             status.append(exc.kind or "workspace")
         else:

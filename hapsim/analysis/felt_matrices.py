@@ -57,7 +57,7 @@ def felt_directions(fit: dict, chk) -> dict | None:
     [N/m] (the force per displacement the hand feels along ``e`` when it pushes along
     ``e``; only the symmetric part of ``k`` contributes) and the felt damping ``e^T b e``
     [N s/m]. The directions are the check's principal directions ``e_i``
-    (:mod:`hapsim.analysis.ths_nd`: the major axis of rendered mode ``i``); for a loop
+    (:mod:`hapsim.analysis.ths`: the major axis of rendered mode ``i``); for a loop
     that is symmetric in one basis (``M``, ``B0``, ``K``, ``B`` diagonal in it) they are
     the eigenvectors of ``k`` and ``b`` and ``e_i^T k e_i = m_i |s_i|^2`` (the check's
     ``direction_stiffness``); otherwise the two differ by the loop's asymmetric coupling
@@ -129,7 +129,7 @@ def statement_name(quantity: str, direction=None) -> str:
     return w + " along (" + ", ".join(f"{v:+.3f}" for v in direction) + ")"
 
 def _statement(quantity, direction, predicted, measured, deviation, lin, wire, limit,
-               roundoff=0.0, why_not=None) -> dict:
+               roundoff=0.0, why_not=None, how="first order") -> dict:
     """One statement of :func:`felt_verdict` (its notes)."""
     out = {"quantity": quantity, "direction": direction,
            "name": statement_name(quantity, direction), "predicted": predicted,
@@ -146,7 +146,7 @@ def _statement(quantity, direction, predicted, measured, deviation, lin, wire, l
         return out
     if wire is not None and not (math.isfinite(wire) and wire <= limit):
         out["reason"] = (f"the readings' rounding alone may move it by {wire:.2g} "
-                         f"(relative, first order), above {limit:g}")
+                         f"(relative, {how}), above {limit:g}")
         return out
     if not (math.isfinite(deviation)):
         out["reason"] = "its predicted value is 0: no relative statement"
@@ -260,10 +260,13 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                   f"{bound.depth_name!r} ({bound.depth:.3g} m): the contact opens, no "
                   "linear estimate holds")
     rnd = float(getattr(bound, "roundoff", 0.0))
+    # the wire's term taken over the errors' box (hapsim.analysis.wire_box) or at first order
+    how = ("over the errors' box" if isinstance(wire, dict) and wire.get("box")
+           else "first order")
     st = []
     for q in FELT_QUANTITIES:
         st.append(_statement(q, None, None, None, float(deviation[q]), lin[q], wq[q],
-                             limit, rnd))
+                             limit, rnd, how=how))
     if dirs is not None:
         eps = lin["felt_stiffness"]
         for q in FELT_QUANTITIES:
@@ -274,7 +277,7 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                 st.append(_statement(q, [float(v) for v in dirs["directions"][i]],
                                      row["predicted"], row["measured"], row["deviation"],
                                      lq, None if wdir is None else float(wdir[q][i]),
-                                     limit, rq))
+                                     limit, rq, how=how))
     stated = [s for s in st if s["verdict"] != "not measurable"]
     not_stated = [s["name"] for s in st if s["verdict"] == "not measurable"]
     what = ("linearisation bound plus the wire's rounding" if wire is not None else
@@ -287,12 +290,12 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
         if estimated:
             reason = (f"the readings' errors (the wire's rounding and {estimated} "
                       f"estimated samples, missing replies) alone may move the felt "
-                      f"stiffness by {wk:.2g} and the damping by {wd:.2g} (relative, first "
-                      f"order), above {limit:g}, and no principal direction is measurable "
+                      f"stiffness by {wk:.2g} and the damping by {wd:.2g} (relative, "
+                      f"{how}), above {limit:g}, and no principal direction is measurable "
                       "either: fewer missing replies (or a larger excitation) are needed")
         else:
             reason = (f"the readings' rounding alone may move the felt stiffness by "
-                      f"{wk:.2g} and the damping by {wd:.2g} (relative, first order), "
+                      f"{wk:.2g} and the damping by {wd:.2g} (relative, {how}), "
                       f"above {limit:g}, and no principal direction is measurable either: "
                       f"the excitation {bound.amplitude:g} m is too small for the wire's "
                       "resolution" + (f" (about {need:.2g} m or more is needed)"

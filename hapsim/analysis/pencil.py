@@ -30,7 +30,7 @@ The n-D counterpart (:func:`fit_felt_nd`): a free response of a linear loop of s
 ``y[k] = sum_{j=1..p} C_j y[k-j]``, exactly when the loop is observable from the handle
 with observability index ``p``. Its companion matrix has the loop's poles as eigenvalues
 and, in the first block of its eigenvectors, the handle mode shapes; the felt matrices
-follow from them as for the prediction (:func:`hapsim.analysis.ths_nd.felt_matrices`, the
+follow from them as for the prediction (:func:`hapsim.analysis.ths.felt_matrices`, the
 inverse quadratic eigenvalue problem). Several records (free responses from different
 initial states) are fitted together, so every mode is excited. The fit's first-order
 sensitivity to the records (:func:`felt_sensitivity_nd`) and its worst case under bounded
@@ -47,7 +47,7 @@ the differencing of the 1-D fit does), and it costs no row of a stretch: a first
 difference would cost each stretch one equation, and subtracting a record from rest
 would leave only the rows usable in both records (each record's cuts made the other's
 too).
-:mod:`hapsim.analysis.ths_nd` is imported on call (importing :mod:`hapsim.analysis` does
+:mod:`hapsim.analysis.ths` is imported on call (importing :mod:`hapsim.analysis` does
 not load it).
 """
 
@@ -357,7 +357,7 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
     comp = np.zeros((n * p, n * p))
     comp[:n, :] = C.T
     comp[n:, :-n] = np.eye(n * (p - 1))
-    from hapsim.analysis.ths_nd import continuous_poles, felt_matrices, rendered_pairs_of
+    from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of
     zr, U, poles = rendered_pairs_of(comp, n, period)
     out = {"poles": poles, "rendered_poles": zr, "felt_stiffness": None,
            "felt_damping": None, "residual": residual, "rank": int(rank)}
@@ -382,7 +382,7 @@ def _felt_of(C, n: int, p: int, mass, period: float):
     comp = np.zeros((n * p, n * p))
     comp[:n, :] = C.T
     comp[n:, :-n] = np.eye(n * (p - 1))
-    from hapsim.analysis.ths_nd import continuous_poles, felt_matrices, rendered_pairs_of
+    from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of
     zr, U, _ = rendered_pairs_of(comp, n, period)
     if zr.size != n:
         return None

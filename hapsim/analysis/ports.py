@@ -2,12 +2,12 @@
 stacked as the axes of one n-D loop (issue 30 item 3).
 
 A 1-D scene with P ports (:class:`hapsim.scene.ScenePorts`) is the n-D loop of
-:mod:`hapsim.analysis.ths_nd` with ``n = P`` axes, axis ``i`` the position of port ``i``
+:mod:`hapsim.analysis.ths` with ``n = P`` axes, axis ``i`` the position of port ``i``
 (docs/ports.md):
 
 - **Real side.** Each port's device ``m_i x_i'' + b0_i x_i' = F_i``: the block-diagonal
   (here diagonal) mass ``M = diag(m_i)`` [kg] and friction ``B0 = diag(b0_i)`` [N s/m];
-  their exact zero-order hold is :func:`hapsim.analysis.ths_nd.zoh_matrices`, which for a
+  their exact zero-order hold is :func:`hapsim.analysis.ths.zoh_matrices`, which for a
   diagonal ``M`` and ``B0`` is each device's own 1-D hold.
 - **Virtual side.** Every link is a ``spring_damper`` between two ports or between a port
   and a ground (the scheme's law, docs/design.md 'The scheme'), so the force on the ports
@@ -16,11 +16,12 @@ A 1-D scene with P ports (:class:`hapsim.scene.ScenePorts`) is the n-D loop of
   (a link of ``(k, c)`` between ports ``i`` and ``j`` adds ``k`` at ``(i, i)`` and
   ``(j, j)`` and ``-k`` at ``(i, j)`` and ``(j, i)``; to a ground, ``k`` at ``(i, i)``).
 - **Delay.** Port ``i``'s device applies the force computed from the positions ``d_i``
-  samples before (:func:`hapsim.analysis.ths_nd.state_matrix` with ``delays``); equal
-  delays may be sub-sample (the split hold of every axis), unequal ones are whole.
+  samples before (:func:`hapsim.analysis.ths.state_matrix` with ``delays``), whole or
+  sub-sample, each port its own (each axis its own split hold: the FireFader's fader B,
+  read 150 us before fader A, is 0.7625 periods behind at 250 Hz where A is 0.725).
 
 The felt matrices across ports, ``k`` and ``b`` (P x P), and the stability of the coupled
-loop (its spectral radius) are :func:`hapsim.analysis.ths_nd.render_state`'s (Lancaster's
+loop (its spectral radius) are :func:`hapsim.analysis.ths.render_state`'s (Lancaster's
 inverse quadratic eigenvalue problem; Li, Tavakoli & Huang, IEEE TCST 2014: the coupled
 loop's stability from its MIMO characteristic, never port by port). Two uncoupled ports
 are each port's own 1-D felt pair on the diagonal.
@@ -33,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hapsim.analysis.scene_check import felt_summary
-from hapsim.analysis.ths_nd import LoopModelND, RenderND, render_state, state_matrix
+from hapsim.analysis.ths import MatrixLoop, MatrixRenderResult, render_state, state_matrix
 
 __all__ = ["port_matrices", "port_loop", "ports_state_matrix", "PortsCheck", "check_ports",
            "stable_ports_check"]
@@ -74,7 +75,7 @@ def port_matrices(scene) -> tuple[np.ndarray, np.ndarray]:
     return K, B
 
 
-def port_loop(scene) -> tuple[LoopModelND, tuple | None]:
+def port_loop(scene) -> tuple[MatrixLoop, tuple | None]:
     """The n-D loop of the ports' devices, and the per-port delays when they differ.
 
     Parameters
@@ -83,24 +84,27 @@ def port_loop(scene) -> tuple[LoopModelND, tuple | None]:
 
     Returns
     -------
-    loop : hapsim.analysis.ths_nd.LoopModelND
+    loop : hapsim.analysis.ths.MatrixLoop
         ``dof = P``, ``mass = diag(m_i)`` [kg], ``friction = diag(b0_i)`` [N s/m], the
         scene's rate, ``delay`` the ports' common delay (the largest when they differ).
-    delays : tuple of int or None
-        Each port's whole delay [periods] when they differ, else None (the loop's one
-        delay, sub-sample or not).
+    delays : tuple of int or float, or None
+        Each port's delay [periods] when they differ (ints when all are whole), else
+        None (the loop's one delay, sub-sample or not).
     """
     devs = [d for _, d in scene.devices]
     delays = [float(d.delay) for d in devs]
     same = len(set(delays)) == 1
-    loop = LoopModelND(mass=np.diag([float(d.mass) for d in devs]),
-                       friction=np.diag([float(d.friction) for d in devs]),
-                       rate_hz=scene.rate_hz, delay=devs[0].delay if same else max(delays))
-    return loop, None if same else tuple(int(x) for x in delays)
+    loop = MatrixLoop(mass=np.diag([float(d.mass) for d in devs]),
+                      friction=np.diag([float(d.friction) for d in devs]),
+                      rate_hz=scene.rate_hz, delay=devs[0].delay if same else max(delays))
+    if same:
+        return loop, None
+    whole = all(x % 1 == 0 for x in delays)
+    return loop, tuple(int(x) if whole else x for x in delays)
 
 
 def ports_state_matrix(scene) -> np.ndarray:
-    """The coupled loop's state matrix (:func:`hapsim.analysis.ths_nd.state_matrix`).
+    """The coupled loop's state matrix (:func:`hapsim.analysis.ths.state_matrix`).
 
     Parameters
     ----------
@@ -108,7 +112,8 @@ def ports_state_matrix(scene) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape (P (d + 3), P (d + 3)); ``P (m + 4)`` for a common delay ``m + f``
+    ndarray, shape (P (d + 3), P (d + 3)); ``P (m + 4)`` for a sub-sample delay
+        ``m + f`` (the largest ``m``)
         ``s[n+1] = A s[n]``, the first P states the ports' positions [m], ``d`` the
         largest delay.
     """
@@ -125,7 +130,7 @@ class PortsCheck:
     ----------
     ports : tuple of str
         The ports, in axis order.
-    render : hapsim.analysis.ths_nd.RenderND
+    render : hapsim.analysis.ths.MatrixRenderResult
         Felt stiffness ``k`` [N/m] and damping ``b`` [N s/m] across ports (P x P),
         principal directions, poles, spectral radius.
     port_stiffness, port_damping : ndarray, shape (P, P)
@@ -137,7 +142,7 @@ class PortsCheck:
     """
 
     ports: tuple
-    render: RenderND
+    render: MatrixRenderResult
     port_stiffness: np.ndarray
     port_damping: np.ndarray
     delays: tuple
@@ -174,7 +179,7 @@ def check_ports(scene) -> PortsCheck:
     -------
     PortsCheck
         From the eigenvalues and eigenvectors of :func:`ports_state_matrix`
-        (:func:`hapsim.analysis.ths_nd.render_state`).
+        (:func:`hapsim.analysis.ths.render_state`).
     """
     loop, _ = port_loop(scene)
     K, B = port_matrices(scene)

@@ -19,13 +19,13 @@ and damping matrices at the port, with the same timing and the same linearisatio
 State at sample ``n`` (each block n-dimensional)::
 
     x_dev[n], v_dev[n]          the device (exact ZOH of M x'' + B0 x' = f, M and B0
-                                matrices: hapsim.analysis.ths_nd.zoh_matrices)
+                                matrices: hapsim.analysis.ths.zoh_matrices)
     x_port[n-1]                 for the port links' damping
     F[n-1], ..., F[n-d]         the force delay line (computed, not yet applied)
     x[n] of the N virtual masses, then x[n-1] of them   (centred scheme)
     F[n-d-1]                    a delay d + f (0 < f < 1) only: the force held over the
                                 period's first f T (the split hold,
-                                hapsim.analysis.ths_nd.split_hold_matrices)
+                                hapsim.analysis.ths.split_hold_matrices)
 
 At sample ``n`` the port is at the device sample; every link's force is computed from
 the positions at ``n`` and ``n - 1``; the virtual masses advance
@@ -44,7 +44,7 @@ with the stiffness and damping blocks
   ``l0 > 0``;
 - a plane with unit normal ``u`` on a mass: ``K u u^T`` and ``B u u^T`` to ground.
 
-The felt matrices are those of :func:`hapsim.analysis.ths_nd.render_state` (the inverse
+The felt matrices are those of :func:`hapsim.analysis.ths.render_state` (the inverse
 quadratic eigenvalue problem on the n least damped pairs the hand feels).
 """
 
@@ -60,8 +60,8 @@ from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.modes import OBSERVABLE_TOL, Mode, modes_from_poles, rendered_pair
 from hapsim.analysis.network import closed_loop, port_io
 from hapsim.analysis.virtual_network import MAX_STATES_ND, link_blocks
-from hapsim.analysis.ths_nd import (LoopModelND, RenderND, render_state, split_hold_matrices,
-                                    zoh_matrices)
+from hapsim.analysis.ths import (MatrixLoop, MatrixRenderResult, render_state, split_hold_matrices,
+                                 zoh_matrices)
 from hapsim.errors import ConfigError
 
 __all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL",
@@ -371,8 +371,8 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
     cur = [XP] + [xv(i) for i in range(Nv)]     # X[n] blocks, node order
     prev = [XPP] + [xvp(i) for i in range(Nv)]  # X[n-1] blocks
     A = np.zeros((N, N))
-    loop = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
-                       delay=dev.delay)
+    loop = MatrixLoop(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
+                      delay=dev.delay)
     if split:
         # F[n-d] enters through Gamma0 and is held over the next period's first f T
         # (block H); Gamma1 takes H (hapsim.analysis.subsample.held_plant)
@@ -421,13 +421,13 @@ def closed_loop_nd(scene) -> tuple[np.ndarray, list]:
 
 
 def felt_summary(r: dict) -> dict:
-    """The verdict and the felt matrices of a :class:`~hapsim.analysis.ths_nd.RenderND`'s
+    """The verdict and the felt matrices of a :class:`~hapsim.analysis.ths.MatrixRenderResult`'s
     dict, as every n-D check's ``--json`` says them.
 
     Parameters
     ----------
     r : dict
-        :meth:`hapsim.analysis.ths_nd.RenderND.to_dict`.
+        :meth:`hapsim.analysis.ths.MatrixRenderResult.to_dict`.
 
     Returns
     -------
@@ -451,7 +451,7 @@ class SceneCheckND:
     ----------
     dof : int
         n.
-    render : hapsim.analysis.ths_nd.RenderND
+    render : hapsim.analysis.ths.MatrixRenderResult
         Felt matrices at the port, principal directions, poles, spectral radius.
     port_stiffness, port_damping : ndarray, shape (n, n)
         The links at the port taken as port-to-ground springs (the sum of their blocks)
@@ -468,7 +468,7 @@ class SceneCheckND:
     """
 
     dof: int
-    render: RenderND
+    render: MatrixRenderResult
     port_stiffness: np.ndarray
     port_damping: np.ndarray
     states: int
@@ -535,8 +535,8 @@ def check_scene_nd(scene, progress=None) -> SceneCheckND:
     r = render_state(A, scene.device.mass, scene.period, K=Kp, B=Bp)
     E = lim = None
     if grounded:
-        loop = LoopModelND(mass=scene.device.mass, friction=scene.device.friction,
-                           rate_hz=scene.rate_hz, delay=scene.device.delay)
+        loop = MatrixLoop(mass=scene.device.mass, friction=scene.device.friction,
+                          rate_hz=scene.rate_hz, delay=scene.device.delay)
         E = np.linalg.eigh(scene.device.mass)[1]
         lim = np.empty(n)
         for i in range(n):
@@ -606,9 +606,9 @@ def felt_over_workspace(scene, *, span_deg: float = 30.0, points: int = 24,
     -------
     WorkspaceFelt
         At each grid configuration ``q``: the loop of
-        :meth:`hapsim.analysis.ths_nd.LoopModelND.from_device` (the scene's joint
+        :meth:`hapsim.analysis.ths.MatrixLoop.from_device` (the scene's joint
         inertia and friction, hand mass and damping, rate and delay), felt through
-        :func:`hapsim.analysis.ths_nd.render_nd` with the scene's port ``K`` and ``B``
+        :func:`hapsim.analysis.ths.render` with the scene's port ``K`` and ``B``
         (the inverse quadratic eigenvalue problem; module docstring).
 
     Raises
@@ -616,7 +616,7 @@ def felt_over_workspace(scene, *, span_deg: float = 30.0, points: int = 24,
     ConfigError
         A Cartesian device (no joints: no workspace).
     """
-    from hapsim.analysis.ths_nd import render_nd
+    from hapsim.analysis.ths import render
     from hapsim.errors import KinematicsError
     from hapsim.kinematics import device as make
     dev = scene.device
@@ -656,12 +656,12 @@ def felt_over_workspace(scene, *, span_deg: float = 30.0, points: int = 24,
     Mq, Bq, mh, bh = dev.joint_inertia, dev.joint_friction, dev.hand_mass, dev.hand_damping
     for q in (grid(ellipses if n == 2 else ellipses - 1) if ellipses > 1 else ()):
         try:
-            loop = LoopModelND.from_device(kin, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
-                                           rate_hz=scene.rate_hz, delay=dev.delay)
+            loop = MatrixLoop.from_device(kin, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
+                                          rate_hz=scene.rate_hz, delay=dev.delay)
             x = kin.forward(q)
         except (KinematicsError, ConfigError):
             continue
-        r = render_nd(loop, K, B)
+        r = render(loop, K, B)
         good = r.felt_stiffness is not None and r.stable
         P.append(x)
         Ks.append(r.felt_stiffness if good else np.full((n, n), np.nan))

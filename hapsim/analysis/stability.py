@@ -433,7 +433,7 @@ def brake_loop_matrix(mass, friction, damping, period: float, delay: int) -> np.
     numpy.linalg.LinAlgError
         ``M`` singular.
     """
-    from hapsim.analysis.ths_nd import zoh_blocks
+    from hapsim.analysis.ths import zoh_blocks
     M = np.atleast_2d(np.asarray(mass, float))
     n = M.shape[0]
     Bf, B = (float(a) * np.eye(n) if np.ndim(a) == 0 else np.asarray(a, float)

@@ -102,8 +102,9 @@ def refuse_ports(scene, what: str) -> None:
     from hapsim.scene import ScenePorts
     if isinstance(scene, ScenePorts):
         raise ConfigError(f"a scene with several ports ({', '.join(scene.ports)}): "
-                          f"hapsim.{what} takes one port; hapsim.check and 'hapsim run "
-                          "SCENE --lockstep' take several (docs/ports.md)",
+                          f"hapsim.{what} takes one port; hapsim.check and hapsim.run (in "
+                          "lockstep, or the FireFader's two faders in real time) take "
+                          "several (docs/ports.md)",
                           file=scene.path, key="devices")
 
 

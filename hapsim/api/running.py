@@ -418,7 +418,9 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
         return RunReportND.from_dict({**rep, "ports": list(res["predicted"].ports),
                                       "delays": [float(d) for d in res["predicted"].delays],
                                       "realtime": res["realtime"],
-                                      "amplitude": res["amplitude"]})
+                                      "amplitude": res["amplitude"],
+                                      # said before the run: what it cannot state, or None
+                                      "stated_before_run": res.get("stated_before_run")})
     name = (lambda f: "--" + f.replace("_", "-")) if by == "flag" else (lambda f: f)
     refuse_options(opts, by, PORTS_TAKES, "a scene with several ports",
                    f"it takes {', '.join(name(f) for f in PORTS_TAKES + ('amplitude',))}")

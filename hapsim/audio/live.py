@@ -504,9 +504,9 @@ class LiveND:
         d = int(dev.delay) if self.closed else 0
         Ad, Bd = np.zeros((2 * dim, 2 * dim)), np.zeros((2 * dim, dim))
         if self.closed:
-            from hapsim.analysis.ths_nd import LoopModelND, zoh_matrices
-            Ad, Bd = zoh_matrices(LoopModelND(mass=dev.mass, friction=dev.friction,
-                                              rate_hz=scene.rate_hz, delay=d))
+            from hapsim.analysis.ths import MatrixLoop, zoh_matrices
+            Ad, Bd = zoh_matrices(MatrixLoop(mass=dev.mass, friction=dev.friction,
+                                             rate_hz=scene.rate_hz, delay=d))
         self.hand = np.zeros(1)
         self.direction = np.zeros(dim)
         if hand is not None and np.size(hand):

@@ -48,7 +48,7 @@ def register(sub) -> None:
                    help="a Cartesian handle force [N] (2 or 3 components): also print "
                         "the joint torques J^T F [N m]")
     g = p.add_argument_group(
-        "stiffness limits (the THS as a matrix at these joints: hapsim.analysis.ths_nd)")
+        "stiffness limits (the THS as a matrix at these joints: hapsim.analysis.ths)")
     g.add_argument("--joint-inertia", type=Number(float, low=0, open_low=True, unit="kg m^2"),
                    nargs="+", metavar="KG_M2",
                    help="joint inertia [kg m^2], one per joint (or one for all): computes "
@@ -193,7 +193,7 @@ def _limits(args, dev, q, n) -> dict:
     """The ``limits`` (and ``workspace``) part of the output."""
     import numpy as np
 
-    from hapsim.analysis.ths_nd import LoopModelND
+    from hapsim.analysis.ths import MatrixLoop
 
     from hapsim.analysis.direction_limits import direction_limits
     Iq = _per_joint(args.joint_inertia, n, "--joint-inertia")
@@ -205,7 +205,7 @@ def _limits(args, dev, q, n) -> dict:
             raise ConfigError("a chart needs --grid N", key="--out")
     kw = dict(hand_mass=args.hand_mass, hand_damping=args.hand_damping,
               rate_hz=args.rate, delay=args.delay)
-    loop = LoopModelND.from_device(dev, q, Iq, Bq, **kw)
+    loop = MatrixLoop.from_device(dev, q, Iq, Bq, **kw)
     w, V = np.linalg.eigh(loop.mass)
     K = direction_limits(loop, V, args.B * np.eye(n))
 
@@ -235,7 +235,7 @@ def workspace_map(dev, q, joint_inertia, joint_friction, *, B, grid: int, span: 
     q : array_like, shape (n,)
         The grid's centre [rad].
     joint_inertia, joint_friction
-        As :meth:`hapsim.analysis.ths_nd.LoopModelND.from_device`.
+        As :meth:`hapsim.analysis.ths.MatrixLoop.from_device`.
     B : ndarray, shape (n, n)
         Virtual damping [N s/m].
     grid : int

@@ -42,7 +42,10 @@ def register(sub) -> None:
             "device that exits at the first STOP. A 2-D or 3-D scene (dimension: 2 or 3) "
             "serves its device with n axes (HELLO n_axes = n, the joint-space dynamics of "
             "a pantograph or delta) and a hand that starts each CONFIG from the next "
-            "identification start (--amplitude); see docs/dimensions.md."),
+            "identification start (--amplitude); see docs/dimensions.md. A scene whose "
+            "device speaks a driver's protocol (device.protocol: firefader, haply, "
+            "hapkit-serial), or the FireFader's two faders (devices:), serves that "
+            "board's emulation instead, on its own wall clock (docs/devices.md)."),
         epilog=(
             "modes:\n"
             "  real-time (default)  ticks on the monotonic clock at the host's CONFIG rate;\n"
@@ -200,6 +203,14 @@ def run(args) -> int:
         ``--link``, ``--trace`` or ``--spin-us`` without ``--firmware``, or a scene without
         a device section (exit 2 from :func:`hapsim.cli.main`).
     """
+    if args.scene and args.fd is None and args.spec is None:
+        from hapsim.scene import scene_dimension
+        if scene_dimension(args.scene) == 1:
+            # a device that speaks a driver's protocol (the FireFader, a Haply, a Hapkit
+            # sketch), or the FireFader's two faders: its emulated board
+            from hapsim.commands.mock_board import board_protocol, run_board_mock
+            if board_protocol(args.scene) is not None:
+                return run_board_mock(args, _new_pty, _given)
     if args.rt_priority is None:
         args.rt_priority = 10 if args.firmware and not args.lockstep else 0
     if args.scene:

@@ -90,7 +90,10 @@ class FireFaderDevice(Actuated):
     there while the enable climbs back (:data:`HAND_PASSES` passes); at the
     :data:`HAND_PASSES`-th pass it lets go, the faders moving at ``(vA, vB)``: that
     pass's record is the record's first row. A shorter silence (a host late) leaves the
-    faders where they are.
+    faders where they are, and so does the silence before the host's first bytes (the
+    hand waits for a measurement to begin: a host that opens the port later than
+    :data:`HAND_SILENCE_S` after the board started would otherwise find the first start
+    taken and its records one start late).
 
     End stops: with ``travel`` the fader's position is held within
     ``[stop_low, stop_low + travel]`` (an inelastic stop: the velocity is zeroed there);
@@ -270,7 +273,10 @@ class FireFaderDevice(Actuated):
         self.enable_b = self.heat_b = self.cap_b = self.pwm_b = 0
         self._hand = [tuple(float(v) for v in h) for h in (hand or ())]
         self._holding = None                  # (start, passes left) while the hand holds
-        self._hand_quiet = None               # the silence the hand last acted in
+        # the silence the hand last acted in: the one before the host's first bytes is
+        # none it acts in (class notes)
+        self._hand_quiet = self._quiet_from
+        self._host_spoke = False
         if device_b is not None:
             self.fader_b = Actuated(device_b, rate_hz, None, math.inf, seed + 1, clock=clock)
             if wall:
@@ -493,6 +499,8 @@ class FireFaderDevice(Actuated):
         """
         if now < self.boot_s:
             return b""                        # the bootloader has them
+        if data:
+            self._host_spoke = True
         if self.wall is not None:
             return self._feed_wall(data, now)
         if self.firmware == "pde":
@@ -586,6 +594,6 @@ class FireFaderDevice(Actuated):
             return self._pass(getattr(self, "last_count", 0), 1)
         if silent_s > 0.1 and (self.enable or self.pwm or self.enable_b or self.pwm_b):
             self._silenced()
-        if silent_s >= self.HAND_SILENCE_S and self._hand:
+        if silent_s >= self.HAND_SILENCE_S and self._hand and self._host_spoke:
             self._take()
         return b""

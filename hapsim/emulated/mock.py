@@ -102,12 +102,12 @@ DEFAULT_AMPLITUDE = 1e-8
 
 
 def _nd_models():
-    """The models an n-DoF mock runs on (:mod:`hapsim.analysis.ths_nd`,
+    """The models an n-DoF mock runs on (:mod:`hapsim.analysis.ths`,
     :mod:`hapsim.joint_device`, :mod:`hapsim.lockstep`), imported on first use: a 1-D
     mock's process does not load them (the n-D engine and its kernels come with them)."""
     from hapsim import joint_device, lockstep
-    from hapsim.analysis import ths_nd
-    return ths_nd, joint_device, lockstep
+    from hapsim.analysis import ths
+    return ths, joint_device, lockstep
 
 
 class PhysicsND:
@@ -122,7 +122,7 @@ class PhysicsND:
     joint_space : bool
         A pantograph or delta integrates its joint-space dynamics
         (:class:`hapsim.joint_device.LocalJointDeviceND`); False, or a cartesian device: the
-        exact ZOH of the Cartesian mass at rest (:func:`hapsim.analysis.ths_nd.zoh_matrices`).
+        exact ZOH of the Cartesian mass at rest (:func:`hapsim.analysis.ths.zoh_matrices`).
 
     Attributes
     ----------
@@ -137,7 +137,7 @@ class PhysicsND:
         self.n = 0
         x0 = np.asarray(x0, float)
         v0 = np.asarray(v0, float)
-        ths_nd, joint_device, _ = _nd_models()
+        ths, joint_device, _ = _nd_models()
         self.joint = None
         self.split = float(dev.delay) % 1.0
         if joint_space and dev.joints is not None:
@@ -148,11 +148,11 @@ class PhysicsND:
                                   "Cartesian model", file=scene.path, key="device.delay")
             self.joint = joint_device.LocalJointDeviceND(scene, x0, v0)
         else:
-            lm = ths_nd.LoopModelND(mass=dev.mass, friction=dev.friction,
-                                    rate_hz=scene.rate_hz, delay=dev.delay)
-            self.Ad, self.Bd = ths_nd.zoh_matrices(lm)
-            if self.split > 0:        # the split hold (ths_nd.split_hold_matrices)
-                _, self._G0, self._G1 = ths_nd.split_hold_matrices(lm)
+            lm = ths.MatrixLoop(mass=dev.mass, friction=dev.friction,
+                                rate_hz=scene.rate_hz, delay=dev.delay)
+            self.Ad, self.Bd = ths.zoh_matrices(lm)
+            if self.split > 0:        # the split hold (ths.split_hold_matrices)
+                _, self._G0, self._G1 = ths.split_hold_matrices(lm)
                 self._held = np.zeros(self.dim)
         self.state = np.concatenate([x0, v0])
 

@@ -15,7 +15,7 @@ One sample ``n`` (the timing of :mod:`hapsim.lockstep` and of the n-D check,
    e`` over the period (``h`` the hand's force profile [N], repeated every ``every``
    samples when ``every > 0``, ``e`` its unit direction): ``[x, v][n+1] = Ad [x, v][n] +
    Bd u[n]`` (the exact zero-order hold of the Cartesian mass and friction,
-   :func:`hapsim.analysis.ths_nd.zoh_matrices`);
+   :func:`hapsim.analysis.ths.zoh_matrices`);
 5. each listening point is recorded, ``master gain [c] x[axis, mass]`` (minus its previous
    value for a velocity).
 

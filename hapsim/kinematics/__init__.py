@@ -13,7 +13,7 @@ singularities, invertible:
   work);
 - the Cartesian mass ``M = J^-T M_q J^-1`` [kg] of a joint-space inertia ``M_q``
   [kg m^2] (Khatib 1987, the operational-space inertia), used by
-  :mod:`hapsim.analysis.ths_nd`.
+  :mod:`hapsim.analysis.ths`.
 
 Configurations the device cannot take (no assembly: the linkage does not close) and
 singular ones (the Jacobian or its inverse does not exist: a serial singularity, where an

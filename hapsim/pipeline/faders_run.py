@@ -45,7 +45,16 @@ its time (:func:`departures`: from the record's median lateness, which shifts th
 loop and changes no hold) reads its pot ``delta`` off (a reading error up to ``|v|
 |delta|``) and leaves the force before it on ``delta`` longer or shorter (an impulse
 ``|du| |delta|``, stated as a force error ``|du| |delta| / T`` over the period: first
-order in ``delta / T``).
+order in ``delta / T``). The wire's term is the worst case over the error box
+(:mod:`hapsim.analysis.wire_box`, ``box=True``), not the first-order one at the records:
+measured on the lockstep board (the shipped scene and random soft ones, each error
+coordinate's effect on the decimated fit by finite differences, then the records moved
+by each statement's first-order worst errors and refitted), the errors moved a stated
+felt stiffness by 0.17-0.90 of its first-order term and an unstated damping by up to
+1.36 of it, and the sensitivity sampled over the box was 1.06-1.95 times the one at the
+records: the first-order term was no bound, and a "differs" built on it could be wrong.
+With the box the 8-bit pots state nothing at the shipped amplitude; the run says so
+before it starts (:func:`faders_feasibility`).
 """
 
 from __future__ import annotations
@@ -61,7 +70,7 @@ from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["WORKSPACE_M", "LATE_STOP_S", "CUT_PERIODS", "FADERS_TAKES", "FADER_AMPLITUDE",
            "faders_refusal", "record_faders", "departures", "usable_rows", "measure_faders",
-           "run_faders", "decimation"]
+           "run_faders", "decimation", "faders_feasibility", "LockstepBoardLink"]
 
 #: The measurement's workspace [m] from the centre: 100 pot counts (39 mm), inside the
 #: ``.ino``'s enable range (``4 < pot < 251``, line 382) and the emulated board's end stops.
@@ -253,6 +262,9 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
         clamped = np.zeros(samples, bool)
         f = np.zeros(P)
         t0 = time.monotonic_ns()
+        # the loop's buffers, made once per record: a sample allocates no array
+        x = np.empty(P)
+        raw = np.empty(host.x.size)
         for w in range(H - 1 + samples):
             k = w - (H - 1)                   # the row this write's pass reads
             due = t0 + w * Tns
@@ -271,20 +283,26 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
                 break
             if k < 0:
                 continue
-            x = (np.array(rec, float) - CENTRE) * METRES_PER_COUNT
+            for i in range(P):
+                x[i] = (float(rec[i]) - CENTRE) * METRES_PER_COUNT
             pos[k], late[k] = x, lag
-            if np.any(np.abs(x) > WORKSPACE_M):
-                stop = (f"safety: fader {'AB'[int(np.argmax(np.abs(x)))]} "
-                        f"{float(np.max(np.abs(x))) * 1e3:.1f} mm from the centre, beyond "
-                        f"the workspace's {WORKSPACE_M * 1e3:.1f} mm")
+            far = max(range(P), key=lambda i: abs(x[i]))
+            if abs(x[far]) > WORKSPACE_M:
+                stop = (f"safety: fader {'AB'[far]} {abs(x[far]) * 1e3:.1f} mm from the "
+                        f"centre, beyond the workspace's {WORKSPACE_M * 1e3:.1f} mm")
                 break
             host.xp[:P] = pos[k - 1] if k > 0 else x
             host.x[:P] = x
-            raw = host.forces()[:P]
-            f = np.clip(raw, -lim, lim)
-            clamped[k] = bool(np.any(np.abs(raw) >= lim) or np.any(
-                np.abs(np.round(f / force_scale)) > FORCE_MAX))
-            frc[k] = [max(force_counts(v, fs), -FORCE_MAX) * force_scale for v in f]
+            host.forces(out=raw)
+            hit = False
+            for i in range(P):
+                r, m = float(raw[i]), float(lim[i])
+                v = min(max(r, -m), m)
+                f[i] = v
+                c = max(force_counts(v, fs), -FORCE_MAX)
+                frc[k, i] = c * force_scale
+                hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
+            clamped[k] = hit
         _zero(ser, dec)                       # both faders at zero force
         out.append({"position": pos, "force": frc, "late": late, "clamped": clamped})
         if progress is not None:
@@ -402,8 +420,7 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.ports import check_ports, port_loop
     from hapsim.drivers.firefader import METRES_PER_COUNT
-    from hapsim.lockstep import wire_terms_nd
-    from hapsim.lockstep_ports import port_error_responses, ports_bound
+    from hapsim.lockstep_ports import ports_bound
     chk = check_ports(scene) if chk is None else chk
     T = scene.period
     delay = max(float(d.delay) for _, d in scene.devices)
@@ -460,7 +477,7 @@ def decimation(chk, period: float) -> int:
     -------
     int
     """
-    from hapsim.analysis.ths_nd import continuous_poles
+    from hapsim.analysis.ths import continuous_poles
     s = continuous_poles(chk.render.rendered_poles, period)
     f = float(np.max(np.abs(s.imag))) / (2 * math.pi) if s.size else 0.0
     return max(1, int(1.0 / (SAMPLES_PER_CYCLE * f * period))) if f > 0 else 1
@@ -502,7 +519,7 @@ def _decimated_wire(scene, chk, diffs, use, mass, bounds, D: int, Nd: int) -> di
                           [("reading", eye, [at(b[0]) for b in bounds]),
                            ("force", eye, [at(b[1]) for b in bounds])],
                           usable=use, mass=mass, responses=(Rr[lag], Rf[lag]),
-                          period=D * T)
+                          period=D * T, box=True)
         if out is None:
             out = w
             continue
@@ -511,6 +528,99 @@ def _decimated_wire(scene, chk, diffs, use, mass, bounds, D: int, Nd: int) -> di
             out["directions"][q] = [a + b for a, b in zip(out["directions"][q],
                                                           w["directions"][q])]
     return out
+
+
+class LockstepBoardLink:
+    """The emulated FireFader in-process on its lockstep clock, as :func:`record_faders`'s
+    serial port: each write is one tick of the board (asked for by name: deterministic,
+    no pty), the host's silences told to it (``idle``).
+
+    Parameters
+    ----------
+    dev : hapsim.emulated.firefader_board.FireFaderDevice
+        Made with ``clock="lockstep"``.
+    """
+
+    def __init__(self, dev) -> None:
+        self.dev = dev
+        self.buf = bytearray()
+
+    def write(self, data: bytes) -> None:
+        """Feed one write to the board: one tick; its record waits to be read."""
+        self.buf += self.dev.feed(bytes(data), writes=[b"", bytes(data)])
+
+    def idle(self, s: float) -> None:
+        """The host silent for ``s`` [s] (the board's silence rule counts it)."""
+        self.dev.idle(s)
+
+    @property
+    def in_waiting(self) -> int:
+        """Bytes the board sent and the host has not read."""
+        return len(self.buf)
+
+    def read(self, n: int) -> bytes:
+        """Up to ``n`` bytes of what the board sent."""
+        out = bytes(self.buf[:n])
+        del self.buf[:n]
+        return out
+
+    def reset_input_buffer(self) -> None:
+        """Drop what the board sent and the host has not read."""
+        self.buf.clear()
+
+    def flush(self) -> None:
+        """Nothing waits to be written (each write is taken at once)."""
+
+
+def faders_feasibility(scene, amplitude: float, samples: int, chk=None) -> dict:
+    """What a run of the two faders can state, predicted before it: the same records and
+    measurement (:func:`record_faders`, :func:`measure_faders`) on the emulated board in
+    its lockstep clock, in-process (asked for by name: the pots' and the forces' rounding
+    alone, no host timing). In real time the host's late writes can only add to the
+    wire's term, so what is not stated here is not stated there.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.ScenePorts
+        The FireFader's two faders (:func:`faders_refusal` passed).
+    amplitude : float
+        ``a`` [m].
+    samples : int
+        Rows per record.
+    chk : hapsim.analysis.ports.PortsCheck, optional
+        The prediction (default :func:`hapsim.analysis.ports.check_ports`).
+
+    Returns
+    -------
+    dict
+        ``stated``, ``not_stated`` (the statements' names), ``verdict`` (the lockstep
+        run's) and ``statement``: None when something is stated, else the sentence the
+        run says before it starts.
+    """
+    from hapsim.analysis.ports import check_ports
+    from hapsim.drivers.firefader import FireFader
+    from hapsim.emulated.firefader_board import FireFaderDevice
+    from hapsim.lockstep import excitation_starts
+    chk = check_ports(scene) if chk is None else chk
+    drv = FireFader()
+    starts = excitation_starts(2, amplitude, scene.period)
+    (_, da), (_, db) = scene.devices
+    dev = FireFaderDevice(da, scene.rate_hz, None, clock="lockstep", device_b=db,
+                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
+                          **drv.mock_hardware())
+    run = record_faders(LockstepBoardLink(dev), scene, samples, len(starts),
+                        force_scale=drv.force_scale, pace=False)
+    v = measure_faders(scene, run, amplitude, samples=samples, order=chk.states // 2,
+                       chk=chk, force_scale=drv.force_scale)["verdict"]
+    stated = [st["name"] for st in v["statements"] if st["verdict"] != "not measurable"]
+    not_stated = [st["name"] for st in v["statements"] if st["verdict"] == "not measurable"]
+    said = None
+    if not stated:
+        said = ("not measurable, predicted before the run (the emulated board in lockstep, "
+                f"the 8-bit pots' and the forces' rounding alone, a = {amplitude:g} m): "
+                f"{v['reason']}")
+    return {"stated": stated, "not_stated": not_stated, "verdict": v["verdict"],
+            "statement": said}
 
 
 def run_faders(scene, options, amplitude: float | None = None, *, by: str = "field",
@@ -579,6 +689,11 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     N = default_samples(order, 2) if samples is None else int(samples)
     T = scene.period
     starts = excitation_starts(2, a, T)
+    # before the run: what can its records state at all (the pots' rounding alone)? Said
+    # first, then run (the real-time records may state less, never more)
+    pre = faders_feasibility(scene, a, N, chk)
+    if pre["statement"] is not None and getattr(options, "on_precheck", None) is not None:
+        options.on_precheck(pre["statement"])
     drv = FireFader()
     mock = None
     port = options.port
@@ -629,4 +744,6 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
                        "held_at_end": held,
                        "port": options.port or "embedded emulated FireFader (wall clock)"}
     res["amplitude"] = a
+    if pre["statement"] is not None:
+        res["stated_before_run"] = pre["statement"]
     return res

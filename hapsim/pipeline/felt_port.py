@@ -349,7 +349,7 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
     -------
     ndarray, shape (N, n)
         ``x_w[k] = sum_{j<k} C A^(k-1-j) B_w w[j]`` [m], ``B_w`` the ZOH input of the
-        device (the first ``2n`` rows of the state, :func:`hapsim.analysis.ths_nd.zoh_matrices`)
+        device (the first ``2n`` rows of the state, :func:`hapsim.analysis.ths.zoh_matrices`)
         and ``C`` the device position (superposition, as the 1-D
         :func:`hapsim.analysis.error_response.disturbance_response`).
 
@@ -359,14 +359,14 @@ def disturbance_response_nd(scene, W, *, A=None) -> np.ndarray:
         As :func:`hapsim.analysis.scene_check.closed_loop_nd`.
     """
     from hapsim.analysis.scene_check import closed_loop_nd
-    from hapsim.analysis.ths_nd import LoopModelND, split_hold_matrices, zoh_matrices
+    from hapsim.analysis.ths import MatrixLoop, split_hold_matrices, zoh_matrices
     W = np.asarray(W, float)
     n = scene.dimension
     if A is None:
         A = closed_loop_nd(scene)[0]
     dev = scene.device
-    lm = LoopModelND(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
-                     delay=dev.delay)
+    lm = MatrixLoop(mass=dev.mass, friction=dev.friction, rate_hz=scene.rate_hz,
+                    delay=dev.delay)
     split = float(dev.delay) % 1.0 > 0
     if split:    # the force applied enters through Gamma0 and is held next period (last)
         _, Bd, _ = split_hold_matrices(lm)

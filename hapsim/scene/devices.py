@@ -1,7 +1,7 @@
 """Reading a 2-D or 3-D scene's device: a Cartesian one (its mass and friction as given) or
 a kinematic one, the pantograph or the delta of :mod:`hapsim.kinematics`, at an operating
 point: its geometry (a preset, or a pantograph's five lengths), its joints, and its
-Cartesian mass and friction there (:meth:`hapsim.analysis.ths_nd.LoopModelND.from_device`,
+Cartesian mass and friction there (:meth:`hapsim.analysis.ths.MatrixLoop.from_device`,
 imported when a kinematic device is read), checked against the mass range and a
 singular pose, every refusal naming the file, the line and the key."""
 
@@ -104,7 +104,7 @@ def read_device_nd(r: LineContext, doc, n: int, max_delay: int) -> DeviceND:
         A Cartesian device as given, or a kinematic one (pantograph: n = 2, delta: n = 3)
         with its Cartesian mass ``J^-T M_q J^-1 + m_h I`` [kg] and friction
         ``J^-T B_q J^-1 + b_h I`` [N s/m] at the joints given
-        (:meth:`hapsim.analysis.ths_nd.LoopModelND.from_device`; Khatib 1987), its handle
+        (:meth:`hapsim.analysis.ths.MatrixLoop.from_device`; Khatib 1987), its handle
         at their forward kinematics.
 
     Raises
@@ -149,10 +149,10 @@ def read_device_nd(r: LineContext, doc, n: int, max_delay: int) -> DeviceND:
     bh = r.number(d, "hand_damping", key, default=0.0, minimum=0.0, unit="N s/m")
     dev = make(kind, geometry)
     try:
-        from hapsim.analysis.ths_nd import LoopModelND
+        from hapsim.analysis.ths.matrix_loop import MatrixLoop
         with np.errstate(over="ignore", invalid="ignore"):   # refused below when not finite
-            loop = LoopModelND.from_device(dev, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
-                                           rate_hz=1.0, delay=0)
+            loop = MatrixLoop.from_device(dev, q, Mq, Bq, hand_mass=mh, hand_damping=bh,
+                                          rate_hz=1.0, delay=0)
         pos = dev.forward(q)
     except (KinematicsError, ConfigError) as exc:
         # a configuration the kinematics refuse, or one so near a singularity that the

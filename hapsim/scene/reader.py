@@ -176,8 +176,9 @@ def _built(ctx: LineContext, doc: LDict, make: Callable):
 #: What the one-port reader, and every command that takes it, says of a scene with
 #: several ports (``devices:``).
 PORTS_REFUSAL = ("a scene with several ports (devices:, one device per port): this takes one "
-                 "port (a device: section); 'hapsim check' and 'hapsim run --lockstep' take "
-                 "several (docs/ports.md)")
+                 "port (a device: section); 'hapsim check', 'hapsim run' (in lockstep, or the "
+                 "FireFader's two faders in real time) and 'hapsim mock' (the two faders' "
+                 "board) take several (docs/ports.md)")
 #: The top-level keys of a scene with several ports.
 PORTS_TOP_KEYS = ("rate_hz", "integrator", "masses", "links", "devices")
 #: Top-level keys of a one-port scene a scene with several ports refuses, and why.

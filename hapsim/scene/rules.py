@@ -253,10 +253,8 @@ PORTS_NOT_BUILT = {
     "hold": "the n-D loop models the zero-order hold only: hold: zoh",
     "hand": "a hand model per port is not built yet",
     "correction": "a correction per port is not built yet",
-    "delay": "a sub-sample delay (the split hold) takes one delay for every port: unequal "
-             "delays must be whole periods",
 }
-#: Most ports one scene takes: the n-D loop (hapsim.analysis.ths_nd.LoopModelND) has at
+#: Most ports one scene takes: the n-D loop (hapsim.analysis.ths.MatrixLoop) has at
 #: most 3 axes.
 MAX_PORTS = 3
 
@@ -269,7 +267,7 @@ def check_scene_ports(s) -> None:
     device mass, and what this slice does not build refused with its reason
     (:data:`PORTS_NOT_BUILT`): 2 to :data:`MAX_PORTS` ports, each with a device and no
     device for another name, no virtual mass, no contact, no target, ``hold: zoh``, no
-    hand or correction, and unequal delays whole.
+    hand or correction (each port its own delay, whole or sub-sample).
 
     Raises
     ------
@@ -314,11 +312,6 @@ def check_scene_ports(s) -> None:
                 raise Invalid(PORTS_NOT_BUILT[k], ("devices", n, k))
         if d.hold != "zoh":
             raise Invalid(PORTS_NOT_BUILT["hold"], ("devices", n, "hold"))
-    delays = [float(d.delay) for _, d in s.devices]
-    if len(set(delays)) > 1 and any(x % 1 for x in delays):
-        n = next(n for n, d in s.devices if float(d.delay) % 1)
-        raise Invalid(PORTS_NOT_BUILT["delay"] + f"; got {', '.join(f'{x:g}' for x in delays)}",
-                      ("devices", n, "delay"))
     _check_products(s)
 
 

@@ -1,8 +1,11 @@
-"""The THS as a matrix (hapsim.analysis.ths_nd) against an independent MIMO reference
+"""The THS as a matrix (hapsim.analysis.ths) against an independent MIMO reference
 written here (continuous system, scipy.linalg.expm ZOH, a *force* delay line instead of
 hapsim's position delay line, eigenvalues; felt matrices by least squares on the quadratic
 eigen-equations), the 1-D prediction of hapsim.analysis.ths/loop, the 1-D answer per axis
-of a decoupled loop, and coupling that axis-by-axis checks miss."""
+of a decoupled loop, and coupling that axis-by-axis checks miss; the entries of
+hapsim.analysis.ths (render, calibrate, state_matrix, closed_loop_poles, rendered_pairs)
+taking a 1-D loop and a matrix loop alike, and refusing by name what the matrix loop does
+not model."""
 
 from __future__ import annotations
 
@@ -14,11 +17,11 @@ from scipy.linalg import expm
 from scipy.optimize import linear_sum_assignment
 
 from hapsim.analysis.loop import LoopModel, characteristic
-from hapsim.analysis.loop_poles import closed_loop_poles, spectral_radius
-from hapsim.analysis.ths import render
+from hapsim.analysis.loop_poles import spectral_radius
 from hapsim.analysis.stability import stability_limit
 from hapsim.analysis.direction_limits import direction_limit, direction_limits, workspace_limits
-from hapsim.analysis.ths_nd import LoopModelND, closed_loop_poles_nd, render_nd, state_matrix
+from hapsim.analysis.ths import (MatrixLoop, as_matrix_loop, calibrate, closed_loop_poles,
+                                rendered_pairs, render, state_matrix)
 from hapsim.errors import ConfigError
 from hapsim.kinematics import Pantograph
 from tolerance import (BRENT_THETA, crossing_tol, eig_tol, expm_tol, measured, rel_tol,
@@ -104,7 +107,7 @@ def limit_tol(l1, K, B, dz):
 def limit_tol_1d(m, b0, rate, d, K, B):
     """:func:`limit_tol` of the 1-D loop (m, b0) with both paths' pole round-off."""
     l1 = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
-    ln = LoopModelND(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
+    ln = MatrixLoop(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
     return limit_tol(l1, K, B, pole_tol_1d_nd(l1, ln, K, B))
 
 
@@ -175,14 +178,14 @@ def test_eigenvalues_and_felt_matrices_equal_the_independent_reference(n):
     felt_checked = 0
     for _ in range(24):
         M, B0, rate, d, K, B = random_loop(rng, n)
-        loop = LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=d)
+        loop = MatrixLoop(mass=M, friction=B0, rate_hz=rate, delay=d)
         A = reference_state_matrix(M, B0, 1.0 / rate, d, K, B)
         z_ref, V = np.linalg.eig(A)
-        z = closed_loop_poles_nd(loop, K, B)
+        z = closed_loop_poles(loop, K, B)
         assert z.size == z_ref.size == n * (d + 3)
         dz = reference_pole_tol(loop, M, B0, 1.0 / rate, d, K, B)
         assert match(z, z_ref) <= dz
-        r = render_nd(loop, K, B)
+        r = render(loop, K, B)
         assert r.spectral_radius == pytest.approx(np.max(np.abs(z_ref)), rel=0, abs=dz)
         if r.felt_stiffness is None:
             continue
@@ -205,8 +208,8 @@ def test_felt_system_has_the_rendered_poles_and_shapes():
     rng = np.random.default_rng(7)
     for n in (2, 3):
         M, B0, rate, d, K, B = random_loop(rng, n)
-        loop = LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=min(d, 1))
-        r = render_nd(loop, K, B)
+        loop = MatrixLoop(mass=M, friction=B0, rate_hz=rate, delay=min(d, 1))
+        r = render(loop, K, B)
         Minv = np.linalg.inv(M)
         Ac = np.block([[np.zeros((n, n)), np.eye(n)],
                        [-Minv @ r.felt_stiffness, -Minv @ r.felt_damping]])
@@ -225,10 +228,10 @@ def test_one_dof_reproduces_the_1d_prediction(seed):
     rate, d = float(rng.choice([500.0, 1000.0, 10000.0])), int(rng.integers(0, 6))
     K, B = rng.uniform(10.0, 1500.0), rng.uniform(0.0, 3.0)
     l1 = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
-    ln = LoopModelND(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
+    ln = MatrixLoop(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
     dz = pole_tol_1d_nd(l1, ln, K, B)
-    assert match(closed_loop_poles(l1, K, B), closed_loop_poles_nd(ln, K, B)) <= dz
-    r1, rn = render(l1, K, B), render_nd(ln, K, B)
+    assert match(closed_loop_poles(l1, K, B), closed_loop_poles(ln, K, B)) <= dz
+    r1, rn = render(l1, K, B), render(ln, K, B)
     assert rn.spectral_radius == pytest.approx(r1.spectral_radius, rel=0, abs=dz)
     assert rn.stable == r1.stable
     if math.isfinite(r1.k):
@@ -249,8 +252,8 @@ def test_decoupled_loop_is_the_1d_answer_per_axis(n):
     rng = np.random.default_rng(20 + n)
     m, b0 = rng.uniform(0.05, 0.4, n), rng.uniform(0.1, 1.0, n)
     K, B = rng.uniform(100.0, 800.0, n), rng.uniform(0.5, 2.0, n)
-    loop = LoopModelND(mass=m, friction=b0, rate_hz=1000.0, delay=1)
-    r = render_nd(loop, K, B)
+    loop = MatrixLoop(mass=m, friction=b0, rate_hz=1000.0, delay=1)
+    r = render(loop, K, B)
     assert r.stable
     for i in range(n):
         l1 = LoopModel(mass=m[i], friction=b0[i], rate_hz=1000.0, delay=1)
@@ -275,16 +278,16 @@ def test_rotation_moves_the_felt_matrices_not_the_poles():
     rng = np.random.default_rng(8)
     M, B0, rate, d, K, B = random_loop(rng, 3)
     R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    a = render_nd(LoopModelND(mass=M, friction=B0, rate_hz=rate, delay=1), K, B)
-    b = render_nd(LoopModelND(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
-                              delay=1), R @ K @ R.T, R @ B @ R.T)
+    a = render(MatrixLoop(mass=M, friction=B0, rate_hz=rate, delay=1), K, B)
+    b = render(MatrixLoop(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
+                          delay=1), R @ K @ R.T, R @ B @ R.T)
     # the rotated inputs carry a product's round-off (R X R^T: 2 x 3 terms, rel_tol(6))
     # into the state matrix, amplified by M^-1 (cond(M)); plus each eigenproblem's own
-    Ab = state_matrix(LoopModelND(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
-                                  delay=1), R @ K @ R.T, R @ B @ R.T)
+    Ab = state_matrix(MatrixLoop(mass=R @ M @ R.T, friction=R @ B0 @ R.T, rate_hz=rate,
+                                 delay=1), R @ K @ R.T, R @ B @ R.T)
     err = rel_tol(6) * np.linalg.cond(M) * np.linalg.norm(Ab, 2)
-    dz = eig_tol(Ab, err) + eig_tol(state_matrix(LoopModelND(mass=M, friction=B0,
-                                                             rate_hz=rate, delay=1), K, B))
+    dz = eig_tol(Ab, err) + eig_tol(state_matrix(MatrixLoop(mass=M, friction=B0,
+                                                            rate_hz=rate, delay=1), K, B))
     assert match(a.poles, b.poles) <= dz
     # felt matrices and directions: measured (4.9e-13, 8.9e-13 relative, 4.4e-16 on the
     # directions' cosines, on the kernels listed above), margin 1000
@@ -310,7 +313,7 @@ def test_axis_by_axis_stable_but_coupled_loop_unstable():
     lam = np.array([0.02, 0.3])
     M = R @ np.diag(lam) @ R.T
     b0, beta = 2.0, 10.0          # damping-heavy: the limit depends on the mass here
-    loop = LoopModelND(mass=M, friction=b0 * np.eye(2), rate_hz=1000.0, delay=1)
+    loop = MatrixLoop(mass=M, friction=b0 * np.eye(2), rate_hz=1000.0, delay=1)
     light = LoopModel(mass=lam[0], friction=b0, rate_hz=1000.0, delay=1)
     k_light = stability_limit(light, beta)
     k_axes = [stability_limit(LoopModel(mass=M[i, i], friction=b0, rate_hz=1000.0,
@@ -320,7 +323,7 @@ def test_axis_by_axis_stable_but_coupled_loop_unstable():
     for i in range(2):
         assert render(LoopModel(mass=M[i, i], friction=b0, rate_hz=1000.0, delay=1),
                       kappa, beta).stable
-    r = render_nd(loop, kappa * np.eye(2), beta * np.eye(2))
+    r = render(loop, kappa * np.eye(2), beta * np.eye(2))
     assert not r.stable and r.spectral_radius > 1.0
     limits = direction_limits(loop, None, beta * np.eye(2))
     # M = R diag(lam) R^T in floating point: its eigenvalues carry eig_tol(M), which
@@ -360,7 +363,7 @@ def test_workspace_limits_follow_the_configuration_dependent_mass():
     assert np.ptp(w.limits[:, 0]) > 0.05 * np.mean(w.limits[:, 0])
 
 
-def test_loop_model_nd_refuses_bad_input():
+def test_matrix_loop_refuses_bad_input():
     """Key-named refusals: a mass not SPD, friction not PSD, shapes, hold, delay."""
     for kw, key in [(dict(mass=[[1.0, 2.0], [2.0, 1.0]]), "mass"),
                     (dict(mass=[[1.0, 0.5], [0.0, 1.0]]), "mass"),
@@ -371,12 +374,85 @@ def test_loop_model_nd_refuses_bad_input():
                     (dict(mass=np.eye(4)), "dof"),
                     (dict(mass=0.1), "dof")]:
         with pytest.raises(ConfigError) as err:
-            LoopModelND(**kw)
+            MatrixLoop(**kw)
         assert err.value.key == key, (kw, err.value)
-    loop = LoopModelND(mass=np.eye(2) * 0.1)
+    loop = MatrixLoop(mass=np.eye(2) * 0.1)
     with pytest.raises(ConfigError) as err:
-        render_nd(loop, np.ones((3, 3)))
+        render(loop, np.ones((3, 3)))
     assert err.value.key == "K"
     with pytest.raises(ConfigError) as err:
         direction_limit(loop, [0.0, 0.0])
     assert err.value.key == "direction"
+
+
+# ------------------------------------------------------------- one entry, any dimension
+
+@pytest.mark.parametrize("seed", range(8))
+def test_one_entry_takes_a_1d_loop_as_the_case_n_equals_1(seed):
+    """The entries of hapsim.analysis.ths take a 1-D LoopModel where they take a matrix
+    loop: state_matrix and rendered_pairs see it as the matrix loop n = 1 (bit for bit the
+    same matrix), whose eigenvalues are the 1-D closed_loop_poles' to both paths' round-off;
+    calibrate of the matrix loop n = 1 is the 1-D calibration, exactly, and its (K, B)
+    render through the matrix form the felt target (k, b) to the poles' round-off."""
+    rng = np.random.default_rng(100 + seed)
+    m, b0 = rng.uniform(0.02, 1.0), rng.uniform(0.0, 3.0)
+    rate, d = float(rng.choice([500.0, 1000.0, 10000.0])), int(rng.integers(0, 6))
+    l1 = LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d)
+    ln = MatrixLoop(mass=[[m]], friction=[[b0]], rate_hz=rate, delay=d)
+    assert as_matrix_loop(l1) == ln and as_matrix_loop(ln) is ln
+    assert ln.to_loop_model() == l1
+    T = 1.0 / rate
+    # a target the loop can render: a fraction of the loop's own first-order limits
+    k = rng.uniform(0.05, 0.3) * m / (T * T * (1 + d) ** 2)
+    b = b0 + rng.uniform(0.05, 0.3) * m / (T * (1 + d))
+    K, B = rng.uniform(0.1, 0.5) * stability_limit(l1, 0.0), 0.0
+    A = state_matrix(l1, K, B)
+    assert np.array_equal(A, state_matrix(ln, K, B))
+    dz = pole_tol_1d_nd(l1, ln, K, B)
+    assert match(np.linalg.eigvals(A), closed_loop_poles(l1, K, B)) <= dz
+    zr, U, _ = rendered_pairs(l1, K, B)
+    r1 = render(l1, K, B)
+    assert zr.size == 1 and r1.rendered is not None
+    assert abs(zr[0] - r1.rendered.z) <= dz
+    # the one shape is u / |u| turned real positive: a norm, a division, an abs and a
+    # product deep (4), unit to that
+    assert U.shape == (1, 1) and abs(U[0, 0] - 1.0) <= rel_tol(4)
+    c1, cn = calibrate(l1, k, b), calibrate(ln, k, b)
+    assert cn.to_dict() == c1.to_dict()
+    assert c1.renderable, c1.reason      # every seed's target is within the limits
+    rn, r1 = render(ln, c1.K, c1.B), render(l1, c1.K, c1.B)
+    # the 1-D render of the calibrated gains is at the target to its own round-off,
+    # measured here; the matrix form is within dz of the 1-D render (the two paths)
+    dz_c = pole_tol_1d_nd(l1, ln, c1.K, c1.B) + abs(r1.rendered.z - c1.target.z)
+    dk, db = felt_tols(rn.rendered_poles[0], dz_c, m, T)
+    assert rn.felt_stiffness[0, 0] == pytest.approx(k, rel=0, abs=dk)
+    assert rn.felt_damping[0, 0] == pytest.approx(b, rel=0, abs=db)
+
+
+def test_the_matrix_loop_refuses_by_name_what_it_does_not_model():
+    """A 1-D loop the matrix loop does not model (the paper's ideal hold, a compliant grip,
+    a real stiffness, a correction) is refused with the key named, never approximated;
+    calibrating felt matrices (more than one axis) is refused by name; the 1-D entries
+    still take such a loop by its closed forms."""
+    from hapsim.analysis.corrections import Correction
+    base = dict(mass=0.1, friction=0.5, rate_hz=1000.0, delay=1)
+    for kw, key in [(dict(hold="ideal"), "hold"),
+                    (dict(mass=0.1, hand_mass=0.05, grip_stiffness=2000.0), "loop"),
+                    (dict(stiffness=50.0), "loop"),
+                    (dict(correction=Correction(kind="velocity_sensor")), "loop")]:
+        lp = LoopModel(**{**base, **kw})
+        for call in (lambda: MatrixLoop.from_loop(lp), lambda: state_matrix(lp, 100.0),
+                     lambda: rendered_pairs(lp, 100.0)):
+            with pytest.raises(ConfigError) as err:
+                call()
+            assert err.value.key == key, (kw, err.value)
+        assert math.isfinite(render(lp, 100.0, 1.0).spectral_radius)
+        assert closed_loop_poles(lp, 100.0, 1.0).size >= 3
+    loop2 = MatrixLoop(mass=np.eye(2) * 0.1, friction=0.5, rate_hz=1000.0, delay=1)
+    for call in (lambda: calibrate(loop2, 500.0, 3.0), loop2.to_loop_model):
+        with pytest.raises(ConfigError) as err:
+            call()
+        assert err.value.key == "dof"
+    with pytest.raises(ConfigError) as err:
+        as_matrix_loop(object())
+    assert err.value.key == "loop"

@@ -1,10 +1,14 @@
-"""Rendered (k, b), calibration (k, b) -> (K, B) and the exact stability boundary.
+"""Rendered (k, b) and calibration (k, b) -> (K, B), for a loop of any dimension.
 
-Florens, Voda & Urma, Secs. 5-6; docs/design.md, 'The THS'. All computations use the
-dimensionless pieces of :mod:`hapsim.analysis.loop` in ``w = z - 1``, never expanded (the
-delay factor ``(1 + w)^(d+1)`` is evaluated as a power, reduced modulo a quadratic by binary
-powering,
-or found through the companion matrix in ``z``): the same precision at every delay.
+Florens, Voda & Urma, Secs. 5-6; docs/design.md, 'The THS'. A 1-D
+:class:`~hapsim.analysis.loop.LoopModel` takes the scalar closed forms: every computation
+uses the dimensionless pieces of :mod:`hapsim.analysis.loop` in ``w = z - 1``, never
+expanded (the delay factor ``(1 + w)^(d+1)`` is evaluated as a power, reduced modulo a
+quadratic by binary powering, or found through the companion matrix in ``z``): the same
+precision at every delay. A :class:`~hapsim.analysis.ths.matrix_loop.MatrixLoop` (n = 1, 2,
+3 axes, or n ports) takes the matrix form: its state matrix's eigenvalues and the felt
+matrices of :mod:`hapsim.analysis.ths.felt`, which for n = 1 is the scalar answer to
+round-off (``tests/test_ths.py``).
 """
 
 from __future__ import annotations
@@ -18,9 +22,13 @@ import numpy as np
 from hapsim.analysis.loop import STABILITY_TOL, LoopModel, char_parts
 from hapsim.analysis.loop_poles import roots_w, scaled_gains
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
+from hapsim.analysis.ths.felt import MatrixRenderResult, render_state
+from hapsim.analysis.ths.holds import state_matrix
+from hapsim.analysis.ths.matrix_loop import MatrixLoop, gain_matrices
 from hapsim.errors import ConfigError
 
-__all__ = ["RenderResult", "CalibrationResult", "render", "calibrate", "check_target"]
+__all__ = ["RenderResult", "CalibrationResult", "render", "calibrate", "calibrate_core",
+           "check_target", "log_abs_w"]
 
 
 def _f(v):
@@ -121,31 +129,43 @@ class RenderResult:
                 "modes": [md.to_dict() for md in self.modes], "note": self.note}
 
 
-def render(loop: LoopModel, K: float, B: float = 0.0) -> RenderResult:
-    """Inverse map ``(K, B) -> (k, b)``: the oscillator the user feels.
+def render(loop: LoopModel | MatrixLoop, K, B=0.0) -> RenderResult | MatrixRenderResult:
+    """Inverse map ``(K, B) -> (k, b)``: the oscillator the user feels, for a loop of any
+    dimension.
 
     Parameters
     ----------
-    loop : LoopModel
-        The simulator configuration.
-    K : float
+    loop : LoopModel or MatrixLoop
+        The simulator configuration: a 1-D loop, or a loop of n axes (n = 1, 2, 3, or n
+        ports) with mass and friction matrices.
+    K : float, or array_like, shape (n, n) (or (n,), or a scalar: times I) for a MatrixLoop
         Virtual stiffness [N/m].
-    B : float, optional
+    B : float, or array_like as ``K``, optional
         Virtual damping [N s/m].
 
     Returns
     -------
     RenderResult
-        Rendered pair = least damped complex pair of the closed loop (largest ``|z|``);
-        ``s = ln(z)/T``, ``k = m|s|^2``, ``b = -2 m Re s`` (Florens et al. Sec. 5,
+        For a :class:`~hapsim.analysis.loop.LoopModel`: the rendered pair = least damped
+        complex pair of the closed loop (largest ``|z|``); ``s = ln(z)/T``,
+        ``k = m|s|^2``, ``b = -2 m Re s`` (Florens et al. Sec. 5;
         docs/design.md, 'The inverse map'). Other poles are reported as parasitic modes.
+    MatrixRenderResult
+        For a :class:`~hapsim.analysis.ths.matrix_loop.MatrixLoop`: the felt stiffness and
+        damping matrices, principal directions and per-direction pairs
+        (:mod:`hapsim.analysis.ths.felt`; Lancaster 2007), every pole and the spectral
+        radius of the MIMO characteristic (:func:`~hapsim.analysis.ths.holds.state_matrix`).
 
     Raises
     ------
     ConfigError
-        If ``K`` or ``B`` is not finite, or ``|K| T^2/m`` or ``|B| T/m`` exceeds
-        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
+        If ``K`` or ``B`` is not finite; for a 1-D loop, ``|K| T^2/m`` or ``|B| T/m``
+        exceeds :data:`hapsim.analysis.loop.MAX_PRODUCT`; for a matrix loop, ``K`` or ``B``
+        of the wrong shape.
     """
+    if isinstance(loop, MatrixLoop):
+        Kq, Bq = gain_matrices(loop, K, B)
+        return render_state(state_matrix(loop, Kq, Bq), loop.mass, loop.period, K=Kq, B=Bq)
     for key, v in (("K", K), ("B", B)):
         if not math.isfinite(float(v)):
             raise ConfigError(f"must be finite, got {v!r}", key=key)
@@ -364,13 +384,14 @@ def check_target(loop: LoopModel, k: float, b: float) -> tuple[float, float]:
     return k, b
 
 
-def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
+def calibrate(loop: LoopModel | MatrixLoop, k: float, b: float) -> CalibrationResult:
     """Forward map ``(k, b) -> (K, B)``: virtual parameters rendering a target oscillator.
 
     Parameters
     ----------
-    loop : LoopModel
-        The simulator configuration.
+    loop : LoopModel or MatrixLoop
+        The simulator configuration; a matrix loop of one degree of freedom is calibrated
+        as its 1-D loop (:meth:`~hapsim.analysis.ths.matrix_loop.MatrixLoop.to_loop_model`).
     k : float > 0
         Target stiffness [N/m] (what the user should feel).
     b : float
@@ -387,7 +408,9 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     ------
     ConfigError
         If ``k <= 0`` or ``k``, ``b`` are not finite, or ``k T^2/m`` or ``|b| T/m`` exceeds
-        :data:`hapsim.analysis.loop.MAX_PRODUCT`.
+        :data:`hapsim.analysis.loop.MAX_PRODUCT`; a matrix loop of more than one degree of
+        freedom (key ``dof``: felt matrices are predicted by :func:`render`, not
+        calibrated).
 
     Notes
     -----
@@ -401,6 +424,12 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
     of a critically damped one (where it equals the value + derivative conditions), without
     perturbation. The other poles are the roots of the exact quotient (deflation).
     """
+    if isinstance(loop, MatrixLoop):
+        if loop.dof != 1:
+            raise ConfigError(f"calibrating felt matrices is not modelled: a felt target "
+                              f"(k, b) is calibrated for a 1-D loop (n = 1); this loop has "
+                              f"{loop.dof} degrees of freedom", key="dof")
+        loop = loop.to_loop_model()
     k, b = check_target(loop, k, b)
     m, T = loop.mass, loop.period
     nan = math.nan
@@ -454,8 +483,3 @@ def calibrate(loop: LoopModel, k: float, b: float) -> CalibrationResult:
                              reason=f"renderable: every other pole decays faster than the "
                                     f"target; spectral radius {rho:.12g}",
                              spectral_radius=rho, modes=modes, target=target)
-
-
-# --------------------------------------------------------------------------- stability
-
-
