@@ -14,7 +14,6 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from tolerance import rel_tol
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "configs" / "pantograph_spring.yaml"
@@ -30,14 +29,17 @@ def built():
     return pantograph_board.build()
 
 
-def test_the_firmware_renders_the_spring_within_its_stated_uncertainty(built, capsys):
+def test_the_firmware_renders_the_spring_never_differs_over_the_error_box(built, capsys):
     """``hapsim run configs/pantograph_spring.yaml --port PTY --lockstep --amplitude
     5e-3 --json`` over the emulated boards: delay 1, no late tick, no torque clamped; the
-    felt stiffness (as a matrix and along both principal directions) and the felt damping
-    stated "within" their own uncertainty (linearisation bound plus the wire's
-    first-order worst case: half a sensor count, half a PWM step), each wire term within
-    the measurable limit, the run's verdict "within" with nothing left unstated; the text
-    report prints the six statements."""
+    six statements (the felt stiffness and damping, as matrices and along both principal
+    directions) each under its wire's term over the error box (hapsim.analysis.wire_box:
+    half a sensor count, half a PWM step): every one beyond the measurable limit, so the
+    run's verdict is "not measurable", never "differs", and the text report says so.
+    The first-order terms at the records alone were all under the limit and stated all
+    six "within"; errors within the same bounds move the damping 1.7 to 1.9 times its
+    first-order term (tests/test_wire_box_devices.py's search on the lockstep loop), so
+    a statement made on them could be wrong."""
     from hapsim.cli import main
     from hapsim.emulated.pantograph_board import board_command
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
@@ -62,16 +64,16 @@ def test_the_firmware_renders_the_spring_within_its_stated_uncertainty(built, ca
     assert out["delay"] == [1] * 5 and out["late"] == 0 and out["port"]["clamped"] == 0
     assert out["linearisation_bound"]["amplitude"] >= a        # at the excursion
     st = out["statements"]
-    assert len(st) == 6 and out["not_stated"] == []
+    assert len(st) == 6 and len(out["not_stated"]) == 6
+    first = out["wire"]["first_order"]
     for s in st:
-        assert s["verdict"] == "within", s
-        assert s["wire"] <= MEASURABLE_WIRE and s["deviation"] <= s["uncertainty"], s
-        # the statement's three terms, two sums of positive numbers: derived rel_tol(2)
-        assert s["uncertainty"] == pytest.approx(
-            s["linearisation"] + s["wire"] + (s["roundoff"] or 0.0), rel=rel_tol(2))
-    assert out["verdict"] == "within" and out["within"] is True
-    assert text.count("felt stiffness along (") == 2
-    assert text.rstrip().splitlines()[-1].startswith("  verdict: within")
+        assert s["verdict"] == "not measurable", s
+        assert s["wire"] is None or s["wire"] > MEASURABLE_WIRE, s
+    # what the first-order terms stated: every one under the limit
+    assert max(first["felt_stiffness"], first["felt_damping"]) <= MEASURABLE_WIRE
+    assert out["verdict"] == "not measurable" and out["within"] is None
+    assert "over the errors' box" in out["reason"], out["reason"]
+    assert text.rstrip().splitlines()[-1].startswith("  verdict: not measurable")
 
 
 def test_a_board_started_at_another_amplitude_is_not_measurable_not_a_traceback(built,

@@ -87,20 +87,8 @@ def reference_state_matrix(scene) -> np.ndarray:
     their own lengths, the first carried to the period's end)."""
     if any(float(dv.delay) % 1 for _, dv in scene.devices):
         return _reference_split(scene)
-    ports = [n for n, _ in scene.devices]
-    P, T = len(ports), scene.period
-    ax = {n: i for i, n in enumerate(ports)}
-    Cx = np.zeros((P, P))                  # F = Cx x[n] + Cxp x[n-1]
-    Cxp = np.zeros((P, P))
-    for lk in scene.links:
-        for a, b in ((lk.m1, lk.m2), (lk.m2, lk.m1)):      # the force on a
-            if a not in ax:
-                continue
-            Cx[ax[a], ax[a]] -= lk.stiffness + lk.damping / T
-            Cxp[ax[a], ax[a]] += lk.damping / T
-            if b in ax:
-                Cx[ax[a], ax[b]] += lk.stiffness + lk.damping / T
-                Cxp[ax[a], ax[b]] -= lk.damping / T
+    P, T = len(scene.devices), scene.period
+    Cx, Cxp = _force_law(scene)            # F = Cx x[n] + Cxp x[n-1]
     d = [int(dv.delay) for _, dv in scene.devices]
     N = 3 * P + sum(d)
     A = np.zeros((N, N))

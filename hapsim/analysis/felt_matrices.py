@@ -189,9 +189,11 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
       change under the readings' and the forces' rounding, whatever their signs and
       correlation: for a direction, Hoelder's inequality on the linear form
       ``e_i^T dX e_i`` of the fit's first-order change ``dX``, over ``|e_i^T X_pred e_i|``
-      (for the 2DIY taken over the errors' box with a margin,
-      :mod:`hapsim.analysis.wire_box`: the fit is too ill-conditioned for the first-order
-      term at the records alone to bound what errors within the bounds do).
+      (for the 2DIY, the two faders, the Falcon and the Hapkit pantograph's firmware
+      taken over the errors' box with a margin, :mod:`hapsim.analysis.wire_box`: the fit
+      is too ill-conditioned for the first-order term at the records alone to bound what
+      errors within the bounds do; a verdict that states nothing then extrapolates the
+      excitation needed from the first-order term, a lower bound).
 
     **When a statement is made.** Not at all when no felt matrices were measured, or
     when the amplitude reaches a contact's or a plane's depth (the law is not smooth:
@@ -285,7 +287,11 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     unc = {q: st[j]["uncertainty"] for j, q in enumerate(FELT_QUANTITIES)}
     if not stated:
         wk, wd = wq["felt_stiffness"] or 0.0, wq["felt_damping"] or 0.0
-        big = max(wk, wd)
+        # a term over the error box carries the first-order one at the records: the
+        # excitation needed is extrapolated from that one (inverse in the excitation to
+        # first order), a lower bound, the box's term never being below it
+        first = wire.get("first_order") if isinstance(wire, dict) else None
+        big = max(wk, wd) if first is None else max(float(first[q]) for q in FELT_QUANTITIES)
         need = bound.amplitude * big / limit if math.isfinite(big) else None
         if estimated:
             reason = (f"the readings' errors (the wire's rounding and {estimated} "
@@ -298,8 +304,11 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                       f"{wk:.2g} and the damping by {wd:.2g} (relative, {how}), "
                       f"above {limit:g}, and no principal direction is measurable either: "
                       f"the excitation {bound.amplitude:g} m is too small for the wire's "
-                      "resolution" + (f" (about {need:.2g} m or more is needed)"
-                                      if need is not None else ""))
+                      "resolution" + ("" if need is None else
+                                      f" (about {need:.2g} m or more is needed)"
+                                      if first is None else
+                                      f" (at least about {need:.2g} m is needed, the "
+                                      "first-order term's extrapolation)"))
         out = no(reason)
         out.update(statements=st, not_stated=not_stated)
         return out

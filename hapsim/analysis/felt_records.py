@@ -71,9 +71,10 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
     Returns
     -------
     dict
-        ``felt_stiffness``, ``felt_damping`` [-], ``directions`` and ``first_order``, as
-        :func:`hapsim.lockstep.wire_terms_nd`'s (every term inf when the records give no
-        felt matrices).
+        ``felt_stiffness``, ``felt_damping`` [-], ``directions``, ``first_order`` and
+        ``box`` (True when the term was taken over the box), as
+        :func:`hapsim.lockstep.wire_terms_nd`'s with ``box=True`` (every term inf when
+        the records give no felt matrices).
 
     Raises
     ------
@@ -114,8 +115,10 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
         return statement_terms(sens, E, plan)
     got = box_worst_case(terms_at, recs)
     if got is None:
-        return inf
-    return relative_terms(chk, got[1], got[0])
+        return {**inf, "box": True}
+    # taken over the box, as hapsim.lockstep.wire_terms_nd(box=True) says it: the
+    # verdict's reasons name it (hapsim.analysis.felt_matrices.felt_verdict)
+    return {**relative_terms(chk, got[1], got[0]), "box": True}
 
 
 def within_excursion(scene, diffs, usable, amplitude: float) -> list:

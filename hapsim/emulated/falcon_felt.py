@@ -18,11 +18,21 @@ command (:data:`hapsim.drivers.falcon.TORQUE_PER_COUNT`). A reading is therefore
 angle to within half a count, a torque the one computed to within half a command count;
 each error enters the records through the loop (the reading error through ``J(q0)``, the
 torque error through ``J(q0)^-T``: :func:`hapsim.lockstep.error_responses`) and the fit
-to first order, and their worst case whatever their signs and correlation is the wire's
-term (:func:`hapsim.lockstep.wire_terms_nd`), as for the 2DIY: a rounding of a smooth
-signal a few counts wide is not white noise, so no statistical interval is taken for it
-(Widrow & Kollar's ``q^2 / 12`` per reading is printed beside it by
-tools/falcon_felt_figures.py, for comparison only).
+to first order, and their worst case whatever their signs and correlation, taken over
+the errors' box (at the records and at each statement's worst errors within the bounds,
+the largest times a margin: :mod:`hapsim.analysis.wire_box`), is the wire's term
+(:func:`hapsim.lockstep.wire_terms_nd` with ``box=True``; records cut at missing replies:
+:func:`hapsim.analysis.felt_records.wire_terms_records`), as for the 2DIY. The
+first-order term at the records alone is no bound here: on configs/falcon_spring.yaml at
+its largest start (3.77 mm, the exact records in lockstep) errors within half a count and
+half a motor command, each statement's worst signs re-linearised at the records they
+moved, moved the stiffness along the heaviest principal direction 2.2 times its
+first-order term (0.22 against 0.10, a term that stated it) and one stiffness entry's fit
+collapsed (1,800 times; tests/test_wire_box_devices.py). Over the box nothing is stated
+on that scene at the Falcon's counts; an encoder 10 times finer states the stiffness.
+A rounding of a smooth signal a few counts wide is not white noise, so no statistical
+interval is taken for it (Widrow & Kollar's ``q^2 / 12`` per reading is printed beside
+it by tools/falcon_felt_figures.py, for comparison only).
 
 **Missing samples.** A reply that did not come (lost or mangled bytes; the engine held
 the last reading) leaves its row out with the rows its stale force acted on: rows
@@ -191,7 +201,10 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
                                  for u in own]) for kind, G, b in errors]
             wire.update(wire_terms_records(scene, held, chk, order, errors, usable=own))
         else:
-            wire.update(wire_terms_nd(scene, diffs, chk, order, errors))
+            # over the error box (hapsim.analysis.wire_box; module notes): the
+            # first-order term at the records alone was exceeded 2.7 times by errors
+            # within the counts' bounds on configs/falcon_spring.yaml
+            wire.update(wire_terms_nd(scene, diffs, chk, order, errors, box=True))
         v = felt_verdict(dev, bound, wire, estimated=0,
                          directions=felt_directions(fit, chk))
         if usable is not None:
@@ -386,6 +399,20 @@ def felt_feasibility(scene, plan=None) -> dict:
     contact's curvature; below ~10 um the exact records' round-off moves the
     sensitivities of the poorly excited modes by tens of per cent).
 
+    Why first order here, when the run's statement takes the wire's term over the
+    errors' box (:func:`falcon_felt_verdict`): this is no verdict on the felt matrices,
+    only whether a run could state them, and the first-order term at the records is
+    never above the box's (the box's supremum is sampled at the records among its
+    points, times a margin of at least 1: :func:`hapsim.analysis.wire_box.box_worst_case`).
+    So "not measurable" here is certain, the box's term being beyond the limit too, and
+    "measurable" means only that the run is not excluded: its records' term over the box
+    then decides what is stated (on configs/falcon_spring.yaml, "measurable" at first
+    order, 0.19, the box's term at the same exact records is 240 and the run states
+    nothing). Likewise the excitation and the count the extrapolations give are the least
+    that could do, never enough by themselves. The box's term is not extrapolated: it is
+    not linear in the count or the excitation (its sampled points leave the fit's linear
+    region), and at ~5 s of CPU per evaluation on a 3-D loop a run does not search for it.
+
     Parameters
     ----------
     scene : hapsim.scene.SceneND
@@ -452,7 +479,8 @@ def felt_feasibility(scene, plan=None) -> dict:
               f"reach {unit:.2f} a: {EXCURSION_MARGIN:g} of the start at which they reach "
               f"{by}); there the "
               f"readings' and commands' rounding alone may move the felt stiffness by "
-              f"{wk:.3g} and the damping by {wb:.3g} (relative, first-order worst case; "
+              f"{wk:.3g} and the damping by {wb:.3g} (relative, first-order worst case, "
+              f"the least the run's term over the errors' bounds can be; "
               f"Widrow & Kollar's standard deviation {t['widrow_kollar']['felt_stiffness']:.2g}"
               f" and {t['widrow_kollar']['felt_damping']:.2g}), against the limit "
               f"{MEASURABLE_WIRE:g} of a statement: a count "

@@ -170,7 +170,10 @@ def state_matrix(loop: MatrixLoop, K, B=0.0, delays=None) -> np.ndarray:
     Kq, Bq = gain_matrices(loop, K, B)
     n, d, T = loop.dof, loop.delay, loop.period
     if delays is None and d % 1:
-        return _split_state_matrix(loop, Kq, Bq)
+        # every axis the loop's delay m + f: state (x[n], v[n], x[n-1], ..., x[n-m-1],
+        # h[n]), h[n] = F[n-m-1] held over the period's first f T
+        # (hapsim.analysis.subsample.held_plant)
+        return _per_axis_split_state_matrix(loop, Kq, Bq, [float(d)] * n)
     per = [d] * n if delays is None else list(delays)
     if delays is not None and len(per) == n and all(
             isinstance(x, (int, float)) and math.isfinite(x) and 0 <= x <= MAX_DELAY
@@ -193,32 +196,6 @@ def state_matrix(loop: MatrixLoop, K, B=0.0, delays=None) -> np.ndarray:
         A[:2 * n, pos(dk)] += Bd @ (rows * -(Kq + Bq / T))
         A[:2 * n, pos(dk + 1)] += Bd @ (rows * (Bq / T))
     for k in range(1, d + 2):     # x[n+1-k] <- x[n-(k-1)]
-        A[pos(k), pos(k - 1)] = np.eye(n)
-    return A
-
-
-def _split_state_matrix(loop: MatrixLoop, Kq, Bq) -> np.ndarray:
-    """:func:`state_matrix` for a delay ``m + f``: state ``(x[n], v[n], x[n-1], ...,
-    x[n-m-1], h[n])`` with ``h[n] = F[n-m-1]`` the force held over the period's first
-    ``f T``: ``[x; v][n+1] = Ad [x; v] + Gamma0 F[n-m] + Gamma1 h``, ``h[n+1] = F[n-m]``
-    (:func:`hapsim.analysis.subsample.held_plant`); ``n (m + 4)`` states."""
-    n, T = loop.dof, loop.period
-    m = int(math.floor(loop.delay))
-    Ad, G0, G1 = split_hold_matrices(loop)
-    N = n * (m + 4)
-    A = np.zeros((N, N))
-    A[:2 * n, :2 * n] = Ad
-
-    def pos(k):   # block of x[n - k]
-        return slice(0, n) if k == 0 else slice((k + 1) * n, (k + 2) * n)
-    h = slice((m + 3) * n, (m + 4) * n)
-    Fx, Fxp = -(Kq + Bq / T), Bq / T          # F[n-m] = Fx x[n-m] + Fxp x[n-m-1]
-    A[:2 * n, pos(m)] += G0 @ Fx
-    A[:2 * n, pos(m + 1)] += G0 @ Fxp
-    A[:2 * n, h] += G1
-    A[h, pos(m)] = Fx
-    A[h, pos(m + 1)] = Fxp
-    for k in range(1, m + 2):     # x[n+1-k] <- x[n-(k-1)]
         A[pos(k), pos(k - 1)] = np.eye(n)
     return A
 
