@@ -5,7 +5,7 @@ One sample ``n`` (the timing of :mod:`hapsim.analysis.scene_check`, so the analy
 state matrix is exactly this loop's one-step map for a linear scene):
 
 1. the port is at the device sample ``x_dev[n]``;
-2. the engine advances (:class:`hapsim.engine_nd.EngineND`), computing the force on the
+2. the engine advances (:class:`hapsim.engine.Engine`), computing the force on the
    port ``F[n]`` from the positions at ``n`` and ``n - 1``;
 3. ``F[n]`` enters the delay line; the device holds ``u[n] = F[n-d]`` over the period and
    advances exactly, ``[x, v][n+1] = Ad [x, v][n] + Bd u[n]``
@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from hapsim.analysis.ths import MatrixLoop, split_hold_matrices, zoh_matrices
-from hapsim.engine_nd import EngineND
+from hapsim.engine import Engine
 from hapsim.errors import ConfigError
 from hapsim.analysis.felt_matrices import FELT_QUANTITIES, felt_deviation
 from hapsim.joint_device import JointDeviceND
@@ -75,7 +75,7 @@ class LockstepND:
                                   "Cartesian model", file=scene.path, key="device.delay")
             _, self._G0, self._G1 = split_hold_matrices(lm)
             self._held = np.zeros(n)
-        self.engine = EngineND(scene)
+        self.engine = Engine(scene)
         self.rest = dev.position.copy()
 
         def vec(v, key):

@@ -861,13 +861,13 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
     from hapsim.audio.live import JackOutput
     from hapsim.audio.live import LiveND
     from hapsim.audio.offline import render_nd
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.scene import load_scene_nd
 
     sc = dataclasses.replace(load_scene_nd("configs/membrane.yaml"), rate_hz=48000.0)
     total = 24000                                     # 0.5 s
-    ref = render_nd(EngineND(sc, precision=precision), total)[:, 0].astype(np.float32)
-    live = LiveND(EngineND(sc, precision=precision))
+    ref = render_nd(Engine(sc, precision=precision), total)[:, 0].astype(np.float32)
+    live = LiveND(Engine(sc, precision=precision))
     live.produce(0)                                   # compiled before the clock runs
     rec = Recorder(jack_server, seconds=3.0)
     rec.armed = False

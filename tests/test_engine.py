@@ -252,11 +252,11 @@ def test_port_step_equals_reference_with_driven_port():
     n = 300
     drive = 0.01 * np.sin(np.arange(n) * 0.05)
     eng = Engine(scene)
-    rows = [eng.positions]
+    rows = [eng.x[0].copy()]
     forces = []
     for s in range(n):
         forces.append(eng.port_step(drive[s]))
-        rows.append(eng.positions)
+        rows.append(eng.x[0].copy())
     want = reference_run(scene, n, drive)
     got = np.array(rows)
     assert np.max(np.abs(got - want)) <= measured(5.5e-15, 1000) * np.max(np.abs(want))
@@ -338,14 +338,14 @@ def test_record_unknown_name_lists_masses():
 def test_port_step_without_port_is_an_error_and_changes_nothing():
     """Without a port there is no device position to set: refuse, never write x[-1]."""
     eng = Engine(oscillator(1000.0))
-    before = eng.positions
+    before = eng.x[0].copy()
     with pytest.raises(ConfigError, match=r"masses: the scene has no port"):
         eng.port_step(0.5)
-    np.testing.assert_array_equal(eng.positions, before)   # the bob (last mass) untouched
+    np.testing.assert_array_equal(eng.x[0].copy(), before)   # the bob (last mass) untouched
     assert eng.sample == 0
     with pytest.raises(ConfigError, match="no port"):
         eng.set_port_position(0.5)
-    assert eng.port_force == 0.0
+    assert np.array_equal(eng.port_force, [0.0])          # (n,) = (1,) zeros without a port
 
 
 # ---------------------------------------------------------------- compile once, kernels apart
@@ -453,11 +453,11 @@ def test_public_read_accessors_share_the_engines_arrays():
     assert pack.args[0] is eng.kernel_pack.state[0] and pack.args[1] is eng.kernel_pack.state[1]
     assert pack.head[0] == eng.substeps and pack.head[3] == eng.port_index
     assert eng.port_index == eng.scene.index(eng.scene.port.name)
-    before = eng.positions
+    before = eng.x[0].copy()
     eng.port_step(1e-3)
-    assert np.array_equal(pack.args[0], eng.positions)
-    assert not np.array_equal(before, eng.positions)
-    assert np.array_equal(pack.args[1], eng.previous_positions)   # one audio sub-step ago
+    assert np.array_equal(pack.args[0], eng.x[0].copy())
+    assert not np.array_equal(before, eng.x[0].copy())
+    assert np.array_equal(pack.args[1], eng.xp[0].copy())   # one audio sub-step ago
     assert not eng.corrected
     plain = Engine(load_scene(root / "configs" / "wall.yaml"))
     assert plain.multirate_pack is None and plain.port_index == 0

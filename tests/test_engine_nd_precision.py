@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hapsim.engine_nd import EngineND
+from hapsim.engine import Engine
 from hapsim.errors import ConfigError
 from hapsim.scene import parse_scene_nd
 
@@ -52,7 +52,7 @@ def test_single_precision_is_refused_for_a_felt_scene():
     assert str(e.value).startswith("felt.yaml:10: engine.precision: ") and \
         "without a port" in str(e.value)
     with pytest.raises(ConfigError, match="without a port"):
-        EngineND(parse_scene_nd(text), precision="single")
+        Engine(parse_scene_nd(text), precision="single")
 
 
 def test_the_engine_state_is_in_the_chosen_precision():
@@ -61,15 +61,15 @@ def test_the_engine_state_is_in_the_chosen_precision():
     given as float64 either way."""
     text = BASE + ("  - {name: g, kind: ground, x0: [0.01, 0]}\nlinks:\n"
                    "  - {kind: spring_damper, between: [a, g], stiffness: 10, length: 0.005}\n")
-    assert EngineND(parse_scene_nd(text)).x.dtype == np.float64
+    assert Engine(parse_scene_nd(text)).x.dtype == np.float64
     single = parse_scene_nd(text + "engine: {precision: single}\n")
-    eng = EngineND(single)
+    eng = Engine(single)
     assert eng.precision == "single"
     for name in ("_X", "_XP", "f", "t2m", "eu_k", "eu_z", "eu_rest", "eu_lprev", "W"):
         assert getattr(eng, name).dtype == np.float32, name
-    assert EngineND(single, precision="double").x.dtype == np.float64
+    assert Engine(single, precision="double").x.dtype == np.float64
     with pytest.raises(ConfigError, match="valid choices: double, single"):
-        EngineND(single, precision="half")
+        Engine(single, precision="half")
     eng.step(100)
     assert 0 < abs(eng.x[0, 0]) < 0.01 and eng.x.dtype == np.float32
     # the live loop names the float32 rows in its context only as float32 (a context
@@ -94,14 +94,14 @@ def test_single_precision_membrane_follows_the_closed_form():
     li, lj = gen.MEMBRANE_LISTEN
     k = [m.name for m in scene.masses].index(f"m{li}_{lj}")
     for prec, tol in (("double", 1e-10), ("single", 2e-5)):
-        eng = EngineND(scene, precision=prec)
+        eng = Engine(scene, precision=prec)
         z = np.empty(n)
         for s in range(n):
             eng.step()
             z[s] = eng.x[2, k]
         assert np.max(np.abs(z - ref)) <= tol * np.max(np.abs(ref)), prec
     out = np.zeros((400, 1))
-    EngineND(scene, precision="single").listen(out, [2], [k], [False], [1.0])
+    Engine(scene, precision="single").listen(out, [2], [k], [False], [1.0])
     assert np.array_equal(out[:, 0], z[:400].astype(np.float64))
 
 
@@ -148,7 +148,7 @@ def test_single_precision_euclidean_mesh_against_a_plain_double_step():
     n = 8820
     ref = _plain_steps(X0, X0 - T * V0, t2m, i1, i2, K, z, L, n, (2, k))
     for prec, tol in (("double", 1e-9), ("single", 1e-3)):
-        eng = EngineND(scene, precision=prec)
+        eng = Engine(scene, precision=prec)
         got = np.empty(n)
         for s in range(n):
             eng.step()
@@ -203,7 +203,7 @@ def test_single_precision_grid_mesh_keeps_the_velocity_form_accuracy():
     K = np.full(i1.size, 100.0)
     ref = _plain_steps(X0, X0, t2m, i1, i2, K, np.full(i1.size, 0.001 / T),
                        np.full(i1.size, 0.01), n, (slice(None), slice(None)))[-1]
-    eng = EngineND(scene)
+    eng = Engine(scene)
     assert eng.precision == "single"
     eng.step(n)
     motion = np.max(np.abs(ref - X0))

@@ -1,7 +1,7 @@
 """The n-D engine's 1-D projection against Faust 2.54 ``mi.lib`` compiled to C++.
 
 A string (the displaced 50-bead string of ``tests/test_faust_oracle.py``, without its port
-and contact) is run by :class:`hapsim.engine_nd.EngineND` as a 1-D scene, and laid along
+and contact) is run by :class:`hapsim.engine.Engine` as a 1-D scene, and laid along
 a random unit direction ``u`` of a 3-D scene read from its text: each axis of a
 ``length: 0`` spring-damper is the 1-D law, so the 3-D trajectory is ``u`` times the 1-D
 one, and its projection on ``u`` equals ``mi.lib``'s output to round-off. The Faust twin is
@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import faust_gen  # noqa: E402
 from test_faust_oracle import displaced_string  # noqa: E402
 
-from hapsim.engine_nd import EngineND  # noqa: E402
+from hapsim.engine import Engine  # noqa: E402
 from hapsim.scene import LinkND, MassND, SceneND, parse_scene_nd  # noqa: E402
 
 #: pytest-xdist (the README command runs several workers): its module-scoped Faust build runs once, on
@@ -74,7 +74,7 @@ def as_text(scene, u) -> str:
 
 def run_nd(scene: SceneND, n: int) -> np.ndarray:
     """Positions after 1..n samples, shape (n, masses, dim)."""
-    eng = EngineND(scene)
+    eng = Engine(scene)
     out = np.empty((n, len(scene.masses), scene.dimension))
     for s in range(n):
         eng.step()
@@ -97,7 +97,7 @@ def test_one_dimensional_scene_equals_faust(faust_string):
     amplitude = np.max(np.abs(x))
     assert amplitude > 1e-3
     err = np.max(np.abs(x - faust_string))
-    assert err < TOL * amplitude, f"max |EngineND - Faust| = {err:.3g} m of {amplitude:.3g} m"
+    assert err < TOL * amplitude, f"max |Engine - Faust| = {err:.3g} m of {amplitude:.3g} m"
 
 
 @needs_faust

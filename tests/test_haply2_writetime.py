@@ -21,7 +21,7 @@ from scipy.linalg import expm
 
 from hapsim.analysis.pencil import fit_felt_nd
 from hapsim.emulated.haply2_board import Haply2DIYBoard
-from hapsim.engine_nd import EngineND
+from hapsim.engine import Engine
 from hapsim.kinematics import device
 from hapsim.lockstep import (LockstepND, excitation_starts, identification_plan,
                              wire_terms_nd)
@@ -52,7 +52,7 @@ def _jittered(scene, x0, v0, holds):
     the state change each hold's excess made (against a hold of one period)."""
     n, T = scene.dimension, scene.period
     M, B = scene.device.mass, scene.device.friction
-    eng = EngineND(scene)
+    eng = Engine(scene)
     rest = scene.device.position.copy()
     state = np.concatenate([x0, v0])
     eng.xp[:, eng.port] = rest + x0 - v0 * T

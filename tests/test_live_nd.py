@@ -14,7 +14,7 @@ import pytest
 
 from hapsim.audio.live import LiveND
 from hapsim.audio.offline import render_nd
-from hapsim.engine_nd import EngineND
+from hapsim.engine import Engine
 from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -43,8 +43,8 @@ def test_ring_frames_are_the_offline_rendering_and_the_lead_is_bounded(chunk, bl
     import hapsim.audio.live as ln
     sc = load_scene_nd(CONFIGS / "membrane.yaml")
     total = 5000
-    ref = render_nd(EngineND(sc), total)[:, 0].astype(np.float32)
-    live = LiveND(EngineND(sc), chunk=chunk, ring=4096, ahead=1024)
+    ref = render_nd(Engine(sc), total)[:, 0].astype(np.float32)
+    live = LiveND(Engine(sc), chunk=chunk, ring=4096, ahead=1024)
     rd = _Reader(live, block)
     monkeypatch.setattr(ln.time, "sleep", rd.sleep)
     assert live.run(total) == total
@@ -62,8 +62,8 @@ def test_a_late_producer_underruns_are_counted_and_the_sound_resumes():
     mid-way: the silence before the first frame is not an underrun, the mid-way one is
     (its frames counted), and the frames read are the offline ones in order."""
     sc = load_scene_nd(CONFIGS / "membrane.yaml")
-    ref = render_nd(EngineND(sc), 1024)[:, 0].astype(np.float32)
-    live = LiveND(EngineND(sc), chunk=256, ring=4096, ahead=1024)
+    ref = render_nd(Engine(sc), 1024)[:, 0].astype(np.float32)
+    live = LiveND(Engine(sc), chunk=256, ring=4096, ahead=1024)
     ring = live.ring
     before = [ring.render(128).copy() for _ in range(3)]   # not started yet
     live.produce()
@@ -87,7 +87,7 @@ def test_a_chunk_makes_no_array(monkeypatch):
     import hapsim.audio.sources as src
     sc = load_scene_nd(CONFIGS / "membrane.yaml")
     monkeypatch.setattr(src.audio_kernel, "ring_write", lambda f, r, w: None)
-    live = LiveND(EngineND(sc), chunk=256)
+    live = LiveND(Engine(sc), chunk=256)
     live._listen = lambda out: None
     live.produce()
     tracemalloc.start()

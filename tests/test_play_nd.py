@@ -19,7 +19,7 @@ from scipy.signal import cont2discrete
 
 from hapsim.audio.control import ControllerND
 from hapsim.audio.live import LiveND
-from hapsim.engine_nd import EngineND
+from hapsim.engine import Engine
 from hapsim.scene import load_scene_nd, parse_scene_nd
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -274,7 +274,7 @@ def test_the_closed_loop_and_a_change_at_a_known_sample_are_the_independent_rend
     changes of a Euclidean link, a mass, a sphere contact and a plane accepted between two
     chunks ramp from the sample the journal names, over --ramp, to float32 round-off."""
     sc = load_scene_nd(SCENE)
-    eng = EngineND(sc)
+    eng = Engine(sc)
     ctl = ControllerND(sc, eng, ramp_s=0.01, background=False)
     live = LiveND(eng, chunk=64, ring=8192, ahead=2048, control=ctl)
     ctl.live = live
@@ -324,7 +324,7 @@ def test_pause_and_gain_ramp_the_force_and_the_sound():
     """/hapsim/pause ramps the port force and the master gain to 0, /hapsim/gain while
     paused is heard on /hapsim/resume: the independent rendering with the same ramps."""
     sc = load_scene_nd(SCENE)
-    eng = EngineND(sc)
+    eng = Engine(sc)
     ctl = ControllerND(sc, eng, ramp_s=0.005, background=False)
     live = LiveND(eng, chunk=50, ring=8192, ahead=2048, control=ctl)
     ctl.live = live
@@ -357,14 +357,14 @@ def test_plucks_repeat_the_hand_force_along_the_direction():
     sc = load_scene_nd(SCENE)
     hand = np.r_[np.linspace(0, 2.0, 7), np.linspace(2.0, 0, 7)]
     e = np.array([0.6, -0.8])
-    live = LiveND(EngineND(sc), chunk=128, ring=8192, ahead=2048, hand=hand, direction=e,
+    live = LiveND(Engine(sc), chunk=128, ring=8192, ahead=2048, hand=hand, direction=e,
                   every=300)
     for _ in range(10):
         live.produce()
     ref = reference(sc, live.written, hand=hand, direction=e, every=300)
     assert_float32_roundoff(drain(live), ref)
     with pytest.raises(Exception, match="norm 1"):
-        LiveND(EngineND(sc), hand=hand, direction=[1.0, 1.0])
+        LiveND(Engine(sc), hand=hand, direction=[1.0, 1.0])
 
 
 def test_the_scenes_excitation_plucks_through_play(tmp_path):
@@ -375,7 +375,7 @@ def test_the_scenes_excitation_plucks_through_play(tmp_path):
     sc = load_scene_nd(SCENE)
     hand, e, every = hand_of(sc, 0.1)
     assert every == 800
-    live = LiveND(EngineND(sc), chunk=256, ring=8192, ahead=4096, hand=hand, direction=e,
+    live = LiveND(Engine(sc), chunk=256, ring=8192, ahead=4096, hand=hand, direction=e,
                   every=every)
     for _ in range(8):
         live.produce()
@@ -535,7 +535,7 @@ def test_changes_are_accepted_exactly_when_the_mimo_loop_stays_stable(seed):
             break
     else:
         pytest.fail("no stable scene drawn")
-    ctl = ControllerND(sc, EngineND(sc), ramp_s=0.01, background=False)
+    ctl = ControllerND(sc, Engine(sc), ramp_s=0.01, background=False)
     seen = set()
     for _ in range(6):
         lk = sorted(K0)[int(rng.integers(0, len(K0)))]
@@ -566,7 +566,7 @@ def test_refusals_name_the_reason():
     """Unknown names, a ground's mass, a felt target, negative values: refused, with the
     reason, and nothing posted to the loop."""
     sc = load_scene_nd(SCENE)
-    ctl = ControllerND(sc, EngineND(sc), background=False)
+    ctl = ControllerND(sc, Engine(sc), background=False)
     for args, why in ((("/hapsim/link/kb", "nope", 1.0, 1.0), "no link or plane 'nope'"),
                       (("/hapsim/mass", "g", 0.1), "ground"),
                       (("/hapsim/mass", "hand", 0.1), "port"),
@@ -590,7 +590,7 @@ def test_a_chunk_allocates_nothing():
         return tracemalloc.get_traced_memory()[1] - c0
     for path in (SCENE, DATA.parent.parent / "configs" / "membrane.yaml"):
         sc = load_scene_nd(path)
-        live = LiveND(EngineND(sc), chunk=64, ring=8192, ahead=4096)
+        live = LiveND(Engine(sc), chunk=64, ring=8192, ahead=4096)
         live.produce()
         tracemalloc.start()
         try:
@@ -652,10 +652,10 @@ def test_single_precision_plays_its_offline_rendering_bit_for_bit():
     rendering (``hapsim simulate``), bit for bit in float32 (before, play refused it)."""
     from hapsim.audio.offline import render_nd
     sc = load_scene_nd(DATA.parent.parent / "configs" / "membrane.yaml")
-    live = LiveND(EngineND(sc, precision="single"), chunk=256, ring=16384, ahead=4096)
+    live = LiveND(Engine(sc, precision="single"), chunk=256, ring=16384, ahead=4096)
     for _ in range(8):
         live.produce()
-    ref = render_nd(EngineND(sc, precision="single"), live.written).astype(np.float32)
+    ref = render_nd(Engine(sc, precision="single"), live.written).astype(np.float32)
     assert np.max(np.abs(ref)) > 0
     np.testing.assert_array_equal(drain(live), ref)
 
@@ -670,7 +670,7 @@ def test_single_precision_change_ramps_from_the_journal_sample():
     m0 = next(m.mass for m in sc.masses if m.name == "m6_6")
 
     def play(change):
-        eng = EngineND(sc, precision="single")
+        eng = Engine(sc, precision="single")
         ctl = ControllerND(sc, eng, ramp_s=0.002, background=False)
         live = LiveND(eng, chunk=128, ring=16384, ahead=4096, control=ctl)
         ctl.live = live

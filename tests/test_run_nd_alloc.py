@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.engine_nd import EngineND
+from hapsim.engine import Engine
 from hapsim.scene import load_scene_nd
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -72,7 +72,7 @@ def test_run_nd_record_makes_no_array_per_sample(name, traced):
     array's transient, whatever N."""
     from hapsim.pipeline import felt_port
     sc = load_scene_nd(CONFIGS / name)
-    eng = EngineND(sc)
+    eng = Engine(sc)
     x0 = eng.x[:, eng.port].copy()
     # the compiled kernels loaded first, as measure_felt_port does before its first CONFIG:
     # alone (no other test of the worker had called them) the first tick compiled them,
@@ -126,7 +126,7 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
     N = 3 + int(SILENT_S * sc.rate_hz)
     board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 14, amplitude=1e-3, clock="lockstep")
     link = MeteredLink(board, N, 0.0, 1, seed=0, answer=3)
-    eng = EngineND(sc)
+    eng = Engine(sc)
     rec = record_realtime(link, Haply2DIY("gen3", resolution=2.0 ** 14), sc, N, engine=eng,
                           lockstep_board=True)
     one_array = _transient(lambda: np.empty(2))
@@ -148,7 +148,7 @@ def test_per_sample_helpers_make_no_array(traced):
     q = np.asarray(sc.device.joints, float)
     drv = Haply2DIY("gen3")
     buf = bytearray(10)
-    eng = EngineND(sc)
+    eng = Engine(sc)
     p = np.array(eng.x[:, eng.port])
     one_array = _transient(lambda: np.empty(2))
     for f in (lambda: kin.forward_at(q[0], q[1]), lambda: kin.jacobian_at(q[0], q[1]),
@@ -166,9 +166,9 @@ def test_per_sample_helpers_make_no_array(traced):
 @pytest.mark.parametrize("name", ["pantograph_wall.yaml", "delta_sphere.yaml",
                                   "delta_mesh.yaml", "membrane.yaml"])
 def test_engine_step_makes_no_array(name, traced):
-    """:meth:`EngineND.step`, the per-sample call of the n-D loops, on shipped 2-D and
+    """:meth:`Engine.step`, the per-sample call of the n-D loops, on shipped 2-D and
     3-D scenes (links, contacts, planes): its transient below one small array's."""
-    eng = EngineND(load_scene_nd(CONFIGS / name))
+    eng = Engine(load_scene_nd(CONFIGS / name))
     eng.step()
     one_array = _transient(lambda: np.empty(3))
     peaks = [_transient(eng.step) for _ in range(5)]
@@ -181,7 +181,7 @@ def test_engine_step_through_its_context_equals_the_kernel_called_directly():
     arrays one by one, on a 3-D mesh with ground planes."""
     from hapsim.kernels.nd import run_nd
     sc = load_scene_nd(CONFIGS / "delta_mesh.yaml")
-    a, b = EngineND(sc), EngineND(sc)
+    a, b = Engine(sc), Engine(sc)
     a.step(300)
     for _ in range(3):
         run_nd(100, b.dim, b.block, b._X, b._XP, b.f, b.t2m, b.lin_pieces, b.lin_ptr,
@@ -189,7 +189,7 @@ def test_engine_step_through_its_context_equals_the_kernel_called_directly():
                b.eu_lprev, *b.eu_shared, b.W, b.c_i1, b.c_i2, b.c_k, b.c_z, b.c_thr,
                b.c_lprev, b.p_mass, b.p_normal, b.p_offset, b.p_k, b.p_z,
                -1 if b.port is None else b.port, b.port_f)
-    assert np.any(a.x != EngineND(sc).x)
+    assert np.any(a.x != Engine(sc).x)
     np.testing.assert_array_equal(a.x, b.x)
     np.testing.assert_array_equal(a.xp, b.xp)
     np.testing.assert_array_equal(a.eu_lprev, b.eu_lprev)
@@ -199,7 +199,7 @@ def test_a_context_refuses_an_array_it_cannot_rebuild():
     """:func:`hapsim.kernels.nd.context` refuses a non-contiguous, read-only or
     mistyped array (the compiled side would read it wrongly from its address)."""
     from hapsim.kernels.nd import context
-    eng = EngineND(load_scene_nd(CONFIGS / "delta_mesh.yaml"))
+    eng = Engine(load_scene_nd(CONFIGS / "delta_mesh.yaml"))
     args = [eng._X, eng._XP, eng.f, eng.t2m, eng.lin_pieces, eng.lin_ptr, eng.lin_k,
             eng.lin_z, eng.eu_pieces, eng.eu_ptr, eng.eu_k, eng.eu_z, eng.eu_rest,
             eng.eu_lprev, *eng.eu_shared, eng.W, eng.c_i1, eng.c_i2, eng.c_k, eng.c_z,

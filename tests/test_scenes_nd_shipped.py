@@ -128,7 +128,7 @@ def test_simulate_runs_every_shipped_nd_scene(tmp_path, capsys):
     """`simulate` on each (100 samples, the port held at rest): exit 0, finite positions,
     and the rest is an equilibrium to the file's rounding (0.1 nm): nothing moves more
     than 1 nm and the force on the port at rest is below 1 uN."""
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.scene import load_scene_nd
     for name in SHIPPED_ND:
         out = tmp_path / (name + ".npz")
@@ -138,7 +138,7 @@ def test_simulate_runs_every_shipped_nd_scene(tmp_path, capsys):
         assert np.all(np.isfinite(pos))
         # measured 4e-11 (generic 4e-11), margin 24
         assert np.max(np.abs(pos - pos[0])) < 1e-9, name
-        eng = EngineND(load_scene_nd(CONFIGS / name))
+        eng = Engine(load_scene_nd(CONFIGS / name))
         eng.step()
         assert np.max(np.abs(eng.port_force)) < 1e-6, name
     capsys.readouterr()

@@ -29,7 +29,7 @@ It prints, for growing meshes:
   relative to the spacing: round-off, the forces are summed in another order);
 * the cost of one step call from Python (75 masses, one sample): us per call and the
   transient bytes (tracemalloc), through the one-argument context (as
-  :meth:`hapsim.engine_nd.EngineND.step`) and with the 36 arrays passed one by one;
+  :meth:`hapsim.engine.Engine.step`) and with the 36 arrays passed one by one;
 * where the time goes (not with ``--quick``): the 5,324-mass mesh with the kernel whole
   and with one part taken out of its source (:data:`ABLATIONS`: the link forces, their
   scatter, the square root and division), measured alternately;
@@ -42,7 +42,7 @@ It prints, for growing meshes:
 
 With ``--faust`` it also runs a 1-D projection against Faust ``mi.lib``: a string of
 ``FAUST_BEADS`` beads (the string of ``tools/bench_engine.py``, without its port) as a 1-D
-scene on :class:`hapsim.engine_nd.EngineND`, and its Faust twin (``tests/faust_gen.py``,
+scene on :class:`hapsim.engine.Engine`, and its Faust twin (``tests/faust_gen.py``,
 ``faust -double``, ``g++ -O3``): the largest difference of the trajectories over 2,000
 samples relative to the amplitude, and ns per mass-sample of both (Faust's driver times
 blocks of 64 samples; thread CPU time for both), with their ratio.
@@ -151,7 +151,7 @@ class Case:
         # reference: (N, 3)
         self.ref = (np.ascontiguousarray(X0), X0.copy(), np.zeros_like(X0), t2m,
                     i1.astype(np.int64), i2.astype(np.int64), k, z, rest)
-        # hapsim: (3, N), stripes cut into pieces per block of masses (as EngineND)
+        # hapsim: (3, N), stripes cut into pieces per block of masses (as Engine)
         table, order = stripes(i1, i2)
         pieces, ptr = schedule(table, self.N, BLOCK)
         real = order >= 0
@@ -187,7 +187,7 @@ class Case:
 
     def run_hap_calls(self, n):
         """``n`` samples, one compiled call each, as a real-time loop steps
-        (:meth:`hapsim.engine_nd.EngineND.step`: one argument, the context)."""
+        (:meth:`hapsim.engine.Engine.step`: one argument, the context)."""
         ctx = self.ctx
         run = self._run_ctx
         for _ in range(n):
@@ -328,7 +328,7 @@ def profile(dims, repeats) -> dict:
 
 def per_call(repeats) -> dict:
     """The cost of one step call from Python on a small mesh (75 masses): us per call
-    and transient bytes (tracemalloc) through the context (one argument, as EngineND) and
+    and transient bytes (tracemalloc) through the context (one argument, as Engine) and
     with the 36 arguments passed one by one."""
     import tracemalloc
     c = Case(5, 5, 3)
@@ -354,7 +354,7 @@ def per_call(repeats) -> dict:
 
 
 def faust_projection(n: int, repeats: int) -> dict:
-    """The 1-D string of ``n`` beads on EngineND against its Faust ``mi.lib`` twin.
+    """The 1-D string of ``n`` beads on Engine against its Faust ``mi.lib`` twin.
 
     Returns a dict with ``beads``, ``max_rel_diff`` (over 2,000 samples, relative to the
     amplitude), ``hapsim_ns``, ``faust_ns`` (per mass-sample), ``ratio`` (hapsim / Faust)
@@ -363,7 +363,7 @@ def faust_projection(n: int, repeats: int) -> dict:
     import bench_engine
     import faust_gen
 
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.scene import LinkND, MassND, SceneND
     reason = faust_gen.tools_available()
     if reason is not None:
@@ -383,7 +383,7 @@ def faust_projection(n: int, repeats: int) -> dict:
         y = faust_gen.run_binary(exe, 2000)
         samples = max(640, int(2e7 / n))
         faust_s = faust_gen.bench_binary(exe, samples, repeats=repeats, block=64)
-    eng = EngineND(nd)
+    eng = Engine(nd)
     x = np.empty_like(y)
     for s in range(2000):
         eng.step()
@@ -473,7 +473,7 @@ def main(argv=None) -> int:
         if "skipped" in fa:
             print(f"Faust mi.lib comparison skipped: {fa['skipped']}")
         else:
-            print(f"1-D string of {fa['beads']} beads, EngineND against Faust mi.lib (-O3): "
+            print(f"1-D string of {fa['beads']} beads, Engine against Faust mi.lib (-O3): "
                   f"largest difference {fa['max_rel_diff']:.1e} of the amplitude; "
                   f"{fa['hapsim_ns']:.2f} ns against {fa['faust_ns']:.2f} ns per mass-sample "
                   f"(hapsim / Faust = {fa['ratio']:.2f}; Faust build {fa['faust_build_s']:.0f} s)",

@@ -26,10 +26,10 @@ DEFAULT = (os.path.join(ROOT, "configs", "membrane.yaml"),
 def bench(path: str, chunks: int, chunk: int) -> dict:
     """Time ``chunks`` chunks of ``chunk`` frames of the scene at ``path`` [us]."""
     from hapsim.audio.live import LiveND
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.scene import load_scene_nd
     sc = load_scene_nd(path)
-    live = LiveND(EngineND(sc), chunk=chunk, ring=max(16384, 8 * chunk))
+    live = LiveND(Engine(sc), chunk=chunk, ring=max(16384, 8 * chunk))
     live.produce(0)                                   # compiled (or loaded) first
     t = np.empty(chunks)
     for i in range(chunks):

@@ -5,7 +5,7 @@ Usage::
 
     python tools/precision_nd.py [--seconds S] [--json FILE]
 
-Three scenes, each rendered in both precisions (:class:`hapsim.engine_nd.EngineND`) for
+Three scenes, each rendered in both precisions (:class:`hapsim.engine.Engine`) for
 ``S`` seconds at 44.1 kHz (default 2):
 
 ``membrane``
@@ -53,7 +53,7 @@ sys.path.insert(0, str(REPO / "tools"))
 
 import make_nd_scenes as gen  # noqa: E402
 
-from hapsim.engine_nd import EngineND  # noqa: E402
+from hapsim.engine import Engine  # noqa: E402
 from hapsim.scene import parse_scene_nd  # noqa: E402
 
 RATE = 44100
@@ -108,7 +108,7 @@ def energy(X, XP, m, i1, i2, K, L) -> float:
     return float(0.5 * (m * (v * v).sum(axis=0)).sum() + 0.5 * (K * (ln - L) ** 2).sum())
 
 
-def render(eng: EngineND, n: int, listen: int, every: int, i1, i2, K, L):
+def render(eng: Engine, n: int, listen: int, every: int, i1, i2, K, L):
     """Positions of mass ``listen`` across the last axis per sample, and the energy
     every ``every`` samples."""
     m = np.array([mm.mass if mm.kind == "mass" else 0.0 for mm in eng.scene.masses])
@@ -147,7 +147,7 @@ def membranes(seconds: float) -> dict:
         x0 = np.array([m.x0 for m in scene.masses]).T
         res = {}
         for prec in ("double", "single"):
-            eng = EngineND(scene, precision=prec)
+            eng = Engine(scene, precision=prec)
             t0 = time.perf_counter()
             z, e = render(eng, n, listen, 441, i1, i2, K, L)
             res[prec] = {"z": z, "energy": e,

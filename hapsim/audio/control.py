@@ -594,7 +594,7 @@ class ControllerND(Controller):
     ----------
     scene : hapsim.scene.SceneND
         The scene played.
-    engine : hapsim.engine_nd.EngineND
+    engine : hapsim.engine.Engine
         Its engine (changed by the producer's compiled ramps, never from here).
     live : hapsim.audio.live.LiveND, optional
         The producer (set :attr:`live` once made: it takes :attr:`mailbox`).

@@ -27,7 +27,7 @@ An n-D scene's sound (``audio: listen:``, :class:`hapsim.scene.ListenND`) is its
 rate's samples (an n-D scene is not multi-rate), the same ones
 :func:`hapsim.audio.offline.render_nd` writes to a WAV. Here a producer (the calling
 thread) advances the n-D engine one chunk at a time into a preallocated buffer
-(:meth:`hapsim.engine_nd.EngineND.listen`, compiled, no allocation) and appends it to a
+(:meth:`hapsim.engine.Engine.listen`, compiled, no allocation) and appends it to a
 :class:`hapsim.audio.sources.FrameRing`, whose frames the sound server's callback copies
 out (:class:`JackOutput`'s native callback: no GIL, nothing allocated per block;
 PortAudio's Python callback where no JACK server runs). The producer keeps at most
@@ -432,7 +432,7 @@ class LiveND:
 
     Parameters
     ----------
-    engine : hapsim.engine_nd.EngineND
+    engine : hapsim.engine.Engine
         Engine of a scene with an ``audio`` section, at its initial state (or wherever the
         sound should start).
     chunk : int

@@ -184,13 +184,13 @@ def render_nd(engine, steps: int, progress=None) -> np.ndarray:
 
     Parameters
     ----------
-    engine : hapsim.engine_nd.EngineND
+    engine : hapsim.engine.Engine
         Engine of a scene with an ``audio`` section (:class:`hapsim.scene.ListenND`).
     steps : int
         Samples (>= 0).
     progress : callable, optional
         ``progress(done)``, called every 4,096 samples (the engine records them in one
-        compiled loop: :meth:`hapsim.engine_nd.EngineND.listen`).
+        compiled loop: :meth:`hapsim.engine.Engine.listen`).
 
     Returns
     -------
@@ -215,12 +215,12 @@ def render_nd(engine, steps: int, progress=None) -> np.ndarray:
 
 
 def listen_plan(engine) -> tuple:
-    """The arguments of :meth:`hapsim.engine_nd.EngineND.listen` for the scene's listening
+    """The arguments of :meth:`hapsim.engine.Engine.listen` for the scene's listening
     points (offline and live alike: :class:`hapsim.audio.live.LiveND`).
 
     Parameters
     ----------
-    engine : hapsim.engine_nd.EngineND
+    engine : hapsim.engine.Engine
 
     Returns
     -------

@@ -111,7 +111,7 @@ class LiveSound:
         self._st = np.zeros(len(_S))
         self._st[_S["gain"]] = self._st[_S["gain_target"]] = 1.0
         p = engine.port_index
-        x0 = float(engine.positions[p]) if p >= 0 else 0.0
+        x0 = float(engine.x[0, p]) if p >= 0 else 0.0
         self._st[_S["p0"]] = self._st[_S["p1"]] = x0
         self.block = np.zeros((max_block, len(self.channels)), dtype=np.float32)
         head, state = engine.multirate_pack
@@ -350,12 +350,12 @@ def sounding_engine(ring: FrameRing) -> type:
         from a scene.
     """
 
-    class SoundingEngine(Engine):
+    class SoundingEngine(Engine.layout(1)):      # multi-rate sound: the 1-D layout
         __doc__ = f"Engine whose device samples also feed a {type(ring).__name__}."
         frame_ring = ring
 
         def port_step(self, position: float) -> float:
-            f = Engine.port_step(self, position)
+            f = super().port_step(position)
             self.frame_ring.push(self.frames)
             return f
 

@@ -277,7 +277,7 @@ def _run_finite(engine: Engine, steps: int, names: list[str], progress,
         m = min(chunk, steps - done)
         tc, xc = engine.run(m, names)
         t[done + 1:done + m + 1], x[done + 1:done + m + 1] = tc[1:], xc[1:]
-        state = engine.positions
+        state = engine.x[0]
         if not (np.isfinite(xc).all() and np.isfinite(state).all()):
             rows = np.flatnonzero(~np.isfinite(xc[1:]).all(axis=1))
             if rows.size:
@@ -348,7 +348,7 @@ def _run_nd(args) -> int:
         ``--record`` name, an invalid scene (file, line, key).
     """
     import numpy as np
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.outputs import check_fits, check_writable
     from hapsim.progress import Progress
     from hapsim.scene import load_scene_nd
@@ -359,7 +359,7 @@ def _run_nd(args) -> int:
                           f"(N+1, R, n), names), got {args.out!r}", key="--out")
     check_writable(args.out, "--out")
     scene = load_scene_nd(args.scene)
-    engine = EngineND(scene)
+    engine = Engine(scene)
     names = list(args.record) if args.record else list(engine.names)
     for nm in names:
         if nm not in engine.names:
@@ -411,7 +411,7 @@ def _run_audio_nd(args) -> int:
     """``simulate --audio`` on an n-D scene: its listening points to a WAV file."""
     from hapsim.audio.offline import write_wav
     from hapsim.audio.offline import render_nd
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.outputs import check_writable
     from hapsim.progress import Progress
     from hapsim.scene import load_scene_nd
@@ -436,7 +436,7 @@ def _run_audio_nd(args) -> int:
                           file=scene.path, key="rate_hz")
     t0 = time.perf_counter()
     with Progress(args.steps, "simulate", unit="samples") as bar:
-        audio = render_nd(EngineND(scene), args.steps, progress=bar.update)
+        audio = render_nd(Engine(scene), args.steps, progress=bar.update)
     elapsed = time.perf_counter() - t0
     try:
         info = write_wav(args.audio, audio, scene.rate_hz)

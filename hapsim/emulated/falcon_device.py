@@ -567,7 +567,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     from hapsim.drivers.base import LATE_STOP, LATE_WINDOW
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
                                        torque_command)
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine as EngineND
     from hapsim.kinematics import device
     kin = device("delta", scene.device.geometry)
     eng = EngineND(scene)

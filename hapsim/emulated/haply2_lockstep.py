@@ -47,7 +47,7 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
         Writes after arming.
     faults : object, optional
         ``rx(bytes)``, ``tx(bytes)`` (:class:`hapsim.emulated.driver_mock.ByteFaults`).
-    engine : hapsim.engine_nd.EngineND, optional
+    engine : hapsim.engine.Engine, optional
         A fresh engine (default: one of ``scene``).
 
     Returns
@@ -57,12 +57,12 @@ def drive_haply2(board_feed, driver: Haply2DIY, scene, samples: int, *, faults=N
         (N, 2) [N m] written, ``missing`` (samples without a reply), ``resyncs``,
         ``bad_setups``, ``decoder`` (the reply decoder's counters), ``writes``.
     """
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.kinematics import device
     dev = scene.device
     kin = device(dev.kind, dev.geometry)
     q0deg = [math.degrees(v) for v in dev.joints]
-    eng = EngineND(scene) if engine is None else engine
+    eng = Engine(scene) if engine is None else engine
     port = eng.port
     dec = driver.decoder()
     rx = (lambda b: b) if faults is None else faults.rx

@@ -104,7 +104,7 @@ def corrected_engine(scene, velocity=None):
     Bc_T = corr.damping / T
     vel = velocity if velocity is not None else (lambda: 0.0)
 
-    class CorrectedEngine(Engine):
+    class CorrectedEngine(Engine.layout(1)):     # the 1-D layout: a correction is 1-D
         """Engine whose port force follows the device correction (module docstring)."""
 
         corrected = True
@@ -175,7 +175,7 @@ def corrected_engine(scene, velocity=None):
             p = self._port
             self._x[p] = qq          # the multi-rate kernel reads the previous port position
             self._xp[p] = qq         # from x, the single-rate ones from xp
-            f = Engine.port_step(self, q) + extra
+            f = super().port_step(q) + extra
             self._x2 = self._x1
             self._x1 = x
             return f

@@ -210,12 +210,12 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
     requested (``stop.set``: Ctrl-C, SIGTERM) ends the record at the next read (within
     0.05 s), and STOP is sent as at any end.
     """
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     counts = counts if counts is not None else _Counts()
     clock, _ = _clock_of(transport)
     n = scene.dimension
     rec = RecordND(N, n)
-    eng = EngineND(scene)
+    eng = Engine(scene)
     port = eng.port
     # per sample no array is made (the real-time rule): the position goes into a reused
     # buffer, the force is read from the engine's own (a view made once)
@@ -523,7 +523,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.scene_check import closed_loop_nd
     from hapsim.emulated.mock import DEFAULT_AMPLITUDE
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.analysis.felt_matrices import felt_deviation
     from hapsim.lockstep import identification_plan
     if frames not in ("auto", "full"):
@@ -533,7 +533,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     S = 2 * n + 1
     a = DEFAULT_AMPLITUDE if amplitude is None else float(amplitude)
     A = closed_loop_nd(scene)[0]
-    EngineND(scene).step()       # the compiled kernels loaded before the first CONFIG
+    Engine(scene).step()       # the compiled kernels loaded before the first CONFIG
     rate = scene.rate_hz
     wd = max(1, int(round(watchdog_periods * 1e6 / rate)))
     # the compact STATE's lag is exact while a FORCE is held for fewer than 255 ticks,

@@ -308,8 +308,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                if own else port)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceError(f"cannot open port {port}: {exc}") from None
-    from hapsim.engine_nd import EngineND
-    EngineND(scene).step()               # the compiled kernels loaded before the clock
+    from hapsim.engine import Engine
+    Engine(scene).step()               # the compiled kernels loaded before the clock
     runs = []
     probe = None
     try:

@@ -195,7 +195,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         A 2-D pantograph scene (its rate is the clock's).
     samples : int
         Ticks ``N``.
-    engine : hapsim.engine_nd.EngineND, optional
+    engine : hapsim.engine.Engine, optional
         A fresh engine (default: one of ``scene``).
     lockstep_board : bool, optional
         The board advances one period per write (named lockstep): a sample's age and a
@@ -256,7 +256,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         :data:`ARM_TRIES` armings in a row whose first reply did not come or did not
         read the offsets sent; the port failing.
     """
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.kinematics import device
     dev = scene.device
     kin = device(dev.kind, dev.geometry)
@@ -277,7 +277,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
              if ji is not None and np.all(np.isfinite(ji)) else 0.0)
     dec.set_accel(alpha if alpha > 0 else None)
     dec.period_s = T                                # the last two replies: a tick apart
-    eng = EngineND(scene) if engine is None else engine
+    eng = Engine(scene) if engine is None else engine
     # the braking's damping from the joint-space inertia (hapsim.braking.brake_damping
     # says why not the Cartesian mass) and its rest speed; no inertia stated: no braking
     Bq = brake_damping(ji, 1.0 / T) if ji is not None else None

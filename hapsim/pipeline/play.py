@@ -493,7 +493,7 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
     from hapsim.audio.live import LiveND, open_output, wait_priority
     from hapsim.host.loop_types import signame
     from hapsim.host.realtime import RealtimePriority
-    from hapsim.engine_nd import EngineND
+    from hapsim.engine import Engine
     from hapsim.errors import DeviceError
     from hapsim.scene import load_scene_nd
     refuse_untaken(args)
@@ -504,7 +504,7 @@ def play_nd_report(args, stop, scene=None) -> tuple[int, dict]:
                           "gain}]): nothing to play; see configs/membrane.yaml",
                           file=scene.path, key="audio")
     hand, direction, every = hand_of(scene, getattr(args, "pluck_every", 0.0) or 0.0)
-    engine = EngineND(scene)
+    engine = Engine(scene)
     ctl = None
     note = None
     try:

@@ -221,7 +221,7 @@ class ChunkSource(_Base):
     Parameters
     ----------
     scene : SceneND
-    engine : EngineND
+    engine : Engine
     ctl : ControllerND or None
     maxlen : int
         Most pending rows; the oldest are dropped when the view falls behind (the loop

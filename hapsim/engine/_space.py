@@ -1,5 +1,5 @@
-"""The n-D engine: a 2-D or 3-D scene (:class:`hapsim.scene.SceneND`) on the kernels of
-:mod:`hapsim.kernels.nd`.
+"""The engine's n-D layout (:class:`Space`, what :class:`hapsim.engine.Engine` returns for a
+2-D or 3-D scene, :class:`hapsim.scene.SceneND`) on the kernels of :mod:`hapsim.kernels.nd`.
 
 This layer validates (the scene did) and lays the arrays out; the kernels never see a
 Python object (docs/design.md, rule 3). Links: ``spring_damper`` with ``length: 0`` runs as a
@@ -14,23 +14,23 @@ import math
 
 import numpy as np
 
+from hapsim.engine._api import PRECISIONS, Engine
 from hapsim.errors import ConfigError
 from hapsim.kernels.nd import (BLOCK, ROWS, context, link_lengths, run_context,
                                run_context32, run_nd_listen, schedule, shared_params,
                                stripes)
 
-__all__ = ["EngineND", "PRECISIONS"]
-
-#: The engine's precisions and the floating type of its state and parameters.
-PRECISIONS = {"double": np.float64, "single": np.float32}
+__all__ = ["Space"]
 #: The engine's arrays held in its precision (the rest are indices and flags).
 _FLOAT_ARRAYS = ("_X", "_XP", "f", "port_f", "t2m", "lin_k", "lin_z", "eu_k", "eu_z",
                  "eu_rest", "eu_lprev", "W", "c_k", "c_z", "c_thr", "c_lprev", "p_normal",
                  "p_offset", "p_k", "p_z")
 
 
-class EngineND:
-    """Run an n-D scene sample by sample (centred scheme on every axis).
+class Space(Engine):
+    """Run an n-D scene sample by sample (centred scheme on every axis): the
+    :class:`~hapsim.engine.Engine` of a :class:`~hapsim.scene.SceneND` (build it as
+    ``Engine(scene)``; its API there).
 
     Parameters
     ----------
@@ -59,6 +59,8 @@ class EngineND:
     Positions start at ``x0`` with ``xp = x0 - T v0``; grounds and the port have
     ``T^2/m = 0``. The port's position is set by :meth:`set_port_position` before a step;
     :attr:`port_force` is then the force the step computed on it [N] (``-F`` of its links).
+    The per-field arrays (``t2m``, ``lin_k``, ``port_f``, ...) are the kernels' arguments,
+    listed once in :meth:`_arrays` (the order of :data:`hapsim.kernels.nd.CONTEXT_ARRAYS`).
     """
 
     def __init__(self, scene, block: int = BLOCK, precision: str | None = None) -> None:
@@ -78,7 +80,11 @@ class EngineND:
         #: The floating type of the state and parameters.
         self.dtype = PRECISIONS[precision]
         T = scene.period
-        self.names = [m.name for m in scene.masses]
+        #: The device's sample period and the integration period [s] (one rate in n-D).
+        self.period = self.sim_period = T
+        #: Samples advanced since construction.
+        self.sample = 0
+        self.names = tuple(m.name for m in scene.masses)
         index = {n: i for i, n in enumerate(self.names)}
         X0 = np.array([m.x0 for m in scene.masses], float)
         V0 = np.array([m.v0 for m in scene.masses], float)
@@ -93,7 +99,8 @@ class EngineND:
         self.port_f = np.zeros(ROWS)
         self.t2m = np.array([T * T / m.mass if m.kind == "mass" else 0.0
                              for m in scene.masses])
-        self.port = index.get(scene.port.name) if scene.port is not None else None
+        #: Index of the port mass in :attr:`names` (-1 without a port).
+        self.port_index = index[scene.port.name] if scene.port is not None else -1
 
         def pack(links):
             # lower index first (the laws are symmetric in the two ends), then stripes
@@ -160,17 +167,23 @@ class EngineND:
                                    for a in self.eu_shared)
         # the port's coordinates in the state (a view made once: set_port_position
         # writes through it, no allocation per sample)
-        self._port_x = None if self.port is None else self._X[:dim, self.port]
+        self._port_x = None if self.port_index < 0 else self._X[:dim, self.port_index]
+        self._port_xp = None if self.port_index < 0 else self._XP[:dim, self.port_index]
         self._run = run_context if self.dtype is np.float64 else run_context32
         # every array the step reads or writes, by address: one argument per step call
         # (the arrays above are updated in place, never rebound)
-        self._ctx = context(
-            self.dim, self.block, self._X, self._XP, self.f, self.t2m, self.lin_pieces,
-            self.lin_ptr, self.lin_k, self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k,
-            self.eu_z, self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
-            self.c_i2, self.c_k, self.c_z, self.c_thr, self.c_lprev, self.p_mass,
-            self.p_normal, self.p_offset, self.p_k, self.p_z,
-            -1 if self.port is None else self.port, self.port_f, dtype=self.dtype)
+        self._ctx = context(self.dim, self.block, *self._arrays(), self.port_index,
+                            self.port_f, dtype=self.dtype)
+
+    def _arrays(self) -> tuple:
+        """The kernels' arrays after ``dim`` and ``block``, from ``x`` to ``p_z``, in
+        their order (:data:`hapsim.kernels.nd.CONTEXT_ARRAYS`, the arguments of
+        :func:`hapsim.kernels.nd.step_nd`): the one place this engine writes the layout."""
+        return (self._X, self._XP, self.f, self.t2m, self.lin_pieces, self.lin_ptr,
+                self.lin_k, self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
+                self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1, self.c_i2,
+                self.c_k, self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
+                self.p_offset, self.p_k, self.p_z)
 
     @property
     def context(self) -> np.ndarray:
@@ -242,6 +255,10 @@ class EngineND:
             return {"mass": [(self.t2m, self.names.index(name))]}
         raise KeyError(name)
 
+    def _link_names(self) -> list[str]:
+        """The names :meth:`cells` knows as links and planes."""
+        return list(self._slot) + list(self._pairs)
+
     @property
     def x(self) -> np.ndarray:
         """Positions at the current sample [m], shape (dim, N), in the engine's
@@ -263,16 +280,13 @@ class EngineND:
         return self._X[:self.dim] - self._XP[:self.dim]
 
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` samples [-] (no allocation: one compiled call with one argument,
-        :func:`hapsim.kernels.nd.run_context`).
-
-        Parameters
-        ----------
-        n : int
-            Samples to advance (>= 0).
-        """
+        """:meth:`Engine.step` on the n-D kernels (one compiled call with one argument,
+        :func:`hapsim.kernels.nd.run_context`)."""
+        if n < 0:
+            raise ValueError(f"n must be >= 0, got {n}")
         self._ctx[0] = n
         self._run(self._ctx)
+        self.sample += n
 
     def listen(self, out, axis, mass, velocity, gain) -> None:
         """Advance ``out.shape[0]`` samples, recording listening points (no allocation);
@@ -324,29 +338,28 @@ class EngineND:
         if np.any((axis < 0) | (axis >= self.dim)) or \
                 np.any((mass < 0) | (mass >= len(self.names))):
             raise ConfigError("a listening point's axis or mass is out of range", key="audio")
-        port = -1 if self.port is None else self.port
+        port = self.port_index
         port_x = self._X[:, port].copy() if port >= 0 else np.zeros(ROWS)
-        args = (axis, mass, velocity, gain, self.dim, self.block, self._X, self._XP,
-                self.f, self.t2m, self.lin_pieces, self.lin_ptr, self.lin_k,
-                self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
-                self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1,
-                self.c_i2, self.c_k,
-                self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
-                self.p_offset, self.p_k, self.p_z, port, self.port_f, port_x)
+        args = (axis, mass, velocity, gain, self.dim, self.block, *self._arrays(), port,
+                self.port_f, port_x)
 
         def f(out) -> None:
             run_nd_listen(out, *args)
+            self.sample += out.shape[0]
         return f
 
-    def set_port_position(self, position) -> None:
-        """Set the port's position [m] (shape (dim,)) for the next step; its previous
-        position stays the one it had in the last step (not given: the step extrapolates
-        it, ``2 x - xp``, as the scheme moves a mass without force).
+    def set_port_position(self, position, at_rest: bool = False) -> None:
+        """Set the port's position [m] (shape (dim,)) for the next step; unless
+        ``at_rest``, its previous position stays the one it had in the last step (not
+        given: the step extrapolates it, ``2 x - xp``, as the scheme moves a mass without
+        force).
 
         Parameters
         ----------
         position : array_like, shape (dim,)
             The port's position [m].
+        at_rest : bool
+            Also set the previous position, so the port starts with zero velocity.
 
         Raises
         ------
@@ -354,7 +367,7 @@ class EngineND:
             The scene has no port (key ``masses``), or ``position`` is not ``dim`` finite
             coordinates (key ``position``).
         """
-        if self.port is None:
+        if self.port_index < 0:
             raise ConfigError("the scene has no port", key="masses")
         p = np.asarray(position, float)
         px = self._port_x
@@ -362,18 +375,35 @@ class EngineND:
             raise ConfigError(f"must be {self.dim} finite coordinates [m], got "
                               f"{position!r}", key="position")
         np.copyto(px, p)
+        if at_rest:       # double precision only (single precision has no port)
+            np.copyto(self._port_xp, p)
 
-    @property
-    def port_force(self) -> np.ndarray:
-        """Force on the port at the last step [N], shape (dim,)."""
-        if self.port is None:
-            raise ConfigError("the scene has no port", key="masses")
+    def port_step(self, position) -> np.ndarray:
+        """One device sample: set the port's position, advance one sample, return its
+        force.
+
+        Parameters
+        ----------
+        position : array_like, shape (dim,)
+            Device position at this sample [m].
+
+        Returns
+        -------
+        ndarray, shape (dim,)
+            Force on the port computed from this sample [N] (a new array).
+
+        Raises
+        ------
+        ConfigError
+            As :meth:`set_port_position`.
+        """
+        self.set_port_position(position)
+        self.step(1)
         return self.port_f[:self.dim].astype(np.float64)
 
-    @property
-    def positions(self) -> np.ndarray:
-        """Current positions [m], shape (N, dim) (a copy)."""
-        return self.x.T.copy()
+    def _port_force_row(self) -> np.ndarray:
+        """The port's force [N] as a view of shape (dim,)."""
+        return self.port_f[:self.dim]
 
 
 def _finite(p) -> bool:

@@ -1,8 +1,7 @@
-"""The mass-interaction engine: a validated scene turned into arrays and numba kernels.
-
-The API layer of the engine. It takes a :class:`~hapsim.scene.Scene` (never raw YAML),
-lays it out as a struct of arrays and advances it with the kernel of
-:mod:`hapsim.kernels.cordis` that matches the link kinds the scene uses.
+"""The engine's 1-D layout (:class:`Line`, what :class:`hapsim.engine.Engine` returns for a
+:class:`~hapsim.scene.Scene`): the scene as a struct of arrays, advanced by the kernel of
+:mod:`hapsim.kernels.cordis` (or :mod:`hapsim.kernels.schemes`, or the multi-rate one of
+:mod:`hapsim.kernels.audio`) that matches the link kinds the scene uses.
 """
 
 from __future__ import annotations
@@ -11,13 +10,17 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
+from hapsim.engine._api import Engine, mass_indices
 from hapsim.errors import ConfigError
 from hapsim.kernels import audio as audio_kernel
 from hapsim.kernels import cordis, schemes, step1d
 from hapsim.scene import Scene, audio_substeps
 
-__all__ = ["Engine", "KernelPack", "MultiRatePack", "mass_indices", "warm_up"]
+__all__ = ["KernelPack", "Line", "MultiRatePack"]
 
+#: The array type port_step tells from a float by its class alone (the per-sample call of the
+#: 1-D host loops: ``isinstance`` costs it ~10 % of its time).
+_NDARRAY = np.ndarray
 _EMPTY_REC = np.empty(0, dtype=np.int64)
 _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
 
@@ -84,45 +87,10 @@ class MultiRatePack(NamedTuple):
     args: tuple
 
 
-def mass_indices(masses: Sequence[str], names: Sequence[str] | None,
-                 key: str = "record") -> np.ndarray:
-    """Indices of ``names`` among a scene's masses (all of them when None), checked before
-    any engine is built (``hapsim simulate --record`` refuses a wrong name before it
-    compiles anything).
-
-    Parameters
-    ----------
-    masses : sequence of str
-        The scene's mass names, in order (``Engine.names``).
-    names : sequence of str or None
-        The names asked for.
-    key : str
-        The argument named in the error (the names are an argument, not part of the scene
-        file).
-
-    Returns
-    -------
-    numpy.ndarray, shape (len(names),), int64
-
-    Raises
-    ------
-    ConfigError
-        When no mass has one of the names (the valid names are listed, the first 20).
-    """
-    if names is None:
-        return np.arange(len(masses), dtype=np.int64)
-    lookup = {nm: i for i, nm in enumerate(masses)}
-    out = []
-    for nm in names:
-        if nm not in lookup:
-            shown = ", ".join(masses[:20]) + (", ..." if len(masses) > 20 else "")
-            raise ConfigError(f"no mass named {nm!r}; masses are: {shown}", key=key)
-        out.append(lookup[nm])
-    return np.array(out, dtype=np.int64)
-
-
-class Engine:
-    """A scene compiled for simulation with the CORDIS-ANIMA scheme.
+class Line(Engine):
+    """A 1-D scene compiled for simulation with the CORDIS-ANIMA scheme: the
+    :class:`~hapsim.engine.Engine` of a :class:`~hapsim.scene.Scene` (build it as
+    ``Engine(scene)``; its API there, with ``n = 1``).
 
     Parameters
     ----------
@@ -130,13 +98,19 @@ class Engine:
         A scene whose links all have numeric (K, B): calibrate ``target`` links first
         (:func:`hapsim.analysis.targets.apply_targets`). Every :class:`Scene` is validated
         when it is constructed, from a file or in code, so only the type is checked here.
+    block : int, optional
+        Unused (the n-D kernels' schedule): accepted so that one call builds every
+        dimension's engine.
+    precision : {"double"}, optional
+        The 1-D kernels compute in float64 only.
 
     Raises
     ------
     TypeError
         When ``scene`` is not a :class:`Scene`.
     ConfigError
-        When a link still has an uncalibrated ``target``.
+        When a link still has an uncalibrated ``target``; a precision other than
+        ``double`` (key ``engine.precision``).
 
     Notes
     -----
@@ -163,14 +137,19 @@ class Engine:
     >>> t, x = eng.run(1000)                                  # doctest: +SKIP
     """
 
-    #: True for an engine whose port force follows a device correction
-    #: (:func:`hapsim.host.correction.corrected_engine`): its port law is not the
-    #: kernel's alone.
-    corrected: bool = False
+    #: The dimension ``n``.
+    dim = 1
+    #: The floating type of the state: float64 only.
+    precision, dtype = "double", np.float64
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, block: int | None = None,
+                 precision: str | None = None) -> None:
         if not isinstance(scene, Scene):
-            raise TypeError(f"Engine needs a validated hapsim.scene.Scene, got {type(scene).__name__}")
+            raise TypeError(f"Engine needs a validated hapsim.scene.Scene or SceneND, got "
+                            f"{type(scene).__name__}")
+        if precision not in (None, "double"):
+            raise ConfigError(f"a 1-D scene runs in double precision only, not {precision!r}",
+                              key="engine.precision")
         if scene.unresolved_targets:
             lk = scene.unresolved_targets[0]
             raise ConfigError("link has a felt target (k, b) but no calibrated (K, B); "
@@ -185,9 +164,11 @@ class Engine:
         #: Period the masses are integrated at [s]: the audio period with ``audio``.
         self.sim_period = T = self.period / self.substeps
         n = len(scene.masses)
-        self._x = np.array([m.x0 for m in scene.masses], dtype=np.float64)
-        self._xp = np.array([m.x0 - (m.v0 * T if m.kind == "mass" else 0.0) for m in scene.masses],
-                            dtype=np.float64)
+        # (1, N) as every dimension's state; the kernels get its one row (a view)
+        self._X = np.array([[m.x0 for m in scene.masses]], dtype=np.float64)
+        self._XP = np.array([[m.x0 - (m.v0 * T if m.kind == "mass" else 0.0)
+                              for m in scene.masses]], dtype=np.float64)
+        self._x, self._xp = self._X[0], self._XP[0]
         self._f = np.zeros(n, dtype=np.float64)
         mobile = [i for i, m in enumerate(scene.masses) if m.kind == "mass"]
         self._mobile = np.array(mobile, dtype=np.int64)
@@ -286,8 +267,7 @@ class Engine:
         self._multi = MultiRatePack(
             (self.substeps, audio.port_position == "linear", audio.port_force == "last",
              self._port),
-            (self._x, self._xp, self._f, self._mobile, self._t2m, self._fixed)
-            + tuple(sd) + tuple(ct)
+            pack.state + tuple(sd) + tuple(ct)
             + (self._l_idx, self._l_code, self._l_gain, 1.0 / self.sim_period))
         self._pos1 = np.zeros(1)
         self._force1 = np.zeros(1)
@@ -304,12 +284,12 @@ class Engine:
             self._step_run = step1d.RUNNERS[self._kernel]
             return
         head, state = self._multi
-        # step: the port held, one period at a time on scratch position, frames and force
-        # (dropped); port_step: the position given, frames and force kept (self.frames)
-        self._step_scratch = pos, frames, force = (np.zeros(1), np.zeros_like(self.frames),
-                                                   np.zeros(1))       # kept alive here
+        # step: the port held, one period at a time on scratch position and frames
+        # (dropped), its force kept as port_step's; port_step: the position given, frames
+        # and force kept (self.frames, self._force1: port_force)
+        self._step_scratch = pos, frames = (np.zeros(1), np.zeros_like(self.frames))
         self._step_ctx, self._step_keep = step1d.context(
-            (pos,) + state + (frames, force, _EMPTY_REC, _EMPTY_OUT), head + (0,))
+            (pos,) + state + (frames, self._force1, _EMPTY_REC, _EMPTY_OUT), head + (0,))
         self._port_ctx, self._port_keep = step1d.context(
             (self._pos1,) + state + (self.frames, self._force1, _EMPTY_REC, _EMPTY_OUT),
             head + (1,))
@@ -322,38 +302,34 @@ class Engine:
 
     # ------------------------------------------------------------------ stepping
     def step(self, n: int = 1) -> None:
-        """Advance ``n`` samples (no allocation: one compiled call with one argument,
+        """:meth:`Engine.step` on the 1-D kernels (one compiled call with one argument,
         :mod:`hapsim.kernels.step1d`; a multi-rate scene's port is held where it is and
-        its sound dropped, as :meth:`run`).
-
-        Parameters
-        ----------
-        n : int
-            Number of samples, >= 0.
-
-        Raises
-        ------
-        ValueError
-            When ``n`` is negative.
-        """
+        its sound dropped, as :meth:`run`)."""
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
-        self._step_ctx[0] = n
-        self._step_run(self._step_ctx)
+        ctx = self._step_ctx
+        ctx[0] = n
+        try:
+            self._step_run(ctx)
+        finally:
+            ctx[0] = 1           # what port_step runs, without writing it per sample
         self.sample += n
 
-    def port_step(self, position: float) -> float:
+    def port_step(self, position):
         """One device sample: set the port position, advance one sample, return its force.
 
         Parameters
         ----------
-        position : float
-            Device position at this sample [m].
+        position : float or ndarray, shape (1,)
+            Device position at this sample [m]; a float (or a numpy scalar) is the
+            ``n = 1`` shorthand of the 1-D host loops (no array made per sample), a
+            :class:`numpy.ndarray` (that class exactly) the array form.
 
         Returns
         -------
-        float
-            Force on the port computed from this sample [N] (to be sent to the device).
+        float or ndarray, shape (1,)
+            Force on the port computed from this sample [N] (to be sent to the device): a
+            float for a float position, else a new array.
 
         Raises
         ------
@@ -364,14 +340,15 @@ class Engine:
         if self._port < 0:
             raise ConfigError("the scene has no port to drive; port_step needs a mass of "
                               "kind port", file=self.scene.path, key="masses")
+        if position.__class__ is _NDARRAY:      # the (1,) array form (a float: no check)
+            return np.array([self.port_step(position.item(0))])
         if self._multi is not None:
             self._pos1[0] = position
             self._step_run(self._port_ctx)
             self.sample += 1
             return self._force1.item(0)
         self._x[self._port] = position
-        self._step_ctx[0] = 1
-        self._step_run(self._step_ctx)
+        self._step_run(self._step_ctx)      # ctx[0] is 1 (step restores it)
         self.sample += 1
         return self._f.item(self._port)
 
@@ -476,64 +453,58 @@ class Engine:
         return audio, force
 
     # ------------------------------------------------------------------ live changes
-    def set_link(self, name: str, stiffness: float, damping: float) -> None:
-        """Change one link's (K, B) in place, between two samples (no allocation).
+    def cells(self, name: str) -> dict:
+        """Where the running engine reads a link's or a moving mass's parameters, so that
+        a live change writes them between samples (:meth:`Engine.set_link`,
+        :meth:`Engine.set_mass`).
 
         Parameters
         ----------
         name : str
-            Link name.
-        stiffness : float
-            K [N/m].
-        damping : float
-            B [N s/m].
+            A link's name (``"stiffness"`` and ``"damping"`` cells) or a moving mass's
+            (``"mass"``).
+
+        Returns
+        -------
+        dict
+            ``{"stiffness": [(array, index)], "damping": [(array, index)]}`` (the cells
+            hold ``K`` [N/m] and ``B / Ta`` [N/m], ``Ta`` the integration period) or
+            ``{"mass": [(t2m, index)]}`` (the cell holds ``Ta^2 / m`` [s^2/kg]).
 
         Raises
         ------
+        KeyError
+            No link or moving mass of that name.
         ConfigError
-            Unknown link (key ``link``; the valid names listed), or an integrator other
-            than ``centred`` (its matrices are built once).
-
-        Notes
-        -----
-        :attr:`scene` is not updated: the caller (:class:`hapsim.audio.control.Controller`)
-        keeps the scene that describes the engine and checks it before changing anything.
+            An integrator other than ``centred`` (its matrices are built once; key
+            ``integrator``).
         """
         if self._v is not None:
             raise ConfigError("live changes need integrator: centred", key="integrator")
-        try:
+        if name in self._link_slot:
             k, z, j = self._link_slot[name]
+            return {"stiffness": [(k, j)], "damping": [(z, j)]}
+        try:
+            i = self.scene.index(name)
         except KeyError:
-            raise ConfigError(f"no link named {name!r}; links are: "
-                              + ", ".join(self._link_slot), key="link") from None
-        k[j] = stiffness
-        z[j] = damping / self.sim_period
-
-    def set_mass(self, name: str, mass: float) -> None:
-        """Change one moving mass's inertia in place [kg], between two samples.
-
-        Raises
-        ------
-        ConfigError
-            No moving mass of that name (key ``mass``), or an integrator other than
-            ``centred``.
-        """
-        if self._v is not None:
-            raise ConfigError("live changes need integrator: centred", key="integrator")
-        i = self._indices([name], key="mass")[0]
+            raise KeyError(name) from None
         hit = np.nonzero(self._mobile == i)[0]
-        if hit.size == 0:
-            raise ConfigError(f"{name!r} is not a moving mass (kind mass)", key="mass")
-        self._t2m[hit[0]] = self.sim_period ** 2 / mass
+        if hit.size:
+            return {"mass": [(self._t2m, int(hit[0]))]}
+        raise KeyError(name)
+
+    def _link_names(self) -> list[str]:
+        """The names :meth:`cells` knows as links, in layout order."""
+        return list(self._link_slot)
 
     # ------------------------------------------------------------------ state
-    def set_port_position(self, position: float, at_rest: bool = False) -> None:
+    def set_port_position(self, position, at_rest: bool = False) -> None:
         """Set the port position for the next sample [m] (the device sample).
 
         Parameters
         ----------
-        position : float
-            Device position [m].
+        position : float or array_like, shape (1,)
+            Device position [m] (a float: the ``n = 1`` shorthand).
         at_rest : bool
             Also set the previous position, so the port starts with zero velocity.
 
@@ -544,44 +515,30 @@ class Engine:
         """
         if self._port < 0:
             raise ConfigError("the scene has no port", file=self.scene.path, key="masses")
+        if isinstance(position, np.ndarray):
+            position = position.item(0)
         self._x[self._port] = position
         if at_rest:
             self._xp[self._port] = position
 
-    @property
-    def port_force(self) -> float:
-        """Force on the port from the last sample advanced [N] (0.0 when no port)."""
-        return float(self._f[self._port]) if self._port >= 0 else 0.0
+    def _port_force_row(self) -> np.ndarray:
+        """The port's force [N] as a view of shape (1,): the last sample's (with
+        ``audio``, the device period's, as :meth:`port_step` returns it: the sub-steps'
+        mean or last, ``audio.port_force``)."""
+        if self._multi is not None:
+            return self._force1
+        return self._f[self._port:self._port + 1]
 
     @property
-    def positions(self) -> np.ndarray:
-        """Copy of the current positions [m], shape (n_masses,), in scene order."""
-        return self._x.copy()
+    def x(self) -> np.ndarray:
+        """Positions at the current sample [m], shape (1, N) (a view: writable)."""
+        return self._X
 
     @property
-    def previous_positions(self) -> np.ndarray:
-        """Copy of the positions one sample earlier [m], shape (n_masses,)."""
-        return self._xp.copy()
-
-    def position(self, name: str) -> float:
-        """Current position of one mass.
-
-        Parameters
-        ----------
-        name : str
-            Mass name.
-
-        Returns
-        -------
-        float
-            Its position at the current sample [m].
-
-        Raises
-        ------
-        ConfigError
-            When no mass has that name (key ``name``; the valid names are listed).
-        """
-        return float(self._x[self._indices([name], key="name")[0]])
+    def xp(self) -> np.ndarray:
+        """Positions one sample (one audio sub-step with ``audio``) earlier [m], shape
+        (1, N) (a view: writable)."""
+        return self._XP
 
     def _indices(self, names: Sequence[str] | None, key: str = "record") -> np.ndarray:
         """Indices of ``names`` (all masses when None): :func:`mass_indices`."""
@@ -626,26 +583,3 @@ class Engine:
         return (f"Engine({len(self.names)} masses, {len(self.scene.links)} links [{kinds}], "
                 f"rate {self.scene.rate_hz:g} Hz, sample {self.sample})")
 
-
-def warm_up(scene: Scene) -> None:
-    """Load the numba kernel of the scene's link kinds (from numba's cache, or compile it)
-    before a real-time loop: an engine of the scene advanced three samples.
-
-    Parameters
-    ----------
-    scene : Scene
-        A calibrated scene (the engine of a copy is stepped; nothing of the caller's
-        changes).
-
-    Raises
-    ------
-    ConfigError
-        As :class:`Engine` (a link with an uncalibrated target).
-    """
-    eng = Engine(scene)
-    if scene.port is not None:
-        eng.set_port_position(0.0, at_rest=True)
-        for _ in range(3):
-            eng.port_step(0.0)
-    else:
-        eng.step(3)
