@@ -567,10 +567,10 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     from hapsim.drivers.base import LATE_STOP, LATE_WINDOW
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
                                        torque_command)
-    from hapsim.engine import Engine as EngineND
+    from hapsim.engine import Engine
     from hapsim.kinematics import device
     kin = device("delta", scene.device.geometry)
-    eng = EngineND(scene)
+    eng = Engine(scene)
     port = eng.port
     dec = DevicePacketDecoder() if decoder is None else decoder
     rx = (lambda b: b) if faults is None else faults.rx
@@ -593,7 +593,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
             kin.forward_jacobian(np.asarray(scene.device.joints, float), guess)
         except (ConfigError, KinematicsError):
             guess = None
-        warm = EngineND(scene)
+        warm = Engine(scene)
         warm.step()
         warm.set_port_position(warm.x[:, warm.port].copy())
         warm.step()
