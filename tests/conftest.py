@@ -78,8 +78,10 @@ def _signals_left_as_found():
 # ``--cpu-time=N`` every test records the CPU seconds of the pytest worker
 # (time.process_time: all its threads) and of the children it waited for
 # (getrusage(RUSAGE_CHILDREN): every ``python -m hapsim``, jackd, simavr, cc it started),
-# beside its wall seconds; the N heaviest are printed at the end and, with
-# ``--cpu-time-json=PATH``, all of them written as JSON (tools/suite_time.py reads it).
+# beside its wall seconds and the time it ended (``end``, seconds since the epoch: a
+# worker's timeline, its idle end, a group's chain); the N heaviest are printed at the end
+# and, with ``--cpu-time-json=PATH``, all of them written as JSON (tools/suite_time.py
+# reads it, with the session's start and end).
 
 
 def pytest_addoption(parser):
@@ -122,7 +124,7 @@ def pytest_runtest_makereport(item, call):
     item.user_properties[:] = [p for p in item.user_properties if p[0] != "cpu_time"]
     item.user_properties.append(("cpu_time", {
         "wall": time.perf_counter() - w0, "cpu": time.process_time() - c0,
-        "children": _child_cpu() - k0, "pid": os.getpid()}))
+        "children": _child_cpu() - k0, "pid": os.getpid(), "end": time.time()}))
 
 
 class _CpuTimeReport:
@@ -132,6 +134,7 @@ class _CpuTimeReport:
         self.config = config
         self.rows: dict[str, dict] = {}
         self.t0 = time.perf_counter()
+        self.start = time.time()
 
     def pytest_runtest_logreport(self, report):
         if report.when != "teardown":
@@ -164,6 +167,7 @@ class _CpuTimeReport:
         if path:
             with open(path, "w") as f:
                 json.dump({"load": os.getloadavg(), "session_wall": time.perf_counter() - self.t0,
+                           "session_start": self.start, "session_end": time.time(),
                            "tests": self.rows}, f, indent=0)
 
 
@@ -380,24 +384,39 @@ def shipped_lockstep_run():
 # set here (NodeId.parse keeps the string as given), only where xdist's own did not take.
 
 
+def _group_name(item) -> str | None:
+    """The ``xdist_group`` a test carries (several joined by ``_``, as pytest-xdist does),
+    None for none."""
+    names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                    for m in item.iter_markers("xdist_group")})
+    return "_".join(names) if names else None
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """On a pytest-xdist worker with ``--dist loadgroup``: give each test that carries
-    ``xdist_group(name)`` the node id ``<id>@<name>`` the controller's LoadGroupScheduling
-    groups by (what pytest-xdist itself does where ``item._nodeid`` is the node id)."""
+    """On a pytest-xdist worker with ``--dist loadgroup``: the tests in the order the
+    controller hands them out, longest first (``tests/suite_order.py``: every worker computes
+    the same order from the same collection and ``tests/durations.json``; pyproject.toml's
+    ``--no-loadscope-reorder`` keeps it); then each test that carries
+    ``xdist_group(name)`` given the node id ``<id>@<name>`` the controller's
+    LoadGroupScheduling groups by (what pytest-xdist itself does where ``item._nodeid``
+    is the node id). A serial run (``-n 0``) keeps the collection order."""
     if not getattr(config.option, "loadgroup", False):
         return
+    from suite_order import load_durations, longest_first
+    order = longest_first([item.nodeid for item in items],
+                          [_group_name(item) for item in items], load_durations())
+    items[:] = [items[i] for i in order]
     for item in items:
-        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
-                        for m in item.iter_markers("xdist_group")})
-        if not names:
+        names = _group_name(item)
+        if names is None:
             continue
         nodeid = item.nodeid
         if nodeid.rfind("@") > nodeid.rfind("]"):
             continue                                   # xdist's suffix took
         if hasattr(item, "_id"):
             from _pytest.nodeid import NodeId
-            item._id = NodeId.parse(f"{nodeid}@{'_'.join(names)}")
+            item._id = NodeId.parse(f"{nodeid}@{names}")
 
 
 #: Longest a pytest-xdist worker waits for the first worker's collection [s].
