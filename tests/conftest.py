@@ -384,39 +384,24 @@ def shipped_lockstep_run():
 # set here (NodeId.parse keeps the string as given), only where xdist's own did not take.
 
 
-def _group_name(item) -> str | None:
-    """The ``xdist_group`` a test carries (several joined by ``_``, as pytest-xdist does),
-    None for none."""
-    names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
-                    for m in item.iter_markers("xdist_group")})
-    return "_".join(names) if names else None
-
-
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """On a pytest-xdist worker with ``--dist loadgroup``: the tests in the order the
-    controller hands them out, longest first (``tests/suite_order.py``: every worker computes
-    the same order from the same collection and ``tests/durations.json``; pyproject.toml's
-    ``--no-loadscope-reorder`` keeps it); then each test that carries
-    ``xdist_group(name)`` given the node id ``<id>@<name>`` the controller's
-    LoadGroupScheduling groups by (what pytest-xdist itself does where ``item._nodeid``
-    is the node id). A serial run (``-n 0``) keeps the collection order."""
+    """On a pytest-xdist worker with ``--dist loadgroup``: give each test that carries
+    ``xdist_group(name)`` the node id ``<id>@<name>`` the controller's LoadGroupScheduling
+    groups by (what pytest-xdist itself does where ``item._nodeid`` is the node id)."""
     if not getattr(config.option, "loadgroup", False):
         return
-    from suite_order import load_durations, longest_first
-    order = longest_first([item.nodeid for item in items],
-                          [_group_name(item) for item in items], load_durations())
-    items[:] = [items[i] for i in order]
     for item in items:
-        names = _group_name(item)
-        if names is None:
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                        for m in item.iter_markers("xdist_group")})
+        if not names:
             continue
         nodeid = item.nodeid
         if nodeid.rfind("@") > nodeid.rfind("]"):
             continue                                   # xdist's suffix took
         if hasattr(item, "_id"):
             from _pytest.nodeid import NodeId
-            item._id = NodeId.parse(f"{nodeid}@{names}")
+            item._id = NodeId.parse(f"{nodeid}@{'_'.join(names)}")
 
 
 #: Longest a pytest-xdist worker waits for the first worker's collection [s].

@@ -19,10 +19,7 @@ from tests.tolerance import rel_tol
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
-# session-scoped (defined here, only this module sees it): the suite hands its long
-# tests out first (tests/suite_order.py), so this module's tests do not run one after
-# another on a worker, and a module-scoped fixture was built again for each (~1.1 CPU-s)
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def sphere():
     """configs/delta_sphere.yaml, its identification plan and its feasibility."""
     from hapsim.emulated.falcon_felt import felt_feasibility

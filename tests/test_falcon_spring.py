@@ -26,10 +26,7 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 IMAGE = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
 
 
-# session-scoped (defined here, only this module sees it): the suite hands its long
-# tests out first (tests/suite_order.py), so this module's tests do not run one after
-# another on a worker, and a module-scoped fixture was built again for each (~1.1 CPU-s)
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def spring():
     """configs/falcon_spring.yaml, its identification plan and its feasibility."""
     from hapsim.emulated.falcon_felt import felt_feasibility

@@ -19,9 +19,7 @@ Where the wall clock goes, from the tests' start and end times: the session's st
 (starting the workers and collecting, up to the first test), each worker's time in tests
 and its idle end (from its last test to the last test of the run), and each
 ``xdist_group``'s chain (its tests run in turn on one worker). ``--from CPU_JSON`` reads a
-run's ``--cpu-time-json`` file instead of running the suite; ``--durations PATH`` writes
-the tests of :data:`suite_order.MIN_SECONDS` or more, the table the suite hands its
-tests out by, longest first (``tests/durations.json``, ``tests/suite_order.py``).
+run's ``--cpu-time-json`` file instead of running the suite.
 """
 
 from __future__ import annotations
@@ -37,9 +35,6 @@ import tempfile
 import time
 
 from provenance import REPO, command_line  # tools/, beside this file
-
-sys.path.insert(0, str(REPO / "tests"))
-from suite_order import MIN_SECONDS, base_nodeid  # noqa: E402  (tests/suite_order.py)
 
 #: The project's budget for the README's test command, seconds (2 cores, one busy process).
 BUDGET_S = 360.0
@@ -72,9 +67,6 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures here")
     ap.add_argument("--from", dest="source", metavar="CPU_JSON",
                     help="read a run's --cpu-time-json file instead of running the suite")
-    ap.add_argument("--durations", metavar="PATH",
-                    help=f"write the tests of {MIN_SECONDS:g} s or more (wall) as the table "
-                         f"the suite hands its tests out by (tests/durations.json)")
     ap.add_argument("pytest_args", nargs="*", help="after --: more pytest arguments")
     a = ap.parse_args(argv)
     if a.source:
@@ -168,44 +160,11 @@ def main(argv=None) -> int:
 
 
 def _write(a, res: dict, tests: dict) -> None:
-    """Write ``--json`` and ``--durations`` as asked."""
+    """Write ``--json`` as asked."""
     if a.json:
         with open(a.json, "w") as f:
             json.dump(res, f, indent=1)
             f.write("\n")
-    if a.durations:
-        write_durations(a.durations, tests, command_line("tools/suite_time.py",
-                                                         sys.argv[1:]))
-
-
-def write_durations(path, tests: dict, command: str) -> int:
-    """Write the table the suite hands its tests out by (``tests/suite_order.py``).
-
-    Parameters
-    ----------
-    path : str
-        Where (``tests/durations.json``).
-    tests : dict
-        ``--cpu-time-json``'s ``tests``: node id -> figures with ``wall``.
-    command : str
-        The command that measured them (recorded in the file).
-
-    Returns
-    -------
-    int
-        The number of tests written (those of :data:`suite_order.MIN_SECONDS` or more).
-    """
-    seconds = {base_nodeid(n): round(r["wall"], 1) for n, r in tests.items()
-               if r["wall"] >= MIN_SECONDS}
-    with open(path, "w") as f:
-        json.dump({"measured_by": command,
-                   "what": f"wall seconds of each test of {MIN_SECONDS:g} s or more "
-                           f"(set-up, call and tear-down), in a full run of the README's "
-                           f"test command; the order the suite hands tests out in "
-                           f"(tests/suite_order.py), nothing else",
-                   "seconds": dict(sorted(seconds.items()))}, f, indent=0)
-        f.write("\n")
-    return len(seconds)
 
 
 def timeline(run: dict) -> dict | None:
