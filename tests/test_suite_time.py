@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-from suite_time import timeline  # noqa: E402
+from suite_time import REPO, _asked_json, timeline  # noqa: E402
 
 
 def _run(rng):
@@ -85,3 +85,14 @@ def test_a_run_without_end_times_has_no_timeline():
     assert timeline({"tests": {"t.py::a": {"wall": 1.0, "cpu": 0.5, "children": 0.0,
                                              "worker": "gw0"}}}) is None
     assert timeline({"tests": {}}) is None
+
+
+def test_the_figures_are_read_where_the_pytest_arguments_put_them():
+    """``-- --cpu-time-json=X`` (or ``--cpu-time-json X``; the last one counts, as in
+    pytest) is where the summary reads the run's figures, relative to the repository
+    where pytest runs; without it, None (the tool's own temporary file)."""
+    assert _asked_json(["-p", "no:cacheprovider"]) is None
+    assert _asked_json(["--cpu-time-json=a.json"]) == str(REPO / "a.json")
+    assert _asked_json(["--cpu-time-json", "/x/b.json", "--cpu-time-json=c.json"]) == \
+        str(REPO / "c.json")
+    assert _asked_json(["--cpu-time-json=/x/b.json"]) == "/x/b.json"

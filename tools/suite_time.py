@@ -84,13 +84,16 @@ def main(argv=None) -> int:
     busy = [subprocess.Popen([sys.executable, "-c", "while 1: pass"])
             for _ in range(a.busy)]
     tmp = tempfile.mkdtemp(prefix="suite_time_")
-    out = os.path.join(tmp, "cpu.json")
+    out = _asked_json(a.pytest_args)
+    own = out is None                   # the figures in our temporary folder, else theirs
+    if own:
+        out = os.path.join(tmp, "cpu.json")
     run = {}
     try:
         time.sleep(2.0)                          # the busy processes are running
         load0 = os.getloadavg()[0]
-        cmd = [sys.executable, "-m", "pytest", "-q", "--cpu-time=0", f"--cpu-time-json={out}",
-               *a.pytest_args]
+        cmd = [sys.executable, "-m", "pytest", "-q", "--cpu-time=0",
+               *([f"--cpu-time-json={out}"] if own else []), *a.pytest_args]
         print(f"suite_time: {' '.join(cmd[1:])} beside {a.busy} busy process(es), "
               f"load {load0:.2f}", file=sys.stderr)
         t0 = time.perf_counter()
@@ -157,6 +160,20 @@ def main(argv=None) -> int:
     _print_timeline(res)
     _write(a, res, tests)
     return rc
+
+
+def _asked_json(pytest_args: list) -> str | None:
+    """The ``--cpu-time-json`` path among the pytest arguments (the last one, as pytest
+    takes it; relative to the repository, where pytest runs), None when none is given:
+    the figures are then read from there (a second option of ours before it left the
+    summary with no tests)."""
+    path = None
+    for i, arg in enumerate(pytest_args):
+        if arg.startswith("--cpu-time-json="):
+            path = arg.split("=", 1)[1]
+        elif arg == "--cpu-time-json" and i + 1 < len(pytest_args):
+            path = pytest_args[i + 1]
+    return path and os.path.join(str(REPO), path)      # pytest runs in the repository
 
 
 def _write(a, res: dict, tests: dict) -> None:
