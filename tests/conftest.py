@@ -78,8 +78,10 @@ def _signals_left_as_found():
 # ``--cpu-time=N`` every test records the CPU seconds of the pytest worker
 # (time.process_time: all its threads) and of the children it waited for
 # (getrusage(RUSAGE_CHILDREN): every ``python -m hapsim``, jackd, simavr, cc it started),
-# beside its wall seconds; the N heaviest are printed at the end and, with
-# ``--cpu-time-json=PATH``, all of them written as JSON (tools/suite_time.py reads it).
+# beside its wall seconds and the time it ended (``end``, seconds since the epoch: a
+# worker's timeline, its idle end, a group's chain); the N heaviest are printed at the end
+# and, with ``--cpu-time-json=PATH``, all of them written as JSON (tools/suite_time.py
+# reads it, with the session's start and end).
 
 
 def pytest_addoption(parser):
@@ -122,7 +124,7 @@ def pytest_runtest_makereport(item, call):
     item.user_properties[:] = [p for p in item.user_properties if p[0] != "cpu_time"]
     item.user_properties.append(("cpu_time", {
         "wall": time.perf_counter() - w0, "cpu": time.process_time() - c0,
-        "children": _child_cpu() - k0, "pid": os.getpid()}))
+        "children": _child_cpu() - k0, "pid": os.getpid(), "end": time.time()}))
 
 
 class _CpuTimeReport:
@@ -132,6 +134,7 @@ class _CpuTimeReport:
         self.config = config
         self.rows: dict[str, dict] = {}
         self.t0 = time.perf_counter()
+        self.start = time.time()
 
     def pytest_runtest_logreport(self, report):
         if report.when != "teardown":
@@ -164,6 +167,7 @@ class _CpuTimeReport:
         if path:
             with open(path, "w") as f:
                 json.dump({"load": os.getloadavg(), "session_wall": time.perf_counter() - self.t0,
+                           "session_start": self.start, "session_end": time.time(),
                            "tests": self.rows}, f, indent=0)
 
 
