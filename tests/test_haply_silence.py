@@ -144,12 +144,12 @@ class StarvedBoardPort:
 
 
 def _windows(rng, n_ticks, lo_ms=1.0, hi_ms=40.0):
-    """1 to 4 starved windows of ``lo_ms``..``hi_ms`` [ms], 10 to 100 ms apart, in the
+    """1 to 4 starved windows of ``lo_ms``..``hi_ms`` [ms], 2 to 100 ms apart, in the
     run's ticks after its first 50, each read woken 0 to 3 ms after it ends (a reply
     made before it leaves at its end: :class:`StarvedBoardPort`)."""
     out, t = [], 0.05
     for _ in range(int(rng.integers(1, 5))):
-        t += float(rng.uniform(0.01, 0.1))
+        t += float(rng.uniform(0.002, 0.1))
         d = float(rng.uniform(lo_ms, hi_ms)) * 1e-3
         w = float(rng.uniform(0.0, 3e-3))
         if t + d + w > n_ticks * T - 0.02:

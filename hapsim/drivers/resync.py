@@ -15,7 +15,8 @@ angle, so a re-synchronisation is only called on evidence that the board lost it
   clamp over the joint's inertia allows since the last record,
   :meth:`hapsim.drivers.haply.ReplyDecoder.reach_deg`, plus whole encoder counts);
 - answers that stopped for :data:`SILENT_S` and more than :data:`SILENT_COMMANDS`
-  commands while the board *did* send bytes, none of them a reply (``garbled``).
+  commands while the board *did* send bytes, at least a reply's length and none of them
+  a reply (``garbled``).
 
 **A silence is not evidence** (issue 29). On its own clock, a board that lost its place
 still answers: firmware V1.5 answers every write it parses (``loop``: ``write_states``
@@ -49,7 +50,7 @@ import math
 from hapsim.errors import DeviceError
 
 __all__ = ["Resynchronising", "SILENT_COMMANDS", "SILENT_S", "MAX_RESYNCS_PER_S",
-           "RESYNC_GAP_S", "HOLD_BOUND_S", "SILENCE_LOST_S", "RESYNC_REASONS"]
+           "RESYNC_GAP_S", "HOLD_BOUND_S", "SILENCE_LOST_S", "RESYNC_REASONS", "RING"]
 
 #: Commands in a row without an answer after which the device may be re-synchronised
 #: (with :data:`SILENT_S` and, on the board's own clock, bytes that made no reply: all
@@ -82,7 +83,7 @@ RESYNC_REASONS = ("desync", "lone", "unreachable", "garbled", "silent", "unarmed
 #: more than :data:`SILENCE_LOST_S` holds at 4 kHz, so the oldest command of a silence
 #: waited for keeps its time (64 before, when 20 ms ended any silence: past 64 commands
 #: its time was overwritten by a newer one's).
-_RING = 2048
+RING = 2048
 
 
 class Resynchronising:
@@ -121,9 +122,9 @@ class Resynchronising:
         (module notes): more than :data:`SILENT_COMMANDS` commands unanswered (armed, an
         unframed driver) and, for a lockstep mock, nothing else (``"silent"``: its time is
         the commands'); on the board's own clock, the oldest of them waiting
-        :data:`SILENT_S` *and* bytes read since the last record, none of them one
-        (``"garbled"``). A silence with no byte back is waited for (counted in
-        ``silences``), up to :data:`SILENCE_LOST_S`.
+        :data:`SILENT_S` *and* at least a reply's length of bytes read since the last
+        record, none of them one (``"garbled"``). A silence with no byte back is waited
+        for (counted in ``silences``), up to :data:`SILENCE_LOST_S`.
 
         Returns
         -------
@@ -142,11 +143,15 @@ class Resynchronising:
         if self._handled is not None or self._deadline_us > 0:
             # a mock paced by the commands (a lockstep run): its time is the commands'
             return "silent"
-        oldest = self._sent_us[(self._answered + 1) % _RING]
+        oldest = self._sent_us[(self._answered + 1) % RING]
         waited = self._now_us() - oldest
         if waited < SILENT_S * 1e6:
             return None
-        if self._rx_since_record:
+        # (fewer bytes than one reply, then nothing: a reply whose rest is late, as the
+        # silence after it; a board that lost its place answers each write, and its id
+        # alone three times is the decoder's 'lone' already)
+        frames = getattr(self._dec, "frames", self._dec)
+        if self._rx_since_record >= int(getattr(frames, "length", 1)):
             return "garbled"
         if self._silent_from_us is None:
             self._silent_from_us = oldest
@@ -222,7 +227,7 @@ class Resynchronising:
         # a deliberate gap in seq: the position may jump by the error of that estimate, so
         # a measurement does not run across a re-synchronisation
         self._cmd += 1
-        self._sent_us[self._cmd % _RING] = self._sent_us[(self._cmd - 1) % _RING]
+        self._sent_us[self._cmd % RING] = self._sent_us[(self._cmd - 1) % RING]
         if self._answered < self._cmd - 1:      # the commands before it: missing samples
             self.stats["missing"] += self._cmd - 1 - self._answered
             self._answered = self._cmd - 1

@@ -83,7 +83,7 @@ import time
 from collections import deque
 
 import firmware_protocol as fp
-from hapsim.drivers.resync import HOLD_BOUND_S, Resynchronising, _RING
+from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, Resynchronising
 from hapsim.drivers.tick_align import PROBE_TRIES, REARM_INTERVAL, TickAligned
 from hapsim.errors import DeviceError
 
