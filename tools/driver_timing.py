@@ -34,7 +34,8 @@ reader is; no byte is lost by it (``board_silences``: their number and the longe
 
 Each row: safety stop, re-synchronisations (and why, ``resync_reasons``; the silences the
 host waited for instead, ``silences``; the emulated board's ``frame_walk``: how far its
-set-ups moved its frame, the stop's included), host stalls, the largest excursion (the
+set-ups moved its frame, the stop's included, and its parser's counters,
+``board_parser``), host stalls, the largest excursion (the
 device's own where its model reports it, ``true_excursion``; else the host's readings),
 the verdict and the exit code ``hapsim run`` would give. A measurement program, not a
 test: real time, on a shared machine; the 1-minute load average is in the JSON.
@@ -119,6 +120,10 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "resync_reasons": {k: v for k, v in (dl.get("resync_reasons") or {}).items() if v},
             "silences": dl.get("silences"), "silence_max_s": dl.get("silence_max_s"),
             "board_silences": mk.get("starved"),
+            # the board's own parser (CommandDecoder.stats): set-ups, resets, bytes that
+            # were no command, single reads of a byte not arrived -- whether it lost its
+            # place in the host's stream, or only answered late
+            "board_parser": mk.get("decoder"),
             "workspace": lp["safety"]["position_limit"],
             "verdict": m.get("verdict"), "within": m.get("within"),
             "exit_code": rep.get("exit_code"), "error": err or m.get("error"),
@@ -344,7 +349,8 @@ def main(argv=None) -> int:
                     rows.append(row)
                     print(json.dumps({k: row.get(k) for k in (
                         "driver", "loss", "seed", "clock", "safety_stop", "resyncs",
-                        "resync_reasons", "silences", "board_silences", "frame_walk", "stalls",
+                        "resync_reasons", "silences", "board_silences", "board_parser",
+                        "frame_walk", "stalls",
                         "excursion_true", "excursion_host", "verdict", "exit_code",
                         "error", "board_off_period", "unseen_holds", "link_verdict")},
                                      default=str),
