@@ -159,14 +159,18 @@ class Resynchronising:
         waited = self._now_us() - self._silent_from_us
         if waited >= SILENCE_LOST_S * 1e6:
             self._armed = False
-            self._force = 0.0
-            self._write(self.driver.stop_bytes(self._x_last))
-            raise DeviceError(
-                f"the {self.driver.name} board sent no byte for {waited * 1e-3:.0f} ms "
-                f"while {self._cmd - self._answered} commands went out (> "
-                f"{SILENCE_LOST_S * 1e3:g} ms): it is gone or its link stalled (zero "
-                f"torque sent)")
+            raise self._give_up(
+                f"sent no byte for {waited * 1e-3:.0f} ms while {self._cmd - self._answered} "
+                f"commands went out (> {SILENCE_LOST_S * 1e3:g} ms): it is gone or its link "
+                f"stalled")
         return None
+
+    def _give_up(self, why: str) -> DeviceError:
+        """Zero torque whatever the board's parser is inside (the driver's stop bytes),
+        and the error that ends the run: ``the <driver> board <why> (zero torque sent)``."""
+        self._force = 0.0
+        self._write(self.driver.stop_bytes(self._x_last))
+        return DeviceError(f"the {self.driver.name} board {why} (zero torque sent)")
 
     def _resync(self, reason: str) -> None:
         """The device lost its place in the byte stream: the driver's re-synchronisation
@@ -198,13 +202,10 @@ class Resynchronising:
         while recent and now - recent[0] > 1.0:
             recent.popleft()
         if len(recent) >= MAX_RESYNCS_PER_S:
-            self._force = 0.0
-            self._write(self.driver.stop_bytes(self._x_last))
-            raise DeviceError(
-                f"the {self.driver.name} board lost its place in the byte stream more than "
-                f"{MAX_RESYNCS_PER_S} times in a second: the link is not fit for a run (zero "
-                f"torque sent; decoder {dict(self._dec.stats)}; reasons "
-                f"{self.stats['resync_reasons']})")
+            raise self._give_up(
+                f"lost its place in the byte stream more than {MAX_RESYNCS_PER_S} times in a "
+                f"second: the link is not fit for a run (decoder {dict(self._dec.stats)}; "
+                f"reasons {self.stats['resync_reasons']})")
         recent.append(now)
         self._t_resync = now
         self.stats["resyncs"] += 1
