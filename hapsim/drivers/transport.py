@@ -79,6 +79,7 @@ arming is no velocity (nothing came before it): an estimate from one record hold
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 
@@ -94,6 +95,10 @@ LISTEN_S = 0.03
 #: A lockstep mock's account standing still this long [s] when the transport takes the
 #: port (an earlier user's bytes handled and landed: :meth:`DriverTransport._claim`).
 CLAIM_QUIET_S = 0.03
+#: The shortest time between two replies' samples [s] (by the host's times) that bound
+#: the joint's speed (:meth:`DriverTransport._speed_bound`): over 5 ms the readings'
+#: rounding and the sample times' uncertainty (a period each) cost little.
+SPEED_BASE_S = 0.005
 #: Most host ticks kept as mistimed (:meth:`DriverTransport._note_hold`): the measurement
 #: reads the record's head; an open-ended run's later ones are not needed.
 MISTIMED_MAX = 1 << 16
@@ -237,6 +242,14 @@ class DriverTransport(TickAligned, Resynchronising):
         # older command than the newest): its time bounds the reach's elapsed time
         self._floor = 0
         self._damaged = 0                   # the decoder's 'damaged' seen
+        # the replies decoded: (angle [rad], earliest, latest host time of their sample
+        # [us]) -- a bound on the joint's speed (_speed_bound)
+        self._hist: deque = deque(maxlen=_RING)
+        # the largest acceleration [rad/s^2]: the force limit over the inertia (None: no
+        # speed bound)
+        self._accel = (float(driver.force_limit) / float(inertia)
+                       if inertia is not None and math.isfinite(inertia) and inertia > 0
+                       else None)
         self._board_T = None if board_period is None else float(board_period)
         if handled is not None and self._board_T is None:
             raise ValueError("a lockstep mock's account (handled) needs its board_period")
@@ -663,10 +676,12 @@ class DriverTransport(TickAligned, Resynchronising):
             # the board sampled the last record when its command arrived (not before it
             # was sent): what the joint can have moved since bounds the readings
             # believed now
-            self._frames.elapsed(
-                (self._now_us() - self._anchor_us) * 1e-6
-                if self._board_T is None
-                else max(self._cmd - self._anchor_cmd, 1) * self._board_T)
+            if self._board_T is None:
+                self._frames.elapsed((self._now_us() - self._anchor_us) * 1e-6,
+                                     self._speed_bound())
+            else:
+                self._frames.elapsed(max(self._cmd - self._anchor_cmd, 1) * self._board_T)
+        floor0 = self._floor
         xs = dec.feed(data)
         self._stray = not xs
         dmg = dec.stats.get("damaged", 0)
@@ -683,6 +698,11 @@ class DriverTransport(TickAligned, Resynchronising):
             self._floor = max(min(self._cmd, self._floor + len(xs) + dmg - self._damaged),
                               self._cmd - _RING + 1)
             self._anchor_us = self._sent_us[self._floor % _RING]
+            if self._frames is not None:
+                now = self._now_us()
+                for i, x in enumerate(xs):
+                    c = min(self._floor, floor0 + i + 1)
+                    self._hist.append((x, self._sent_us[c % _RING], now))
         else:
             self._rx_since_record += len(data)
         self._damaged = dmg
@@ -698,6 +718,29 @@ class DriverTransport(TickAligned, Resynchronising):
             self._desyncs, self._unreach, self._lone = d, u, lone
             if self._armed:
                 self._resync(why)
+
+    def _speed_bound(self):
+        """A bound on the joint's speed at the last reply decoded [deg/s], or None (no two
+        replies far enough apart yet): for replies i before j whose samples are at least
+        :data:`SPEED_BASE_S` apart by the host's times (each sampled between its earliest
+        command's sending and its read: ``dlo`` = j's earliest - i's latest, ``dhi`` = j's
+        latest - i's earliest), the mean speed over the two, ``(|x_j - x_i| + 2 q) /
+        dlo`` (q: one count, each reading's rounding), plus what the largest acceleration
+        adds over ``dhi`` (the mean value theorem: the speed at j is the mean's within
+        ``alpha dhi``, alpha the force limit over the inertia). The newest such pair.
+        Known by the decoder's reach
+        (:meth:`hapsim.drivers.haply.ReplyDecoder.elapsed`)."""
+        h = self._hist
+        if self._accel is None or len(h) < 2:
+            return None
+        q = float(self.driver.position_scale)         # one count [rad]
+        xj, loj, hij = h[-1]
+        for xi, loi, hii in reversed(h):
+            dlo = (loj - hii) * 1e-6
+            if dlo >= SPEED_BASE_S:
+                return math.degrees((abs(xj - xi) + 2.0 * q) / dlo
+                                    + self._accel * (hij - loi) * 1e-6)
+        return None
 
     def report(self) -> dict:
         """What the driver's link did: :attr:`stats` and the firmware seen (``firmware``:
