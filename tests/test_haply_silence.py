@@ -7,19 +7,25 @@ the time each group of bytes is read) through a port in memory, on a **simulated
 The board's reader is starved in random windows of 1 to 40 ms (a loaded board process, a
 USB hub, a descheduled pty reader): the host's bytes that arrive meanwhile are read
 together when the window ends, and its replies leave then; no byte is lost. The host ticks
-as its loop does (:meth:`hapsim.host.host_clock.HostLoop._host_states`: a FORCE per new
+as its loop does (:meth:`hapsim.host.host_clock.HostClock._host_states`: a FORCE per new
 record, up to ``ESTIMATED_MAX`` estimated ticks, else ``hold``), one command a tick.
 
 What must hold, whatever the silences: no re-synchronisation (the board's frame is never
-moved after the arming), no tick with more than one write (no catch-up burst), every
+moved after the arming), no tick with more than one command (no catch-up burst), every
 non-zero torque written within :data:`~hapsim.drivers.resync.HOLD_BOUND_S` of the host's
 newest fresh sample (the hold bound), a zero torque written within any silence longer
 than the bound and a period, and a board silent for
 :data:`~hapsim.drivers.resync.SILENCE_LOST_S` declared lost with zero torque sent. With
 real evidence (a corrupted command byte making the board forget its set-up), the board is
 re-synchronised as before, once per fault, and the run's verdict is withdrawn past
-:data:`hapsim.pipeline.runner.RESYNCS_STATED`. Before :mod:`hapsim.drivers.resync`, every
-silence of 20 ms or more re-synchronised the board (the first test fails there).
+:data:`hapsim.pipeline.runner.RESYNCS_STATED`. On the code before
+:mod:`hapsim.drivers.resync` all 33 cases fail: every silence of 20 ms or more
+re-synchronised the board, and the replies after a late one read alone were judged over
+~1 ms; without the reach's speed bound alone, 5 (silences back to back).
+
+Not covered: a re-arming (STOP, CONFIG) across which the board is starved (its owed
+replies are judged against the new set-up's offset: docs/drivers.md, the row "Haply: a
+silent board").
 """
 
 from __future__ import annotations
