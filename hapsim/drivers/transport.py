@@ -84,7 +84,7 @@ import time
 from collections import deque
 
 import firmware_protocol as fp
-from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, Resynchronising
+from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, SILENCE_LOST_S, Resynchronising
 from hapsim.drivers.tick_align import PROBE_TRIES, REARM_INTERVAL, TickAligned
 from hapsim.errors import DeviceError
 
@@ -242,6 +242,8 @@ class DriverTransport(TickAligned, Resynchronising):
         # older command than the newest): its time bounds the reach's elapsed time
         self._floor = 0
         self._damaged = 0                   # the decoder's 'damaged' seen
+        # replies of the frame before the last arming still to come, until when [s]
+        self._old_left, self._old_until, self._stop_owed = 0, 0.0, 0
         # the replies decoded: (angle [rad], earliest, latest host time of their sample
         # [us]) -- a bound on the joint's speed (_speed_bound)
         self._hist: deque = deque(maxlen=_RING)
@@ -379,7 +381,20 @@ class DriverTransport(TickAligned, Resynchronising):
         elif t is fp.Ping:
             self._q.append(fp.Pong(msg.nonce, msg.host_time_us, self._now_us()))
         elif t is fp.Config:
+            st = self._dec.stats
+            seen = st.get("frames", 0) + st.get("unreachable", 0)
+            owed = (max(0, self._cmd - self._answered) + self._stop_owed
+                    if self._ever_armed else 0)
             self._listen()
+            # the replies still owed (a starved board's) and the arming's own first one
+            # (its zero write, before its set-up) are in the frame before it: out of the
+            # new offset's reach, they are no evidence (before: a re-arming with the joint
+            # away from the offset re-synchronised the board, 5 re-armings in 6)
+            got = st.get("frames", 0) + st.get("unreachable", 0) - seen
+            self._old_left = 1 + max(0, owed - got) if self._ever_armed else 0
+            self._old_until, self._stop_owed = time.monotonic() + SILENCE_LOST_S, 0
+            self._desyncs, self._unreach, self._lone = (st.get(k, 0) for k in (
+                "desync", "unreachable", "lone"))
             # the arming's set-up may restart the device's values (the Haply board sets
             # its angle to the set-up's offset): what came before predicts nothing, and
             # the arming is answered twice (a zero write before its set-up, one after)
@@ -413,6 +428,7 @@ class DriverTransport(TickAligned, Resynchronising):
         elif t is fp.Stop:
             self._armed = False
             self._force = 0.0
+            self._stop_owed = 2             # (its zero writes before and after its set-up)
             self._write(dr.stop_bytes(self._x_last))
 
     def _note_hold(self, seq: int) -> None:
@@ -709,6 +725,12 @@ class DriverTransport(TickAligned, Resynchronising):
         d = dec.stats.get("desync", 0)
         u = dec.stats.get("unreachable", 0)
         lone = dec.stats.get("lone", 0)
+        if self._old_left > 0:
+            self._old_left -= len(xs) + (u - self._unreach)
+            if (d == self._desyncs and u != self._unreach
+                    and time.monotonic() < self._old_until):
+                self._unreach = u           # a reply of the frame before the arming
+                self._rx_since_record = 0
         if d != self._desyncs or u != self._unreach:
             # a desync, or a well-formed reply no motion reaches from the last record (a
             # set-up the stream corrupted answers in another frame; waiting would let
