@@ -19,9 +19,10 @@ than the bound and a period, and a board silent for
 real evidence (a corrupted command byte making the board forget its set-up), the board is
 re-synchronised as before, once per fault, and the run's verdict is withdrawn past
 :data:`hapsim.pipeline.runner.RESYNCS_STATED`. On the code before
-:mod:`hapsim.drivers.resync` all 33 cases fail: every silence of 20 ms or more
+:mod:`hapsim.drivers.resync` 40 of the 41 cases fail: every silence of 20 ms or more
 re-synchronised the board, and the replies after a late one read alone were judged over
-~1 ms; without the reach's speed bound alone, 5 (silences back to back).
+~1 ms; without the reach's speed bound alone, 5 fail (silences back to back); without
+the re-arming's rule alone, 4.
 
 A re-arming (STOP, CONFIG), the board starved across it or not: the replies of the
 frame before it (owed, and the arming's own first) are no evidence.
