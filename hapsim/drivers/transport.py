@@ -243,10 +243,8 @@ class DriverTransport(TickAligned, Resynchronising):
         self._floor = 0
         self._damaged = 0                   # the decoder's 'damaged' seen
         # replies of the frame before the last arming still to come, until when [s]
-        self._old_left, self._old_until, self._stop_owed = 0, 0.0, 0
-        # the replies decoded: (angle [rad], earliest, latest host time of their sample
-        # [us]) -- a bound on the joint's speed (_speed_bound)
-        self._hist: deque = deque(maxlen=_RING)
+        self._old_left, self._old_until, self._stop_owed, self._late = 0, 0.0, 0, 0
+        self._hist: deque = deque(maxlen=_RING)   # replies: (x, sample's earliest, latest [us])
         # the largest acceleration [rad/s^2]: the force limit over the inertia (None: no
         # speed bound)
         self._accel = (float(driver.force_limit) / float(inertia)
@@ -703,16 +701,17 @@ class DriverTransport(TickAligned, Resynchronising):
         dmg = dec.stats.get("damaged", 0)
         if xs:
             self._silence_ended()           # (a silence waited for ends here)
+            # the commands the board may be behind: those unanswered when its answers came,
+            # consumed by the answers that follow (a late board's backlog)
+            self._late = max(self._late - len(xs), self._cmd - self._answered)
             self._take(xs, out)
-            # the last reply answers, at the earliest, the command after the one the last
-            # reply before could answer, one per reply (damaged ones too): the reach is
-            # stated from that command's time, an upper bound of the board's time since
-            # (before: from the command the record was attributed to, the newest; a
-            # starved board's late reply read alone is an older one's, and the backlog's
-            # replies after it were judged over ~1 ms instead of the silence: "desync"
-            # and "unreachable" re-synchronisations of a board that lost no byte)
+            # the last reply answers at the earliest the command after the one the reply
+            # before could, one per reply (damaged too), no further back than the lateness
+            # allows and 3 more (a count alone lags by every answer lost): the reach runs
+            # from its time (before: from the newest command's, and a starved board's late
+            # reply read alone made the backlog's after it "out of reach")
             self._floor = max(min(self._cmd, self._floor + len(xs) + dmg - self._damaged),
-                              self._cmd - _RING + 1)
+                              self._cmd - self._late - 3, self._cmd - _RING + 1)
             self._anchor_us = self._sent_us[self._floor % _RING]
             if self._frames is not None:
                 now = self._now_us()
