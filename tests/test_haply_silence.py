@@ -376,3 +376,24 @@ def test_a_board_silent_past_the_bound_is_lost_at_zero_torque(monkeypatch):
     # one write a tick (no burst), the stop's included
     assert n_silent <= (rs.SILENCE_LOST_S + rs.SILENT_S) / T + 2
 
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_rearming_keeps_the_boards_frame(monkeypatch, seed):
+    """A re-arming mid-run (STOP, CONFIG: the host loop's recovery after a loss of 50 ms,
+    :mod:`hapsim.host.recovery`) sets the board up at the last angle read, as its STOP
+    does, not at the arming's pose ``offset_deg``: the joint is not where the hand armed
+    it, and a set-up there moved the board's frame, and the spring's rest with it, by
+    the difference at each re-arming (before: ``frame_walk`` up to 0.4 rad here, the
+    joint 0.5-13 rad from its start in the lossy runs beside CPU-bound processes, a
+    re-arming for each loss). What the frame may still move by: the joint's motion
+    between the last reading and the set-up (the STOP's zero torque, the listening's
+    ``LISTEN_S``, a few periods), at most the free oscillation's speed ``X0 sqrt(K / J)``."""
+    rng = np.random.default_rng(3100 + seed)
+    k = int(rng.integers(100, 400))
+    tr, port, board, per_tick, fresh = _run(monkeypatch, seed, [], rearm=k)
+    assert tr.stats["resyncs"] == 0
+    assert board.decoder.stats["setups"] == 3          # the two armings and the stop
+    bound = X0 * math.sqrt(K / J) * (tp.LISTEN_S + 6 * T)
+    assert board.frame_walk <= bound, (k, board.frame_walk, bound)
+    assert tr.stats["records"] > N_TICKS // 2

@@ -766,6 +766,10 @@ class HaplyM3(Driver):
         board may hold a torque from an earlier session and be anywhere in its parser."""
         return self.resync(math.radians(self.offset_deg))
 
+    def rearm_anchor(self, position: float) -> float:
+        """A re-arming keeps the board's frame: set up at ``position`` [rad], in [deg]."""
+        return math.degrees(position)
+
     def encode_force(self, force: float) -> bytes:
         """Write of ``force`` [N m], clamped to the board's 0.123 N m (NaN/inf: 0)."""
         t = float(force) if math.isfinite(force) else 0.0

@@ -50,7 +50,8 @@ import math
 from hapsim.errors import DeviceError
 
 __all__ = ["Resynchronising", "SILENT_COMMANDS", "SILENT_S", "MAX_RESYNCS_PER_S",
-           "RESYNC_GAP_S", "HOLD_BOUND_S", "SILENCE_LOST_S", "RESYNC_REASONS", "RING"]
+           "RESYNC_GAP_S", "HOLD_BOUND_S", "SILENCE_LOST_S", "RESYNC_REASONS", "RING",
+           "REARM_PROBE_S"]
 
 #: Commands in a row without an answer after which the device may be re-synchronised
 #: (with :data:`SILENT_S` and, on the board's own clock, bytes that made no reply: all
@@ -84,6 +85,9 @@ RESYNC_REASONS = ("desync", "lone", "unreachable", "garbled", "silent", "unarmed
 #: waited for keeps its time (64 before, when 20 ms ended any silence: past 64 commands
 #: its time was overwritten by a newer one's).
 RING = 2048
+#: How long a re-arming waits for the reply that gives the joint's angle now [s]
+#: (:meth:`Resynchronising._angle_now`): a board answers within its pass and a USB frame.
+REARM_PROBE_S = 0.005
 
 
 class Resynchronising:
@@ -108,6 +112,16 @@ class Resynchronising:
         self._silent_from_us = None           # a silence being waited for: its start
         self.stats.update(resyncs=0, resync_reasons=dict.fromkeys(RESYNC_REASONS, 0),
                           silences=0, silence_max_s=0.0)
+
+    @property
+    def waits_silence_s(self) -> float:
+        """How long this transport waits for a silent board itself [s]:
+        :data:`SILENCE_LOST_S` for an unframed driver on the board's own clock (then it
+        gives up, zero torque sent), else 0. The host loop's loss rule waits as long
+        (:meth:`hapsim.host.recovery.Recovery._silence`): a recovery's STOP and CONFIG
+        set the board up at a stale angle, moving its frame."""
+        own_clock = self._handled is None and self._deadline_us <= 0
+        return SILENCE_LOST_S if (self.driver.unframed and own_clock) else 0.0
 
     def _silence_ended(self) -> None:
         """A record came: a silence being waited for ends (its length counted)."""
@@ -232,6 +246,52 @@ class Resynchronising:
         if self._answered < self._cmd - 1:      # the commands before it: missing samples
             self.stats["missing"] += self._cmd - 1 - self._answered
             self._answered = self._cmd - 1
+
+    def _arming_bytes(self) -> bytes:
+        """A CONFIG's bytes, and the decoder's prediction restarted for them: the
+        driver's :meth:`~hapsim.drivers.base.Driver.arm` at the first arming; at a
+        re-arming (a recovery after a loss, a STOP and CONFIG), for a driver whose set-up
+        sets the joint's angle (:meth:`~hapsim.drivers.base.Driver.rearm_anchor` not
+        None: the Haply M3), its re-synchronisation at the last angle read, as a STOP's
+        is. The arming's offset is the pose the joint is *armed* in (the hand holds it
+        there); mid-run the joint is elsewhere, and a set-up there moved the board's frame
+        by the difference at every re-arming: the spring's rest walked with it (issue 29:
+        the lossy runs' 0.5-13 rad, each loss of 50 ms a re-arming)."""
+        x = self._x_last
+        anchor = (self.driver.rearm_anchor(x)
+                  if self._ever_armed and self._s_last >= 0 and math.isfinite(x) else None)
+        if anchor is not None:
+            x = self._angle_now(x)
+            anchor = self.driver.rearm_anchor(x)
+        if anchor is None:
+            self._dec.reset_prediction(jumps=2)
+            return self.driver.arm()
+        self._dec.reset_prediction(jumps=2, anchor=anchor)
+        return self.driver.resync(x)
+
+    def _angle_now(self, x: float) -> float:
+        """The joint's angle now, for a re-arming's set-up: a zero-torque write and its
+        reply, read for :data:`REARM_PROBE_S` (the STOP before left the board at zero
+        torque, in step, its frame at the last angle read; the listening and the
+        recovery's HELLO since are tens of ms of coasting). ``x`` (the last angle read)
+        when no reply comes or the decoder takes none (its reach check, as any reply's).
+        The decoder's counters it moved are the arming's, not evidence."""
+        if self._frames is not None:
+            # judged from the last angle read, over the time since its command (the
+            # decoder's reach: the joint coasted, or was held, meanwhile)
+            self._dec.reset_prediction(jumps=1, anchor=self.driver.rearm_anchor(x))
+            self._frames.elapsed((self._now_us() - self._sent_us[self._s_last % RING]) * 1e-6)
+        self._write(self.driver.encode_force(0.0))
+        end = self._now_us() + REARM_PROBE_S * 1e6
+        got = []
+        while not got and self._now_us() < end:
+            data = self._ser.read(max(self._ser.in_waiting, 1))
+            if data:
+                got = [v for v in self._dec.feed(data) if v == v and abs(v) < math.inf]
+        st = self._dec.stats
+        self._desyncs, self._unreach, self._lone = (st.get(k, 0) for k in (
+            "desync", "unreachable", "lone"))
+        return got[-1] if got else x
 
     def _arm_again(self) -> None:
         """The arming's bytes again, as one command (no record came yet): the decoder's

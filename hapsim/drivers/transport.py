@@ -396,7 +396,7 @@ class DriverTransport(TickAligned, Resynchronising):
             # the arming's set-up may restart the device's values (the Haply board sets
             # its angle to the set-up's offset): what came before predicts nothing, and
             # the arming is answered twice (a zero write before its set-up, one after)
-            self._dec.reset_prediction(jumps=2)
+            arming = self._arming_bytes()   # (the decoder's prediction restarts too)
             # the decoder's anchor (the set-up's offset) is as old as this arming
             self._anchor_us = self._now_us()
             self._anchor_cmd = self._cmd + 1
@@ -422,7 +422,7 @@ class DriverTransport(TickAligned, Resynchronising):
                 for _ in range(PROBE_TRIES):
                     if self.tick_phase() is not None:
                         break
-            self._command(dr.arm())
+            self._command(arming)
         elif t is fp.Stop:
             self._armed = False
             self._force = 0.0
