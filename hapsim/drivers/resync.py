@@ -260,7 +260,9 @@ class Resynchronising:
         x = self._x_last
         anchor = (self.driver.rearm_anchor(x)
                   if self._ever_armed and self._s_last >= 0 and math.isfinite(x) else None)
-        if anchor is not None:
+        if anchor is not None and self.waits_silence_s > 0:
+            # (on the board's own clock: a lockstep mock's time is the commands', and a
+            # write more would step it)
             x = self._angle_now(x)
             anchor = self.driver.rearm_anchor(x)
         if anchor is None:
