@@ -6,7 +6,7 @@ Usage::
     nice python tools/driver_timing.py [--drivers haply haply2 firefader hapkit-serial falcon]
                                        [--seeds 1 2 ... 10] [--loss 0 0.005] [--hogs 2]
                                        [--duration 1.5] [--falcon-scene PATH]
-                                       [--json PATH]
+                                       [--starve P LO_MS HI_MS] [--json PATH]
 
 For each driver, each loss (the probability that a byte is lost, each way: 0 and 1 in
 200 by default) and each seed, one run beside ``--hogs`` CPU-bound processes (started
@@ -26,7 +26,16 @@ here, ended here by their pids):
   firmware's ticks) and the run paced as a real one's; then the felt matrices' records
   (:func:`hapsim.pipeline.falcon_run.felt_statement`), the same loss on each.
 
-Each row: safety stop, re-synchronisations, host stalls, the largest excursion (the
+``--starve P LO_MS HI_MS`` (the 1-D drivers' mocks): the board's process is starved,
+after each answer with probability ``P``, for a silence drawn in ``LO_MS``..``HI_MS`` ms
+(seeded; it reads nothing meanwhile: :func:`hapsim.emulated.driver_mock.serve`'s ``slow``
+hook), as a board process behind CPU-bound processes, a USB hub or a descheduled pty
+reader is; no byte is lost by it (``board_silences``: their number and the longest).
+
+Each row: safety stop, re-synchronisations (and why, ``resync_reasons``; the silences the
+host waited for instead, ``silences``; the emulated board's ``frame_walk``: how far its
+set-ups moved its frame, the stop's included, and its parser's counters,
+``board_parser``), host stalls, the largest excursion (the
 device's own where its model reports it, ``true_excursion``; else the host's readings),
 the verdict and the exit code ``hapsim run`` would give. A measurement program, not a
 test: real time, on a shared machine; the 1-minute load average is in the JSON.
@@ -70,8 +79,14 @@ def _load():
         return None
 
 
-def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: int = 10) -> dict:
-    """One run of ``configs/<driver>.yaml`` through the driver's mock (module notes)."""
+def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: int = 10,
+           starve=None) -> dict:
+    """One run of ``configs/<driver>.yaml`` through the driver's mock (module notes);
+    ``starve``: ``(P, lo_ms, hi_ms)``, the board's process starved (module notes)."""
+    faults = {"drop_tx": loss, "drop_rx": loss, "seed": seed}
+    if starve:
+        faults.update(slow=float(starve[0]),
+                      slow_s=[float(starve[1]) * 1e-3, float(starve[2]) * 1e-3])
     from hapsim.pipeline.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
     from hapsim.scene import load_scene
@@ -83,7 +98,7 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
                             duration=duration, handle_signals=False,
                             rt_priority=rt_priority,
                             telemetry=tel, seed=seed,
-                            driver_faults={"drop_tx": loss, "drop_rx": loss, "seed": seed})
+                            driver_faults=faults)
             err = None
         except (DeviceError, ProtocolError) as exc:
             rep = getattr(exc, "report", None)
@@ -102,6 +117,13 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "resyncs": dl.get("resyncs"), "stalls": dl.get("host_stalls", lp.get("overruns")),
             "excursion_true": mk.get("true_excursion"), "excursion_host": x_host,
             "frame_walk": mk.get("frame_walk"),
+            "resync_reasons": {k: v for k, v in (dl.get("resync_reasons") or {}).items() if v},
+            "silences": dl.get("silences"), "silence_max_s": dl.get("silence_max_s"),
+            "board_silences": mk.get("starved"),
+            # the board's own parser (CommandDecoder.stats): set-ups, resets, bytes that
+            # were no command, single reads of a byte not arrived -- whether it lost its
+            # place in the host's stream, or only answered late
+            "board_parser": mk.get("decoder"),
             "workspace": lp["safety"]["position_limit"],
             "verdict": m.get("verdict"), "within": m.get("within"),
             "exit_code": rep.get("exit_code"), "error": err or m.get("error"),
@@ -290,6 +312,10 @@ def main(argv=None) -> int:
                    help="the Falcon's scene (configs/falcon_spring.yaml: its felt "
                         "matrices measurable; configs/delta_sphere.yaml: the contact's "
                         "link verdict, its felt matrices not measurable by its depth)")
+    p.add_argument("--starve", nargs=3, type=float, default=None,
+                   metavar=("P", "LO_MS", "HI_MS"),
+                   help="starve the 1-D boards' processes: after an answer, with "
+                        "probability P, a silence of LO_MS..HI_MS ms (module notes)")
     p.add_argument("--json", default=None, metavar="PATH")
     a = p.parse_args(argv)
     from hapsim.host.realtime import RealtimePriority
@@ -315,13 +341,16 @@ def main(argv=None) -> int:
                                                         scene=a.falcon_scene))
                         sched = rt.note
                     else:
-                        row = run_1d(drv, seed, loss, a.duration, a.rt_priority)
+                        row = run_1d(drv, seed, loss, a.duration, a.rt_priority,
+                                     a.starve)
                         sched = row.get("scheduling")
                     row.update(driver=drv, seed=seed, loss=loss, scheduling=sched,
                                seconds=round(time.monotonic() - t, 1), load=_load())
                     rows.append(row)
                     print(json.dumps({k: row.get(k) for k in (
-                        "driver", "loss", "seed", "clock", "safety_stop", "resyncs", "stalls",
+                        "driver", "loss", "seed", "clock", "safety_stop", "resyncs",
+                        "resync_reasons", "silences", "board_silences", "board_parser",
+                        "frame_walk", "stalls",
                         "excursion_true", "excursion_host", "verdict", "exit_code",
                         "error", "board_off_period", "unseen_holds", "link_verdict")},
                                      default=str),
@@ -331,6 +360,7 @@ def main(argv=None) -> int:
             h.kill()
             h.wait()
     out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
+           "starve": a.starve,
            "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),
            "runs": normalize(rows), "summary": summarize(rows)}
     text = json.dumps(out, indent=1, default=str)

@@ -172,7 +172,7 @@ class MappedDecoder:
         pos = self._position
         return [pos(fr) for fr in self.frames.feed(data)]
 
-    def reset_prediction(self, jumps: int = 1) -> None:
+    def reset_prediction(self, jumps: int = 1, anchor=None) -> None:
         """Forget the frame decoder's prediction at an arming: its
         :meth:`AlignedDecoder.reset_prediction` (if it has one; else nothing).
 
@@ -180,10 +180,13 @@ class MappedDecoder:
         ----------
         jumps : int
             As :meth:`AlignedDecoder.reset_prediction`.
+        anchor : optional
+            The set-up's value in the frame decoder's units, passed on when given
+            (:meth:`Driver.rearm_anchor`; the Haply decoder's ``anchor``).
         """
         reset = getattr(self.frames, "reset_prediction", None)
         if reset is not None:
-            reset(jumps)
+            reset(jumps) if anchor is None else reset(jumps, anchor=anchor)
 
 
 class Driver:
@@ -402,6 +405,13 @@ class Driver:
         """Bytes sent when the host arms the device (CONFIG): by default one zero-force
         command, whose answer is the first record."""
         return self.encode_force(0.0)
+
+    def rearm_anchor(self, position: float):
+        """For a device whose set-up sets its position (re-arming it at :meth:`arm`'s
+        pose would move its frame), the decoder's anchor at ``position`` (the last read,
+        [m] or [rad]), and the transport re-arms it with :meth:`resync` there; None (the
+        default): a re-arming is :meth:`arm` again."""
+        return None
 
     def applied_force(self, force: float) -> float:
         """The force [N] the device receives for ``force`` (after the protocol's

@@ -280,6 +280,7 @@ class ReplyDecoder(AlignedDecoder):
         self._clock = clock
         self._t_read = self._t_prev = None
         self._tau = None
+        self._speed = None                # a bound on the speed [deg/s] (elapsed)
         self._accel_deg = None
         self.set_accel(accel)
         self.arm_deg = arm_deg
@@ -349,13 +350,22 @@ class ReplyDecoder(AlignedDecoder):
                              f"{accel!r}")
         self._accel_deg = math.degrees(float(accel))
 
-    def elapsed(self, tau) -> None:
+    def elapsed(self, tau, speed_deg=None) -> None:
         """The host states the time [s] from the write the last reply taken answered to
         now (an upper bound of the time between the two samples: the board samples when
         a write arrives), for the replies of the next reads; None: the time between the
         reads (the class notes). A host that knows its writes' times states it: a reply
-        read late was still sampled when its write arrived."""
+        read late was still sampled when its write arrived.
+
+        ``speed_deg``: a bound on the joint's speed at the last reply taken [deg/s], from
+        the host's times of two replies far enough apart
+        (:meth:`hapsim.drivers.transport.DriverTransport._speed_bound`), or None. The
+        last two replies' step stands for the speed over one period; two replies sampled
+        close together (a late board's backlog, 50 us apart) make it ~0, and a joint
+        moving at speed was then "out of reach" a few ms later. With a bound, the speed
+        the reach assumes is never below it (:meth:`reach_deg`)."""
         self._tau = None if tau is None else float(tau)
+        self._speed = None if speed_deg is None else float(speed_deg)
 
     def reach_deg(self, k: int, tau) -> float:
         """How far [deg] a reply ``tau`` seconds after the last one taken may be from the
@@ -386,12 +396,21 @@ class ReplyDecoder(AlignedDecoder):
         r = 1.0 if tau is None else max(1.0, tau / T)
         tau = r * T
         acc = self._accel_deg if self._accel_deg is not None else self.max_step / (T * T)
+        v = self._step_v(k)
+        step = max(self.max_step, (r - 1.0) * v + acc * tau * tau)
+        return step + (2.0 * r + 2.0) * self._count[k]
+
+    def _step_v(self, k: int) -> float:
+        """The joint's motion per period the reach assumes, encoder ``k`` [deg]: the last
+        two replies' step, never below the host's stated speed bound times the period
+        (:meth:`elapsed`)."""
         v = 0.0
         if self._prev is not None and self._prev2 is not None:
             v = abs(self._prev[k] - self._prev2[k])
             v = v if v == v else 0.0
-        step = max(self.max_step, (r - 1.0) * v + acc * tau * tau)
-        return step + (2.0 * r + 2.0) * self._count[k]
+        if self._speed is not None:
+            v = max(v, self._speed * self.period_s)
+        return v
 
     def reset_prediction(self, jumps: int = 1, anchor=None) -> None:
         """Forget the last replies (an arming: the angles start afresh at the set-up's
@@ -480,7 +499,7 @@ class ReplyDecoder(AlignedDecoder):
                 # together are close in time too, though the last two were far apart
                 if abs(a[k] - guess) > step and (
                         self._prev2 is None
-                        or abs(a[k] - p1) > abs(p1 - self._prev2[k]) + step):
+                        or abs(a[k] - p1) > self._step_v(k) + step):
                     # a well-formed reply no motion reaches: counted (the host takes it
                     # for evidence that the board answers in another frame)
                     self.stats["unreachable"] += 1
@@ -746,6 +765,10 @@ class HaplyM3(Driver):
         """The re-synchronisation (:meth:`resync`, at the arming pose ``offset_deg``): the
         board may hold a torque from an earlier session and be anywhere in its parser."""
         return self.resync(math.radians(self.offset_deg))
+
+    def rearm_anchor(self, position: float) -> float:
+        """A re-arming keeps the board's frame: set up at ``position`` [rad], in [deg]."""
+        return math.degrees(position)
 
     def encode_force(self, force: float) -> bytes:
         """Write of ``force`` [N m], clamped to the board's 0.123 N m (NaN/inf: 0)."""

@@ -43,8 +43,11 @@ measurement).
 
 A driver whose replies can show that the *device* lost its place in the byte stream (the
 Haply board: no framing, one lost host byte desynchronises its parser) says so through
-its decoder's ``desync`` counter, or by answers that stop while commands go out; the
-transport then re-synchronises the device with the driver's
+its decoder's ``desync`` counter, by a reading out of its reach, or by bytes that make no
+reply while commands go out (never by a silence alone: a board on its own clock that is
+late is waited for, at zero torque after the hold bound,
+:mod:`hapsim.drivers.resync`); the transport then re-synchronises the device with the
+driver's
 :meth:`~hapsim.drivers.base.Driver.resync` bytes (zero force first; the position the last
 two records extrapolate to now as the Haply encoder's new offset) and counts it
 (``resyncs``); the samples until the next good record are missing samples, and ``seq``
@@ -81,6 +84,7 @@ import time
 from collections import deque
 
 import firmware_protocol as fp
+from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, SILENCE_LOST_S, Resynchronising
 from hapsim.drivers.tick_align import PROBE_TRIES, REARM_INTERVAL, TickAligned
 from hapsim.errors import DeviceError
 
@@ -88,29 +92,13 @@ __all__ = ["DriverTransport", "DriverStats", "REARM_INTERVAL"]
 
 #: Listening before arming, for records nobody asked for (a streaming firmware) [s].
 LISTEN_S = 0.03
-#: Commands in a row without an answer after which the device may be re-synchronised
-#: (with :data:`SILENT_S`: both must hold).
-SILENT_COMMANDS = 4
-#: The oldest unanswered command's wait [s] that shows the board stopped answering (it is
-#: inside a command that swallows the writes): a board answers a write within its pass
-#: and a USB frame (about 1 ms); a late reply, a slow host or a host stall is not this.
-SILENT_S = 0.02
-#: Re-synchronisations within one second beyond which the link is declared unfit and the
-#: run ends (each puts zero torque first; the position after each is an estimate). One
-#: lost host byte in 200 costs the Haply M3 about 16 a second at 1 kHz (a 6-byte write).
-MAX_RESYNCS_PER_S = 50
-#: The shortest time between two re-synchronisations [s]: one costs the board a set-up
-#: (2 ms on the Haply M3) and ~1 ms of passes for its 62 bytes; a second one sooner is no
-#: new evidence (zero torque is commanded meanwhile).
-RESYNC_GAP_S = 0.005
-#: Longest time [s] the host lets a board without a watchdog hold a torque computed from
-#: a sample older than this: a missed tick past it commands zero torque.
-HOLD_BOUND_S = 0.02
 #: A lockstep mock's account standing still this long [s] when the transport takes the
 #: port (an earlier user's bytes handled and landed: :meth:`DriverTransport._claim`).
 CLAIM_QUIET_S = 0.03
-#: Commands remembered for attributing records (a ring; far more than a record can lag).
-_RING = 64
+#: The shortest time between two replies' samples [s] (by the host's times) that bound
+#: the joint's speed (:meth:`DriverTransport._speed_bound`): over 5 ms the readings'
+#: rounding and the sample times' uncertainty (a period each) cost little.
+SPEED_BASE_S = 0.005
 #: Most host ticks kept as mistimed (:meth:`DriverTransport._note_hold`): the measurement
 #: reads the record's head; an open-ended run's later ones are not needed.
 MISTIMED_MAX = 1 << 16
@@ -150,7 +138,7 @@ class _Dec:
         self.stats = stats
 
 
-class DriverTransport(TickAligned):
+class DriverTransport(TickAligned, Resynchronising):
     """A driver's device on a serial port, as the host loop's transport.
 
     Parameters
@@ -249,6 +237,19 @@ class DriverTransport(TickAligned):
         self._arm_ns = 0
         self._anchor_us = 0                 # host time of the last record's command [us]
         self._anchor_cmd = 0                # its seq (a lockstep board's time: commands)
+        # the earliest command the last reply decoded can answer (the board answers its
+        # writes in order, one reply each; a late board's reply read alone answers an
+        # older command than the newest): its time bounds the reach's elapsed time
+        self._floor = 0
+        self._damaged = 0                   # the decoder's 'damaged' seen
+        # replies of the frame before the last arming still to come, until when [s]
+        self._old_left, self._old_until, self._stop_owed, self._late = 0, 0.0, 0, 0
+        self._hist: deque = deque(maxlen=_RING)   # replies: (x, sample's earliest, latest [us])
+        # the largest acceleration [rad/s^2]: the force limit over the inertia (None: no
+        # speed bound)
+        self._accel = (float(driver.force_limit) / float(inertia)
+                       if inertia is not None and math.isfinite(inertia) and inertia > 0
+                       else None)
         self._board_T = None if board_period is None else float(board_period)
         if handled is not None and self._board_T is None:
             raise ValueError("a lockstep mock's account (handled) needs its board_period")
@@ -284,11 +285,11 @@ class DriverTransport(TickAligned):
         self._t_write = -1.0                # time.monotonic() of the last write [s]
         self._desyncs = 0
         self._unreach = 0                   # the decoder's 'unreachable' seen
-        self._t_resync = -math.inf            # monotonic time of the last re-synchronisation
-        self._resync_times: deque = deque()   # those of the last second
+        self._lone = 0                      # the decoder's 'lone' seen
         self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
-                      "resyncs": 0, "rearms": 0, "unprompted_before_arming": 0,
+                      "rearms": 0, "unprompted_before_arming": 0,
                       "held_zero": 0, "host_stalls": 0}
+        self._init_resync()                 # resyncs and their reasons (Resynchronising)
         self.info = {"kind": f"driver {driver.name}", "port": port, "baud": driver.baud,
                      "low_latency": False, "driver": driver.name,
                      "low_latency_note": "driver protocol"}
@@ -363,8 +364,9 @@ class DriverTransport(TickAligned):
         t = type(msg)
         if t is fp.Force:
             f = msg.force[0]
-            if self._stalled():
-                self._resync()
+            why = self._stalled()
+            if why:
+                self._resync(why)
                 return
             self._force = f
             self._write_tick = None
@@ -377,14 +379,28 @@ class DriverTransport(TickAligned):
         elif t is fp.Ping:
             self._q.append(fp.Pong(msg.nonce, msg.host_time_us, self._now_us()))
         elif t is fp.Config:
+            st = self._dec.stats
+            seen = st.get("frames", 0) + st.get("unreachable", 0)
+            owed = (max(0, self._cmd - self._answered) + self._stop_owed
+                    if self._ever_armed else 0)
             self._listen()
+            # the replies still owed (a starved board's) and the arming's own first one
+            # (its zero write, before its set-up) are in the frame before it: out of the
+            # new offset's reach, they are no evidence (before: a re-arming with the joint
+            # away from the offset re-synchronised the board, 5 re-armings in 6)
+            got = st.get("frames", 0) + st.get("unreachable", 0) - seen
+            self._old_left = 1 + max(0, owed - got) if self._ever_armed else 0
+            self._old_until, self._stop_owed = time.monotonic() + SILENCE_LOST_S, 0
+            self._desyncs, self._unreach, self._lone = (st.get(k, 0) for k in (
+                "desync", "unreachable", "lone"))
             # the arming's set-up may restart the device's values (the Haply board sets
             # its angle to the set-up's offset): what came before predicts nothing, and
             # the arming is answered twice (a zero write before its set-up, one after)
-            self._dec.reset_prediction(jumps=2)
+            arming = self._arming_bytes()   # (the decoder's prediction restarts too)
             # the decoder's anchor (the set-up's offset) is as old as this arming
             self._anchor_us = self._now_us()
             self._anchor_cmd = self._cmd + 1
+            self._floor = self._cmd - 1     # (the arming is answered twice)
             self._armed = self._ever_armed = True
             self._force = 0.0
             self._answered = self._cmd          # records of earlier commands are stale
@@ -406,10 +422,11 @@ class DriverTransport(TickAligned):
                 for _ in range(PROBE_TRIES):
                     if self.tick_phase() is not None:
                         break
-            self._command(dr.arm())
+            self._command(arming)
         elif t is fp.Stop:
             self._armed = False
             self._force = 0.0
+            self._stop_owed = 2             # (its zero writes before and after its set-up)
             self._write(dr.stop_bytes(self._x_last))
 
     def _note_hold(self, seq: int) -> None:
@@ -515,8 +532,9 @@ class DriverTransport(TickAligned):
         if self._answered == self._cmd or (
                 self._quiet() if self._handled is not None
                 else self._now_us() - self._sent_us[self._cmd % _RING] >= self._deadline_us):
-            if self._stalled():
-                self._resync()
+            why = self._stalled()
+            if why:
+                self._resync(why)
                 return
             if self._s_last >= 0 and (
                     (self._cmd - self._s_last) * self._board_T > HOLD_BOUND_S
@@ -549,81 +567,6 @@ class DriverTransport(TickAligned):
             self._sent_us[self._cmd % _RING] = t_us
         self._answered = self._cmd
         self.stats["missing"] += int(ticks)
-
-    def _stalled(self) -> bool:
-        """Answers stopped although commands go out (more than :data:`SILENT_COMMANDS`
-        unanswered and the oldest of them waiting :data:`SILENT_S`, armed, an unframed
-        driver): the device may be inside a command that swallows them (a garbage
-        set-up); :meth:`_resync` puts it back in step. A count alone is no evidence: a
-        board answering late, or a host that sent several ticks while its reads were
-        behind, has unanswered commands that will be answered."""
-        if not (self.driver.unframed and self._armed
-                and self._cmd - self._answered > SILENT_COMMANDS):
-            return False
-        if self._handled is not None or self._deadline_us > 0:
-            # a mock paced by the commands (a lockstep run): its time is the commands'
-            return True
-        oldest = self._sent_us[(self._answered + 1) % _RING]
-        return self._now_us() - oldest >= SILENT_S * 1e6
-
-    def _resync(self) -> None:
-        """The device lost its place in the byte stream: the driver's re-synchronisation
-        (zero force first, then its set-up), as one command; the force held is zero.
-
-        Bounded in time and bytes: not sooner than :data:`RESYNC_GAP_S` after the last
-        one (meanwhile zero torque is commanded), and not more than
-        :data:`MAX_RESYNCS_PER_S` within a second.
-
-        Raises
-        ------
-        DeviceError
-            A re-synchronisation beyond :data:`MAX_RESYNCS_PER_S` in one second (the link
-            loses the board's place faster than it can be restored: zero torque has been
-            sent).
-        """
-        now = self._clock()
-        if now - self._t_resync < RESYNC_GAP_S:
-            self._force = 0.0
-            self._command(self.driver.encode_force(0.0))
-            return
-        recent = self._resync_times
-        while recent and now - recent[0] > 1.0:
-            recent.popleft()
-        if len(recent) >= MAX_RESYNCS_PER_S:
-            self._force = 0.0
-            self._write(self.driver.stop_bytes(self._x_last))
-            raise DeviceError(
-                f"the {self.driver.name} board lost its place in the byte stream more than "
-                f"{MAX_RESYNCS_PER_S} times in a second: the link is not fit for a run (zero "
-                f"torque sent; decoder {dict(self._dec.stats)})")
-        recent.append(now)
-        self._t_resync = now
-        self.stats["resyncs"] += 1
-        self._force = 0.0
-        # where the device is now: the last two records extrapolated to this command (a
-        # board that re-zeroes its position at the set-up goes on from there)
-        x = self._extrapolate(self._cmd + 1)
-        if self._s_last < 0:
-            # no record yet: the arming's offset is the only position known (the
-            # decoder's anchor), not the 0 the host starts from
-            self._arm_again()
-        else:
-            self._command(self.driver.resync(self._x_last if x != x else x))
-        # a deliberate gap in seq: the position may jump by the error of that estimate, so
-        # a measurement does not run across a re-synchronisation
-        self._cmd += 1
-        self._sent_us[self._cmd % _RING] = self._sent_us[(self._cmd - 1) % _RING]
-        if self._answered < self._cmd - 1:      # the commands before it: missing samples
-            self.stats["missing"] += self._cmd - 1 - self._answered
-            self._answered = self._cmd - 1
-
-    def _arm_again(self) -> None:
-        """The arming's bytes again, as one command (no record came yet): the decoder's
-        prediction restarts at the set-up's offset, as old as this command."""
-        self._dec.reset_prediction(jumps=2)
-        self._anchor_us = self._now_us()
-        self._anchor_cmd = self._cmd + 1
-        self._command(self.driver.arm())
 
     def _take(self, xs: list, out: list) -> None:
         """Records decoded in one read -> STATEs: the last answers the newest command sent,
@@ -663,7 +606,6 @@ class DriverTransport(TickAligned):
                 # offset 0.2 rad a tick off)
                 self._x_prev, self._s_prev = self._x_last, self._s_last
             self._x_last, self._s_last = x, s
-            self._anchor_us = self._sent_us[s % _RING]
             self._anchor_cmd = s
             out.append(fp.State(s & 0xFFFFFFFF, self._sent_us[s % _RING],
                                 fp.STATUS_ARMED | fp.STATUS_CONFIGURED,
@@ -748,23 +690,78 @@ class DriverTransport(TickAligned):
             # the board sampled the last record when its command arrived (not before it
             # was sent): what the joint can have moved since bounds the readings
             # believed now
-            self._frames.elapsed(
-                (self._now_us() - self._anchor_us) * 1e-6
-                if self._board_T is None
-                else max(self._cmd - self._anchor_cmd, 1) * self._board_T)
+            if self._board_T is None:
+                self._frames.elapsed((self._now_us() - self._anchor_us) * 1e-6,
+                                     self._speed_bound())
+            else:
+                self._frames.elapsed(max(self._cmd - self._anchor_cmd, 1) * self._board_T)
+        floor0 = self._floor
         xs = dec.feed(data)
         self._stray = not xs
+        dmg = dec.stats.get("damaged", 0)
         if xs:
+            self._silence_ended()           # (a silence waited for ends here)
+            # the commands the board may be behind: those unanswered when its answers came,
+            # consumed by the answers that follow (a late board's backlog)
+            self._late = max(self._late - len(xs), self._cmd - self._answered)
             self._take(xs, out)
+            # the last reply answers at the earliest the command after the one the reply
+            # before could, one per reply (damaged too), no further back than the lateness
+            # allows and 3 more (a count alone lags by every answer lost): the reach runs
+            # from its time (before: from the newest command's, and a starved board's late
+            # reply read alone made the backlog's after it "out of reach")
+            self._floor = max(min(self._cmd, self._floor + len(xs) + dmg - self._damaged),
+                              self._cmd - self._late - 3, self._cmd - _RING + 1)
+            self._anchor_us = self._sent_us[self._floor % _RING]
+            if self._frames is not None:
+                now = self._now_us()
+                for i, x in enumerate(xs):
+                    c = min(self._floor, floor0 + i + 1)
+                    self._hist.append((x, self._sent_us[c % _RING], now))
+        else:
+            self._rx_since_record += len(data)
+        self._damaged = dmg
         d = dec.stats.get("desync", 0)
         u = dec.stats.get("unreachable", 0)
+        lone = dec.stats.get("lone", 0)
+        if self._old_left > 0:
+            self._old_left -= len(xs) + (u - self._unreach)
+            if (d == self._desyncs and u != self._unreach
+                    and time.monotonic() < self._old_until):
+                self._unreach = u           # a reply of the frame before the arming
+                self._rx_since_record = 0
         if d != self._desyncs or u != self._unreach:
             # a desync, or a well-formed reply no motion reaches from the last record (a
             # set-up the stream corrupted answers in another frame; waiting would let
             # the reach grow until it is believed): put the board back in step now
-            self._desyncs, self._unreach = d, u
+            why = ("lone" if lone != self._lone else "desync" if d != self._desyncs
+                   else "unreachable")
+            self._desyncs, self._unreach, self._lone = d, u, lone
             if self._armed:
-                self._resync()
+                self._resync(why)
+
+    def _speed_bound(self):
+        """A bound on the joint's speed at the last reply decoded [deg/s], or None (no two
+        replies far enough apart yet): for replies i before j whose samples are at least
+        :data:`SPEED_BASE_S` apart by the host's times (each sampled between its earliest
+        command's sending and its read: ``dlo`` = j's earliest - i's latest, ``dhi`` = j's
+        latest - i's earliest), the mean speed over the two, ``(|x_j - x_i| + 2 q) /
+        dlo`` (q: one count, each reading's rounding), plus what the largest acceleration
+        adds over ``dhi`` (the mean value theorem: the speed at j is the mean's within
+        ``alpha dhi``, alpha the force limit over the inertia). The newest such pair.
+        Known by the decoder's reach
+        (:meth:`hapsim.drivers.haply.ReplyDecoder.elapsed`)."""
+        h = self._hist
+        if self._accel is None or len(h) < 2:
+            return None
+        q = float(self.driver.position_scale)         # one count [rad]
+        xj, loj, hij = h[-1]
+        for xi, loi, hii in reversed(h):
+            dlo = (loj - hii) * 1e-6
+            if dlo >= SPEED_BASE_S:
+                return math.degrees((abs(xj - xi) + 2.0 * q) / dlo
+                                    + self._accel * (hij - loi) * 1e-6)
+        return None
 
     def report(self) -> dict:
         """What the driver's link did: :attr:`stats` and the firmware seen (``firmware``:
@@ -774,6 +771,7 @@ class DriverTransport(TickAligned):
         clock, ``tick_probe`` (:meth:`tick_phase`'s last finding, None when it found none)
         and ``tick_aligned`` (whether the writes were timed in the tick's middle)."""
         st = dict(self.stats)
+        st["resync_reasons"] = dict(self.stats["resync_reasons"])
         if self._tick_ns and self._handled is None and self._board_T is None:
             st["tick_probe"] = None if self.tick_probe is None else dict(self.tick_probe)
             st["tick_aligned"] = self._write_at is not None

@@ -113,7 +113,10 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
         :class:`ByteFaults` spec (seeded byte loss and corruption, both directions); also
         the test hook ``slow`` / ``slow_s``: each answer, with that probability (its own
         seeded draw, so the bytes lost are the same), is written ``slow_s`` [s] late, as
-        a mock process on a loaded host is.
+        a mock process on a loaded host is (a starved reader: nothing is read meanwhile);
+        ``slow_s`` may be a pair ``[lo, hi]``: each such silence drawn uniformly in it
+        (``tools/driver_timing.py --starve``). The silences are counted in the result's
+        ``starved`` (their number and their longest [s]).
     poll : float
         Wait for bytes before ``idle`` is called [s].
     handled : hapsim.spawn.HandledBytes, optional
@@ -134,7 +137,10 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     os.set_blocking(fd, False)
     fl = ByteFaults(faults)
     slow_p = float((faults or {}).get("slow", 0.0))
-    slow_s = float((faults or {}).get("slow_s", 0.0))
+    slow_s = (faults or {}).get("slow_s", 0.0)
+    slow_lo, slow_hi = ((float(slow_s[0]), float(slow_s[1])) if isinstance(slow_s, (list, tuple))
+                        else (float(slow_s),) * 2)
+    starved = {"silences": 0, "longest_s": 0.0}
     if slow_p > 0:
         import numpy as np
         slow_rng = np.random.default_rng([int((faults or {}).get("seed", 0)), 1])
@@ -187,7 +193,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             out += got
         out = fl.tx(out)
         if out and slow_p > 0 and slow_rng.random() < slow_p:
-            time.sleep(slow_s)                  # the test hook: a slow mock process
+            # the test hook: a slow mock process (its uniform draw only for a range, so a
+            # fixed slow_s keeps the draws it had)
+            s = slow_lo if slow_hi == slow_lo else float(slow_rng.uniform(slow_lo, slow_hi))
+            starved["silences"] += 1
+            starved["longest_s"] = max(starved["longest_s"], s)
+            time.sleep(s)
         while out:
             try:
                 k = os.write(fd, out)
@@ -221,7 +232,8 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             "true_excursion": (dev.wall.excursion if getattr(dev, "wall", None) is not None
                                else None),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
-            "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0), **extra}
+            "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0),
+            **({"starved": starved} if slow_p > 0 else {}), **extra}
 
 
 def firefader_offline_loop(scene, n: int = 900, *, lost=(), silence_at=None,

@@ -15,7 +15,7 @@ A measurement compares the free response the host recorded with the THS predicti
 - **re-synchronisations**: an unframed board (the Haply M3 and 2DIY: no framing, no
   watchdog) that lost its place is put back in step with zero torque and a set-up whose
   encoder offset is the host's estimate of where the joint is
-  (:meth:`hapsim.drivers.transport.DriverTransport._resync`). Between the last reply
+  (:meth:`hapsim.drivers.resync.Resynchronising._resync`). Between the last reply
   and the set-up's, the joint moves blind: each re-synchronisation re-anchors the angle
   the host reads by the estimate's error, which nothing in the record shows. A few in a
   run are a few gaps in ``seq`` the measurement does not run across; many are a record
@@ -32,7 +32,7 @@ the resets before it take the board's passes of at least 50 us each (``loop``: `
 556 zeros. At the
 bound, at least :data:`BLIND_SHARE` of the run may be blind. It is the rate at which the
 1-DoF driver's transport gives the link up altogether (``MAX_RESYNCS_PER_S`` of
-:mod:`hapsim.drivers.transport`, 50 within any second); one host byte lost in 200 costs
+:mod:`hapsim.drivers.resync`, 50 within any second); one host byte lost in 200 costs
 the Haply M3 a re-synchronisation per byte lost, 30 a second at 1 kHz (6-byte writes:
 18 to 32 in a 1 s run measured with ``tools/driver_timing.py``), within it.
 Beyond it the verdict is "not measurable"

@@ -242,10 +242,21 @@ class Recovery:
 
     def _silence(self) -> float:
         """Silence after which the device is lost [s]: ``lost_timeout`` (default: the
-        watchdog) when reconnecting, else ``state_timeout``."""
+        watchdog, or longer for a transport that waits for a silent board itself,
+        ``waits_silence_s``) when reconnecting, else ``state_timeout``.
+
+        A board without a watchdog on its own clock (the Haply M3) is waited for by its
+        driver transport, at zero torque after the hold bound, and declared lost there
+        (:mod:`hapsim.drivers.resync`): a loss at the watchdog's 50 ms sent its STOP and
+        CONFIG, whose set-ups set the board's angle to an estimate 50 ms old or more
+        while the board held its torque, and the frame walked at each (issue 29: the
+        joint 0.5-13 rad from its start in lossy runs beside CPU-bound processes)."""
         cfg = self.config
         if cfg.reconnect:
-            return cfg.lost_timeout if cfg.lost_timeout is not None else cfg.watchdog_us * 1e-6
+            if cfg.lost_timeout is not None:
+                return cfg.lost_timeout
+            waits = float(getattr(self.transport, "waits_silence_s", 0.0) or 0.0)
+            return max(cfg.watchdog_us * 1e-6, waits)
         return cfg.state_timeout
 
     def _resume(self, x: float):

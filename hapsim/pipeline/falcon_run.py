@@ -56,7 +56,7 @@ SKIP_PERIODS = 1.25
 #: Longest time [s] a paced Falcon (its firmware on its own clock, no watchdog published)
 #: is left with a command computed from a reading older than this: the loop then sends
 #: zero commands until a reply comes (``held_zero``); the 1-DoF drivers' bound
-#: (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
+#: (:data:`hapsim.drivers.resync.HOLD_BOUND_S`).
 HOLD_BOUND_S = 0.02
 #: The wait [s] for a reply beyond the firmware's tick: the FT232R's latency timer as the
 #: firmware load leaves it (1 ms, the last line settings of

@@ -112,7 +112,7 @@ REPLY_WAIT_S = 0.2
 END_WAIT_S = 1.0
 #: Longest time [s] the host lets the board (no watchdog) hold a torque computed from a
 #: sample older than this: an estimated tick past it writes zero torque (``held_zero``).
-#: The same bound as the 1-DoF driver's (:data:`hapsim.drivers.transport.HOLD_BOUND_S`).
+#: The same bound as the 1-DoF driver's (:data:`hapsim.drivers.resync.HOLD_BOUND_S`).
 HOLD_BOUND_S = 0.02
 #: The oldest unanswered write's wait [s] that shows the board stopped answering (with
 #: more than :data:`SILENT_COUNT` unanswered): a board answers a write within its pass and
