@@ -46,14 +46,21 @@ def split_hold_matrices(loop: MatrixLoop):
     sec. 2.3; :mod:`hapsim.analysis.subsample`), each piece by :func:`zoh_matrices`' block
     exponential over its own length.
     """
-    T = loop.period
+    Ad, Bd = _zoh_over(loop, loop.period)
     f = float(loop.delay) % 1.0
-    Ad, Bd = _zoh_over(loop, T)
     if f == 0.0:
         return Ad, Bd, np.zeros_like(Bd)
+    return (Ad,) + _split_pieces(loop, f)
+
+
+def _split_pieces(loop: MatrixLoop, f: float):
+    """``(Gamma0, Gamma1)`` of :func:`split_hold_matrices` for the fraction ``f`` in
+    ``(0, 1)``: the force held over the period's last ``(1 - f) T``, and over its first
+    ``f T`` carried to the period's end."""
+    T = loop.period
     A0, G0 = _zoh_over(loop, (1.0 - f) * T)
     _, Gf = _zoh_over(loop, f * T)
-    return Ad, G0, A0 @ Gf
+    return G0, A0 @ Gf
 
 
 def zoh_matrices(loop: MatrixLoop) -> tuple[np.ndarray, np.ndarray]:
@@ -223,10 +230,9 @@ def _per_axis_split_state_matrix(loop: MatrixLoop, Kq, Bq, per) -> np.ndarray:
         if f == 0.0:
             G0[:, cols] = Bd[:, cols]
             continue
-        A0, g0 = _zoh_over(loop, (1.0 - f) * T)
-        _, gf = _zoh_over(loop, f * T)
+        g0, g1 = _split_pieces(loop, f)
         G0[:, cols] = g0[:, cols]
-        G1[:, cols] = (A0 @ gf)[:, cols]
+        G1[:, cols] = g1[:, cols]
     N = n * (M + 4)
     A = np.zeros((N, N))
     A[:2 * n, :2 * n] = Ad
