@@ -55,9 +55,33 @@ def run_exact(port):
     return rep
 
 
+def _gone(mock, seen: list, timeout: float = 20.0) -> None:
+    """Wait until the mock has said a host left (its stderr line), reading it into
+    ``seen``: the next host opens the port only then. An in-process run opens it within
+    milliseconds of the last one's close, before a loaded mock has read the EIO that
+    tells it a host left; the two hosts were then one to the mock (a CI run: 3 hosts
+    gone of 4)."""
+    fd = mock.stderr.fileno()
+    os.set_blocking(fd, False)
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            chunk = os.read(fd, 4096)
+        except BlockingIOError:
+            chunk = None
+        if chunk:
+            seen.append(chunk.decode())
+            if "host left" in chunk.decode():
+                break
+        else:
+            time.sleep(0.01)
+    os.set_blocking(fd, True)
+
+
 def test_mock_serves_run_after_run_a_killed_one_and_ends_on_signal(tmp_path):
     report = str(tmp_path / "mock.json")
     mock = hapsim("mock", "--scene", WALL, "--lockstep", "--report", report)
+    seen: list = []
     try:
         line = mock.stdout.readline()
         assert line.startswith("PORT /dev/"), line
@@ -65,6 +89,7 @@ def test_mock_serves_run_after_run_a_killed_one_and_ends_on_signal(tmp_path):
         for _ in range(2):                          # STOP no longer ends the mock (a
             #                                         second run proves it as a third did)
             run_exact(port)
+            _gone(mock, seen)
             assert mock.poll() is None
         # a host killed mid-run (no STOP, port closed by the kernel)
         doomed = hapsim("run", WALL, "--port", port, "--lockstep", "--duration", "600")
@@ -72,11 +97,13 @@ def test_mock_serves_run_after_run_a_killed_one_and_ends_on_signal(tmp_path):
         time.sleep(0.5)
         doomed.send_signal(signal.SIGKILL)
         doomed.wait(timeout=20)
+        _gone(mock, seen)
         run_exact(port)                             # ... and the next host is served
         assert mock.poll() is None
     finally:
         mock.send_signal(signal.SIGINT)             # Ctrl-C ends it cleanly
         _, err = mock.communicate(timeout=20)
+        err = "".join(seen) + err
     assert mock.returncode == 0, err
     assert "Traceback" not in err
     # (a host that reopens the port to recover from a loss, on a loaded machine, adds one)
