@@ -25,8 +25,6 @@ on the clock.
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
 import os
 import signal
@@ -172,7 +170,7 @@ def run_board_mock(args, new_pty, given) -> int:
         An option not taken, a device protocol without an emulated board, ports that are
         not one FireFader's two faders, a bad amplitude (exit 2).
     """
-    from hapsim.emulated.driver_mock import serve
+    from hapsim.emulated.driver_mock import serve, write_report
     _refuse_untaken(args, given)
     import termios
 
@@ -207,9 +205,7 @@ def run_board_mock(args, new_pty, given) -> int:
             except OSError:
                 pass
     if args.report:
-        with open(args.report + ".partial", "w") as fh:
-            json.dump(rep, fh, default=_plain)
-        os.replace(args.report + ".partial", args.report)
+        write_report(args.report, rep)
     print(f"hapsim mock: stopped; {dev.hosts} host(s) served, the last one's "
           f"{rep.get('packets', 0)} commands applied",
           file=sys.stderr, flush=True)
@@ -291,16 +287,7 @@ class BoardPerHost:
         """The board's :meth:`idle`; a host silent :data:`NEW_HOST_S` is gone: reset."""
         if self._last is not None and not self._fresh and silent_s >= self.NEW_HOST_S:
             self._reset(self._last + silent_s)
-        if self._last is None or self._fresh and self._born > self._last:
-            # the board's silence since its reset (the host's bytes came before it)
-            return self._dev.idle(silent_s - (self._born - (self._last or 0.0)))
+        if self._fresh:
+            # no host since the reset: the board's silence is the time since it
+            return self._dev.idle((self._last or 0.0) + silent_s - self._born)
         return self._dev.idle(silent_s)
-
-
-def _plain(v):
-    """JSON for what the board's report holds beyond JSON's types."""
-    if dataclasses.is_dataclass(v):
-        return dataclasses.asdict(v)
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return str(v)

@@ -286,7 +286,10 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
             for i in range(P):
                 x[i] = (float(rec[i]) - CENTRE) * METRES_PER_COUNT
             pos[k], late[k] = x, lag
-            far = max(range(P), key=lambda i: abs(x[i]))
+            far = 0                           # the fader furthest out (no closure made)
+            for i in range(1, P):
+                if abs(x[i]) > abs(x[far]):
+                    far = i
             if abs(x[far]) > WORKSPACE_M:
                 stop = (f"safety: fader {'AB'[far]} {abs(x[far]) * 1e3:.1f} mm from the "
                         f"centre, beyond the workspace's {WORKSPACE_M * 1e3:.1f} mm")
