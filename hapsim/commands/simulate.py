@@ -354,7 +354,11 @@ def _run_nd(args) -> int:
     from hapsim.scene import load_scene_nd
     if args.audio is not None:
         return _run_audio_nd(args)
-    if args.out is None or os.path.splitext(args.out)[1].lower() != ".npz":
+    if args.out is None:
+        raise ConfigError("give an output file (--out FILE.npz: a 2-D or 3-D trajectory, "
+                          "time, position (N+1, R, n), names) or --audio FILE.wav",
+                          key="--out")
+    if os.path.splitext(args.out)[1].lower() != ".npz":
         raise ConfigError(f"a 2-D or 3-D trajectory is written as .npz (time, position "
                           f"(N+1, R, n), names), got {args.out!r}", key="--out")
     check_writable(args.out, "--out")
