@@ -32,7 +32,7 @@ def test_top_level_help_names_the_multi_dof_devices(capsys):
 @pytest.mark.parametrize("command, words", [
     ("check", ("2-D or 3-D", "felt_stiffness", "principal", "stiffness_limits", "--plot")),
     ("run", ("2-D or 3-D", "MATRICES", "--amplitude", "linearisation bound", "--driver haply")),
-    ("stability", ("2-D and 3-D", "hapsim kinematics", "--grid", "--out"))])
+    ("stability", ("(one K_max per direction; a 1-D scene has one)", "hapsim kinematics", "--grid", "--out"))])
 def test_help_teaches_the_nd_use(command, words, capsys):
     out = _help(capsys, command)
     for word in words:

@@ -102,7 +102,7 @@ def test_the_workspace_map_is_charted(tmp_path, capsys):
 @pytest.mark.parametrize("argv, key", [
     (["stability", "--scene", "configs/pantograph_wall.yaml", "--mass", "0.1"], "--mass"),
     (["stability", "--scene", "configs/pantograph_wall.yaml", "--B", "2"], "--B"),
-    (["stability", "--scene", "configs/wall.yaml"], "--scene"),
+    (["stability", "--scene", "configs/wall.yaml", "--grid", "3"], "--grid"),
     (["stability", "--scene", "configs/membrane.yaml"], "--scene"),
     (["stability", "--scene", "tests/data/play_nd_2d.yaml", "--grid", "3"], "--grid"),
     (["stability", "--scene", "configs/pantograph_wall.yaml", "--out", "x.png"], "--out"),

@@ -33,7 +33,8 @@ def register(sub) -> None:
         "N points of the circle) with the reason.",
         "\nexample:\n  hapsim stability --mass 0.1 --friction 0.5 --rate 1000 "
         "--delay 1 --hold zoh --B 0\n"
-        "\n2-D and 3-D devices (one K_max per direction, and over the workspace):\n"
+        "\na scene's own loop (one K_max per direction; a 1-D scene has one):\n"
+        "  hapsim stability --scene configs/wall.yaml\n"
         "  hapsim stability --scene configs/pantograph_wall.yaml   K_max along the "
         "device's principal mass axes\n"
         "  hapsim stability --scene configs/pantograph_wall.yaml --grid 9 --out "
@@ -47,11 +48,12 @@ def register(sub) -> None:
     p.add_argument("--B", type=declared("stability", "B"), default=0.0,
                    help="virtual damping B [N s/m] (default %(default)s)")
     g = p.add_argument_group(
-        "a 2-D or 3-D scene (instead of --mass/--rate: the loop is the scene's)")
+        "a scene (instead of --mass/--rate: the loop is the scene's)")
     g.add_argument("--scene", metavar="SCENE.yaml",
                    help="K_max along each principal axis of the scene's device's Cartesian "
                         "mass at its operating point (the port links' damping and the rest "
-                        "of their stiffness held; the MIMO loop, not axis by axis)")
+                        "of their stiffness held; the MIMO loop, not axis by axis; a 1-D "
+                        "scene: its one axis)")
     g.add_argument("--grid", type=Number(int, low=0, high=40), default=0, metavar="N",
                    help="also map K_max over N points per joint within --span of the "
                         "device's joints (a pantograph or delta; the port damping held)")
@@ -96,8 +98,8 @@ def run(args) -> int:
                               key=flag)
     missing = [f for f, v in (("--mass", args.mass), ("--rate", args.rate)) if v is None]
     if missing:
-        raise ConfigError(f"the loop needs {' and '.join(missing)} (or --scene FILE for a "
-                          "2-D or 3-D scene's device)", key=missing[0])
+        raise ConfigError(f"the loop needs {' and '.join(missing)} (or --scene FILE: the "
+                          "loop of a scene's device)", key=missing[0])
     loop = loop_from_args(args)
     rep = stability(loop, args.B)
     d = rep.to_dict()
@@ -155,8 +157,8 @@ _LOOP_FLAGS = (("--mass", "mass", None), ("--friction", "friction", 0.0),
 
 
 def _run_scene(args) -> int:
-    """``hapsim stability --scene``: ``K_max`` per principal direction of a 2-D/3-D
-    scene's device (:func:`hapsim.analysis.scene_check.check_scene_nd`, the MIMO loop's
+    """``hapsim stability --scene``: ``K_max`` per principal direction of a scene's
+    device (a 1-D scene is n = 1: :func:`_run_scene_line`) (:func:`hapsim.analysis.scene_check.check_scene_nd`, the MIMO loop's
     spectral radius through :func:`hapsim.analysis.direction_limits.direction_limit`; issue 23
     item 4) and, with ``--grid``, its map over the workspace
     (:func:`hapsim.commands.kinematics.workspace_map`).
@@ -170,8 +172,8 @@ def _run_scene(args) -> int:
     Raises
     ------
     hapsim.errors.ConfigError
-        A loop option given with a scene (the scene gives them), a 1-D scene or one
-        without a port, ``--grid`` on a Cartesian device, ``--out`` without ``--grid``,
+        A loop option given with a scene (the scene gives them), a scene without a
+        port, ``--grid`` on a Cartesian or 1-DoF device, ``--out`` without ``--grid``,
         a bad scene file.
     """
     import numpy as np
@@ -191,12 +193,11 @@ def _run_scene(args) -> int:
     scene = api.load_scene(args.scene)
     from hapsim.api.common import refuse_ports
     refuse_ports(scene, "stability")
-    if not hasattr(scene, "dimension") or scene.dimension == 1:
-        raise ConfigError("a 1-D scene: 'hapsim check SCENE' gives its K_max, or give the "
-                          "loop as --mass --rate", key="--scene")
     if scene.port is None:
         raise ConfigError("the scene has no port (nothing felt, no loop): 'hapsim check "
                           "SCENE' gives its modes", key="--scene")
+    if getattr(scene, "dimension", 1) == 1:
+        return _run_scene_line(args, scene)
     dev = scene.device
     if args.grid and dev.kind not in ("pantograph", "delta"):
         raise ConfigError(f"a {dev.kind} device's mass is the same over the workspace: the "
@@ -259,4 +260,71 @@ def _run_scene(args) -> int:
               f"{len(ok)} of {len(ws['status'])} configurations assembled; lowest K_max "
               + (f"{fmt(min(ok))} N/m" if ok else "-")
               + (f"; chart: {args.out}" if args.out else ""), file=o)
+    return code
+
+
+def _run_scene_line(args, scene) -> int:
+    """``hapsim stability --scene`` of a 1-D scene: n = 1 of the per-direction limit.
+
+    The loop is the scene's device (:meth:`hapsim.analysis.loop.LoopModel.from_device`:
+    its hand and correction included), ``B`` the damping of the links at the port (a
+    ``target`` calibrated first, contacts taken as engaged, as ``hapsim check``), and
+    ``K_max`` the exact limit of the port-to-ground stiffness for that ``B``
+    (:func:`hapsim.api.stability`: the closed loop's spectral radius 1, Florens, Voda &
+    Urma sec. 6.2). In 1-D the principal direction is the axis and the rest of the port
+    stiffness is nothing, so this is the 2-D/3-D limit along one direction
+    (:func:`hapsim.analysis.direction_limits.direction_limit`) with n = 1.
+
+    Returns
+    -------
+    int
+        0 when ``K_max > 0``, 1 when no positive stiffness is stable or a port link ends
+        on a moving mass (no port-to-ground limit to state, as in 2-D/3-D).
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        ``--grid`` (a 1-DoF device has no workspace map), a target the device cannot
+        render, link values that are not finite.
+    """
+    from hapsim import api
+    from hapsim.analysis.loop import LoopModel
+    from hapsim.analysis.targets import apply_targets
+    from hapsim.analysis.virtual_network import link_values
+    if args.grid:
+        raise ConfigError("a 1-DoF device's mass is the same everywhere: the limit holds "
+                          "over its whole travel (a map needs a pantograph or a delta)",
+                          key="--grid")
+    scene, _ = apply_targets(scene)
+    dev, port = scene.device, scene.port.name
+    kinds = {m.name: m.kind for m in scene.masses}
+    K = B = 0.0
+    grounded = True
+    for lk, Kl, Bl in link_values(scene):
+        if port in (lk.m1, lk.m2):
+            K, B = K + Kl, B + Bl
+            grounded = grounded and kinds[lk.m2 if lk.m1 == port else lk.m1] == "ground"
+    loop = LoopModel.from_device(dev, scene.rate_hz)
+    rep = api.stability(loop, B) if grounded else None
+    kmax = None if rep is None else (math.inf if rep.K_max is None else rep.K_max)
+    d = {"scene": str(args.scene), "dof": 1, "device": "1-DoF", "rate_hz": scene.rate_hz,
+         "delay": dev.delay, "port_stiffness": [[K]], "port_damping": [[B]],
+         "mass_eigenvalues": [loop.mass], "directions": [[1.0]] if grounded else None,
+         "K_max": None if kmax is None else [None if math.isinf(kmax) else kmax],
+         "port_stiffness_along": [K] if grounded else None,
+         "stability": None if rep is None else rep.to_dict()}
+    code = 1 if kmax is None or not kmax > 0 else 0
+    if args.json:
+        print(json.dumps(d))
+        return code
+    o = sys.stdout
+    print(f"scene: {args.scene}  (1-D, {scene.rate_hz:g} Hz, d={dev.delay})", file=o)
+    if kmax is None:
+        print("  no limit: a port link ends on a moving mass, so the limit of a "
+              "port-to-ground spring says nothing about what is felt", file=o)
+        return code
+    print(f"  K_max along the device's axis (the closed loop's spectral radius; the port "
+          f"damping B = {B:g} N s/m held):", file=o)
+    print(f"    (+1.0000)  mass {loop.mass:.4g} kg  K_max = {fmt(kmax)} N/m   (the "
+          f"scene's port stiffness: {K:.6g} N/m; {rep.K_max_method})", file=o)
     return code
