@@ -343,7 +343,7 @@ SCENE_COMMANDS = {
     "check": None, "run": ("{f}",), "family": ("{f}",), "advise": ("{f}",),
     "simulate": ("{f}", "-n", "10", "--out", "{tmp}/x.npz"),
     "identify": ("--mock-scene", "{f}"), "play": ("{f}", "--duration", "0.1"),
-    "mock": ("--scene", "{f}"), "stability": ("--scene", "{f}"),
+    "mock": ("--scene", "{f}"), "stability": None,
     "zwidth": ("--scene", "{f}"),
 }
 

@@ -93,3 +93,64 @@ def test_a_workspace_map_of_a_1d_device_is_refused_by_name():
     with contextlib.redirect_stderr(err):
         code = main(["stability", "--scene", "configs/wall.yaml", "--grid", "4"])
     assert code == 2 and "--grid: a 1-DoF device's mass is the same" in err.getvalue()
+
+
+# -- several ports: each its own delay (issue 30 item 3) ---------------------------------
+
+@pytest.mark.parametrize("seed", range(10))
+def test_a_port_limit_with_its_own_delay_is_a_crossing(seed):
+    """``direction_limit(..., delays=)`` over random two-port loops, the delays' whole
+    parts equal (a rank-one change of the state matrix) or not (the Kronecker
+    crossings): below the limit the coupled loop is stable at every sampled stiffness,
+    just above it unstable."""
+    from hapsim.analysis.loop import STABILITY_TOL
+    from hapsim.analysis.ths import state_matrix
+    rng = np.random.default_rng(100 + seed)
+    m, b0 = rng.uniform(0.02, 0.3, 2), rng.uniform(0, 1, 2)
+    d = [int(rng.integers(0, 3)) + float(rng.choice([0.0, 0.3, 0.725])) for _ in range(2)]
+    delays = tuple(int(x) if x % 1 == 0 else x for x in d)
+    loop = MatrixLoop(mass=np.diag(m), friction=np.diag(b0),
+                      rate_hz=float(rng.choice([250, 1000])), delay=max(d))
+    C = np.array([[1.0, -1.0], [-1.0, 1.0]])
+    K0, B = rng.uniform(0, 50) * C, np.diag(rng.uniform(0, 1, 2)) + 0.05 * C
+    e = np.eye(2)[seed % 2]
+    k = direction_limit(loop, e, B, K0, delays=delays)
+    assert k < np.inf
+
+    def rho(kappa):
+        A = state_matrix(loop, K0 + kappa * np.outer(e, e), B, delays=delays)
+        return float(np.max(np.abs(np.linalg.eigvals(A))))
+    if k == 0.0:                # the coupling alone is past its limit: no kappa helps
+        assert all(rho(x) > 1 + STABILITY_TOL for x in (1e-6, 1.0, 10.0))
+        return
+    # 1e-4 steps off the crossing: the limit is refined to ~1e-10 (Brent on the spectral
+    # radius or the scan's angle), and the radius moves by ~1e-5..1e-3 over 1e-4 of k
+    # on these loops (measured), well beyond STABILITY_TOL = 1e-9
+    assert all(rho(x) <= 1 + STABILITY_TOL for x in np.linspace(0, k * (1 - 1e-4), 40)[1:])
+    assert rho(k * (1 + 1e-4)) > 1 + STABILITY_TOL
+
+
+def _two_faders(tmp_path, spring_a: float):
+    text = open("configs/two_faders.yaml").read()
+    old = "between: [fader_a, anchor], stiffness: 15.0"
+    assert old in text
+    p = tmp_path / "faders.yaml"
+    p.write_text(text.replace(old, f"between: [fader_a, anchor], stiffness: {spring_a!r}"))
+    return p
+
+
+def test_the_two_faders_limit_is_where_check_turns_unstable(tmp_path):
+    """The limit along fader A is the stiffness of A's port spring at which ``hapsim
+    check`` of the same scene turns from stable to unstable (the rest held)."""
+    code, doc, _ = stability("configs/two_faders.yaml")
+    assert code == 0 and doc["ports"] == ["fader_a", "fader_b"]
+    _, d2, _ = stability("configs/pantograph_spring.yaml")
+    assert set(d2) <= set(doc)
+    k_a, along = doc["K_max"][0], doc["port_stiffness_along"][0]
+    assert k_a > along           # the shipped scene is stable: within its limit
+    for f, verdict in ((0.99, "stable"), (1.01, "unstable")):
+        p = _two_faders(tmp_path, 15.0 + (f * k_a - along))
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            main(["check", str(p), "--json"])
+        assert json.loads(out.getvalue())["verdict"] == verdict, f

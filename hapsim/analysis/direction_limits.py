@@ -66,7 +66,7 @@ def _rank_one(loop: MatrixLoop, K0, B, e):
 
 
 def direction_limit(loop: MatrixLoop, direction, B=0.0, K0=0.0, *,
-                    scan: int = 2048) -> float:
+                    scan: int = 2048, delays=None) -> float:
     """Largest stable stiffness added along one direction, ``K_max(e)`` [N/m].
 
     Parameters
@@ -80,6 +80,9 @@ def direction_limit(loop: MatrixLoop, direction, B=0.0, K0=0.0, *,
         The rest of the virtual stiffness [N/m] (default none).
     scan : int, optional
         Points of the unit-circle scan before each crossing is refined.
+    delays : sequence of float, shape (n,), optional
+        A delay per axis [periods] (several ports, each its own device:
+        :func:`hapsim.analysis.ths.state_matrix`); default the loop's one delay.
 
     Returns
     -------
@@ -112,7 +115,14 @@ def direction_limit(loop: MatrixLoop, direction, B=0.0, K0=0.0, *,
                           f"{direction!r}", key="direction")
     e = e / np.linalg.norm(e)
     K0q, Bq = gain_matrices(loop, K0, B)
-    A0, bvec, cvec = _rank_one(loop, K0q, Bq, e)
+    if delays is None:
+        A0, bvec, cvec = _rank_one(loop, K0q, Bq, e)
+    else:
+        A0 = state_matrix(loop, K0q, Bq, delays=delays)
+        D = state_matrix(loop, K0q + np.outer(e, e), Bq, delays=delays) - A0
+        bvec, cvec = _factor_rank_one(D)
+        if bvec is None:        # ports whose delays' whole parts differ: rank > 1
+            return _classify(A0, D, _kron_crossings(A0, D))
     theta = np.linspace(0.0, math.pi, scan + 1)[1:]
     G = _resolvent_scalar(A0, bvec, cvec, np.exp(1j * theta))
 
@@ -132,10 +142,16 @@ def direction_limit(loop: MatrixLoop, direction, B=0.0, K0=0.0, *,
     g_pi = G[-1]                     # theta = pi: z = -1, G real
     if np.isfinite(g_pi.real) and g_pi.real != 0:
         cands.append(-1.0 / g_pi.real)
+    return _classify(A0, -np.outer(bvec, cvec), cands)
+
+
+def _classify(A0: np.ndarray, D: np.ndarray, cands) -> float:
+    """The first candidate crossing past which ``A0 + kappa D`` is unstable [N/m]: the
+    stability between two consecutive crossings is that at one interior point."""
     cands = sorted({c for c in cands if c > 0 and math.isfinite(c)})
 
     def stable_at(kappa):
-        A = A0 - kappa * np.outer(bvec, cvec)
+        A = A0 + kappa * D
         return float(np.max(np.abs(np.linalg.eigvals(A)))) <= 1.0 + STABILITY_TOL
     edges = [0.0] + cands
     for i, lo in enumerate(edges):
@@ -144,6 +160,58 @@ def direction_limit(loop: MatrixLoop, direction, B=0.0, K0=0.0, *,
         if not stable_at(mid):
             return lo
     return math.inf
+
+
+def _factor_rank_one(D: np.ndarray):
+    """``(b, c)`` with ``D = -b c^T`` when ``D`` is rank one to round-off, else
+    ``(None, None)``. Ports whose delays share their whole part change the state matrix
+    by a rank-one term when ``K`` gains ``kappa e e^T`` (their split holds take
+    ``F[n-m]`` from one block of positions); otherwise one term per whole part."""
+    i, j = np.unravel_index(int(np.argmax(np.abs(D))), D.shape)
+    if D[i, j] == 0:
+        return None, None
+    u, v = D[:, j].copy(), D[i, :] / D[i, j]
+    # the entries are single products and sums of a few (state_matrix): a rank-one D
+    # leaves a residue of a few units in the last place of its largest entry
+    if np.max(np.abs(D - np.outer(u, v))) > 64 * np.finfo(float).eps * abs(D[i, j]) * len(D):
+        return None, None
+    return -u, v
+
+
+def _kron_crossings(A0: np.ndarray, D: np.ndarray) -> list[float]:
+    """Every real ``kappa > 0`` at which ``A(kappa) = A0 + kappa D`` has two eigenvalues
+    with ``z_i z_j = 1`` (a pair on the unit circle, ``z`` and its conjugate, or ``z =
+    +-1``), whatever the rank of ``D``: ``det(A(kappa) (x) A(kappa) - I) = 0`` (the
+    Kronecker product's eigenvalues are the products ``z_i z_j``; Stephanos 1900, Horn &
+    Johnson, *Topics in Matrix Analysis* thm. 4.2.12), a quadratic eigenvalue problem in
+    ``kappa`` solved by its companion linearisation (Tisseur & Meerbergen, SIAM Rev. 43
+    2001, sec. 3.4) and each real root polished on the spectral radius by Brent's method.
+    Real reciprocal pairs off the circle are spurious candidates, which the
+    classification between candidates ignores."""
+    import scipy.linalg
+    from hapsim.analysis.stability import brent_root
+    N = A0.shape[0]
+    M = N * N
+    C0, C1, C2 = (np.kron(A0, A0) - np.eye(M), np.kron(A0, D) + np.kron(D, A0),
+                  np.kron(D, D))
+    L = np.block([[np.zeros((M, M)), np.eye(M)], [-C0, -C1]])
+    R = np.block([[np.eye(M), np.zeros((M, M))], [np.zeros((M, M)), C2]])
+    with np.errstate(all="ignore"):
+        w = scipy.linalg.eigvals(L, R)
+    w = w[np.isfinite(w)]
+    raw = sorted({float(x.real) for x in w if x.real > 0 and abs(x.imag) <= 1e-6 * abs(x)})
+
+    def excess(kappa):
+        return float(np.max(np.abs(np.linalg.eigvals(A0 + kappa * D)))) - 1.0
+    out = []
+    for k in raw:
+        for h in (1e-9, 1e-7, 1e-5):      # the eigensolver's root to a sign change
+            lo, hi = k * (1 - h), k * (1 + h)
+            if excess(lo) * excess(hi) < 0:
+                k = brent_root(excess, lo, hi, xtol=0.0, rtol=1e-15)
+                break
+        out.append(k)
+    return out
 
 
 def direction_limits(loop: MatrixLoop, directions=None, B=0.0, K0=0.0) -> np.ndarray:

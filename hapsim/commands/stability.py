@@ -158,7 +158,8 @@ _LOOP_FLAGS = (("--mass", "mass", None), ("--friction", "friction", 0.0),
 
 def _run_scene(args) -> int:
     """``hapsim stability --scene``: ``K_max`` per principal direction of a scene's
-    device (a 1-D scene is n = 1: :func:`_run_scene_line`) (:func:`hapsim.analysis.scene_check.check_scene_nd`, the MIMO loop's
+    device (a 1-D scene is n = 1: :func:`_run_scene_line`; several ports:
+    :func:`_run_scene_ports`) (:func:`hapsim.analysis.scene_check.check_scene_nd`, the MIMO loop's
     spectral radius through :func:`hapsim.analysis.direction_limits.direction_limit`; issue 23
     item 4) and, with ``--grid``, its map over the workspace
     (:func:`hapsim.commands.kinematics.workspace_map`).
@@ -191,8 +192,9 @@ def _run_scene(args) -> int:
         if not args.grid:
             raise ConfigError("a chart needs --grid N", key="--out")
     scene = api.load_scene(args.scene)
-    from hapsim.api.common import refuse_ports
-    refuse_ports(scene, "stability")
+    from hapsim.scene import ScenePorts
+    if isinstance(scene, ScenePorts):
+        return _run_scene_ports(args, scene)
     if scene.port is None:
         raise ConfigError("the scene has no port (nothing felt, no loop): 'hapsim check "
                           "SCENE' gives its modes", key="--scene")
@@ -327,4 +329,63 @@ def _run_scene_line(args, scene) -> int:
           f"damping B = {B:g} N s/m held):", file=o)
     print(f"    (+1.0000)  mass {loop.mass:.4g} kg  K_max = {fmt(kmax)} N/m   (the "
           f"scene's port stiffness: {K:.6g} N/m; {rep.K_max_method})", file=o)
+    return code
+
+
+def _run_scene_ports(args, scene) -> int:
+    """``hapsim stability --scene`` of a scene with several ports: ``K_max`` along each
+    port's axis of the coupled loop, the rest of the port stiffness and the port damping
+    held (:func:`hapsim.analysis.direction_limits.direction_limit` with each port's own
+    delay, the loop of :func:`hapsim.analysis.ports.port_loop`; the MIMO loop's spectral
+    radius, not port by port).
+
+    Returns
+    -------
+    int
+        0 when every port has a positive limit, else 1.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        ``--grid`` (the ports' masses are the same everywhere).
+    """
+    import numpy as np
+
+    from hapsim.analysis.direction_limits import direction_limit
+    from hapsim.analysis.ports import port_loop, port_matrices
+    from hapsim.progress import Progress
+    if args.grid:
+        raise ConfigError("the ports' devices have the same mass everywhere: the limits "
+                          "hold over their whole travel (a map needs a pantograph or a "
+                          "delta)", key="--grid")
+    loop, delays = port_loop(scene)
+    K, B = port_matrices(scene)
+    P = loop.dof
+    E = np.eye(P)
+    lim = np.empty(P)
+    with Progress(P, "stiffness limits", unit="ports") as bar:
+        for i in range(P):
+            lim[i] = direction_limit(loop, E[:, i], B, K - K[i, i] * np.outer(E[:, i],
+                                                                               E[:, i]),
+                                     delays=delays)
+            bar.update(i + 1, P)
+    per = [float(d.delay) for _, d in scene.devices]
+    d = {"scene": str(args.scene), "dof": P, "device": "ports", "ports": list(scene.ports),
+         "rate_hz": scene.rate_hz, "delay": per, "port_stiffness": K.tolist(),
+         "port_damping": B.tolist(), "mass_eigenvalues": np.diag(loop.mass).tolist(),
+         "directions": E.tolist(),
+         "K_max": [float(v) if np.isfinite(v) else None for v in lim],
+         "port_stiffness_along": np.diag(K).tolist()}
+    code = 0 if np.all(lim > 0) else 1
+    if args.json:
+        print(json.dumps(d))
+        return code
+    o = sys.stdout
+    print(f"scene: {args.scene}  ({P} ports, {scene.rate_hz:g} Hz, delays "
+          + ", ".join(f"{x:g}" for x in per) + ")", file=o)
+    print("  K_max along each port's axis (the coupled loop's spectral radius; the port "
+          "damping and the rest of the port stiffness held):", file=o)
+    for i, name in enumerate(scene.ports):
+        print(f"    {name:<10} mass {loop.mass[i, i]:.4g} kg  K_max = {fmt(lim[i])} N/m   "
+              f"(the scene's port stiffness along it: {K[i, i]:.6g} N/m)", file=o)
     return code
