@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 from hapsim.errors import IdentificationError
 
@@ -133,7 +134,8 @@ def find_directions(drv, link, joints_deg, *, force_limit: float, envelope: floa
             found.append(probe_axis(send, write_of, zero, top=top, count=count,
                                     reach=reach, rate_hz=rate_hz, min_counts=min_counts,
                                     label=f"the 2DIY's joint {j + 1}",
-                                    option="motor_direction"))
+                                    option="motor_direction",
+                                    clock=time.monotonic if pace else None))
     finally:
         ex.stop(drv.arm_bytes(joints_deg), 2)   # zero torque whatever the parser is in
     g = drv.generation

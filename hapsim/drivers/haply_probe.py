@@ -13,7 +13,8 @@ from 1/16 of the largest allowed (the smaller of the force limit and the board's
 m) until the encoder moved ``min_counts`` counts (static friction holds a joint below
 some torque), each pulse ended as soon as motion is seen, then the opposite torque for as
 many periods (an equal and opposite impulse: it takes back the velocity the pulse gave,
-whatever the motor's sign) and ``REST_S`` at zero torque. The sign of the motion against
+whatever the motor's sign; on the host's clock, for as long as the pulse was held) and
+``REST_S`` at zero torque. The sign of the motion against
 the torque's gives the motor byte; both signs must agree.
 
 Each pulse starts from rest: zero torque until the encoder has not moved for a whole
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 from hapsim.drivers.exchange import Exchange, SerialLink
 from hapsim.errors import IdentificationError
@@ -133,7 +135,7 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
             x = ex.send(zero)
         axis = probe_axis(ex.send, drv.encode_force, zero, top=top, count=q, reach=reach,
                           rate_hz=rate_hz, min_counts=min_counts, label="the Haply joint",
-                          option="motor_direction")
+                          option="motor_direction", clock=time.monotonic if pace else None)
         x = axis.last
     finally:
         ex.stop(drv.stop_bytes(x if math.isfinite(x) else 0.0), 2)
@@ -202,7 +204,7 @@ class AxisProbe:
 
 def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: float,
                rate_hz: float, min_counts: int = 3, label: str = "the Haply joint",
-               option: str = "motor_direction") -> AxisProbe:
+               option: str = "motor_direction", clock=None) -> AxisProbe:
     """One joint's torque pulses of each sign, each from rest (module notes): the sign of
     its motion against the torque's. Shared by the 1-DoF board (:func:`find_direction`)
     and each joint of the 2DIY (:func:`hapsim.drivers.haply2_probe.find_directions`).
@@ -230,6 +232,11 @@ def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: 
     label, option : str
         The joint's name and the protocol option that gives its motor direction, for the
         messages.
+    clock : callable, optional
+        ``clock() -> float`` [s], the host's clock when the writes are paced on it: the
+        opposite torque is then held for the time the pulse was (a loaded host holds a
+        write longer than its period, and an impulse counted in writes leaves the joint
+        coasting). Default: counted in writes (a board paced by the writes: lockstep).
 
     Returns
     -------
@@ -276,6 +283,7 @@ def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: 
             x0 = settle()
             dx = 0.0
             sent = 0
+            t0 = None if clock is None else clock()
             for _ in range(n_pulse):
                 x = send(write_of(tau))
                 sent += 1
@@ -284,9 +292,15 @@ def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: 
                     break
             # the opposite impulse: whatever the motor's sign, it takes back the
             # velocity the pulse gave (a joint with little friction coasts for seconds)
+            # (on the host's clock: for as long as the pulse was held, each write held
+            # until the next one's)
             brake = write_of(-tau)
-            for _ in range(sent):
+            t1 = None if clock is None else clock()
+            braked = 0
+            while (braked < sent if clock is None
+                   else braked == 0 or clock() - t1 < t1 - t0):
                 x = send(brake)
+                braked += 1
                 if not dx and math.isfinite(x) and abs(x - x0) >= reach - count / 2:
                     dx = x - x0             # it moved after the delay
             for _ in range(n_rest):          # zero, then let it stop
