@@ -429,6 +429,10 @@ def test_a_rearming_keeps_the_boards_frame(monkeypatch, seed):
     assert board.decoder.stats["setups"] == 3          # the two armings and the stop
     bound = 2 * X0 * math.sqrt(K / J) * (rs.REARM_PROBE_S + 3 * T)
     assert board.frame_walk <= bound, (k, board.frame_walk, bound)
+    # the host's own bound on it (the STOP's and the CONFIG's set-ups, frame_bound), but
+    # for the set-up's whole count (the firmware truncates the offset to counts)
+    assert board.frame_walk <= tr.stats["frame_bound"] + 2 * math.pi / board.cpr, (
+        board.frame_walk, tr.stats["frame_bound"])
     assert tr.stats["records"] > N_TICKS // 2
 
 

@@ -301,15 +301,37 @@ class Resynchronising:
         is. The arming's offset is the pose the joint is *armed* in (the hand holds it
         there); mid-run the joint is elsewhere, and a set-up there moved the board's frame
         by the difference at every re-arming: the spring's rest walked with it (issue 29:
-        the lossy runs' 0.5-13 rad, each loss of 50 ms a re-arming)."""
+        the lossy runs' 0.5-13 rad, each loss of 50 ms a re-arming). What the STOP's
+        set-up (at the last angle read) and this one may still move the frame by is added
+        to ``stats["frame_bound"]`` (as a re-synchronisation's,
+        :meth:`_frame_error_bound`)."""
         x = self._x_last
         anchor = (self.driver.rearm_anchor(x)
                   if self._ever_armed and self._s_last >= 0 and math.isfinite(x) else None)
+        if anchor is not None and self._frames is not None:
+            # the STOP before set the board up at the last angle read: its frame moved by
+            # the joint's motion since that record (the reach from its prediction, and
+            # the prediction's one step), the frame_bound of a re-synchronisation
+            v = (0.0 if self._s_prev is None or self._s_last <= self._s_prev else
+                 abs(self._x_last - self._x_prev) / (self._s_last - self._s_prev))
+            tau = (max(self._now_us() - self._sent_us[self._s_last % RING], 0) * 1e-6
+                   + RESYNC_GAP_S)
+            stop = math.radians(self._frames.reach_deg(0, tau)) + v
+            self.stats["frame_bound"] += stop
         if anchor is not None and self.waits_silence_s > 0:
             # (on the board's own clock: a lockstep mock's time is the commands', and a
             # write more would step it)
+            sent = self._now_us()
             x = self._angle_now(x)
             anchor = self.driver.rearm_anchor(x)
+            if self._frames is not None:
+                # this set-up at the angle read in the STOP's frame (the probe's reply, or
+                # the last record's angle again: the joint coasted since, as far again)
+                probe = self._probe_got
+                tau = (max(self._now_us() - sent, 0) * 1e-6 + RESYNC_GAP_S
+                       if probe else None)
+                self.stats["frame_bound"] += (math.radians(self._frames.reach_deg(0, tau))
+                                              if probe else stop)
         if anchor is None:
             self._dec.reset_prediction(jumps=2)
             return self.driver.arm()
@@ -338,6 +360,7 @@ class Resynchronising:
         st = self._dec.stats
         self._desyncs, self._unreach, self._lone = (st.get(k, 0) for k in (
             "desync", "unreachable", "lone"))
+        self._probe_got = bool(got)
         return got[-1] if got else x
 
     def _arm_again(self) -> None:
