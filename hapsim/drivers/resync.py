@@ -287,10 +287,15 @@ class Resynchronising:
             # (one record only: the set-up takes it as it is, the prediction too)
             since_us = self._sent_us[self._s_last % RING]
             if x == x:
-                n = self._cmd + 1 - self._s_last
-                v = abs(self._x_last - self._x_prev) / (self._s_last - self._s_prev)
+                n, v = self._cmd + 1 - self._s_last, self._step_per_command()
         tau = max(self._now_us() - since_us, 0) * 1e-6 + RESYNC_GAP_S
         return math.radians(frames.reach_deg(0, tau)) + max(n - 1, 0) * v
+
+    def _step_per_command(self) -> float:
+        """The last two records' step per command [rad] (0 before two came)."""
+        if self._s_prev is None or self._s_last <= self._s_prev:
+            return 0.0
+        return abs(self._x_last - self._x_prev) / (self._s_last - self._s_prev)
 
     def _arming_bytes(self) -> bytes:
         """A CONFIG's bytes, and the decoder's prediction restarted for them: the
@@ -312,11 +317,9 @@ class Resynchronising:
             # the STOP before set the board up at the last angle read: its frame moved by
             # the joint's motion since that record (the reach from its prediction, and
             # the prediction's one step), the frame_bound of a re-synchronisation
-            v = (0.0 if self._s_prev is None or self._s_last <= self._s_prev else
-                 abs(self._x_last - self._x_prev) / (self._s_last - self._s_prev))
             tau = (max(self._now_us() - self._sent_us[self._s_last % RING], 0) * 1e-6
                    + RESYNC_GAP_S)
-            stop = math.radians(self._frames.reach_deg(0, tau)) + v
+            stop = math.radians(self._frames.reach_deg(0, tau)) + self._step_per_command()
             self.stats["frame_bound"] += stop
         if anchor is not None and self.waits_silence_s > 0:
             # (on the board's own clock: a lockstep mock's time is the commands', and a
