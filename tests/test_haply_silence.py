@@ -17,8 +17,9 @@ newest fresh sample (the hold bound), a zero torque written within any silence l
 than the bound and a period, and a board silent for
 :data:`~hapsim.drivers.resync.SILENCE_LOST_S` declared lost with zero torque sent. With
 real evidence (a corrupted command byte making the board forget its set-up), the board is
-re-synchronised as before, once per fault, and the run's verdict is withdrawn past
-:data:`hapsim.pipeline.runner.RESYNCS_STATED`. On the code before
+re-synchronised as before, once per fault, and the run's verdict is kept while the
+frame's summed bound leaves the joint within its workspace
+(:func:`hapsim.pipeline.runner.timing_verdict`). On the code before
 :mod:`hapsim.drivers.resync` 40 of the 41 cases fail: every silence of 20 ms or more
 re-synchronised the board, and the replies after a late one read alone were judged over
 ~1 ms; without the reach's speed bound alone, 5 fail (silences back to back); without
@@ -315,8 +316,10 @@ def test_a_board_that_lost_its_place_is_resynchronised_as_before(monkeypatch, se
     reset: the board forgets its set-up and answers the id alone), the board is
     re-synchronised once per fault (the decoder's ``lone``), zero torque first, put back
     in step, and the run's verdict is withdrawn when the stated rule says so
-    (:func:`hapsim.pipeline.runner.timing_verdict`: more than ``RESYNCS_STATED``)."""
-    from hapsim.pipeline.runner import RESYNCS_STATED, timing_verdict
+    (:func:`hapsim.pipeline.runner.timing_verdict`: the host's readings and the frame's
+    summed bound, ``frame_bound``, beyond the workspace; before, more than two
+    re-synchronisations whatever they cost)."""
+    from hapsim.pipeline.runner import timing_verdict
     rng = np.random.default_rng(2950 + seed)
     win = _windows(rng, N_TICKS)
     n_faults = int(rng.integers(1, 5))
@@ -349,8 +352,15 @@ def test_a_board_that_lost_its_place_is_resynchronised_as_before(monkeypatch, se
     cd = board.decoder
     assert cd.motor_addr[0] == tr.driver.id and cd.encoder_addr[0] == tr.driver.id
     m = {"k": 0.5, "b": 1e-3, "within": True, "verdict": "measured = predicted"}
-    timing_verdict(m, types.SimpleNamespace(samples=N_TICKS, overruns=0), tr.stats)
-    assert m["within"] == (n_faults <= RESYNCS_STATED), (n_faults, m["verdict"])
+    # each fault's bound (the reach over the time since the last record, the lone
+    # answers' few writes and the set-up's budget, and the extrapolation) is counted
+    assert tr.stats["frame_bound"] > 0.0
+    reading = float(np.max(np.abs(board.wall.excursion)))
+    for limit in (4.0, 0.5 * tr.stats["frame_bound"] + reading):
+        m = {"k": 0.5, "b": 1e-3, "within": True, "verdict": "measured = predicted"}
+        timing_verdict(m, types.SimpleNamespace(samples=N_TICKS, overruns=0), tr.stats,
+                       workspace=(reading, limit))
+        assert m["within"] == (limit == 4.0), (n_faults, m["verdict"])
 
 
 @pytest.mark.parametrize("seed", range(8))
@@ -419,6 +429,10 @@ def test_a_rearming_keeps_the_boards_frame(monkeypatch, seed):
     assert board.decoder.stats["setups"] == 3          # the two armings and the stop
     bound = 2 * X0 * math.sqrt(K / J) * (rs.REARM_PROBE_S + 3 * T)
     assert board.frame_walk <= bound, (k, board.frame_walk, bound)
+    # the host's own bound on it (the STOP's and the CONFIG's set-ups, frame_bound), but
+    # for the set-up's whole count (the firmware truncates the offset to counts)
+    assert board.frame_walk <= tr.stats["frame_bound"] + 2 * math.pi / board.cpr, (
+        board.frame_walk, tr.stats["frame_bound"])
     assert tr.stats["records"] > N_TICKS // 2
 
 

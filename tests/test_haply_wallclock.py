@@ -17,7 +17,6 @@ import pytest
 
 from hapsim.device_model import MockPhysics
 from hapsim.emulated.driver_mock import HaplyDevice, WallClock
-from hapsim.drivers import get_driver
 from hapsim.drivers import haply as hp
 from hapsim.scene import Device, Excitation
 from tolerance import rel_tol
@@ -199,23 +198,30 @@ def test_a_host_stall_is_a_stall_beside_two_busy_processes(monkeypatch):
 
 def test_a_late_run_is_not_called_within():
     """The run's verdict is withdrawn when the host was late in more than 2 % of the ticks
-    or the board was re-synchronised more than twice (on the wall clock; a lockstep run's
-    host paces the device, so lateness costs nothing there)."""
+    or the board's re-synchronisations may have moved the device out of its workspace
+    (the host's largest reading plus their summed frame bound beyond the position bound;
+    a transport that states no bound: unbounded), however many there were otherwise (on
+    the wall clock; a lockstep run's host paces the device, so lateness costs nothing
+    there)."""
     from types import SimpleNamespace
 
-    from hapsim.pipeline.runner import LATE_SHARE_MAX, RESYNCS_STATED, timing_verdict
+    from hapsim.pipeline.runner import LATE_SHARE_MAX, timing_verdict
     base = {"k": 1.0, "b": 0.1, "within": True, "verdict": "measured = predicted"}
     m = dict(base)
     timing_verdict(m, SimpleNamespace(samples=1000, overruns=int(LATE_SHARE_MAX * 1000)),
-                   {"resyncs": RESYNCS_STATED})
+                   {"resyncs": 9, "frame_bound": 0.5}, workspace=(0.2, 4.0))
     assert m["within"]
     m = dict(base)
     timing_verdict(m, SimpleNamespace(samples=1000, overruns=int(LATE_SHARE_MAX * 1000) + 1),
                    {"resyncs": 0})
     assert not m["within"] and m["verdict"].startswith("not measurable: the host missed")
+    for link, ws in (({"resyncs": 3, "frame_bound": 0.5}, (3.6, 4.0)),
+                     ({"resyncs": 1}, (0.2, 4.0))):
+        m = dict(base)
+        timing_verdict(m, SimpleNamespace(samples=1000, overruns=0), link, workspace=ws)
+        assert not m["within"] and "beyond the workspace" in m["verdict"], link
+        assert f"re-synchronised {link['resyncs']} times" in m["verdict"]
     m = dict(base)
-    timing_verdict(m, SimpleNamespace(samples=1000, overruns=0), {"resyncs": 3})
-    assert not m["within"] and "re-synchronised 3 times" in m["verdict"]
-    m = dict(base)
-    timing_verdict(m, SimpleNamespace(samples=1000, overruns=500), {"resyncs": 9}, wall=False)
+    timing_verdict(m, SimpleNamespace(samples=1000, overruns=500), {"resyncs": 9}, wall=False,
+                   workspace=(3.9, 4.0))
     assert m["within"]

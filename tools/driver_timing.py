@@ -33,7 +33,8 @@ hook), as a board process behind CPU-bound processes, a USB hub or a descheduled
 reader is; no byte is lost by it (``board_silences``: their number and the longest).
 
 Each row: safety stop, re-synchronisations (and why, ``resync_reasons``; the silences the
-host waited for instead, ``silences``; the emulated board's ``frame_walk``: how far its
+host waited for instead, ``silences``; the host's ``frame_bound``: how far their estimates
+may have moved the board's frame, summed; the emulated board's ``frame_walk``: how far its
 set-ups moved its frame, the stop's included, and its parser's counters,
 ``board_parser``), host stalls, the largest excursion (the
 device's own where its model reports it, ``true_excursion``; else the host's readings),
@@ -116,7 +117,7 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "safety_stop": bool(lp["safety_stop"]), "stop": lp["stop_reason"],
             "resyncs": dl.get("resyncs"), "stalls": dl.get("host_stalls", lp.get("overruns")),
             "excursion_true": mk.get("true_excursion"), "excursion_host": x_host,
-            "frame_walk": mk.get("frame_walk"),
+            "frame_walk": mk.get("frame_walk"), "frame_bound": dl.get("frame_bound"),
             "resync_reasons": {k: v for k, v in (dl.get("resync_reasons") or {}).items() if v},
             "silences": dl.get("silences"), "silence_max_s": dl.get("silence_max_s"),
             "board_silences": mk.get("starved"),
@@ -350,7 +351,7 @@ def main(argv=None) -> int:
                     print(json.dumps({k: row.get(k) for k in (
                         "driver", "loss", "seed", "clock", "safety_stop", "resyncs",
                         "resync_reasons", "silences", "board_silences", "board_parser",
-                        "frame_walk", "stalls",
+                        "frame_walk", "frame_bound", "stalls",
                         "excursion_true", "excursion_host", "verdict", "exit_code",
                         "error", "board_off_period", "unseen_holds", "link_verdict")},
                                      default=str),

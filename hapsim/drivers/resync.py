@@ -100,7 +100,9 @@ class Resynchronising:
     Its counters (in ``stats``): ``resyncs``; ``resync_reasons`` (a dict, one count per
     :data:`RESYNC_REASONS` key); ``silences`` (silences of the board longer than
     :data:`SILENT_S` waited for instead) and ``silence_max_s`` (the longest, from the
-    oldest unanswered command's sending to the record that ended it [s]).
+    oldest unanswered command's sending to the record that ended it [s]); ``frame_bound``
+    (the sum over the re-synchronisations of how far each can move the board's frame
+    [rad], :meth:`_frame_error_bound`).
     """
 
     def _init_resync(self) -> None:
@@ -111,7 +113,7 @@ class Resynchronising:
         self._rx_since_record = 0             # bytes read since the last record taken
         self._silent_from_us = None           # a silence being waited for: its start
         self.stats.update(resyncs=0, resync_reasons=dict.fromkeys(RESYNC_REASONS, 0),
-                          silences=0, silence_max_s=0.0)
+                          silences=0, silence_max_s=0.0, frame_bound=0.0)
 
     @property
     def waits_silence_s(self) -> float:
@@ -228,6 +230,7 @@ class Resynchronising:
         # where the device is now: the last two records extrapolated to this command (a
         # board that re-zeroes its position at the set-up goes on from there)
         x = self._extrapolate(self._cmd + 1)
+        self.stats["frame_bound"] += self._frame_error_bound(x)
         if self._s_last < 0:
             # no record yet: the arming's offset is the only position known (the
             # decoder's anchor), not the 0 the host starts from
@@ -247,6 +250,53 @@ class Resynchronising:
             self.stats["missing"] += self._cmd - 1 - self._answered
             self._answered = self._cmd - 1
 
+    def _frame_error_bound(self, x: float) -> float:
+        """How far [rad] a re-synchronisation about to be sent can move the board's frame:
+        the error of the angle its set-up writes into the encoder's count, the estimate
+        ``x`` (the last two records extrapolated to this command), against where the joint
+        is when the count is written (at most :data:`RESYNC_GAP_S` from now: the set-up's
+        2 ms wait and the bytes' passes).
+
+        The decoder's reach (:meth:`hapsim.drivers.haply.ReplyDecoder.reach_deg`, the rule
+        every reply is believed by: the motion the torque clamp over the joint's inertia
+        allows, Taylor's bound with a factor 2, and whole encoder counts) bounds the joint's
+        distance from the last two records' prediction one period ahead over the time
+        ``tau`` since the last record's command; the estimate lies ``(n - 1) |v|`` beyond
+        that prediction (``n`` commands ahead, ``v`` the records' step per command). So
+        ``|x - x_true| <= reach(tau) + (n - 1) |v|``. Before any record (``unarmed``: the
+        arming's set-up again), the set-up's offset is the arming's, and the joint is
+        within the reach of it since the arming (the decoder's anchor, no velocity).
+        A frame's error moves the spring's rest in the joint's real frame, not the loop
+        the host closes in its own (translation-invariant: the measurement's stretches, cut
+        at each re-synchronisation's ``seq`` gap, fit their own initial states), so the
+        sum of these bounds is what the joint's real position may differ from the host's
+        readings by (:func:`hapsim.pipeline.runner.timing_verdict`).
+
+        Returns
+        -------
+        float
+            The bound [rad]; ``inf`` for a driver whose decoder states no reach.
+        """
+        frames = self._frames
+        if frames is None:
+            return math.inf
+        n, v = 1, 0.0
+        if self._s_last < 0:
+            since_us = self._anchor_us
+        else:
+            # (one record only: the set-up takes it as it is, the prediction too)
+            since_us = self._sent_us[self._s_last % RING]
+            if x == x:
+                n, v = self._cmd + 1 - self._s_last, self._step_per_command()
+        tau = max(self._now_us() - since_us, 0) * 1e-6 + RESYNC_GAP_S
+        return math.radians(frames.reach_deg(0, tau)) + max(n - 1, 0) * v
+
+    def _step_per_command(self) -> float:
+        """The last two records' step per command [rad] (0 before two came)."""
+        if self._s_prev is None or self._s_last <= self._s_prev:
+            return 0.0
+        return abs(self._x_last - self._x_prev) / (self._s_last - self._s_prev)
+
     def _arming_bytes(self) -> bytes:
         """A CONFIG's bytes, and the decoder's prediction restarted for them: the
         driver's :meth:`~hapsim.drivers.base.Driver.arm` at the first arming; at a
@@ -256,15 +306,35 @@ class Resynchronising:
         is. The arming's offset is the pose the joint is *armed* in (the hand holds it
         there); mid-run the joint is elsewhere, and a set-up there moved the board's frame
         by the difference at every re-arming: the spring's rest walked with it (issue 29:
-        the lossy runs' 0.5-13 rad, each loss of 50 ms a re-arming)."""
+        the lossy runs' 0.5-13 rad, each loss of 50 ms a re-arming). What the STOP's
+        set-up (at the last angle read) and this one may still move the frame by is added
+        to ``stats["frame_bound"]`` (as a re-synchronisation's,
+        :meth:`_frame_error_bound`)."""
         x = self._x_last
         anchor = (self.driver.rearm_anchor(x)
                   if self._ever_armed and self._s_last >= 0 and math.isfinite(x) else None)
+        if anchor is not None and self._frames is not None:
+            # the STOP before set the board up at the last angle read: its frame moved by
+            # the joint's motion since that record (the reach from its prediction, and
+            # the prediction's one step), the frame_bound of a re-synchronisation
+            tau = (max(self._now_us() - self._sent_us[self._s_last % RING], 0) * 1e-6
+                   + RESYNC_GAP_S)
+            stop = math.radians(self._frames.reach_deg(0, tau)) + self._step_per_command()
+            self.stats["frame_bound"] += stop
         if anchor is not None and self.waits_silence_s > 0:
             # (on the board's own clock: a lockstep mock's time is the commands', and a
             # write more would step it)
+            sent = self._now_us()
             x = self._angle_now(x)
             anchor = self.driver.rearm_anchor(x)
+            if self._frames is not None:
+                # this set-up at the angle read in the STOP's frame (the probe's reply, or
+                # the last record's angle again: the joint coasted since, as far again)
+                probe = self._probe_got
+                tau = (max(self._now_us() - sent, 0) * 1e-6 + RESYNC_GAP_S
+                       if probe else None)
+                self.stats["frame_bound"] += (math.radians(self._frames.reach_deg(0, tau))
+                                              if probe else stop)
         if anchor is None:
             self._dec.reset_prediction(jumps=2)
             return self.driver.arm()
@@ -293,6 +363,7 @@ class Resynchronising:
         st = self._dec.stats
         self._desyncs, self._unreach, self._lone = (st.get(k, 0) for k in (
             "desync", "unreachable", "lone"))
+        self._probe_got = bool(got)
         return got[-1] if got else x
 
     def _arm_again(self) -> None:
