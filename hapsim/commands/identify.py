@@ -151,7 +151,8 @@ def register(sub) -> None:
                         "preempted mid-push leaves the device its force for that long")
     p.add_argument("--mock-scene", metavar="SCENE",
                    help="scene whose device the embedded mock models (default: m = 0.1 kg, "
-                        "b0 = 0.5 N s/m, d = 1)")
+                        "b0 = 0.5 N s/m, d = 1); a 2-D or 3-D scene with --lockstep: its "
+                        "device's mass and friction matrices and delay")
     p.add_argument("--seed", type=declared("identify", "seed"),
                    default=0, help="excitation and mock-noise seed")
     p.set_defaults(func=run)
@@ -218,6 +219,10 @@ def run(args) -> int:
         check_output_path(args.out, "--out")
     device = None
     if args.mock_scene:
+        from hapsim import load_scene
+        scene = load_scene(args.mock_scene)
+        if getattr(scene, "dimension", 1) > 1:
+            return _run_space(args, scene)
         from hapsim.commands.dimension import load_one_d_scene
         device = load_one_d_scene(args.mock_scene, "identify", "--mock-scene").device
         if device is None:
@@ -325,3 +330,97 @@ def run(args) -> int:
               f"{loop['stop_reason']}, late {loop['late']}, clamped {loop['clamped']}")
     sys.stdout.flush()
     return code
+
+
+#: The options a 2-D or 3-D identification in lockstep does not take, and why.
+_SPACE_REFUSED = {
+    "port": "over a port in real time a 2-D or 3-D device is not identified yet: --lockstep "
+            "identifies the scene's own device model",
+    "driver": "the lockstep device is the scene's own model: no protocol",
+    "hand": "a hand on a 2-D or 3-D handle is not modelled",
+    "added_mass": "the lockstep device is in SI units: no scale to calibrate",
+    "travel": "the lockstep device is in SI units: no travel to sweep",
+    "plot": "the 2-D or 3-D fit has no plot yet (--json has every number)",
+}
+
+
+def _run_space(args, scene) -> int:
+    """``hapsim identify --mock-scene SCENE --lockstep`` of a 2-D or 3-D scene: its
+    device's mass and friction matrices and its delay
+    (:func:`hapsim.pipeline.identify_matrices.identify_matrices_lockstep`), against what
+    the scene states.
+
+    Returns
+    -------
+    int
+        0 when the scene's matrices are within the intervals identified and the delay is
+        the scene's, else 1.
+
+    Raises
+    ------
+    ConfigError
+        Without ``--lockstep``, or with an option it does not take (:data:`_SPACE_REFUSED`,
+        keyed by the option); a scene without a device or with a sub-sample delay.
+    hapsim.errors.IdentificationError
+        The handle left the envelope, or the record does not determine the device.
+    """
+    import numpy as np
+
+    from hapsim.pipeline.identify_matrices import identify_matrices_lockstep
+    from hapsim.progress import Progress
+    given = {"port": args.port, "driver": args.driver != DEFAULT, "hand": args.hand,
+             "added_mass": args.added_mass is not None, "travel": args.travel is not None,
+             "plot": args.plot}
+    for key, why in _SPACE_REFUSED.items():
+        if given[key]:
+            raise ConfigError(why, key="--" + key.replace("_", "-"))
+    if not args.lockstep:
+        raise ConfigError(_SPACE_REFUSED["port"] + " (give --lockstep)", key="--lockstep")
+    with Progress(1, f"identifying the {scene.dimension}-D device (two records of "
+                     f"{args.duration:g} s)", unit="samples") as bar:
+        r = identify_matrices_lockstep(
+            scene, force_limit=args.force_limit, envelope=args.envelope,
+            duration=args.duration, max_delay=args.max_delay, seed=args.seed,
+            progress=lambda done, total: bar.update(done, total))
+    fit, dev = r["fit"], scene.device
+    hm, hb = r["mass_half_width"], r["friction_half_width"]
+    em = float(np.abs(fit.mass - dev.mass).max())
+    eb = float(np.abs(fit.friction - dev.friction).max())
+    agree = em <= hm and eb <= hb and fit.delay == int(dev.delay)
+    doc = {"scene": str(args.mock_scene), "dof": scene.dimension, "device": dev.kind,
+           "rate_hz": scene.rate_hz, "identified": fit.to_dict(),
+           "mass_half_width": hm, "friction_half_width": hb,
+           "scene_states": {"mass": dev.mass.tolist(), "friction": dev.friction.tolist(),
+                            "delay": dev.delay},
+           "within": agree, "excursion": r["excursion"],
+           "largest_force": r["largest_force"], "samples": r["samples"],
+           "centring": r["centring"], "out": args.out}
+
+    def mat(a):
+        return "[" + ", ".join("[" + ", ".join(f"{v:.6g}" for v in row) + "]"
+                               for row in a) + "]"
+    text = (f"# identified in lockstep from {args.mock_scene}'s {dev.kind} (its "
+            f"{scene.dimension}-D Cartesian mass and friction at the operating point; two "
+            f"records of {args.duration:g} s, the handle within "
+            f"{r['excursion'] * 1e3:.3g} mm of rest)\n"
+            f"# mass +- {hm:.2g} kg and friction +- {hb:.2g} N s/m on every entry (the "
+            f"device's nonlinearity from two amplitudes, and the fit's standard errors); "
+            f"delay {fit.delay} periods (the next best fit's residual "
+            f"{fit.runner_up / max(fit.residual, 1e-300):.3g} times larger)\n"
+            f"device: {{kind: cartesian, mass: {mat(fit.mass)},\n"
+            f"         friction: {mat(fit.friction)},\n"
+            f"         position: [{', '.join(f'{v:.6g}' for v in dev.position)}], "
+            f"delay: {fit.delay}}}\n")
+    if args.out:
+        with open(args.out, "w", encoding="utf-8") as fh:
+            fh.write(text)
+    if args.json:
+        print(json.dumps(doc))
+    else:
+        print(text, end="")
+        print(f"# the scene states mass {mat(dev.mass)} kg, friction {mat(dev.friction)} "
+              f"N s/m, delay {dev.delay}: "
+              + ("within the intervals" if agree else
+                 f"NOT within (mass off by {em:.3g} kg, friction by {eb:.3g} N s/m, delay "
+                 f"{fit.delay} against {dev.delay})"))
+    return 0 if agree else 1
