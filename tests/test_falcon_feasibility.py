@@ -134,3 +134,51 @@ def test_a_large_loop_says_before_the_run_that_it_is_not_measured():
     assert p["verdict"] == "not measured" and p["states"] > FEASIBILITY_STATES
     assert p["statement"].startswith("felt matrices not measured, said before the run")
     assert p["statement"].endswith(p["reason"]) and "worst" not in p
+
+
+def test_a_run_never_makes_a_statement_its_prediction_excluded():
+    """A run on the Falcon's own clock fits records its host's timing may have cut, whose
+    term over the box differs from the complete lockstep records' the prediction took
+    (:func:`hapsim.pipeline.falcon_run.felt_statement` passes the prediction's
+    ``not_stated``): over random terms, deviations and exclusions (seeded), a statement
+    excluded is "not measurable" with the exclusion's reason, every other statement is
+    what it is without the exclusion, and the verdict is the conjunction of what is
+    stated."""
+    from hapsim.analysis.felt_matrices import FELT_QUANTITIES, felt_verdict
+    from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.analysis.scene_check import check_scene_nd
+    from hapsim.scene import load_scene_nd
+    sc = load_scene_nd(CONFIGS / "falcon_spring.yaml")
+    chk = check_scene_nd(sc)
+    bound = linearisation_bound(sc, 1e-4, chk.render.rendered_poles)
+    E = np.asarray(chk.render.directions, float)
+    rng = np.random.default_rng(31)
+    for _ in range(40):
+        dev = {q: float(rng.uniform(0.0, 0.3)) for q in FELT_QUANTITIES}
+        wire = {q: float(rng.uniform(0.0, 0.4)) for q in FELT_QUANTITIES}
+        wire["directions"] = {q: list(rng.uniform(0.0, 0.4, 3)) for q in FELT_QUANTITIES}
+        dirs = {"directions": [E[:, i] for i in range(3)], "damping_factor": [1.0] * 3,
+                "largest": {q: 1.0 for q in FELT_QUANTITIES}}
+        for q in FELT_QUANTITIES:
+            dirs[q] = [{"predicted": 1.0, "measured": 1.0 + d, "deviation": abs(d)}
+                       for d in rng.uniform(-0.3, 0.3, 3)]
+        free = felt_verdict(dev, bound, wire, directions=dirs)
+        names = [s["name"] for s in free["statements"]]
+        out = [n for n in names if rng.random() < 0.3]
+        got = felt_verdict(dev, bound, wire, directions=dirs,
+                           excluded={n: "excluded before the run" for n in out})
+        for a, b in zip(free["statements"], got["statements"]):
+            if a["name"] in out:
+                assert b["verdict"] == "not measurable"
+                assert b["reason"] == "excluded before the run"
+            else:
+                assert b == a
+        stated = [s for s in got["statements"] if s["verdict"] != "not measurable"]
+        if not stated:
+            assert got["verdict"] == "not measurable"
+            if out:
+                assert got["reason"].startswith("excluded before the run: ")
+        elif any(s["verdict"] == "differs" for s in stated):
+            assert got["verdict"] == "differs"
+        else:
+            assert got["verdict"] == ("partly within" if got["not_stated"] else "within")

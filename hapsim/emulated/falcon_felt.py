@@ -98,7 +98,8 @@ def falcon_usable_rows(joints, delay: int) -> np.ndarray:
     return np.cumsum(bad[:N]) == 0
 
 
-def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = False) -> dict:
+def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = False,
+                        excluded=None) -> dict:
     """The felt matrices of a Falcon's ``2n + 1`` records and their verdict (module notes).
 
     Parameters
@@ -117,6 +118,9 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         :data:`hapsim.analysis.felt_matrices.MEASURABLE_WIRE` (:func:`hapsim.lockstep.
         wire_terms_nd`'s ``settle``): which statements are made is the same, the terms of
         a verdict that states nothing lower bounds (``wire["box_complete"]`` False).
+    excluded : dict, optional
+        :func:`hapsim.analysis.felt_matrices.felt_verdict`'s: statements the prediction
+        before the run excluded (:func:`felt_feasibility`), never made here.
 
     Returns
     -------
@@ -213,7 +217,7 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
             wire.update(wire_terms_nd(scene, diffs, chk, order, errors, box=True,
                                       settle=MEASURABLE_WIRE if settle else None))
         v = felt_verdict(dev, bound, wire, estimated=0,
-                         directions=felt_directions(fit, chk))
+                         directions=felt_directions(fit, chk), excluded=excluded)
         if usable is not None:
             v["reason"] += (f"; {missing} missing replies: the records cut there, each "
                             "fitted on its own undisturbed stretches about the fitted "
