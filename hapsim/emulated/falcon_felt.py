@@ -412,17 +412,21 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     **Why the lockstep records, over the box.** Before, the prediction was the
     first-order term about the exact records (:func:`quantiser_terms`) against the limit
     of a statement: on configs/falcon_spring.yaml it said "measurable" (0.19) and the
-    run, over the box at its own rounded records, stated nothing (10^6): a prediction the
-    run contradicted. The statement over the box is a function of the records alone, so
-    the lockstep records give the lockstep run's statements exactly; a run on the
-    Falcon's own clock takes the same records unless the host is late (its rows cut),
-    which can only take information away. **The cheaper sufficient evaluation.** The
+    run, over the box at its own rounded records, stated nothing (10^5-10^6): a
+    prediction the run contradicted. The statement over the box is a function of the
+    records alone, so the lockstep records give the lockstep run's statements exactly; a
+    run on the Falcon's own clock takes the same records unless the host is late (its
+    rows cut), which can only take information away, and it never makes a statement
+    excluded here (:func:`hapsim.pipeline.falcon_run.felt_statement`'s ``excluded``).
+    **The cheaper sufficient evaluation.** The
     box's term of a statement is :data:`hapsim.analysis.wire_box.BOX_MARGIN` times a
     maximum over sampled points, the records among them: it only grows as points are
     added. So the box is sampled, the points of the statements still under the limit
     first, only until every statement is beyond it
     (:func:`hapsim.analysis.wire_box.box_worst_case`'s ``settled``): on
-    configs/falcon_spring.yaml 1 point of the 24 (~0.2 s of CPU against ~4 s for all).
+    configs/falcon_spring.yaml 1 point of the 24, on configs/delta_sphere.yaml none (the
+    records' own point settles every statement); the feasibility 1.6-1.7 s of CPU,
+    against ~4.6 s for the box's 24 points alone.
     Where something is stated every point is sampled (the run's full term).
 
     The first-order figures about the exact records (:func:`quantiser_terms`: the worst
