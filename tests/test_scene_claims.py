@@ -32,7 +32,8 @@ def _rows() -> list:
 
 def test_every_shipped_scene_has_its_rows_and_each_row_agrees():
     """Every configs/*.yaml is in the table (a delta scene twice: the framed mock and the
-    emulated Falcon), and every row says "yes" by the table's own rule."""
+    emulated Falcon; a pantograph scene twice: the framed mock and the emulated 2DIY),
+    and every row says "yes" by the table's own rule."""
     sys.path.insert(0, str(ROOT / "tools"))
     try:
         from scene_claims import _agrees
@@ -46,9 +47,10 @@ def test_every_shipped_scene_has_its_rows_and_each_row_agrees():
         verdict = states.rsplit(" (exit", 1)[0]
         assert agrees == "yes", scene
         assert _agrees(portless, None if said == "-" else said, verdict), (scene, run)
-    falcon = {r[0] for r in rows if r[1] == "--driver falcon"}
-    assert falcon == {p.name for p in (ROOT / "configs").glob("*.yaml")
-                      if "kind: delta" in p.read_text()}
+    for route, kind in (("--driver falcon", "kind: delta"),
+                        ("--driver haply", "kind: pantograph")):
+        assert {r[0] for r in rows if r[1] == route} == {
+            p.name for p in (ROOT / "configs").glob("*.yaml") if kind in p.read_text()}
 
 
 def test_the_check_column_and_the_cheap_predictions_are_the_commands(capsys):

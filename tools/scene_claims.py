@@ -5,7 +5,8 @@ SCENE --json`` (the embedded mock, or the scene's own driver's emulated board, i
 time, default duration) with what it said on stderr before its loop (``predicted before
 the run`` / ``said before the run``) and the verdict it states; for the delta scenes also
 ``hapsim run SCENE --driver falcon --firmware FILE --packets 200 --json`` (the emulated
-Falcon; a random image: the emulated loader takes any). A row agrees when the run
+Falcon; a random image: the emulated loader takes any), for the pantograph scenes
+``hapsim run SCENE --driver haply --json`` (the emulated 2DIY in real time). A row agrees when the run
 states what was predicted: a statement before the run and a "not measurable" (or "not
 measured") run, or no statement and a run that states "within" (or "partly within"
 with what it did not state named before); a scene without a port is refused by both
@@ -39,6 +40,16 @@ def _hapsim(args, timeout=600):
     except ValueError:
         out = None
     return p.returncode, out, p.stderr, time.monotonic() - t0
+
+
+def _reason(out) -> str | None:
+    """The run's reason for its verdict (the felt pair's, the matrices', the Falcon's)."""
+    if not isinstance(out, dict):
+        return None
+    if "felt_matrices" in out:
+        return out["felt_matrices"].get("reason")
+    m = out.get("measured")
+    return out.get("reason") or (m.get("reason") if isinstance(m, dict) else None)
 
 
 def _said(err: str) -> str | None:
@@ -86,13 +97,15 @@ def claims(paths, firmware: str) -> list:
         if "kind: delta" in Path(path).read_text():
             runs.append(["run", rel, "--driver", "falcon", "--firmware", firmware,
                          "--packets", "200", "--json"])
+        if "kind: pantograph" in Path(path).read_text():
+            runs.append(["run", rel, "--driver", "haply", "--json"])
         for argv in runs:
             rc, out, err, s = _hapsim(argv)
             said = _said(err)
             states = _states(rc, out)
             rows.append({"scene": rel, "command": "hapsim " + " ".join(
                 a if a != firmware else "FILE" for a in argv), "check": check,
-                "said_before_run": said, "states": states,
+                "said_before_run": said, "states": states, "reason": _reason(out),
                 "agrees": _agrees(portless, said, states), "exit": rc,
                 "seconds": round(s, 1)})
             print(f"{rel}: {states} ({'agrees' if rows[-1]['agrees'] else 'DISAGREES'})",
@@ -109,7 +122,8 @@ def table(rows) -> str:
         if said:                 # "hapsim run: SCENE: WHAT, predicted before the run (...)"
             said = said.split(": ", 2)[2].split(", predicted before")[0].split(
                 ", said before")[0]
-        run = "`--driver falcon`" if "--driver falcon" in r["command"] else "`run`"
+        run = ("`--driver falcon`" if "--driver falcon" in r["command"] else
+               "`--driver haply`" if "--driver haply" in r["command"] else "`run`")
         out.append(f"| `{Path(r['scene']).name}` | {run} | {r['check']} | {said or '-'} | "
                    f"{r['states']} (exit {r['exit']}) | {'yes' if r['agrees'] else 'NO'} |")
     return "\n".join(out)

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-__all__ = ["felt_deviation", "felt_directions", "felt_verdict", "statement_name",
+__all__ = ["said_before_run", "felt_deviation", "felt_directions", "felt_verdict", "statement_name",
            "MEASURABLE_WIRE", "FELT_QUANTITIES"]
 
 
@@ -345,3 +345,32 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     return {"verdict": verdict, "within": bool(ok),
             "uncertainty": unc, "reason": reason, "statements": st,
             "not_stated": not_stated}
+
+
+def said_before_run(how: str, stated, not_stated, reason: str) -> str | None:
+    """The sentence a run says on stderr before its loop when its prediction (the run's
+    own records and statement taken in lockstep: the Falcon's
+    :func:`hapsim.emulated.falcon_felt.felt_feasibility`, the 2DIY's) excludes
+    statements (issue 31 item 4).
+
+    Parameters
+    ----------
+    how : str
+        How the prediction was made (in parentheses after "predicted before the run").
+    stated, not_stated : list of str
+        The statements' names (:func:`statement_name`) the prediction makes and does not.
+    reason : str
+        Why, with the numbers.
+
+    Returns
+    -------
+    str or None
+        None when every statement will be made.
+    """
+    if not not_stated:
+        return None
+    if not stated:
+        return f"felt matrices not measurable, predicted before the run ({how}): {reason}"
+    return (f"felt matrices partly measurable, predicted before the run ({how}): not "
+            f"stated: {', '.join(not_stated)}: {reason}")
+

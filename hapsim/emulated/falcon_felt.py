@@ -553,12 +553,7 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
 
 def _before_run(a: float, stated: list, not_stated: list, reason: str) -> str | None:
     """The sentence a run says before it starts (None: every statement will be made)."""
-    if not not_stated:
-        return None
-    how = (f"the emulated Falcon's records in lockstep at a = {a:g} m, the counts' and the "
-           "commands' rounding alone")
-    if not stated:
-        return f"felt matrices not measurable, predicted before the run ({how}): {reason}"
-    return (f"felt matrices partly measurable, predicted before the run ({how}): not "
-            f"stated: {', '.join(not_stated)}: {reason}")
-
+    from hapsim.analysis.felt_matrices import said_before_run
+    return said_before_run(f"the emulated Falcon's records in lockstep at a = {a:g} m, the "
+                           "counts' and the commands' rounding alone", stated, not_stated,
+                           reason)
