@@ -416,8 +416,9 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     prediction the run contradicted. The statement over the box is a function of the
     records alone, so the lockstep records give the lockstep run's statements exactly; a
     run on the Falcon's own clock takes the same records unless the host is late (its
-    rows cut), which can only take information away, and it never makes a statement
-    excluded here (:func:`hapsim.pipeline.falcon_run.felt_statement` passes them on).
+    rows cut, fitted otherwise), and it never makes a statement excluded here
+    (:func:`hapsim.pipeline.falcon_run.felt_statement` passes them on: a smaller term
+    over the box at other records is no better evidence).
     **The cheaper sufficient evaluation.** The
     box's term of a statement is :data:`hapsim.analysis.wire_box.BOX_MARGIN` times a
     maximum over sampled points, the records among them: it only grows as points are
