@@ -63,7 +63,7 @@ def run_haply2_command(args) -> int:
         # before the loop: what the emulated board's counts and binary32 let this run
         # state (the same records in lockstep, the board on its lockstep clock, asked
         # for by name; ~1.5 s of CPU): what will not be stated is said first, and the
-        # real-time records, which a late host can only cut, never state it
+        # real-time records (cut, estimated) never state it
         try:
             with Progress(5, "run (2DIY bytes: what its records can state, in lockstep)",
                           unit="records") as bar:
