@@ -49,15 +49,14 @@ def _stated(v) -> list:
 
 
 def test_the_prediction_is_what_the_lockstep_run_states(monkeypatch):
-    """Seeded random spring fields, the encoder 1 to 22 times finer than the Falcon's
+    """Seeded random spring fields, the encoder the Falcon's own and 11 to 22 times finer
     (drawn; both outcomes must occur): the prediction's statements are the lockstep run's
     (:func:`hapsim.emulated.falcon_felt.measure_felt_falcon` at the prediction's start,
     the box sampled in full), name by name; a statement it says is not stated is "not
     measurable" in the run; its sentence before the run names them."""
     from hapsim.emulated.falcon_felt import felt_feasibility, measure_felt_falcon
     seen = {"measurable": 0, "not measurable": 0}
-    for seed, finer in ((3, 1.0), (4, 2.0 ** np.random.default_rng(4).uniform(3.5, 4.5)),
-                        (5, 2.0 ** np.random.default_rng(5).uniform(0.0, 4.5))):
+    for seed, finer in ((3, 1.0), (4, 2.0 ** np.random.default_rng(4).uniform(3.5, 4.5))):
         with monkeypatch.context() as mp:
             step = _finer(mp, finer)
             sc, _ = _falcon_loop(seed)
