@@ -30,7 +30,7 @@ from hapsim.joint_device import JointDeviceND
 
 __all__ = ["LockstepND", "measure_felt_lockstep", "excitation_starts", "default_samples",
            "identification_plan", "error_responses", "state_responses", "wire_terms_nd",
-           "relative_terms"]
+           "relative_terms", "beyond"]
 
 
 class LockstepND:
@@ -385,7 +385,8 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 
 
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
-                  mass=None, responses=None, period=None, box: bool = False) -> dict:
+                  mass=None, responses=None, period=None, box: bool = False,
+                  settle: float | None = None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces, and changes of the device's state.
@@ -453,6 +454,11 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         of the first-order one at the records (default: the first-order term, whose
         callers, the Falcon's feasibility among them, scale it linearly with the
         errors' size).
+    settle : float, optional
+        With ``box``: stop sampling the box once every statement's relative term exceeds
+        ``settle`` (the limit of a statement: which statements are made is then known;
+        :func:`hapsim.analysis.wire_box.box_worst_case`'s ``settled``). The terms are
+        then lower bounds of the full sampling's and ``box_complete`` is False.
 
     Returns
     -------
@@ -461,7 +467,8 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         predicted matrix's largest entry [-]; ``directions``: for each of the two, a list
         of n relative terms along the principal directions of :func:`felt_directions`
         (over ``|e_i^T X e_i|``; inf when it is 0); ``first_order``: the same terms at
-        the records alone (:func:`relative_terms`); ``box`` True with ``box``. Every
+        the records alone (:func:`relative_terms`); ``box`` True with ``box``;
+        ``box_complete`` with ``settle`` (every point of the box sampled). Every
         term inf (``first_order`` None) when the records, or a copy moved within the
         bounds, give no sensitivity (no felt matrices).
 
@@ -508,10 +515,43 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
     if not box:
         got = terms_at(diffs)
         return inf if got is None else relative_terms(chk, got[0], got[0])
-    got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True)
+    settled = None if settle is None else (lambda wc: beyond(chk, wc, settle))
+    got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True,
+                         settled=settled)
     if got is None:
-        return {**inf, "box": True}
-    return {**relative_terms(chk, got[1], got[0]), "box": True}
+        return {**inf, "box": True} | ({} if settle is None else {"box_complete": True})
+    out = {**relative_terms(chk, got[1], got[0]), "box": True}
+    if settle is not None:
+        out["box_complete"] = bool(got[2])
+    return out
+
+
+def beyond(chk, wc, limit: float) -> np.ndarray:
+    """Per worst case of :func:`wire_terms_nd`'s layout, whether the statement it belongs
+    to is beyond ``limit`` (a felt matrix: its largest entry's relative term; a principal
+    direction: its own), as :func:`relative_terms` makes them relative.
+
+    Parameters
+    ----------
+    chk : hapsim.analysis.scene_check.SceneCheckND
+        The prediction.
+    wc : ndarray, shape (2 n^2 + 2 n,)
+        Worst cases in :func:`relative_terms`'s layout.
+    limit : float
+        The relative limit [-].
+
+    Returns
+    -------
+    ndarray of bool, shape (2 n^2 + 2 n,)
+    """
+    rel = relative_terms(chk, wc)
+    n = np.asarray(chk.render.felt_stiffness).shape[0]
+    out = []
+    for q in FELT_QUANTITIES:
+        out += [rel[q] > limit] * (n * n)
+    for q in FELT_QUANTITIES:
+        out += [d > limit for d in rel["directions"][q]]
+    return np.asarray(out, bool)
 
 
 def relative_terms(chk, wc, first=None) -> dict:

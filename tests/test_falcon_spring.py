@@ -60,24 +60,30 @@ def _stated_within(r):
 
 def test_the_figures_in_its_comments(spring):
     """The comments' figures, each recomputed: the largest start the envelope allows
-    (3.8 mm, ~95 counts), the rounding's worst case there on the felt stiffness (0.19,
-    below the 0.25 a statement allows) and on the damping (above it: never stated, the
-    start already the largest), the stiffness limit along the lightest mass axis (2029 N/m,
-    1000 N/m being 0.5 of it), and the loop stable with one period more of delay (a lost
-    packet's hold: the records do not grow when the link loses bytes)."""
+    (3.8 mm, ~95 counts), the rounding's first-order worst case about the exact records
+    there on the felt stiffness (0.19, below the 0.25 a statement allows) and on the
+    damping (above it: never stated, the start already the largest), the feasibility's
+    verdict on the run's own records over the error box (nothing stated: every statement
+    beyond the limit, said before the run), the stiffness limit along the lightest mass
+    axis (2029 N/m, 1000 N/m being 0.5 of it), and the loop stable with one period more of
+    delay (a lost packet's hold: the records do not grow when the link loses bytes)."""
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
     from hapsim.analysis.scene_check import check_scene_nd
     sc, plan, f = spring
     c = _comments()
-    assert f["verdict"] == "measurable" and "envelope" in f["limited_by"]
+    assert f["verdict"] == "not measurable" and "envelope" in f["limited_by"]
+    assert f["stated"] == [] and f["statement"].startswith("felt matrices not measurable")
+    assert "says before its loop that nothing will be stated" in c
     a = f["amplitude_m"]
     counts = f["reason"].split(" mm, about ")[1].split(" counts")[0]
     assert f"({a * 1e3:.1f} mm here, about {counts}" in c
     lo, hi = f["count_at_handle_m"]
     assert f"counts of {lo * 1e6:.0f}-{hi * 1e6:.0f} um" in c
     wk, wb = f["worst"]["felt_stiffness"], f["worst"]["felt_damping"]
-    assert f"at most {wk:.2f} of itself" in c and wk <= MEASURABLE_WIRE
+    assert f"by {wk:.2f} of itself at first order" in c and wk <= MEASURABLE_WIRE
     assert f"the {MEASURABLE_WIRE:g} a statement allows" in c
+    w = f["lockstep"]["wire"]
+    assert min(w["felt_stiffness"], *w["directions"]["felt_stiffness"]) > MEASURABLE_WIRE
     assert "damping is not measurable at any start" in c and wb > MEASURABLE_WIRE
     lims = check_scene_nd(sc).stiffness_limits
     kmax = float(np.min(lims))
@@ -160,40 +166,51 @@ def test_finer_counts_state_the_stiffness_and_more_leg_inertia_differs(spring, f
                    for s in r["statements"] if "stiffness" in s["name"])
 
 
-def test_the_run_measures_them_on_the_emulated_falcon_only(spring):
+def test_the_run_states_what_its_prediction_says(spring):
     """`hapsim run --driver falcon`'s statement (:func:`hapsim.pipeline.falcon_run.
-    felt_statement`): on the emulated Falcon (lockstep by name) the 7 records through
-    pyftdi and the emulated FT232R, each from a hand's start, measured: nothing missing,
-    "not measurable" over the error box at the Falcon's counts (never "differs"), the
-    JSON-able summary; on a real Falcon (no image) "not measured", saying why."""
+    felt_statement`): the 7 records through pyftdi and the emulated FT232R (lockstep by
+    name), each from a hand's start, state nothing over the error box at the Falcon's
+    counts (never "differs"), which is what the prediction made before the run says
+    (:func:`hapsim.pipeline.falcon_run.felt_prediction`: the same records, taken
+    directly): the run does not measure them again and says the prediction's sentence;
+    on a real Falcon (no image) "not measured", saying why."""
     import json
-    from hapsim.pipeline.falcon_run import felt_statement
+    from hapsim.pipeline.falcon_run import felt_statement, measure_felt_emulated
     sc, plan, f = spring
-    s = felt_statement(sc, IMAGE, clock="lockstep")
-    assert s["verdict"] == "not measurable", s["reason"]
-    assert len(s["records"]) == 2 * 3 + 1 and s["missing"] == 0 and s["late_rows"] == 0
-    assert s["amplitude_m"] == f["amplitude_m"]
-    assert not any(st["verdict"] == "differs" for st in s["statements"])
+    m = measure_felt_emulated(sc, IMAGE, f["amplitude_m"], plan=plan, clock="lockstep")
+    assert m["verdict"] == "not measurable", m["reason"]
+    assert len(m["records"]) == 2 * 3 + 1 and m["missing"] == 0
+    assert not any(st["verdict"] != "not measurable" for st in m["statements"])
+    s = felt_statement(sc, IMAGE, clock="lockstep", predicted=f)
+    assert s["verdict"] == "not measurable" and "records" not in s
+    assert s["stated_before_run"] == f["statement"]
     json.dumps(s)
     real = felt_statement(sc)
-    assert real["verdict"] == "not measured" and "real Falcon" in real["reason"]
+    assert real["verdict"] == "not measurable" and real["stated_before_run"]
 
 
-def test_hapsim_run_prints_the_measured_felt_matrices(capsys, tmp_path):
+def test_hapsim_run_says_before_its_loop_what_it_cannot_state(capsys, tmp_path):
     """`hapsim run configs/falcon_spring.yaml --driver falcon --firmware FILE` on the
     emulated Falcon, on its own clock (the wall clock: real time, as a user runs it):
-    exit 0, the seven records' account printed (the start, the rows missing and after a
-    host stall, both cut), each felt quantity's deviation and stated uncertainty, and a
-    verdict that is never "differs" of the scene's own device (a loaded machine's stalls
-    may cut the records to "not measurable": then said)."""
+    exit 0; on stderr, before anything of the loop, that the felt matrices will not be
+    stated at the Falcon's counts, with the reason; the report's felt matrices "not
+    measurable" with the same reason, never "within" or "differs"; ``--json`` holds the
+    sentence (``felt_matrices.stated_before_run``)."""
+    import json
     from hapsim.cli import main
     fw = tmp_path / "falcon.bin"
     fw.write_bytes(IMAGE)
-    assert main(["run", str(CONFIGS / "falcon_spring.yaml"), "--driver", "falcon",
-                 "--firmware", str(fw), "--packets", "40"]) == 0
-    out = capsys.readouterr().out
-    assert "felt matrices measured: 7 records of the hand let go 3.77 mm from rest" in out
-    assert "    felt stiffness: measured - predicted " in out
-    assert "    felt damping: measured - predicted " in out
-    line = next(x for x in out.splitlines() if x.startswith("  felt matrices: "))
-    assert line.split(": ")[1] in ("partly within", "within", "not measurable"), line
+    argv = ["run", str(CONFIGS / "falcon_spring.yaml"), "--driver", "falcon",
+            "--firmware", str(fw), "--packets", "40"]
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    said = [x for x in cap.err.splitlines() if "predicted before the run" in x]
+    assert len(said) == 1 and "felt matrices not measurable" in said[0]
+    assert said[0].endswith("the run goes on (exit code 0: not a device fault)")
+    line = next(x for x in cap.out.splitlines() if x.startswith("  felt matrices: "))
+    assert line.startswith("  felt matrices: not measurable: "), line
+    assert line.split(": ", 2)[2] in said[0]
+    assert main(argv + ["--json"]) == 0
+    felt = json.loads(capsys.readouterr().out)["felt_matrices"]
+    assert felt["verdict"] == "not measurable" and felt["stated"] == []
+    assert felt["stated_before_run"].startswith("felt matrices not measurable")

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-__all__ = ["felt_deviation", "felt_directions", "felt_verdict", "statement_name",
+__all__ = ["said_before_run", "felt_deviation", "felt_directions", "felt_verdict", "statement_name",
            "MEASURABLE_WIRE", "FELT_QUANTITIES"]
 
 
@@ -159,7 +159,7 @@ def _statement(quantity, direction, predicted, measured, deviation, lin, wire, l
     return out
 
 def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
-                 estimated: int = 0, directions=None) -> dict:
+                 estimated: int = 0, directions=None, excluded=None) -> dict:
     """The verdict of an n-D measurement against its stated uncertainty, per quantity
     and per principal direction.
 
@@ -228,6 +228,10 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     directions : dict, optional
         :func:`felt_directions`'s result (without it, or without the wire's
         ``directions`` when there is a wire, only the matrices are stated).
+    excluded : dict, optional
+        ``{statement name: reason}``: statements not made whatever their terms here (a
+        prediction made before the run said they cannot be: a run never states what its
+        own prediction excluded), "not measurable" with the reason.
 
     Returns
     -------
@@ -265,10 +269,11 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     # the wire's term taken over the errors' box (hapsim.analysis.wire_box) or at first order
     how = ("over the errors' box" if isinstance(wire, dict) and wire.get("box")
            else "first order")
+    excluded = excluded or {}
     st = []
     for q in FELT_QUANTITIES:
         st.append(_statement(q, None, None, None, float(deviation[q]), lin[q], wq[q],
-                             limit, rnd, how=how))
+                             limit, rnd, excluded.get(statement_name(q)), how=how))
     if dirs is not None:
         eps = lin["felt_stiffness"]
         for q in FELT_QUANTITIES:
@@ -276,10 +281,12 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                 lq = eps if q == "felt_stiffness" else eps * dirs["damping_factor"][i]
                 p = abs(row["predicted"])
                 rq = rnd * dirs["largest"][q] / p if p > 0 else math.inf
-                st.append(_statement(q, [float(v) for v in dirs["directions"][i]],
-                                     row["predicted"], row["measured"], row["deviation"],
-                                     lq, None if wdir is None else float(wdir[q][i]),
-                                     limit, rq, how=how))
+                e = [float(v) for v in dirs["directions"][i]]
+                st.append(_statement(q, e, row["predicted"], row["measured"],
+                                     row["deviation"], lq,
+                                     None if wdir is None else float(wdir[q][i]),
+                                     limit, rq, excluded.get(statement_name(q, e)),
+                                     how=how))
     stated = [s for s in st if s["verdict"] != "not measurable"]
     not_stated = [s["name"] for s in st if s["verdict"] == "not measurable"]
     what = ("linearisation bound plus the wire's rounding" if wire is not None else
@@ -293,7 +300,13 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
         first = wire.get("first_order") if isinstance(wire, dict) else None
         big = max(wk, wd) if first is None else max(float(first[q]) for q in FELT_QUANTITIES)
         need = bound.amplitude * big / limit if math.isfinite(big) else None
-        if estimated:
+        out_ = [s["name"] for s in st if excluded.get(s["name"]) is not None]
+        if out_:
+            rest = [s["name"] for s in st if s["name"] not in out_]
+            reason = (f"{excluded[out_[0]]}: {', '.join(out_)}"
+                      + (f"; {', '.join(rest)}: not measurable here either (each "
+                         "statement's reason)" if rest else ""))
+        elif estimated:
             reason = (f"the readings' errors (the wire's rounding and {estimated} "
                       f"estimated samples, missing replies) alone may move the felt "
                       f"stiffness by {wk:.2g} and the damping by {wd:.2g} (relative, "
@@ -332,3 +345,32 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     return {"verdict": verdict, "within": bool(ok),
             "uncertainty": unc, "reason": reason, "statements": st,
             "not_stated": not_stated}
+
+
+def said_before_run(how: str, stated, not_stated, reason: str) -> str | None:
+    """The sentence a run says on stderr before its loop when its prediction (the run's
+    own records and statement taken in lockstep: the Falcon's
+    :func:`hapsim.emulated.falcon_felt.felt_feasibility`, the 2DIY's) excludes
+    statements (issue 31 item 4).
+
+    Parameters
+    ----------
+    how : str
+        How the prediction was made (in parentheses after "predicted before the run").
+    stated, not_stated : list of str
+        The statements' names (:func:`statement_name`) the prediction makes and does not.
+    reason : str
+        Why, with the numbers.
+
+    Returns
+    -------
+    str or None
+        None when every statement will be made.
+    """
+    if not not_stated:
+        return None
+    if not stated:
+        return f"felt matrices not measurable, predicted before the run ({how}): {reason}"
+    return (f"felt matrices partly measurable, predicted before the run ({how}): not "
+            f"stated: {', '.join(not_stated)}: {reason}")
+

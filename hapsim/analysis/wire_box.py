@@ -86,11 +86,18 @@ def moved_records(records, inputs, *, rest_last: bool = False) -> list:
     return [x + d for x, d in zip(records, dx)]
 
 
-def box_worst_case(terms_at, records, *, rest_last: bool = False):
+def box_worst_case(terms_at, records, *, rest_last: bool = False, settled=None):
     """The first-order worst case of every felt statement, at the records and at each
     statement's worst errors, the largest per statement times :data:`BOX_MARGIN`
     (module notes: the mean value theorem's bound, its supremum over the error box
     sampled).
+
+    With ``settled`` the sampling may stop early: the stated term of a statement only
+    grows as points are added (a maximum), so once every statement's term already exceeds
+    what its caller asks about (a statement beyond the limit of a statement is not made,
+    whatever the points not sampled), the rest cannot change that answer. The points of
+    the statements not yet settled are sampled first. Without an early stop the result
+    is the same maximum over the same points (bit for bit: ``np.maximum`` is exact).
 
     Parameters
     ----------
@@ -107,6 +114,11 @@ def box_worst_case(terms_at, records, *, rest_last: bool = False):
     rest_last : bool, optional
         As :func:`moved_records` (``filtered`` and ``bounds`` then hold the rest record
         last).
+    settled : callable, optional
+        ``settled(stated) -> ndarray of bool, shape (O,)``: per statement, whether the
+        stated term so far (:data:`BOX_MARGIN` times the sampled supremum, shape (O,))
+        already answers its caller's question (e.g. beyond the limit of a statement).
+        The sampling stops once every statement is settled.
 
     Returns
     -------
@@ -114,6 +126,8 @@ def box_worst_case(terms_at, records, *, rest_last: bool = False):
         The first-order worst case at the records and the largest over the sampled
         points times :data:`BOX_MARGIN` (what is stated), each shape (O,); None when the
         records (or a moved copy of them) give no felt matrices: nothing can be stated.
+        With ``settled``, a third item: ``complete`` (bool, every point sampled; False:
+        stopped early, the terms lower bounds of the full sampling's).
     """
     got = terms_at(records)
     if got is None:
@@ -121,14 +135,26 @@ def box_worst_case(terms_at, records, *, rest_last: bool = False):
     wc0, kinds = got
     wc0 = np.asarray(wc0, float)
     sup = wc0.copy()
-    for o in range(wc0.size):
+    left = list(range(wc0.size))
+    complete = True
+    while left:
+        o = left[0]
+        if settled is not None:
+            done = np.asarray(settled(BOX_MARGIN * sup), bool)
+            if done.all():
+                complete = False
+                break
+            o = next((i for i in left if not done[i]), o)
+        left.remove(o)
         inputs = [(H, [np.broadcast_to(np.asarray(b, float), S[o].shape) * np.sign(S[o])
                        for S, b in zip(fil, bounds)]) for H, fil, bounds in kinds]
         moved = terms_at(moved_records(records, inputs, rest_last=rest_last))
         if moved is None:
             return None
         sup = np.maximum(sup, np.asarray(moved[0], float))
-    return wc0, BOX_MARGIN * sup
+    if settled is None:
+        return wc0, BOX_MARGIN * sup
+    return wc0, BOX_MARGIN * sup, complete
 
 
 def statement_terms(sens, directions, plan):

@@ -55,8 +55,9 @@ does not ship Novint's), the legs homed (move the grip in and out), one packet p
 without --port the emulated Falcon behind an emulated FT232R runs under the same pyftdi
 code. It reports the link (replies missing, bytes dropped, readings against the emulated
 encoders) and a verdict (ok, degraded); beside it the felt matrices' statement: "not
-measurable" where the Falcon's counts are too coarse for the scene (its figures said).
-Permissions and the udev rule: docs/devices.md."""
+measurable" where the Falcon's counts are too coarse for the scene (its figures said),
+predicted before the loop from the run's own records in lockstep and said on stderr
+first (exit 0). Permissions and the udev rule: docs/devices.md."""
 
 #: ``hapsim run --help``: what fits a screen (the rest: ``--help-all``, docs/commands.md).
 _SHORT_DESCRIPTION = """\

@@ -60,7 +60,9 @@ def run_falcon_command(args) -> int:
     int
         0 when the loop ran (verdict ``ok`` or ``degraded``, said; the felt matrices'
         statement beside it, :func:`hapsim.pipeline.falcon_run.felt_statement`: on the
-        emulated Falcon, where its counts allow, measured); 1 when the device
+        emulated Falcon, where its counts allow, measured; what they cannot state is said
+        on stderr before the loop, :func:`hapsim.pipeline.falcon_run.felt_prediction`,
+        and is no device fault); 1 when the device
         failed (not found, no permission, the loader's handshake, unplugged: the message
         says what to check) or the loop is unstable without ``--allow-unstable``.
 
@@ -70,7 +72,8 @@ def run_falcon_command(args) -> int:
         No or an unreadable ``--firmware``, a refused option, a bad ``--port``, a scene
         that is not 3-D with a delta device (exit 2).
     """
-    from hapsim.pipeline.falcon_run import emulated_falcon, felt_statement, run_falcon
+    from hapsim.pipeline.falcon_run import (emulated_falcon, felt_prediction, felt_statement,
+                                            run_falcon)
     from hapsim.drivers.falcon_usb import FalconUSB, parse_url
     from hapsim.errors import DeviceError
     from hapsim.progress import Progress
@@ -93,6 +96,21 @@ def run_falcon_command(args) -> int:
     stable_prediction_nd(scene, args.allow_unstable, "--allow-unstable")   # refused if not
     packets = DEFAULT_PACKETS if getattr(args, "packets", None) is None else args.packets
     emulated = args.port is None
+    # before the loop: what the Falcon's counts let this run state of the felt matrices
+    # (the run's own records and statement, the emulated Falcon in lockstep: ~1-2 s of
+    # CPU, ~5 s where something is stated); what will not be stated is said first, with
+    # the reason (issue 31 item 4), and the run goes on: exit 0, not a device fault
+    try:
+        with Progress(1, "run (Falcon: the felt matrices' feasibility, the emulated Falcon "
+                      "in lockstep)", unit="stages") as bar:
+            predicted = felt_prediction(scene, real=not emulated)
+            bar.update(1)
+    except DeviceError as exc:
+        print(f"hapsim run: the felt matrices' feasibility: {exc}", file=sys.stderr)
+        return 1
+    if predicted.get("statement"):
+        print(f"hapsim run: {scene.path}: {predicted['statement']}; the run goes on (exit "
+              "code 0: not a device fault)", file=sys.stderr, flush=True)
     link = truth = None
     try:
         if emulated:
@@ -120,13 +138,12 @@ def run_falcon_command(args) -> int:
     finally:
         if link is not None:
             link.close()
-    # the felt matrices: whether the Falcon's counts can measure them here (computed
-    # after the loop, the Falcon at zero commands: ~2 s of CPU) and, where they can, on
-    # the emulated Falcon, measured: the identification's records, each from a hand's
+    # the felt matrices: where the prediction says the Falcon's counts state something,
+    # on the emulated Falcon, measured: the identification's records, each from a hand's
     # start on a fresh emulated Falcon on the same clock (~7 x 0.3 s)
     try:
         felt = felt_statement(scene, image if emulated else None,
-                              clock=dev.clock if emulated else "wall")
+                              clock=dev.clock if emulated else "wall", predicted=predicted)
     except DeviceError as exc:
         print(f"hapsim run: the felt matrices' records: {exc}", file=sys.stderr)
         return 1

@@ -98,7 +98,8 @@ def falcon_usable_rows(joints, delay: int) -> np.ndarray:
     return np.cumsum(bad[:N]) == 0
 
 
-def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
+def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = False,
+                        excluded=None) -> dict:
     """The felt matrices of a Falcon's ``2n + 1`` records and their verdict (module notes).
 
     Parameters
@@ -112,6 +113,14 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
         :func:`hapsim.lockstep.identification_plan`'s ``(check, order, N)``.
     amplitude : float
         The hand's ``a`` [m].
+    settle : bool, optional
+        Whole records: sample the errors' box only until every statement is beyond
+        :data:`hapsim.analysis.felt_matrices.MEASURABLE_WIRE` (:func:`hapsim.lockstep.
+        wire_terms_nd`'s ``settle``): which statements are made is the same, the terms of
+        a verdict that states nothing lower bounds (``wire["box_complete"]`` False).
+    excluded : dict, optional
+        :func:`hapsim.analysis.felt_matrices.felt_verdict`'s: statements the prediction
+        before the run excluded (:func:`felt_feasibility`), never made here.
 
     Returns
     -------
@@ -133,7 +142,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
     ConfigError
         As :func:`hapsim.analysis.pencil.fit_felt_nd` for whole records.
     """
-    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.felt_matrices import (MEASURABLE_WIRE, felt_deviation,
+                                               felt_directions, felt_verdict)
     from hapsim.analysis.felt_records import window_rows, wire_terms_records, within_excursion
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.pencil import fit_felt_nd
@@ -204,9 +214,10 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
             # over the error box (hapsim.analysis.wire_box; module notes): the
             # first-order term at the records alone was exceeded 2.7 times by errors
             # within the counts' bounds on configs/falcon_spring.yaml
-            wire.update(wire_terms_nd(scene, diffs, chk, order, errors, box=True))
+            wire.update(wire_terms_nd(scene, diffs, chk, order, errors, box=True,
+                                      settle=MEASURABLE_WIRE if settle else None))
         v = felt_verdict(dev, bound, wire, estimated=0,
-                         directions=felt_directions(fit, chk))
+                         directions=felt_directions(fit, chk), excluded=excluded)
         if usable is not None:
             v["reason"] += (f"; {missing} missing replies: the records cut there, each "
                             "fitted on its own undisturbed stretches about the fitted "
@@ -226,7 +237,7 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float) -> dict:
 
 def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None,
                         samples: int | None = None, max_step: int = 8,
-                        faults=None) -> dict:
+                        faults=None, settle: bool = False) -> dict:
     """The felt matrices of a delta scene measured through the emulated Falcon's packets
     on its lockstep clock (named: deterministic), and their verdict (module notes).
 
@@ -256,6 +267,8 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
     faults : hapsim.emulated.driver_mock.ByteFaults, optional
         Byte faults on the records' packets, both ways (the homing clean): a reply lost
         is a missing sample, cut (module notes).
+    settle : bool, optional
+        :func:`falcon_felt_verdict`'s (what is stated, at less cost: the feasibility).
 
     Returns
     -------
@@ -288,7 +301,7 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
         runs.append(r)
         q = np.asarray(r["joints"], float)
         excursion = max(excursion, float(np.nanmax(np.abs(q - scene.device.joints))))
-    out = falcon_felt_verdict(scene, runs, plan, amplitude)
+    out = falcon_felt_verdict(scene, runs, plan, amplitude, settle=settle)
     out["excursion_rad"] = excursion
     return out
 
@@ -380,11 +393,13 @@ def quantiser_terms(scene, amplitude: float, plan) -> dict:
     return out
 
 
-def felt_feasibility(scene, plan=None) -> dict:
-    """Whether the felt matrices of a delta scene can be measured through the Falcon's
-    counts at all: the readings' and commands' rounding (:func:`quantiser_terms`) at the
-    largest excitation the scene's linear range allows, against the limit of a statement
-    (:data:`hapsim.analysis.felt_matrices.MEASURABLE_WIRE`).
+def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
+    """What a run can state of the felt matrices of a delta scene through the Falcon's
+    counts, predicted before it: the run's own records and statement
+    (:func:`measure_felt_falcon`: the emulated Falcon, its packets' whole counts and motor
+    commands, :func:`falcon_felt_verdict`'s term over the errors' box) taken in lockstep
+    (named: the counts' and the commands' rounding alone, no host timing) at the largest
+    excitation the scene's linear range allows, the start the run takes.
 
     The largest excitation ``a_max`` is :data:`EXCURSION_MARGIN` times the one whose exact
     records reach the shallowest contact's depth at rest
@@ -392,26 +407,32 @@ def felt_feasibility(scene, plan=None) -> dict:
     opens, no linear estimate holds) or carry a leg beyond
     :data:`hapsim.drivers.falcon.ENVELOPE_RAD` (through ``J(q0)``'s smallest singular
     value), whichever is smaller; the records' excursion is linear in ``a`` to first
-    order (8e-4 off from 0.1 to 0.2 mm on configs/delta_sphere.yaml). The figures are
-    computed at ``a_max`` itself; the excitation and the count that would bring them to
-    the limit are their first-order extrapolations (the wire's term inverse in ``a``,
-    linear in the count: measured 1.5 % off from 0.1 to 0.2 mm on the sphere, the
-    contact's curvature; below ~10 um the exact records' round-off moves the
-    sensitivities of the poorly excited modes by tens of per cent).
+    order (8e-4 off from 0.1 to 0.2 mm on configs/delta_sphere.yaml).
 
-    Why first order here, when the run's statement takes the wire's term over the
-    errors' box (:func:`falcon_felt_verdict`): this is no verdict on the felt matrices,
-    only whether a run could state them, and the first-order term at the records is
-    never above the box's (the box's supremum is sampled at the records among its
-    points, times a margin of at least 1: :func:`hapsim.analysis.wire_box.box_worst_case`).
-    So "not measurable" here is certain, the box's term being beyond the limit too, and
-    "measurable" means only that the run is not excluded: its records' term over the box
-    then decides what is stated (on configs/falcon_spring.yaml, "measurable" at first
-    order, 0.19, the box's term at the same exact records is 240 and the run states
-    nothing). Likewise the excitation and the count the extrapolations give are the least
-    that could do, never enough by themselves. The box's term is not extrapolated: it is
-    not linear in the count or the excitation (its sampled points leave the fit's linear
-    region), and at ~5 s of CPU per evaluation on a 3-D loop a run does not search for it.
+    **Why the lockstep records, over the box.** Before, the prediction was the
+    first-order term about the exact records (:func:`quantiser_terms`) against the limit
+    of a statement: on configs/falcon_spring.yaml it said "measurable" (0.19) and the
+    run, over the box at its own rounded records, stated nothing (10^5-10^6): a
+    prediction the run contradicted. The statement over the box is a function of the
+    records alone, so the lockstep records give the lockstep run's statements exactly; a
+    run on the Falcon's own clock takes the same records unless the host is late (its
+    rows cut, fitted otherwise), and it never makes a statement excluded here
+    (:func:`hapsim.pipeline.falcon_run.felt_statement` passes them on: a smaller term
+    over the box at other records is no better evidence).
+    **The cheaper sufficient evaluation.** The
+    box's term of a statement is :data:`hapsim.analysis.wire_box.BOX_MARGIN` times a
+    maximum over sampled points, the records among them: it only grows as points are
+    added. So the box is sampled, the points of the statements still under the limit
+    first, only until every statement is beyond it
+    (:func:`hapsim.analysis.wire_box.box_worst_case`'s ``settled``): on
+    configs/falcon_spring.yaml 1 point of the 24, on configs/delta_sphere.yaml none (the
+    records' own point settles every statement); the feasibility 1.6-1.7 s of CPU,
+    against ~4.6 s for the box's 24 points alone.
+    Where something is stated every point is sampled (the run's full term).
+
+    The first-order figures about the exact records (:func:`quantiser_terms`: the worst
+    case, Widrow & Kollar's, the excitation and the count their extrapolations would
+    need) are kept beside it, for the reason's numbers only.
 
     Parameters
     ----------
@@ -419,24 +440,36 @@ def felt_feasibility(scene, plan=None) -> dict:
         A 3-D delta scene.
     plan : tuple, optional
         :func:`hapsim.lockstep.identification_plan` of ``scene``.
+    max_step : int, optional
+        The reply decoder's plausible step [counts] (:func:`measure_felt_falcon`'s: an
+        encoder finer than the Falcon's scales it).
 
     Returns
     -------
     dict
-        ``verdict`` (``"not measurable"``, or ``"measurable"``: the stiffness at least
-        could be stated), ``reason`` (str, with the numbers), ``amplitude_m``
-        (``a_max``), ``limited_by`` (what limits it: a contact's depth or the envelope),
-        ``count_at_handle_m`` (one count through ``J(q0)``: its smallest and largest
-        singular values times the count [m]),
-        ``worst``, ``worst_reading``, ``worst_command``, ``widrow_kollar`` (at ``a_max``,
-        :func:`quantiser_terms`), ``limit``, ``needed_amplitude_m`` and
-        ``needed_count_rad`` (each for the stiffness and the damping: the excitation, or
-        the count, whose worst case is the limit). A contact open at rest: only
-        ``verdict`` ("not measurable"), ``reason``, ``amplitude_m`` (0), ``limited_by``
-        and ``count_at_handle_m``.
+        ``verdict`` (``"not measurable"``: nothing can be stated; ``"measurable"``: the
+        lockstep records state something), ``stated`` and ``not_stated`` (the
+        statements' names), ``statement`` (None when every statement is made, else the
+        sentence a run says before it starts), ``lockstep`` (the lockstep records'
+        verdict: ``verdict``, ``wire`` relative terms, ``box_complete``), ``reason`` (str,
+        with the numbers), ``amplitude_m`` (``a_max``), ``limited_by`` (a contact's depth
+        or the envelope), ``count_at_handle_m`` (one count through ``J(q0)``: its
+        smallest and largest singular values times the count [m]), ``worst``,
+        ``worst_reading``, ``worst_command``, ``widrow_kollar`` (:func:`quantiser_terms`
+        at ``a_max``), ``limit``, ``needed_amplitude_m`` and ``needed_count_rad`` (their
+        first-order extrapolations to the limit, the least that could do). A contact
+        open at rest: ``verdict`` ("not measurable"), ``stated``, ``not_stated``,
+        ``statement``, ``reason``, ``amplitude_m`` (0), ``limited_by`` and
+        ``count_at_handle_m`` only.
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        The emulated Falcon did not home (:func:`measure_felt_falcon`).
     """
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
     from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.analysis.wire_box import BOX_MARGIN
     from hapsim.drivers.falcon import DEG_PER_TICK, ENVELOPE_RAD
     from hapsim.kinematics import device
     from hapsim.lockstep import identification_plan
@@ -454,12 +487,14 @@ def felt_feasibility(scene, plan=None) -> dict:
     depth = float(bound.depth)
     env = ENVELOPE_RAD * float(np.linalg.svd(J, compute_uv=False)[-1])
     col = np.linalg.svd(J, compute_uv=False)[::-1] * q      # a count along the axes of J
+    every = ["felt stiffness", "felt damping"]
     if depth <= 0.0:
-        return {"verdict": "not measurable", "amplitude_m": 0.0,
+        why = (f"the contact {bound.depth_name!r} is open at rest: no hand start keeps the "
+               "loop linear")
+        return {"verdict": "not measurable", "stated": [], "not_stated": every,
+                "statement": _before_run(0.0, [], every, why), "amplitude_m": 0.0,
                 "limited_by": f"contact {bound.depth_name!r}",
-                "count_at_handle_m": [float(col.min()), float(col.max())],
-                "reason": f"the contact {bound.depth_name!r} is open at rest: no hand start "
-                          "keeps the loop linear"}
+                "count_at_handle_m": [float(col.min()), float(col.max())], "reason": why}
     if depth < env:
         a_max = EXCURSION_MARGIN * depth / unit
         by = f"the depth {depth * 1e3:.2f} mm of the contact {bound.depth_name!r}"
@@ -471,26 +506,55 @@ def felt_feasibility(scene, plan=None) -> dict:
     need_a = {k: a_max * t["worst"][k] / MEASURABLE_WIRE for k in keys}
     need_q = {k: q * MEASURABLE_WIRE / t["worst_reading"][k]
               if t["worst_reading"][k] > 0 else math.inf for k in keys}
-    ok = t["worst"]["felt_stiffness"] <= MEASURABLE_WIRE
-    wk, wb = t["worst"]["felt_stiffness"], t["worst"]["felt_damping"]
+    # the run's own records and statement, in lockstep (class notes)
+    m = measure_felt_falcon(scene, a_max, plan=plan, settle=True, max_step=max_step)
+    stated = [st["name"] for st in m["statements"] if st["verdict"] != "not measurable"]
+    not_stated = list(m["not_stated"])
+    w = m["wire"]
+    full = w.get("box_complete", True)
+    wk, wb = w["felt_stiffness"], w["felt_damping"]
+    least = "" if full else "at least "
+    first = w.get("first_order") or {}
+    said = (f"on the emulated Falcon's own records in lockstep at that start (what the run "
+            f"fits), the counts' and commands' rounding may move the felt stiffness by "
+            f"{least}{wk:.2g} and the damping by {least}{wb:.2g} (relative, over the "
+            "errors' box" + ("" if full else ", sampled until every statement was beyond "
+                             "the limit") + ")")
+    if first:
+        said += (f"; the first-order term at those records is {first['felt_stiffness']:.2g}"
+                 f" and {first['felt_damping']:.2g} (the box's is at least "
+                 f"{BOX_MARGIN:g} times it)")
     reason = (f"one encoder count is {col.min() * 1e6:.0f}-{col.max() * 1e6:.0f} um at the "
               f"handle; the largest hand start the scene's linear range allows is "
               f"{a_max * 1e3:.2f} mm, about {a_max / col.mean():.0f} counts (the records "
               f"reach {unit:.2f} a: {EXCURSION_MARGIN:g} of the start at which they reach "
-              f"{by}); there the "
-              f"readings' and commands' rounding alone may move the felt stiffness by "
-              f"{wk:.3g} and the damping by {wb:.3g} (relative, first-order worst case, "
-              f"the least the run's term over the errors' bounds can be; "
-              f"Widrow & Kollar's standard deviation {t['widrow_kollar']['felt_stiffness']:.2g}"
-              f" and {t['widrow_kollar']['felt_damping']:.2g}), against the limit "
-              f"{MEASURABLE_WIRE:g} of a statement: a count "
-              f"{q / need_q['felt_stiffness']:.3g} times finer (or a start of "
-              f"{need_a['felt_stiffness'] * 1e3:.3g} mm) would be needed for the stiffness, "
-              f"{q / need_q['felt_damping']:.3g} times finer for the damping")
-    return {"verdict": "measurable" if ok else "not measurable", "reason": reason,
+              f"{by}); {said}, against the limit {MEASURABLE_WIRE:g} of a statement: "
+              + (("stated: " + ", ".join(stated)
+                  + ("; not stated: " + ", ".join(not_stated) if not_stated else ""))
+                 if stated else "nothing stated")
+              + f" (for comparison, the first-order term about the exact records, no "
+              f"rounding: {t['worst']['felt_stiffness']:.3g} and "
+              f"{t['worst']['felt_damping']:.3g}; Widrow & Kollar's standard deviation "
+              f"{t['widrow_kollar']['felt_stiffness']:.2g} and "
+              f"{t['widrow_kollar']['felt_damping']:.2g})")
+    return {"verdict": "measurable" if stated else "not measurable", "reason": reason,
+            "stated": stated, "not_stated": not_stated,
+            "statement": _before_run(a_max, stated, not_stated, reason),
+            "lockstep": {"verdict": m["verdict"], "box_complete": bool(full),
+                         "wire": {k: w[k] for k in ("felt_stiffness", "felt_damping",
+                                                    "directions")},
+                         "first_order": first or None},
             "amplitude_m": a_max, "limited_by": by,
             "count_at_handle_m": [float(col.min()), float(col.max())],
             "worst": t["worst"], "worst_reading": t["worst_reading"],
             "worst_command": t["worst_command"], "widrow_kollar": t["widrow_kollar"],
             "limit": MEASURABLE_WIRE, "needed_amplitude_m": need_a,
             "needed_count_rad": need_q}
+
+
+def _before_run(a: float, stated: list, not_stated: list, reason: str) -> str | None:
+    """The sentence a run says before it starts (None: every statement will be made)."""
+    from hapsim.analysis.felt_matrices import said_before_run
+    return said_before_run(f"the emulated Falcon's records in lockstep at a = {a:g} m, the "
+                           "counts' and the commands' rounding alone", stated, not_stated,
+                           reason)

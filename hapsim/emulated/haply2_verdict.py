@@ -20,7 +20,8 @@ from hapsim.errors import ConfigError
 __all__ = ["felt_verdict_of_runs"]
 
 
-def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float) -> dict:
+def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float, *,
+                         excluded=None) -> dict:
     """The felt matrices of a 2DIY's ``2n + 1`` records and their verdict (the analysis of
     :func:`hapsim.emulated.haply2_lockstep.measure_felt_haply2`, whose notes give the
     wire's term).
@@ -54,6 +55,10 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         The set-up's counts per revolution.
     amplitude : float
         The hand's ``a`` [m].
+
+    excluded : dict, optional
+        ``{statement name: reason}``: statements a prediction before the run excluded,
+        never made (:func:`hapsim.analysis.felt_matrices.felt_verdict`).
 
     Returns
     -------
@@ -166,7 +171,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float)
         for r in runs))
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
-        directions=felt_directions(fit, chk))
+        directions=felt_directions(fit, chk), excluded=excluded)
     if any(h is not None for h in holds):
         # the largest hold off a period among the rows whose errors were counted
         kept = (own if own is not None else

@@ -391,7 +391,7 @@ def _bounds(rec: dict, period: float, quantum: float, force_scale: float):
 
 
 def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: int,
-                   chk=None, force_scale: float) -> dict:
+                   chk=None, force_scale: float, excluded=None) -> dict:
     """The felt matrices across the two faders from :func:`record_faders`'s records, and
     their verdict (module notes).
 
@@ -408,6 +408,10 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
         The prediction (computed when not given).
     force_scale : float
         The force per count [N].
+    excluded : dict, optional
+        ``{statement name: reason}``: statements the prediction before the run excluded
+        (:func:`faders_feasibility`), never made here
+        (:func:`hapsim.analysis.felt_matrices.felt_verdict`).
 
     Returns
     -------
@@ -461,7 +465,8 @@ def measure_faders(scene, run: dict, amplitude: float, *, samples: int, order: i
     wire = _decimated_wire(scene, chk, diffs, use, mass, bounds, D, Nd)
     wire.update(reading_bound_m=float(max(np.max(b[0]) for b in bounds)),
                 force_bound_n=float(max(np.max(b[1]) for b in bounds)), decimation=D)
-    v = felt_verdict(dev, bound, wire, directions=felt_directions(fit, chk))
+    v = felt_verdict(dev, bound, wire, directions=felt_directions(fit, chk),
+                     excluded=excluded)
     return {**base, "measured": fit, "deviation": dev, "wire": wire, "verdict": v,
             "order": FIT_ORDER, "usable": [int(u.sum()) for u in ok], "incomplete": None}
 
@@ -579,8 +584,10 @@ def faders_feasibility(scene, amplitude: float, samples: int, chk=None) -> dict:
     """What a run of the two faders can state, predicted before it: the same records and
     measurement (:func:`record_faders`, :func:`measure_faders`) on the emulated board in
     its lockstep clock, in-process (asked for by name: the pots' and the forces' rounding
-    alone, no host timing). In real time the host's late writes can only add to the
-    wire's term, so what is not stated here is not stated there.
+    alone, no host timing). In real time the host's late writes add their bounds to the
+    wire's term, and what is not stated here is not stated there
+    (:func:`run_faders` passes it as excluded: a term over the box is a sampled maximum,
+    and a smaller one at other records is no better evidence).
 
     Parameters
     ----------
@@ -738,8 +745,13 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
             mock.end()
             report = mock.report()
             mock.close()
+    # what the lockstep records do not state, the real-time ones do not either: their
+    # term over the box is a sampled maximum at other records, no better evidence
+    why = ("not stated, predicted before the run: the wire's term over the errors' box on "
+           "the same records in lockstep is beyond the limit")
     res = measure_faders(scene, run, a, samples=N, order=order, chk=chk,
-                         force_scale=drv.force_scale)
+                         force_scale=drv.force_scale,
+                         excluded={n: why for n in pre["not_stated"]})
     held = (None if report is None else
             [report.get("held_at_end"), report.get("held_b_at_end")])
     res["realtime"] = {"stop": run["stop"], "late_ticks": run["late_ticks"],

@@ -33,6 +33,7 @@ from hapsim.drivers.falcon import ENVELOPE_RAD, WORKSPACE_RAD
 from hapsim.errors import DeviceError
 
 __all__ = ["run_falcon", "emulated_falcon", "falcon_verdict", "felt_statement",
+           "felt_prediction",
            "measure_felt_emulated", "reply_timeout",
            "FIRMWARE_PROBES", "REPLY_SLACK_S", "WORKSPACE_RAD", "ENVELOPE_RAD"]
 
@@ -71,7 +72,8 @@ REPLY_SLACK_S = 0.002
 #: (:data:`FIRMWARE_PROBES` of them): the wait each reply had before, not the loop's.
 PROBE_TIMEOUT_S = 0.05
 #: The most states of a scene's loop whose felt feasibility a run computes
-#: (:func:`felt_statement`): configs/delta_sphere.yaml's 12 take ~1 s of CPU;
+#: (:func:`felt_prediction`): configs/delta_sphere.yaml's 12 take ~2 s of CPU (the
+#: lockstep records and their statement);
 #: configs/delta_mesh.yaml's 162 took 3.5 min (its 3,240-sample records' sensitivities).
 FEASIBILITY_STATES = 24
 
@@ -175,14 +177,65 @@ def falcon_verdict(res: dict) -> dict:
             f"missing sample holds the last reading); {caveat}"}
 
 
+def felt_prediction(scene, real: bool = False, plan=None) -> dict:
+    """What a Falcon run will say of the felt matrices, predicted before its loop starts
+    (issue 31 item 4): whether they can be measured through the Falcon's counts at all
+    (:func:`hapsim.emulated.falcon_felt.felt_feasibility`: the run's own records and
+    statement, the emulated Falcon in lockstep, at the largest hand start the scene's
+    linear range allows) and, when something will not be stated, the sentence the run
+    says first (``statement``).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 3-D delta scene.
+    real : bool, optional
+        A real Falcon (no image: no host can start a hand, nothing is measured).
+    plan : tuple, optional
+        :func:`hapsim.lockstep.identification_plan` of ``scene``.
+
+    Returns
+    -------
+    dict
+        The feasibility's keys (less ``worst_reading``, ``worst_command``) and
+        ``statement`` (None: every statement will be made; else the sentence); or, for a
+        loop of more than :data:`FEASIBILITY_STATES` states, ``verdict`` ``"not
+        measured"``, ``states``, ``reason``, ``statement``. With ``real``, a feasible
+        scene's ``verdict`` is ``"not measured"`` (the reason says why).
+
+    Raises
+    ------
+    hapsim.errors.DeviceError
+        The emulated Falcon of the lockstep records did not home.
+    """
+    from hapsim.emulated.falcon_felt import felt_feasibility
+    from hapsim.lockstep import identification_plan
+    plan = identification_plan(scene) if plan is None else plan
+    if plan[0].states > FEASIBILITY_STATES:
+        why = (f"the loop has {plan[0].states} states, more than the {FEASIBILITY_STATES} "
+               "whose feasibility a run computes (the records' figures would take "
+               "minutes): tools/falcon_felt_figures.py computes them")
+        return {"verdict": "not measured", "states": int(plan[0].states), "reason": why,
+                "statement": f"felt matrices not measured, said before the run: {why}"}
+    f = felt_feasibility(scene, plan)
+    out = {k: v for k, v in f.items() if k not in ("worst_reading", "worst_command")}
+    if real and f["verdict"] == "measurable":
+        out["verdict"] = "not measured"
+        out["reason"] = ("no host can start a hand on a real Falcon: the records are taken "
+                         "on the emulated one (hapsim run --driver falcon without --port); "
+                         "at its counts: " + f["reason"])
+        out["statement"] = f"felt matrices not measured, said before the run: {out['reason']}"
+    return out
+
+
 def felt_statement(scene, image: bytes | None = None, *, clock: str = "wall",
-                   faults=None) -> dict:
-    """What a Falcon run says of the felt matrices: whether they can be measured through
-    the Falcon's counts at all (:func:`hapsim.emulated.falcon_felt.felt_feasibility`: the
-    readings' and commands' rounding at the largest hand start the scene's linear range
-    allows, against the limit of a statement) and, where they can and the Falcon is the
-    emulated one (``image`` given), their measurement (:func:`measure_felt_emulated` at
-    that start); never a verdict the stated uncertainty does not cover.
+                   faults=None, predicted: dict | None = None) -> dict:
+    """What a Falcon run says of the felt matrices: the prediction made before the loop
+    (:func:`felt_prediction`: what the Falcon's counts let a run state at all) and, where
+    something can be stated and the Falcon is the emulated one (``image`` given), their
+    measurement (:func:`measure_felt_emulated` at the prediction's start); never a
+    verdict the stated uncertainty does not cover. What the prediction says cannot be
+    stated is not measured again (the lockstep records are the run's own).
 
     Parameters
     ----------
@@ -195,43 +248,41 @@ def felt_statement(scene, image: bytes | None = None, *, clock: str = "wall",
         The emulated Falcon's clock (:class:`hapsim.emulated.falcon_device.FalconDevice`).
     faults : callable, optional
         ``record index -> ByteFaults or None``, as :func:`measure_felt_emulated`.
+    predicted : dict, optional
+        :func:`felt_prediction`'s, made before the loop (default: made here).
 
     Returns
     -------
     dict
         ``verdict``: ``"not measurable"`` (the counts too coarse for this scene: the
-        reason gives the figures), ``"not measured"`` (they would do, but no hand can be
-        started on a real Falcon; or the loop has more than :data:`FEASIBILITY_STATES`
-        states, ``states``, and the figures are not computed in a run), or the measured
-        verdict (``"within"``, ``"partly within"``, ``"differs"``, ``"not measurable"``:
-        :func:`measure_felt_emulated`'s ``summary``, its keys here); ``reason``; and the
-        feasibility's figures (``amplitude_m``, ``count_at_handle_m``, ``worst``,
-        ``widrow_kollar``, ``limit``, ``needed_amplitude_m``, ``needed_count_rad``, when
-        computed; the measured summary's ``feasibility`` then holds its reason).
+        reason gives the figures), ``"not measured"`` (no hand can be started on a real
+        Falcon; or the loop has more than :data:`FEASIBILITY_STATES` states, ``states``,
+        and the figures are not computed in a run), or the measured verdict
+        (``"within"``, ``"partly within"``, ``"differs"``, ``"not measurable"``:
+        :func:`measure_felt_emulated`'s ``summary``, its keys here); ``reason``;
+        ``stated_before_run`` (the prediction's sentence, when it had one); and the
+        feasibility's figures (``amplitude_m``, ``stated``, ``not_stated``,
+        ``lockstep``, ``count_at_handle_m``, ``worst``, ``widrow_kollar``, ``limit``,
+        ``needed_amplitude_m``, ``needed_count_rad``, when computed; the measured
+        summary's ``feasibility`` then holds its reason).
     """
-    from hapsim.emulated.falcon_felt import felt_feasibility
-    from hapsim.lockstep import identification_plan
-    plan = identification_plan(scene)
-    if plan[0].states > FEASIBILITY_STATES:
-        return {"verdict": "not measured", "states": int(plan[0].states),
-                "reason": f"the loop has {plan[0].states} states, more than the "
-                          f"{FEASIBILITY_STATES} whose feasibility a run computes (the "
-                          "records' first-order figures would take minutes): "
-                          "tools/falcon_felt_figures.py computes them"}
-    f = felt_feasibility(scene, plan)
-    out = {k: v for k, v in f.items() if k not in ("worst_reading", "worst_command")}
-    if f["verdict"] != "measurable":
+    if predicted is None:
+        predicted = felt_prediction(scene, image is None)
+    out = {k: v for k, v in predicted.items() if k != "statement"}
+    if predicted.get("statement"):
+        out["stated_before_run"] = predicted["statement"]
+    if predicted["verdict"] != "measurable" or image is None:
         return out
-    if image is None:
-        out["verdict"] = "not measured"
-        out["reason"] = ("no host can start a hand on a real Falcon: the records are taken "
-                         "on the emulated one (hapsim run --driver falcon without --port); "
-                         "at its counts: " + f["reason"])
-        return out
-    m = measure_felt_emulated(scene, image, f["amplitude_m"], plan=plan, clock=clock,
-                              faults=faults)
+    # a statement the prediction excluded (beyond the limit on the complete lockstep
+    # records) is not made from records the host's timing cut, which hold less: the run
+    # never contradicts what it said before
+    why = ("not stated, predicted before the run: the wire's term over the errors' box "
+           "on the complete records in lockstep is beyond the limit")
+    m = measure_felt_emulated(scene, image, predicted["amplitude_m"], clock=clock,
+                              faults=faults,
+                              excluded={n: why for n in predicted.get("not_stated", [])})
     out.update(m["summary"])
-    out["feasibility"] = f["reason"]
+    out["feasibility"] = predicted["reason"]
     return out
 
 
@@ -253,7 +304,7 @@ def _number(v):
 
 
 def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
-                          clock: str = "wall", faults=None) -> dict:
+                          clock: str = "wall", faults=None, excluded=None) -> dict:
     """The felt matrices of a delta scene measured as a run takes them: the
     identification's ``2n + 1`` records (:func:`hapsim.lockstep.excitation_starts` at
     ``amplitude``, the one from rest first), each one :func:`run_falcon` over pyftdi and
@@ -286,6 +337,9 @@ def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
     faults : callable, optional
         ``record index -> hapsim.emulated.driver_mock.ByteFaults or None``: byte faults
         on the UART during that record's loop (the load and the homing clean).
+    excluded : dict, optional
+        ``{statement name: reason}``: statements the prediction before the run excluded,
+        never made (:func:`hapsim.emulated.falcon_felt.falcon_felt_verdict`).
 
     Returns
     -------
@@ -339,7 +393,7 @@ def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
                          np.asarray(res["joints"], float)
                          - np.asarray(scene.device.joints, float)), initial=0.0)),
                      "excursion_true_rad": float(dev.excursion)})
-    out = falcon_felt_verdict(scene, runs, plan, amplitude)
+    out = falcon_felt_verdict(scene, runs, plan, amplitude, excluded=excluded)
     out["records"] = recs
     out["summary"] = _number({
         "verdict": out["verdict"], "within": out["within"], "reason": out["reason"],

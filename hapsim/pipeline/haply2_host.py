@@ -228,7 +228,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                              samples: int | None = None, progress=None, plan=None,
                              probe_wiring: bool = True,
                              directions: dict | None = None,
-                             lockstep_board: bool = False) -> dict:
+                             lockstep_board: bool = False, excluded=None) -> dict:
     """The felt matrices of a pantograph scene measured through a 2DIY in real time, and
     their verdict (module notes; the loop's: :mod:`hapsim.pipeline.haply2_record`).
 
@@ -263,6 +263,12 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         a stalled record is measured whole. False (a real board, or one on the wall
         clock): a record is cut at each host stall, and measured on its stretches
         (module notes).
+
+    excluded : dict, optional
+        ``{statement name: reason}``: statements the prediction before the run excluded
+        (the same records in lockstep, :func:`hapsim.emulated.haply2_lockstep.
+        measure_felt_haply2`), never made here
+        (:func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs`).
 
     Returns
     -------
@@ -369,7 +375,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
             r["position"] = np.asarray(r["position"], float) - hold_motion(scene, w_hat)
             r["holds"] = hc
     runs = in_hand_order(runs, 0 if probe is None else probe.setups)
-    out = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude)
+    out = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude,
+                               excluded=excluded)
     out["direction_probe"] = None if probe is None else probe.to_dict()
     resyncs = [r["resyncs"] + r["rearmed_at_end"] for r in runs]
     stalls = [int(r["stalled"].sum()) for r in runs]
@@ -403,7 +410,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                     # its remainder with the unseen latency varying by the jitter
                     r["holds"] = r["holds_link"]
             link = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution,
-                                        amplitude)
+                                        amplitude, excluded=excluded)
         dev_txt = ", ".join(f"{k} {v:.3g}" for k, v in (out.get("deviation") or {}).items()
                             if isinstance(v, (int, float)))
         if link is not None and link.get("verdict") == "differs":
