@@ -17,7 +17,8 @@ from hapsim.analysis.ths import (MatrixLoop, gain_matrices, split_hold_matrices,
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.errors import ConfigError
 
-__all__ = ["direction_limit", "direction_limits", "WorkspaceLimits", "workspace_limits"]
+__all__ = ["direction_limit", "direction_limits", "isotropic_limit", "WorkspaceLimits",
+           "workspace_limits"]
 
 
 def _resolvent_scalar(A0: np.ndarray, b: np.ndarray, c: np.ndarray, z: np.ndarray):
@@ -212,6 +213,45 @@ def _kron_crossings(A0: np.ndarray, D: np.ndarray) -> list[float]:
                 break
         out.append(k)
     return out
+
+
+def isotropic_limit(loop: MatrixLoop, B=0.0, delays=None) -> float:
+    """Largest stable isotropic stiffness ``kappa`` [N/m]: the loop with ``K = kappa I``
+    (a spring of rest length 0 from the handle to a ground: the same law on every axis)
+    and the virtual damping ``B``.
+
+    Parameters
+    ----------
+    loop : MatrixLoop
+    B : array_like, optional
+        Virtual damping matrix [N s/m] (a scalar: times I).
+    delays : sequence of float, optional
+        A delay per axis [periods] (:func:`hapsim.analysis.ths.state_matrix`).
+
+    Returns
+    -------
+    float
+        ``sup {kappa : stable for all kappa' in (0, kappa)}`` [N/m]; 0.0 when no small
+        positive ``kappa`` is stable, ``inf`` when every one is.
+
+    Notes
+    -----
+    ``A(kappa) = A0 + kappa D`` with ``D`` of rank up to ``n``: the crossings of the unit
+    circle are the real roots of ``det(A(kappa) (x) A(kappa) - I) = 0``
+    (:func:`_kron_crossings`), each interval between them classified by the spectral
+    radius at one interior point, as :func:`direction_limit`. For ``n = 1`` it is the 1-D
+    limit :func:`hapsim.analysis.stability.stability_limit`.
+
+    Raises
+    ------
+    ConfigError
+        ``B`` not finite or of the wrong shape.
+    """
+    n = loop.dof
+    K0q, Bq = gain_matrices(loop, 0.0, B)
+    A0 = state_matrix(loop, K0q, Bq, delays=delays)
+    D = state_matrix(loop, K0q + np.eye(n), Bq, delays=delays) - A0
+    return _classify(A0, D, _kron_crossings(A0, D))
 
 
 def direction_limits(loop: MatrixLoop, directions=None, B=0.0, K0=0.0) -> np.ndarray:

@@ -2,8 +2,9 @@
 and what to use instead (issue 30 item 2: every capability in every dimension, or refused
 by name with the reason).
 
-``check``, ``simulate``, ``run``, ``play``, ``mock --scene``, ``stability --scene`` and
-``identify --mock-scene --lockstep`` take a scene of any dimension (:func:`hapsim.load_scene` reads every dimension); the commands
+``check``, ``simulate``, ``run``, ``play``, ``mock --scene``, ``stability --scene``,
+``identify --mock-scene --lockstep`` and ``zwidth --scene --lockstep`` take a scene of any
+dimension (:func:`hapsim.load_scene` reads every dimension); the commands
 below read it with the 1-D reader, whose refusal (at the file's ``dimension`` line) is
 given their reason here.
 """
@@ -23,9 +24,6 @@ ONE_D_ONLY = {
     "advise": "its advice (rate, integrator, correction) is chosen on the 1-D felt pair; "
               "'hapsim check SCENE' gives a 2-D or 3-D loop's stiffness limits along its "
               "principal axes, 'hapsim stability --scene SCENE --grid N' their map",
-    "zwidth": "the Z-width of a 2-D or 3-D device (a region of stiffness and damping "
-              "matrices) is not built yet; 'hapsim stability --scene SCENE' gives its "
-              "stiffness limits per direction",
 }
 
 

@@ -66,7 +66,8 @@ def register(sub) -> None:
     p.add_argument("--scene", metavar="SCENE", default=None,
                    help="scene whose device, rate and safety limits are measured (default: "
                         "configs/wall.yaml's device: 0.1 kg, b0 0.5 N s/m, d = 1, zoh, 1 kHz; "
-                        "with --firmware configs/hapkit.yaml, the device the board models)")
+                        "with --firmware configs/hapkit.yaml, the device the board models); "
+                        "a 2-D or 3-D scene with --lockstep: an isotropic wall's Z-width")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--port", default=None, help="serial port of a device (or hapsim mock)")
     where.add_argument("--firmware", action="store_true",
@@ -154,6 +155,10 @@ def run(args) -> int:
     if args.lockstep and args.port:
         raise ConfigError("--lockstep is the embedded mock's or the emulated board's; drop "
                           "it with --port", key="--lockstep")
+    if args.scene is not None:
+        from hapsim.scene import scene_dimension
+        if scene_dimension(args.scene) > 1:
+            return _run_space(args)
     if args.plot:
         from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
@@ -219,6 +224,84 @@ def run(args) -> int:
     return 0 if all(p.K_max_measured is not None for p in points) else 1
 
 
+def _run_space(args) -> int:
+    """``hapsim zwidth --scene SCENE --lockstep`` of a 2-D or 3-D scene: ``K_max(B)`` of an
+    isotropic wall, measured from lockstep records
+    (:func:`hapsim.pipeline.zwidth_lockstep.lockstep_measure`) beside the exact limit
+    (:func:`hapsim.analysis.direction_limits.isotropic_limit`).
+
+    Returns
+    -------
+    int
+        0 every point measured, 1 some point without a bracket.
+
+    Raises
+    ------
+    ConfigError
+        ``--port``, ``--firmware`` or ``--plot`` (not built for 2-D or 3-D), no
+        ``--lockstep``, a bad scene.
+    """
+    import numpy as np
+
+    from hapsim.analysis.direction_limits import isotropic_limit
+    from hapsim.analysis.ths import MatrixLoop
+    from hapsim.analysis.zwidth import ZPoint, locate_onset
+    from hapsim.pipeline.zwidth_lockstep import isotropic_wall, lockstep_measure
+    from hapsim.progress import Progress
+    for flag, given in (("--port", args.port), ("--firmware", args.firmware),
+                        ("--plot", args.plot)):
+        if given:
+            raise ConfigError("the Z-width of a 2-D or 3-D device over a port, on the "
+                              "emulated board or charted is not built yet: --lockstep "
+                              "measures it on the scene's own device model", key=flag)
+    if not args.lockstep:
+        raise ConfigError("the Z-width of a 2-D or 3-D device in real time is not built "
+                          "yet: give --lockstep (the scene's own device model, in "
+                          "process)", key="--lockstep")
+    base = isotropic_wall(args.scene, 1.0, 0.0)
+    dev = base.device
+    x0 = args.x0 if args.x0 is not None else 0.001
+    if not (math.isfinite(x0) and x0 > 0):
+        raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
+    loop = MatrixLoop(mass=dev.mass, friction=dev.friction, rate_hz=base.rate_hz,
+                      delay=dev.delay)
+    measure = lockstep_measure(args.scene, x0, args.duration)
+    points = []
+    with Progress(len(args.B), "measuring K_max(B) of an isotropic wall", "B values") as bar:
+        for i, B in enumerate(args.B):
+            Kp = isotropic_limit(loop, B)
+            Km, iv, trials, note = locate_onset(measure, B, Kp, tol=args.tol,
+                                                start=args.start)
+            points.append(ZPoint(B=float(B), K_max_predicted=Kp, K_max_predicted_coulomb=None,
+                                 K_max_measured=Km, K_max_measured_interval=iv,
+                                 trials=trials, note=note))
+            bar.update(i + 1)
+    pts = []
+    for p in points:
+        d = p.to_dict()
+        km = d["K_max_measured"]
+        d["rel_err"] = None if km is None else (km - p.K_max_predicted) / p.K_max_predicted
+        d["rel_err_coulomb"] = None
+        pts.append(d)
+    errs = [abs(d["rel_err"]) for d in pts if d["rel_err"] is not None]
+    where = (f"{args.scene}'s {dev.kind} (lockstep, in process"
+             + (", at its operating point" if dev.kind != "cartesian" else "") + ")")
+    rep = {"where": where, "x0": x0, "wall": "isotropic", "dof": base.dimension,
+           "device": {"kind": dev.kind, "mass": np.asarray(dev.mass).tolist(),
+                      "friction": np.asarray(dev.friction).tolist(), "coulomb": 0.0,
+                      "delay": dev.delay, "hold": dev.hold, "rate_hz": base.rate_hz},
+           "points": pts, "follows": "linear" if errs else None,
+           "worst_rel_err": max(errs) if errs else None}
+    if args.json:
+        print(json.dumps(rep))
+    else:
+        print(f"Z-width of {where} for an isotropic wall (a spring-damper of rest length 0 "
+              f"to a ground at the handle's rest: (K, B) on every axis), d = {dev.delay}, "
+              f"{base.rate_hz:g} Hz; records released {x0 * 1e3:g} mm from rest")
+        print("\n".join(_table(rep)))
+    return 0 if all(p.K_max_measured is not None for p in points) else 1
+
+
 def report(points, base, where: str, x0: float, fc: float) -> dict:
     """The JSON report: device, points, and which prediction the measurements follow.
 
@@ -278,6 +361,13 @@ def format_report(rep: dict) -> str:
              + (f", Coulomb {d['coulomb']:g} N" if d["coulomb"] else "")
              + f", d = {d['delay']}, {d['hold']}, {d['rate_hz']:g} Hz; records released "
              f"from x0 = {rep['x0'] * 1e3:g} mm"]
+    return "\n".join(lines + _table(rep))
+
+
+def _table(rep: dict) -> list:
+    """The rows of :func:`format_report` after its first line."""
+    d = rep["device"]
+    lines = []
     head = "   B [N s/m]   K_max predicted" + ("   with Coulomb" if d["coulomb"] else "") + \
         "   measured   interval                  rel. err   records"
     lines.append(head)
@@ -297,7 +387,7 @@ def format_report(rep: dict) -> str:
                      + (" (describing function of Coulomb friction at the record's amplitude)"
                         if rep["follows"] == "coulomb" else "")
                      + f": worst relative error {rep['worst_rel_err']:.2e}")
-    return "\n".join(lines)
+    return lines
 
 
 def _g(v) -> str:
