@@ -12,9 +12,10 @@ ground; every mass starts displaced at random by up to 1 mm (seeded).
 
 It prints, for growing meshes:
 
-* ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: stripes cut into
-  pieces per block of masses, structure of arrays, each block advanced while in cache,
-  a piece's shared link parameters read once)
+* ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: the grid's +x,
+  +y, +z links as three dense families whose forces each mass pulls as it advances, any
+  other link in stripes cut into pieces per block of masses, structure of arrays, each
+  block advanced while in cache), with the families and pieces it ran
   and of the reference (a numba loop over the links one at a time, positions as (N, 3)
   rows, forces scattered to both ends: the straightforward layout), and their ratio,
   both measured in this run as thread CPU time (``time.thread_time``: descheduling on a
@@ -31,8 +32,8 @@ It prints, for growing meshes:
   transient bytes (tracemalloc), through the one-argument context (as
   :meth:`hapsim.engine.Engine.step`) and with the 36 arrays passed one by one;
 * where the time goes (not with ``--quick``): the 5,324-mass mesh with the kernel whole
-  and with one part taken out of its source (:data:`ABLATIONS`: the link forces, their
-  scatter, the square root and division), measured alternately;
+  and with one part taken out of its source (:data:`ABLATIONS`: the link forces, the
+  forces pulled by each mass, the square root and division), measured alternately;
 * the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
   within 1 ms (1 kHz), by bisection on the mesh size measured at each step, for hapsim
   in double and in single precision (``hapsim_single``) and the reference; at 44.1 kHz
@@ -75,8 +76,9 @@ sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "tools"))
 
 import hapsim.kernels.nd as nd_kernels  # noqa: E402
-from hapsim.kernels.nd import (BLOCK, context, link_lengths, run_context,  # noqa: E402
-                               run_context32, run_nd, schedule, shared_params, stripes)
+from hapsim.kernels.nd import (BLOCK, context, euclid_layout,  # noqa: E402
+                               link_lengths, run_context, run_context32, run_nd,
+                               shared_params)
 
 #: Beads of the string compared with Faust (Faust's build time grows with the string).
 FAUST_BEADS = 300
@@ -141,7 +143,7 @@ class Case:
     """Both engines' arrays for one mesh; hapsim's in ``dtype`` (float64, or float32:
     the single-precision engine, the same kernels compiled for float32)."""
 
-    def __init__(self, nx, ny, nz, dtype=np.float64):
+    def __init__(self, nx, ny, nz, dtype=np.float64, dense=True):
         X0, i1, i2, t2m = mesh(nx, ny, nz)
         self.N, self.L = X0.shape[0], i1.size
         K, B = 100.0, 0.001
@@ -151,9 +153,9 @@ class Case:
         # reference: (N, 3)
         self.ref = (np.ascontiguousarray(X0), X0.copy(), np.zeros_like(X0), t2m,
                     i1.astype(np.int64), i2.astype(np.int64), k, z, rest)
-        # hapsim: (3, N), stripes cut into pieces per block of masses (as Engine)
-        table, order = stripes(i1, i2)
-        pieces, ptr = schedule(table, self.N, BLOCK)
+        # hapsim: (3, N), dense families and the other links' stripes cut into pieces
+        # per block of masses (as Engine)
+        pieces, ptr, fam, order = euclid_layout(i1, i2, self.N, BLOCK, dense=dense)
         real = order >= 0
 
         def slot(v):                      # per-link values in stripe order, 0 for padding
@@ -163,19 +165,24 @@ class Case:
         empty_t = np.zeros((0, 4), np.int64)
         empty_p = np.zeros(ptr.size, np.int64)
         e = np.zeros(0)
-        lprev = link_lengths(np.ascontiguousarray(X0.T), pieces, order.size)
+        lprev = link_lengths(np.ascontiguousarray(X0.T), np.concatenate([pieces, fam]),
+                             order.size)
+        dn_fam = np.zeros((3 if len(fam) else 0, 4), np.int64)
+        dn_fam[:len(fam)] = fam
+        dn_G = np.zeros((9, int(fam[:, 1].max()) + self.N) if len(fam) else (0, 0))
         self.hap = (3, BLOCK, np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
                     np.zeros((3, self.N)), t2m, empty_t, empty_p, e, e, pieces, ptr,
                     slot(k), slot(z), slot(rest), lprev,
                     *shared_params(pieces, order, slot(k), slot(z), slot(rest)),
                     np.zeros((3, BLOCK)),
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
-                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, -1, np.zeros(3))
+                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, dn_fam, dn_G, -1,
+                    np.zeros(3))
         if dtype is not np.float64:   # single precision's velocity form: xp holds x - xp
             self.hap = self.hap[:3] + (np.zeros((3, self.N)),) + self.hap[4:]
         self.hap = tuple(a.astype(dtype) if isinstance(a, np.ndarray) and
                          a.dtype == np.float64 else a for a in self.hap)
-        self.stripes = table.shape[0]
+        self.families, self.pieces = fam.shape[0], pieces.shape[0]
         self.ctx = context(*self.hap, dtype=dtype)   # ctx[0] = 1: one sample per call
         self._run_ctx = run_context if dtype is np.float64 else run_context32
 
@@ -262,27 +269,29 @@ def largest(kind, deadline, quick):
 #: replacement must match the kernel's text: the profile fails rather than measure
 #: something else after the kernel changes). Name -> [(old, new), ...].
 ABLATIONS = {
-    "no link forces (scatter of stale forces and advance)": [(
-        """                _euclid_piece_shared(x, a, b, c, j0, eu_sk[r], eu_sz[r], eu_srest[r],
-                                     eu_lprev, W)""", "                pass")],
-    "no scatter (link forces and advance)": [(
-        "            _scatter(f, dim, a, b, c, W)\n        m0",
-        "            pass\n        m0")],
+    "no link forces (stale forces pulled, advance)": [(
+        """            _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]), _U(dn_fam[r, 2]),
+                    _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest, eu_lprev)""",
+        "            pass")],
+    "no pulled forces (link forces, advance)": [(
+        "                F = _pulled(G, d, i, P, o0, o1, o2)\n",
+        "                F = G[d, P + i]\n")],
     "advance only": [(
-        """                _euclid_piece_shared(x, a, b, c, j0, eu_sk[r], eu_sz[r], eu_srest[r],
-                                     eu_lprev, W)""", "                pass"), (
-        "            _scatter(f, dim, a, b, c, W)\n        m0",
-        "            pass\n        m0")],
+        """            _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]), _U(dn_fam[r, 2]),
+                    _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest, eu_lprev)""",
+        "            pass"), (
+        "                F = _pulled(G, d, i, P, o0, o1, o2)\n",
+        "                F = G[d, P + i]\n")],
     "no square root or division (a multiplication each)": [(
         """        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
         lp = lprev[j]
         lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) / ln
+        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln
         if not ln > 0.0:""",
         """        ln = (dx * dx + dy * dy + dz * dz) * 50.0
         lp = lprev[j]
         lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) * ln
+        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) * ln
         if not ln > 0.0:""")],
 }
 
@@ -410,7 +419,7 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     print(f"load average {load0:.2f} (1 min) on {os.cpu_count()} CPUs at the start")
     rows = []
-    print(f"{'masses':>8} {'links':>8} {'stripes':>8} {'hapsim ns/mass':>15} "
+    print(f"{'masses':>8} {'links':>8} {'families':>8} {'pieces':>6} {'hapsim ns/mass':>15} "
           f"{'ns/link':>8} {'ref ns/mass':>12} {'ns/link':>8} {'ratio':>6} {'max |dx|/h':>10} "
           f"{'single ns/mass':>15} {'single |dx|/h':>13}")
     for nx, ny, nz in sizes:
@@ -431,13 +440,14 @@ def main(argv=None) -> int:
         th = per_sample(c.run_hap, n, repeats)
         tr = per_sample(c.run_ref, n, repeats)
         t32 = per_sample(c32.run_hap, n, repeats)
-        row = {"masses": c.N, "links": c.L, "stripes": c.stripes,
+        row = {"masses": c.N, "links": c.L, "families": c.families,
+               "pieces": c.pieces,
                "hapsim_ns_per_mass": th / c.N * 1e9, "hapsim_ns_per_link": th / c.L * 1e9,
                "ref_ns_per_mass": tr / c.N * 1e9, "ref_ns_per_link": tr / c.L * 1e9,
                "ratio_ref_over_hapsim": tr / th, "max_rel_diff": err,
                "single_ns_per_mass": t32 / c.N * 1e9, "single_max_rel_diff": err32}
         rows.append(row)
-        print(f"{c.N:>8} {c.L:>8} {c.stripes:>8} {row['hapsim_ns_per_mass']:>15.2f} "
+        print(f"{c.N:>8} {c.L:>8} {c.families:>8} {c.pieces:>6} {row['hapsim_ns_per_mass']:>15.2f} "
               f"{row['hapsim_ns_per_link']:>8.2f} {row['ref_ns_per_mass']:>12.2f} "
               f"{row['ref_ns_per_link']:>8.2f} {row['ratio_ref_over_hapsim']:>6.2f} "
               f"{err:>10.2e} {row['single_ns_per_mass']:>15.2f} {err32:>13.2e}", flush=True)

@@ -41,9 +41,10 @@ __all__ = ["play_context", "play_chunk", "play_chunk32", "HEAD", "PLAY_ARRAYS", 
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
-                    "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py")
+                    "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py",
+                    "hapsim/kernels/layout.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "d3083fbcb75fe17d210e57a43808c5a2d2284634b4650fc5e0a07e7e73463ca9"
+COMPILED_SOURCES_SHA256 = "18ca8e369ce1f0fad4e5b538c9be651d2677a3d1efd2e23738b2c733e88189dd"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
