@@ -131,6 +131,12 @@ _inline = nb.njit(cache=CACHE_OK, nogil=True, boundscheck=False, error_model="nu
 #: ``Literal``, so each accessor compiles once. A view is built, no arithmetic: same code.
 _access = register_jitable(boundscheck=False)
 
+#: Blocks advanced at once in a scene with dense families (their links computed over the
+#: span first): each vectorised loop then runs 4,096 masses, not 256, and its scalar
+#: remainder (a square root and a division each) is paid once, not 16 times: 4.9 against
+#: 6.1-6.4 ns per mass-sample on the 5,808-mass grid, 5.2 against 6.6 on the 32,000-mass
+#: one (same runs). Scenes without families advance block by block as before.
+FAMILY_SPAN = 16
 #: Rows of the state arrays (axes): a scene of lower dimension leaves the rest at zero.
 ROWS = 3
 
@@ -415,7 +421,9 @@ def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pie
     _planes(x, xp, f, p_mass, p_normal, p_offset, p_k, p_z)
     n = x.shape[1]
     use_f = lin_pieces.shape[0] + eu_pieces.shape[0] + c_i1.size + p_mass.size > 0
-    for q in range(lin_ptr.size - 1):
+    nq = lin_ptr.size - 1
+    span = FAMILY_SPAN if dn_fam.shape[0] > 0 else 1    # blocks per advance
+    for q in range(nq):
         for r in range(lin_ptr[q], lin_ptr[q + 1]):
             a = _U(lin_pieces[r, 0])
             b = _U(lin_pieces[r, 0] + lin_pieces[r, 1])
@@ -439,7 +447,9 @@ def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pie
             else:
                 _euclid_piece(x, a, b, c, j0, eu_k, eu_z, eu_rest, eu_lprev, W)
             _scatter(f, dim, a, b, c, W)
-        m0 = _U(q * block)
+        if (q + 1) % span != 0 and q != nq - 1:
+            continue
+        m0 = _U((q - q % span) * block)
         m1 = _U(min(n, q * block + block))
         if dn_fam.shape[0] == 0:
             _advance(x, xp, f, t2m, dim, m0, m1, port, port_f)
