@@ -21,6 +21,9 @@ It prints, for growing meshes:
   both measured in this run as thread CPU time (``time.thread_time``: descheduling on a
   shared machine is not counted), the fastest of repeated short runs (the one least
   disturbed by other processes' use of the caches);
+* the same for hapsim's kernel with every link in pieces (``pieces ns/mass``:
+  ``Engine(scene, families=False)``, the layout before dense families), measured
+  interleaved with the others;
 * the same for hapsim's kernel in single precision (the same kernels compiled for float32,
   as ``engine: {precision: single}`` runs them) and its difference from the reference
   after 200 samples;
@@ -30,7 +33,7 @@ It prints, for growing meshes:
   relative to the spacing: round-off, the forces are summed in another order);
 * the cost of one step call from Python (75 masses, one sample): us per call and the
   transient bytes (tracemalloc), through the one-argument context (as
-  :meth:`hapsim.engine.Engine.step`) and with the 36 arrays passed one by one;
+  :meth:`hapsim.engine.Engine.step`) and with the 38 arrays passed one by one;
 * where the time goes (not with ``--quick``): the 5,324-mass mesh with the kernel whole
   and with one part taken out of its source (:data:`ABLATIONS`: the link forces, the
   forces pulled by each mass, the square root and division), measured alternately;
@@ -338,7 +341,7 @@ def profile(dims, repeats) -> dict:
 def per_call(repeats) -> dict:
     """The cost of one step call from Python on a small mesh (75 masses): us per call
     and transient bytes (tracemalloc) through the context (one argument, as Engine) and
-    with the 36 arguments passed one by one."""
+    with the 38 arguments passed one by one."""
     import tracemalloc
     c = Case(5, 5, 3)
     args = (1, *c.hap)
@@ -421,14 +424,16 @@ def main(argv=None) -> int:
     rows = []
     print(f"{'masses':>8} {'links':>8} {'families':>8} {'pieces':>6} {'hapsim ns/mass':>15} "
           f"{'ns/link':>8} {'ref ns/mass':>12} {'ns/link':>8} {'ratio':>6} {'max |dx|/h':>10} "
-          f"{'single ns/mass':>15} {'single |dx|/h':>13}")
+          f"{'single ns/mass':>15} {'single |dx|/h':>13} {'pieces ns/mass':>15}")
     for nx, ny, nz in sizes:
         c = Case(nx, ny, nz)
         c32 = Case(nx, ny, nz, np.float32)
+        cp = Case(nx, ny, nz, dense=False)    # every link in pieces: the layout before
         n = max(5, int(4e5 // c.L))
         c.run_ref(2)
         c.run_hap(2)
         c32.run_hap(2)
+        cp.run_hap(2)
         # agreement after the same samples from the same start
         c2 = Case(nx, ny, nz)
         c2.run_ref(200)
@@ -440,17 +445,20 @@ def main(argv=None) -> int:
         th = per_sample(c.run_hap, n, repeats)
         tr = per_sample(c.run_ref, n, repeats)
         t32 = per_sample(c32.run_hap, n, repeats)
+        tp = per_sample(cp.run_hap, n, repeats)
         row = {"masses": c.N, "links": c.L, "families": c.families,
                "pieces": c.pieces,
                "hapsim_ns_per_mass": th / c.N * 1e9, "hapsim_ns_per_link": th / c.L * 1e9,
                "ref_ns_per_mass": tr / c.N * 1e9, "ref_ns_per_link": tr / c.L * 1e9,
                "ratio_ref_over_hapsim": tr / th, "max_rel_diff": err,
-               "single_ns_per_mass": t32 / c.N * 1e9, "single_max_rel_diff": err32}
+               "single_ns_per_mass": t32 / c.N * 1e9, "single_max_rel_diff": err32,
+               "pieces_ns_per_mass": tp / c.N * 1e9}
         rows.append(row)
         print(f"{c.N:>8} {c.L:>8} {c.families:>8} {c.pieces:>6} {row['hapsim_ns_per_mass']:>15.2f} "
               f"{row['hapsim_ns_per_link']:>8.2f} {row['ref_ns_per_mass']:>12.2f} "
               f"{row['ref_ns_per_link']:>8.2f} {row['ratio_ref_over_hapsim']:>6.2f} "
-              f"{err:>10.2e} {row['single_ns_per_mass']:>15.2f} {err32:>13.2e}", flush=True)
+              f"{err:>10.2e} {row['single_ns_per_mass']:>15.2f} {err32:>13.2e} "
+              f"{row['pieces_ns_per_mass']:>15.2f}", flush=True)
     floor = sqrt_div_floor(repeats)
     print(f"one square root and one division alone: {floor:.2f} ns per element "
           f"(the Euclidean law needs both per link)", flush=True)
@@ -459,7 +467,7 @@ def main(argv=None) -> int:
     out["per_call"] = pc
     print(f"one step call from Python ({pc['masses']} masses, 1 sample): through the "
           f"context {pc['context_us']:.2f} us and {pc['context_bytes']} B transient; "
-          f"36 arguments {pc['arguments_us']:.2f} us and {pc['arguments_bytes']} B",
+          f"38 arguments {pc['arguments_us']:.2f} us and {pc['arguments_bytes']} B",
           flush=True)
     if not args.quick:
         pr = profile((22, 22, 11), repeats)

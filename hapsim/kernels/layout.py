@@ -18,6 +18,12 @@ BLOCK = 256
 #: At most this many dense families (:func:`families`): the kernels' pulled advance sums
 #: three, a 3-D grid's +x, +y and +z links.
 FAMILIES = 3
+#: No families in a mesh of more masses: their force rows (72 bytes per mass) then stream
+#: from memory beside the state, and the pieces are faster. Measured on the grid mesh of
+#: ``tools/bench_nd.py`` (same runs, AMD EPYC, 1 MB L2 per core): families 5.2 against
+#: 7.4 ns per mass-sample at 32,000 masses, 6.5 against 7.6 at 62,500, but 8.6-9.7
+#: against 7.7-8.2 at 108,000.
+FAMILY_MAX_MASSES = 80_000
 
 
 def stripes(i1: np.ndarray, i2: np.ndarray, max_gap: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -182,7 +188,8 @@ def link_lengths(xp: np.ndarray, table: np.ndarray, n_slots: int) -> np.ndarray:
 def families(i1: np.ndarray, i2: np.ndarray, n_masses: int, most: int = FAMILIES,
              fill: float = 0.5) -> tuple[np.ndarray, list]:
     """The dense families of a mesh's links: offsets ``s`` whose links ``(i, i + s)``
-    cover at least a quarter of the masses, filling at least ``fill`` of their span.
+    cover at least a quarter of the masses, filling at least ``fill`` of their span (none
+    in a mesh of more than :data:`FAMILY_MAX_MASSES` masses).
 
     A family's links are computed into one force row per axis indexed by their lower mass,
     and each mass's force is then *pulled* from those rows (``G[i - s] - G[i]``) as the
@@ -212,6 +219,8 @@ def families(i1: np.ndarray, i2: np.ndarray, n_masses: int, most: int = FAMILIES
     i1 = np.asarray(i1, np.int64)
     s = np.asarray(i2, np.int64) - i1
     rows, members, j0 = [], [], 0
+    if n_masses > FAMILY_MAX_MASSES or not s.size:
+        return np.zeros((0, 4), np.int64), members
     offs, counts = np.unique(s, return_counts=True)
     for off in offs[np.argsort(-counts, kind="stable")]:
         sel = np.flatnonzero(s == off)

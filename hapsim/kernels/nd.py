@@ -54,8 +54,10 @@ Layout and schedule (why it is fast):
   ``i + s``, and each mass then *pulls* its forces, ``sum (G[i - s] - G[i])`` over the
   families, as it advances (unit-stride reads of rows already written: the link of
   ``i - s`` is in an earlier block or this one). No read-modify-write of a force row per
-  link and no scratch rows for them: 5.5 against 6.8 ns per mass-sample on the 5,808-mass
-  grid, same run (``tools/bench_nd.py``).
+  link and no scratch rows for them: 5.6 against 6.9 ns per mass-sample on the 5,808-mass
+  grid, same run (``tools/bench_nd.py``); none above
+  :data:`hapsim.kernels.layout.FAMILY_MAX_MASSES` masses, where their rows stream from
+  memory.
 * A Euclidean piece whose links share their stiffness, damping and rest length (a
   uniform mesh's, once cut into pieces) reads them as three numbers instead of three
   per-link arrays (:func:`shared_params`); its padding links (the holes a stripe was
@@ -116,7 +118,7 @@ __all__ = ["stripes", "schedule", "shared_params", "link_lengths", "families",
 COMPILED_SOURCES = ("hapsim/kernels/pointers.py", "hapsim/kernels/layout.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "150f76d5455be065911ae1ae05b38ad036d431d274e5626b057599592ff48861"
+COMPILED_SOURCES_SHA256 = "07228d99b42a77506e339d335228b9f8391d36c79e22d1c387cd668c1ffa922e"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -133,9 +135,10 @@ _access = register_jitable(boundscheck=False)
 
 #: Blocks advanced at once in a scene with dense families (their links computed over the
 #: span first): each vectorised loop then runs 4,096 masses, not 256, and its scalar
-#: remainder (a square root and a division each) is paid once, not 16 times: 4.9 against
-#: 6.1-6.4 ns per mass-sample on the 5,808-mass grid, 5.2 against 6.6 on the 32,000-mass
-#: one (same runs). Scenes without families advance block by block as before.
+#: remainder (a square root and a division each) is paid once, not 16 times: 5.2 against
+#: 6.1 ns per mass-sample on the 5,808-mass grid, 5.2 against 6.2 on the 32,000-mass one
+#: (same runs; spans of 8 to 32 blocks within 3 % of each other). Scenes without
+#: families advance block by block as before.
 FAMILY_SPAN = 16
 #: Rows of the state arrays (axes): a scene of lower dimension leaves the rest at zero.
 ROWS = 3

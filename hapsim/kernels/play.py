@@ -44,7 +44,7 @@ COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
                     "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py",
                     "hapsim/kernels/layout.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "cff967c7c2de46b26298d7557ecb26f8a9865fe744135dd69996ebad778292c8"
+COMPILED_SOURCES_SHA256 = "2f4bcb70101e16b1cd8c2c17467547eb8cf0f59130dde959f64a44787d503f88"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
