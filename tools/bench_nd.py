@@ -286,16 +286,16 @@ ABLATIONS = {
         "                F = _pulled(G, d, i, P, o0, o1, o2)\n",
         "                F = G[d, P + i]\n")],
     "no square root or division (a multiplication each)": [(
-        """        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-        lp = lprev[j]
-        lprev[j] = ln
-        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln
-        if not ln > 0.0:""",
-        """        ln = (dx * dx + dy * dy + dz * dz) * 50.0
-        lp = lprev[j]
-        lprev[j] = ln
-        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) * ln
-        if not ln > 0.0:""")],
+        """    ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+    lp = lprev[j]
+    lprev[j] = ln
+    g = (k * (ln - rest) + z * (ln - lp)) / ln
+    if not ln > 0.0:""",
+        """    ln = (dx * dx + dy * dy + dz * dz) * 50.0
+    lp = lprev[j]
+    lprev[j] = ln
+    g = (k * (ln - rest) + z * (ln - lp)) * ln
+    if not ln > 0.0:""")],
 }
 
 

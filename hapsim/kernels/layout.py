@@ -244,10 +244,8 @@ def euclid_layout(i1: np.ndarray, i2: np.ndarray, n_masses: int, block: int = BL
 
     Parameters
     ----------
-    i1, i2 : ndarray of int, shape (L,)
-        Lower and upper mass of each link (``i1 < i2``).
-    n_masses : int
-        Number of masses N.
+    i1, i2, n_masses
+        As :func:`families`.
     block : int, optional
         Masses per block.
     dense : bool, optional

@@ -118,7 +118,7 @@ __all__ = ["stripes", "schedule", "shared_params", "link_lengths", "families",
 COMPILED_SOURCES = ("hapsim/kernels/pointers.py", "hapsim/kernels/layout.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "07228d99b42a77506e339d335228b9f8391d36c79e22d1c387cd668c1ffa922e"
+COMPILED_SOURCES_SHA256 = "e06b5375373b0dfab4372876f392b40ddc28ccb681201dddc213d1ea1c0671ab"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -201,6 +201,20 @@ def _linear_piece(x, xp, dim, a, b, c, j0, k, z, W):
 
 
 @_inline
+def _euclid_law(dx, dy, dz, k, z, rest, lprev, j):
+    """The Euclidean law's factor ``g = [k (|d| - L) + z (|d| - l_prev)] / |d|`` of the
+    link ``j`` with ``d = (dx, dy, dz)`` (0 while ``|d| = 0``); its length kept in
+    ``lprev[j]`` for the next sample (module docstring, ``euclid``)."""
+    ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+    lp = lprev[j]
+    lprev[j] = ln
+    g = (k * (ln - rest) + z * (ln - lp)) / ln
+    if not ln > 0.0:
+        g = _zero(g)
+    return g
+
+
+@_inline
 def _euclid_piece(x, a, b, c, j0, k, z, rest, lprev, W):
     """Euclidean links ``a + i`` -- ``b + i``: their forces into ``W``, their lengths
     into ``lprev`` (all three rows: a lower dimension's extra rows are zero)."""
@@ -209,12 +223,7 @@ def _euclid_piece(x, a, b, c, j0, k, z, rest, lprev, W):
         dx = x[0, a + i] - x[0, b + i]
         dy = x[1, a + i] - x[1, b + i]
         dz = x[2, a + i] - x[2, b + i]
-        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-        lp = lprev[j]
-        lprev[j] = ln
-        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln
-        if not ln > 0.0:
-            g = _zero(g)
+        g = _euclid_law(dx, dy, dz, k[j], z[j], rest[j], lprev, j)
         W[0, i] = g * dx
         W[1, i] = g * dy
         W[2, i] = g * dz
@@ -228,12 +237,7 @@ def _euclid_piece_shared(x, a, b, c, j0, k, z, rest, lprev, W):
         dx = x[0, a + i] - x[0, b + i]
         dy = x[1, a + i] - x[1, b + i]
         dz = x[2, a + i] - x[2, b + i]
-        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-        lp = lprev[j]
-        lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) / ln
-        if not ln > 0.0:
-            g = _zero(g)
+        g = _euclid_law(dx, dy, dz, k, z, rest, lprev, j)
         W[0, i] = g * dx
         W[1, i] = g * dy
         W[2, i] = g * dz
@@ -295,12 +299,7 @@ def _family(x, G, r, a, s, c, j0, m0, m1, k, z, rest, lprev):
         dx = x[0, i] - x[0, i + s]
         dy = x[1, i] - x[1, i + s]
         dz = x[2, i] - x[2, i + s]
-        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-        lp = lprev[j]
-        lprev[j] = ln
-        g = (k[j] * (ln - rest[j]) + z[j] * (ln - lp)) / ln
-        if not ln > 0.0:
-            g = _zero(g)
+        g = _euclid_law(dx, dy, dz, k[j], z[j], rest[j], lprev, j)
         G[r, P + i] = g * dx
         G[r + 1, P + i] = g * dy
         G[r + 2, P + i] = g * dz
