@@ -104,7 +104,8 @@ def test_kernel_equals_the_plain_reference_on_random_meshes(dim):
         for a in (eng._X, eng._XP):
             a[0], a[1] = a[1].copy(), 0.0
         eng.dim = 1
-        eng.eu_lprev[:] = link_lengths(eng._XP, eng.eu_pieces, eng.eu_k.size)
+        eng.eu_lprev[:] = link_lengths(eng._XP, np.concatenate([eng.eu_pieces, eng.dn_fam]),
+                                       eng.eu_k.size)
     X0, XP0 = eng.x.T.copy(), eng.xp.T.copy()
     ref = reference_steps(X0, XP0, eng.t2m, links, scene.period, 300)
     eng.step(300)
@@ -166,27 +167,111 @@ def grid_scene(rng, nx, ny, nz, odd):
     return "\n".join(lines) + "\n", links
 
 
-@settings(max_examples=8, deadline=None, derandomize=True)
+@settings(max_examples=12, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**32 - 1), block=st.integers(1, 40),
        dims=st.tuples(st.integers(2, 5), st.integers(1, 4), st.integers(2, 4)),
-       odd=st.booleans())
-def test_shared_parameter_pieces_equal_the_plain_reference(seed, block, dims, odd):
-    """Property: a grid mesh whose links share (K, B, L) runs its pieces on the shared
+       odd=st.booleans(), families=st.booleans())
+def test_grid_pieces_and_families_equal_the_plain_reference(seed, block, dims, odd,
+                                                            families):
+    """Property: a grid mesh whose links share (K, B, L) runs, with ``families``, its +x,
+    +y and +z links as dense families whose forces each mass pulls (padding slots where
+    a family has no link, per-link parameters); without, its pieces on the shared
     parameters (their padding links' forces dropped), and, with one link different, the
     piece holding it on per-link ones; 80 samples agree with the plain reference to
     round-off (KERNEL_VS_REFERENCE)."""
     rng = np.random.default_rng(seed)
     text, links = grid_scene(rng, *dims, odd)
     scene = parse_scene_nd(text)
-    eng = Engine(scene, block=block)
-    shared = eng.eu_shared[0]
-    assert shared.any() and (not odd or not shared.all())
+    eng = Engine(scene, block=block, families=families)
+    if families:        # every link in a family: no piece left
+        assert eng.dn_fam.shape == (3, 4) and eng.eu_pieces.shape[0] == 0
+    else:
+        shared = eng.eu_shared[0]
+        assert shared.any() and (not odd or not shared.all())
     X0, XP0 = eng.x.T.copy(), eng.xp.T.copy()
     ref = reference_steps(X0, XP0, eng.t2m, links, scene.period, 80)
     eng.step(80)
     scale = np.max(np.abs(ref - X0))
     assert scale > 0
     assert np.max(np.abs(eng.x.T - ref)) <= KERNEL_VS_REFERENCE * scale
+
+
+def link_force(X, XP, a, b, K, B, L, eu, T):
+    """The plain reference's force of one link on its first mass [N] (``-force`` of
+    :func:`reference_steps`)."""
+    d, dp = X[a] - X[b], XP[a] - XP[b]
+    if eu:
+        ln, lp = np.linalg.norm(d), np.linalg.norm(dp)
+        return -(K * (ln - L) + B / T * (ln - lp)) * d / ln
+    return -(K * d + B / T * (d - dp))
+
+
+@settings(max_examples=10, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), block=st.integers(1, 40),
+       dims=st.tuples(st.integers(3, 6), st.integers(2, 4), st.integers(2, 3)))
+def test_families_beside_pieces_planes_and_a_port_equal_the_plain_reference(seed, block,
+                                                                           dims):
+    """Property: a grid mesh with random holes (a fifth of its links missing, none at
+    the port) and
+    per-link (K, B, L), its first mass the port (held) inside a family, plus random
+    extra links of both kinds (pieces) and a floor plane: the families' pulled forces
+    add to the pieces' and the plane's, and 80 samples agree with the plain reference to
+    round-off (KERNEL_VS_REFERENCE), the port's force too."""
+    rng = np.random.default_rng(seed)
+    nx, ny, nz = dims
+    n = nx * ny * nz
+    idx = np.arange(n).reshape(nz, ny, nx)
+    h = 0.01
+    lines = ["dimension: 3", "rate_hz: 2000", "masses:"]
+    for q, (k, j, i) in enumerate(np.ndindex(nz, ny, nx)):
+        x0 = (np.array([i, j, k]) * h + rng.uniform(-0.2, 0.2, 3) * h).tolist()
+        lines.append(f"  - {{name: m{q}, kind: port}}" if q == 0 else
+                     f"  - {{name: m{q}, kind: mass, x0: {x0}, "
+                     f"mass: {rng.uniform(0.002, 0.01)!r}}}")
+    pairs = [(a, b) for sl in ((np.s_[:, :, :-1], np.s_[:, :, 1:]),
+                               (np.s_[:, :-1, :], np.s_[:, 1:, :]),
+                               (np.s_[:-1], np.s_[1:]))
+             for a, b in zip(idx[sl[0]].ravel(), idx[sl[1]].ravel())
+             if a == 0 or rng.uniform() > 0.2]
+    n_grid = len(pairs)                 # Euclidean; then extra links of both kinds
+    while len(pairs) < n * 3.5:
+        a, b = sorted(rng.choice(n, 2, replace=False))
+        if (a, b) not in pairs:
+            pairs.append((a, b))
+    lines.append("links:")
+    links = []
+    for q, (a, b) in enumerate(pairs):
+        K, B = rng.uniform(50, 300), rng.uniform(0, 0.02)
+        L = rng.uniform(0.5, 2) * h if q < n_grid or rng.uniform() < 0.5 else 0.0
+        lines.append(f"  - {{kind: spring_damper, between: [m{a}, m{b}], stiffness: {K!r}, "
+                     f"damping: {B!r}, length: {L!r}}}")
+        links.append((a, b, K, B, L, L > 0))
+    lines.append("planes:\n  - {name: floor, normal: [0, 0, 1], offset: 0.002, "
+                 "stiffness: 500, damping: 0.05}")
+    lines.append("device: {mass: 0.1}")
+    scene = parse_scene_nd("\n".join(lines) + "\n")
+    eng = Engine(scene, block=block)
+    eng.set_port_position(np.zeros(3), at_rest=True)     # held at the origin
+    fam = eng.dn_fam[eng.dn_fam[:, 2] > 0]
+    assert np.any(fam[:, 0] == 0)                       # the port in one
+    assert eng.eu_pieces.shape[0] + eng.lin_pieces.shape[0] > 0
+    X0, XP0 = eng.x.T.copy(), eng.xp.T.copy()
+    planes = [(m, np.array([0.0, 0.0, 1.0]), 0.002, 500.0, 0.05) for m in range(n)]
+    T = scene.period
+    ref = reference_steps(X0, XP0, eng.t2m, links, T, 80, planes=planes)
+    X79 = reference_steps(X0, XP0, eng.t2m, links, T, 79, planes=planes)
+    X78 = reference_steps(X0, XP0, eng.t2m, links, T, 78, planes=planes)
+    eng.step(80)
+    scale = np.max(np.abs(ref - X0))
+    assert scale > 0
+    assert np.max(np.abs(eng.x.T - ref)) <= KERNEL_VS_REFERENCE * scale
+    F = sum((link_force(X79, X78, *lk, T) if lk[0] == 0 else -link_force(X79, X78, *lk, T))
+            for lk in links if 0 in lk[:2])
+    pen, pen_prev = 0.002 - X79[0, 2], 0.002 - X78[0, 2]     # the floor on the port
+    F[2] += (500.0 * pen + 0.05 / T * (pen - pen_prev)) if pen > 0 else 0.0
+    terms = sum(float(np.max(np.abs(link_force(X79, X78, *lk, T))))
+                for lk in links if 0 in lk[:2])
+    assert np.max(np.abs(eng.port_force - F)) <= KERNEL_VS_REFERENCE * terms
 
 
 def test_schedule_pieces_stay_in_their_block():

@@ -187,7 +187,7 @@ def test_engine_step_through_its_context_equals_the_kernel_called_directly():
         run_nd(100, b.dim, b.block, b._X, b._XP, b.f, b.t2m, b.lin_pieces, b.lin_ptr,
                b.lin_k, b.lin_z, b.eu_pieces, b.eu_ptr, b.eu_k, b.eu_z, b.eu_rest,
                b.eu_lprev, *b.eu_shared, b.W, b.c_i1, b.c_i2, b.c_k, b.c_z, b.c_thr,
-               b.c_lprev, b.p_mass, b.p_normal, b.p_offset, b.p_k, b.p_z,
+               b.c_lprev, b.p_mass, b.p_normal, b.p_offset, b.p_k, b.p_z, b.dn_fam, b.dn_G,
                -1 if b.port is None else b.port, b.port_f)
     assert np.any(a.x != Engine(sc).x)
     np.testing.assert_array_equal(a.x, b.x)
@@ -204,7 +204,7 @@ def test_a_context_refuses_an_array_it_cannot_rebuild():
             eng.lin_z, eng.eu_pieces, eng.eu_ptr, eng.eu_k, eng.eu_z, eng.eu_rest,
             eng.eu_lprev, *eng.eu_shared, eng.W, eng.c_i1, eng.c_i2, eng.c_k, eng.c_z,
             eng.c_thr, eng.c_lprev, eng.p_mass, eng.p_normal, eng.p_offset, eng.p_k,
-            eng.p_z]
+            eng.p_z, eng.dn_fam, eng.dn_G]
     context(eng.dim, eng.block, *args, -1, eng.port_f)
     ro = eng.t2m.copy()
     ro.setflags(write=False)

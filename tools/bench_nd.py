@@ -12,14 +12,18 @@ ground; every mass starts displaced at random by up to 1 mm (seeded).
 
 It prints, for growing meshes:
 
-* ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: stripes cut into
-  pieces per block of masses, structure of arrays, each block advanced while in cache,
-  a piece's shared link parameters read once)
+* ns per mass-sample and per link-sample of hapsim's kernel (``run_nd``: the grid's +x,
+  +y, +z links as three dense families whose forces each mass pulls as it advances, any
+  other link in stripes cut into pieces per block of masses, structure of arrays, each
+  block advanced while in cache), with the families and pieces it ran
   and of the reference (a numba loop over the links one at a time, positions as (N, 3)
   rows, forces scattered to both ends: the straightforward layout), and their ratio,
   both measured in this run as thread CPU time (``time.thread_time``: descheduling on a
   shared machine is not counted), the fastest of repeated short runs (the one least
   disturbed by other processes' use of the caches);
+* the same for hapsim's kernel with every link in pieces (``pieces ns/mass``:
+  ``Engine(scene, families=False)``, the layout before dense families), measured
+  interleaved with the others;
 * the same for hapsim's kernel in single precision (the same kernels compiled for float32,
   as ``engine: {precision: single}`` runs them) and its difference from the reference
   after 200 samples;
@@ -29,10 +33,10 @@ It prints, for growing meshes:
   relative to the spacing: round-off, the forces are summed in another order);
 * the cost of one step call from Python (75 masses, one sample): us per call and the
   transient bytes (tracemalloc), through the one-argument context (as
-  :meth:`hapsim.engine.Engine.step`) and with the 36 arrays passed one by one;
+  :meth:`hapsim.engine.Engine.step`) and with the 38 arrays passed one by one;
 * where the time goes (not with ``--quick``): the 5,324-mass mesh with the kernel whole
-  and with one part taken out of its source (:data:`ABLATIONS`: the link forces, their
-  scatter, the square root and division), measured alternately;
+  and with one part taken out of its source (:data:`ABLATIONS`: the link forces, the
+  forces pulled by each mass, the square root and division), measured alternately;
 * the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
   within 1 ms (1 kHz), by bisection on the mesh size measured at each step, for hapsim
   in double and in single precision (``hapsim_single``) and the reference; at 44.1 kHz
@@ -75,8 +79,9 @@ sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "tools"))
 
 import hapsim.kernels.nd as nd_kernels  # noqa: E402
-from hapsim.kernels.nd import (BLOCK, context, link_lengths, run_context,  # noqa: E402
-                               run_context32, run_nd, schedule, shared_params, stripes)
+from hapsim.kernels.nd import (BLOCK, context, euclid_layout,  # noqa: E402
+                               link_lengths, run_context, run_context32, run_nd,
+                               shared_params)
 
 #: Beads of the string compared with Faust (Faust's build time grows with the string).
 FAUST_BEADS = 300
@@ -141,7 +146,7 @@ class Case:
     """Both engines' arrays for one mesh; hapsim's in ``dtype`` (float64, or float32:
     the single-precision engine, the same kernels compiled for float32)."""
 
-    def __init__(self, nx, ny, nz, dtype=np.float64):
+    def __init__(self, nx, ny, nz, dtype=np.float64, dense=True):
         X0, i1, i2, t2m = mesh(nx, ny, nz)
         self.N, self.L = X0.shape[0], i1.size
         K, B = 100.0, 0.001
@@ -151,9 +156,9 @@ class Case:
         # reference: (N, 3)
         self.ref = (np.ascontiguousarray(X0), X0.copy(), np.zeros_like(X0), t2m,
                     i1.astype(np.int64), i2.astype(np.int64), k, z, rest)
-        # hapsim: (3, N), stripes cut into pieces per block of masses (as Engine)
-        table, order = stripes(i1, i2)
-        pieces, ptr = schedule(table, self.N, BLOCK)
+        # hapsim: (3, N), dense families and the other links' stripes cut into pieces
+        # per block of masses (as Engine)
+        pieces, ptr, fam, order = euclid_layout(i1, i2, self.N, BLOCK, dense=dense)
         real = order >= 0
 
         def slot(v):                      # per-link values in stripe order, 0 for padding
@@ -163,19 +168,24 @@ class Case:
         empty_t = np.zeros((0, 4), np.int64)
         empty_p = np.zeros(ptr.size, np.int64)
         e = np.zeros(0)
-        lprev = link_lengths(np.ascontiguousarray(X0.T), pieces, order.size)
+        lprev = link_lengths(np.ascontiguousarray(X0.T), np.concatenate([pieces, fam]),
+                             order.size)
+        dn_fam = np.zeros((3 if len(fam) else 0, 4), np.int64)
+        dn_fam[:len(fam)] = fam
+        dn_G = np.zeros((9, int(fam[:, 1].max()) + self.N) if len(fam) else (0, 0))
         self.hap = (3, BLOCK, np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
                     np.zeros((3, self.N)), t2m, empty_t, empty_p, e, e, pieces, ptr,
                     slot(k), slot(z), slot(rest), lprev,
                     *shared_params(pieces, order, slot(k), slot(z), slot(rest)),
                     np.zeros((3, BLOCK)),
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
-                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, -1, np.zeros(3))
+                    np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, dn_fam, dn_G, -1,
+                    np.zeros(3))
         if dtype is not np.float64:   # single precision's velocity form: xp holds x - xp
             self.hap = self.hap[:3] + (np.zeros((3, self.N)),) + self.hap[4:]
         self.hap = tuple(a.astype(dtype) if isinstance(a, np.ndarray) and
                          a.dtype == np.float64 else a for a in self.hap)
-        self.stripes = table.shape[0]
+        self.families, self.pieces = fam.shape[0], pieces.shape[0]
         self.ctx = context(*self.hap, dtype=dtype)   # ctx[0] = 1: one sample per call
         self._run_ctx = run_context if dtype is np.float64 else run_context32
 
@@ -262,28 +272,30 @@ def largest(kind, deadline, quick):
 #: replacement must match the kernel's text: the profile fails rather than measure
 #: something else after the kernel changes). Name -> [(old, new), ...].
 ABLATIONS = {
-    "no link forces (scatter of stale forces and advance)": [(
-        """                _euclid_piece_shared(x, a, b, c, j0, eu_sk[r], eu_sz[r], eu_srest[r],
-                                     eu_lprev, W)""", "                pass")],
-    "no scatter (link forces and advance)": [(
-        "            _scatter(f, dim, a, b, c, W)\n        m0",
-        "            pass\n        m0")],
+    "no link forces (stale forces pulled, advance)": [(
+        """            _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]), _U(dn_fam[r, 2]),
+                    _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest, eu_lprev)""",
+        "            pass")],
+    "no pulled forces (link forces, advance)": [(
+        "                F = _pulled(G, d, i, P, o0, o1, o2)\n",
+        "                F = G[d, P + i]\n")],
     "advance only": [(
-        """                _euclid_piece_shared(x, a, b, c, j0, eu_sk[r], eu_sz[r], eu_srest[r],
-                                     eu_lprev, W)""", "                pass"), (
-        "            _scatter(f, dim, a, b, c, W)\n        m0",
-        "            pass\n        m0")],
+        """            _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]), _U(dn_fam[r, 2]),
+                    _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest, eu_lprev)""",
+        "            pass"), (
+        "                F = _pulled(G, d, i, P, o0, o1, o2)\n",
+        "                F = G[d, P + i]\n")],
     "no square root or division (a multiplication each)": [(
-        """        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-        lp = lprev[j]
-        lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) / ln
-        if not ln > 0.0:""",
-        """        ln = (dx * dx + dy * dy + dz * dz) * 50.0
-        lp = lprev[j]
-        lprev[j] = ln
-        g = (k * (ln - rest) + z * (ln - lp)) * ln
-        if not ln > 0.0:""")],
+        """    ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+    lp = lprev[j]
+    lprev[j] = ln
+    g = (k * (ln - rest) + z * (ln - lp)) / ln
+    if not ln > 0.0:""",
+        """    ln = (dx * dx + dy * dy + dz * dz) * 50.0
+    lp = lprev[j]
+    lprev[j] = ln
+    g = (k * (ln - rest) + z * (ln - lp)) * ln
+    if not ln > 0.0:""")],
 }
 
 
@@ -329,7 +341,7 @@ def profile(dims, repeats) -> dict:
 def per_call(repeats) -> dict:
     """The cost of one step call from Python on a small mesh (75 masses): us per call
     and transient bytes (tracemalloc) through the context (one argument, as Engine) and
-    with the 36 arguments passed one by one."""
+    with the 38 arguments passed one by one."""
     import tracemalloc
     c = Case(5, 5, 3)
     args = (1, *c.hap)
@@ -410,16 +422,18 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     print(f"load average {load0:.2f} (1 min) on {os.cpu_count()} CPUs at the start")
     rows = []
-    print(f"{'masses':>8} {'links':>8} {'stripes':>8} {'hapsim ns/mass':>15} "
+    print(f"{'masses':>8} {'links':>8} {'families':>8} {'pieces':>6} {'hapsim ns/mass':>15} "
           f"{'ns/link':>8} {'ref ns/mass':>12} {'ns/link':>8} {'ratio':>6} {'max |dx|/h':>10} "
-          f"{'single ns/mass':>15} {'single |dx|/h':>13}")
+          f"{'single ns/mass':>15} {'single |dx|/h':>13} {'pieces ns/mass':>15}")
     for nx, ny, nz in sizes:
         c = Case(nx, ny, nz)
         c32 = Case(nx, ny, nz, np.float32)
+        cp = Case(nx, ny, nz, dense=False)    # every link in pieces: the layout before
         n = max(5, int(4e5 // c.L))
         c.run_ref(2)
         c.run_hap(2)
         c32.run_hap(2)
+        cp.run_hap(2)
         # agreement after the same samples from the same start
         c2 = Case(nx, ny, nz)
         c2.run_ref(200)
@@ -431,16 +445,20 @@ def main(argv=None) -> int:
         th = per_sample(c.run_hap, n, repeats)
         tr = per_sample(c.run_ref, n, repeats)
         t32 = per_sample(c32.run_hap, n, repeats)
-        row = {"masses": c.N, "links": c.L, "stripes": c.stripes,
+        tp = per_sample(cp.run_hap, n, repeats)
+        row = {"masses": c.N, "links": c.L, "families": c.families,
+               "pieces": c.pieces,
                "hapsim_ns_per_mass": th / c.N * 1e9, "hapsim_ns_per_link": th / c.L * 1e9,
                "ref_ns_per_mass": tr / c.N * 1e9, "ref_ns_per_link": tr / c.L * 1e9,
                "ratio_ref_over_hapsim": tr / th, "max_rel_diff": err,
-               "single_ns_per_mass": t32 / c.N * 1e9, "single_max_rel_diff": err32}
+               "single_ns_per_mass": t32 / c.N * 1e9, "single_max_rel_diff": err32,
+               "pieces_ns_per_mass": tp / c.N * 1e9}
         rows.append(row)
-        print(f"{c.N:>8} {c.L:>8} {c.stripes:>8} {row['hapsim_ns_per_mass']:>15.2f} "
+        print(f"{c.N:>8} {c.L:>8} {c.families:>8} {c.pieces:>6} {row['hapsim_ns_per_mass']:>15.2f} "
               f"{row['hapsim_ns_per_link']:>8.2f} {row['ref_ns_per_mass']:>12.2f} "
               f"{row['ref_ns_per_link']:>8.2f} {row['ratio_ref_over_hapsim']:>6.2f} "
-              f"{err:>10.2e} {row['single_ns_per_mass']:>15.2f} {err32:>13.2e}", flush=True)
+              f"{err:>10.2e} {row['single_ns_per_mass']:>15.2f} {err32:>13.2e} "
+              f"{row['pieces_ns_per_mass']:>15.2f}", flush=True)
     floor = sqrt_div_floor(repeats)
     print(f"one square root and one division alone: {floor:.2f} ns per element "
           f"(the Euclidean law needs both per link)", flush=True)
@@ -449,7 +467,7 @@ def main(argv=None) -> int:
     out["per_call"] = pc
     print(f"one step call from Python ({pc['masses']} masses, 1 sample): through the "
           f"context {pc['context_us']:.2f} us and {pc['context_bytes']} B transient; "
-          f"36 arguments {pc['arguments_us']:.2f} us and {pc['arguments_bytes']} B",
+          f"38 arguments {pc['arguments_us']:.2f} us and {pc['arguments_bytes']} B",
           flush=True)
     if not args.quick:
         pr = profile((22, 22, 11), repeats)

@@ -81,6 +81,9 @@ class Engine:
     precision : {"double", "single"}, optional
         The floating type of the state (float64, float32); default the scene's
         (``engine.precision`` of an n-D scene, ``double`` for 1-D).
+    families : bool, optional
+        n-D only: run dense families of Euclidean links as families (default True;
+        False only to test the pieces: :class:`hapsim.engine._space.Space`).
 
     Raises
     ------

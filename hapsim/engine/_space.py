@@ -16,15 +16,15 @@ import numpy as np
 
 from hapsim.engine._api import PRECISIONS, Engine
 from hapsim.errors import ConfigError
-from hapsim.kernels.nd import (BLOCK, ROWS, context, link_lengths, run_context,
-                               run_context32, run_nd_listen, schedule, shared_params,
-                               stripes)
+from hapsim.kernels.nd import (BLOCK, ROWS, context, euclid_layout, link_lengths,
+                               run_context, run_context32, run_nd_listen, schedule,
+                               shared_params, stripes)
 
 __all__ = ["Space"]
 #: The engine's arrays held in its precision (the rest are indices and flags).
 _FLOAT_ARRAYS = ("_X", "_XP", "f", "port_f", "t2m", "lin_k", "lin_z", "eu_k", "eu_z",
                  "eu_rest", "eu_lprev", "W", "c_k", "c_z", "c_thr", "c_lprev", "p_normal",
-                 "p_offset", "p_k", "p_z")
+                 "p_offset", "p_k", "p_z", "dn_G")
 
 
 class Space(Engine):
@@ -47,6 +47,10 @@ class Space(Engine):
         the scheme's velocity form (the state's second row array is the increment
         ``x[n] - x[n-1]``, :mod:`hapsim.kernels.nd`): its accuracy is stated and measured
         in docs/dimensions.md, 'Single precision'.
+    families : bool, optional
+        Run a mesh's dense families of Euclidean links as families, their forces pulled
+        by each mass (:func:`hapsim.kernels.layout.families`; the same forces to
+        round-off, faster); False only to test the pieces on a grid.
 
     Raises
     ------
@@ -63,7 +67,8 @@ class Space(Engine):
     listed once in :meth:`_arrays` (the order of :data:`hapsim.kernels.nd.CONTEXT_ARRAYS`).
     """
 
-    def __init__(self, scene, block: int = BLOCK, precision: str | None = None) -> None:
+    def __init__(self, scene, block: int = BLOCK, precision: str | None = None,
+                 families: bool = True) -> None:
         self.scene = scene
         self.block = int(block)
         if precision is None:
@@ -102,17 +107,22 @@ class Space(Engine):
         #: Index of the port mass in :attr:`names` (-1 without a port).
         self.port_index = index[scene.port.name] if scene.port is not None else -1
 
-        def pack(links):
+        def pack(links, euclid=False):
             # lower index first (the laws are symmetric in the two ends), then stripes
-            # and their pieces per block of masses
+            # and their pieces per block of masses; Euclidean links in dense families
+            # (kernels.layout.families) stay out of the pieces
+            empty = np.zeros((0, 4), np.int64)
             if not links:
-                return (np.zeros((0, 4), np.int64), np.zeros(-(-n // block) + 1, np.int64),
-                        np.zeros(0, np.int64))
+                return empty, np.zeros(-(-n // block) + 1, np.int64), empty, \
+                    np.zeros(0, np.int64)
             i1 = np.array([index[lk.m1] for lk in links])
             i2 = np.array([index[lk.m2] for lk in links])
-            table, order = stripes(np.minimum(i1, i2), np.maximum(i1, i2))
+            lo, hi = np.minimum(i1, i2), np.maximum(i1, i2)
+            if euclid:
+                return euclid_layout(lo, hi, n, block, dense=families)
+            table, order = stripes(lo, hi)
             pieces, ptr = schedule(table, n, block)
-            return pieces, ptr, order
+            return pieces, ptr, empty, order
 
         def slot(order, values):
             out = np.zeros(order.size)
@@ -136,8 +146,13 @@ class Space(Engine):
         self.p_offset = np.array([pl.offset for pl, _ in pairs], float)
         self.p_k = np.array([pl.stiffness for pl, _ in pairs], float)
         self.p_z = np.array([pl.damping / T for pl, _ in pairs], float)
-        self.lin_pieces, self.lin_ptr, lo = pack(lin)
-        self.eu_pieces, self.eu_ptr, eo = pack(eu)
+        self.lin_pieces, self.lin_ptr, _, lo = pack(lin)
+        self.eu_pieces, self.eu_ptr, fam, eo = pack(eu, euclid=True)
+        # the dense families, three rows always (a missing one zero), and their force
+        # rows with max(s) leading zero columns (kernels.nd.step_nd)
+        self.dn_fam = np.zeros((3 if len(fam) else 0, 4), np.int64)
+        self.dn_fam[:len(fam)] = fam
+        self.dn_G = np.zeros((9, int(fam[:, 1].max()) + n) if len(fam) else (0, 0))
         # where each named element's parameters live (cells()): slot of each link
         self._slot = {}
         for links, order, kind in ((lin, lo, "linear"), (eu, eo, "euclid")):
@@ -154,7 +169,8 @@ class Space(Engine):
         self.eu_k = slot(eo, [lk.stiffness for lk in eu])
         self.eu_z = slot(eo, [lk.damping / T for lk in eu])
         self.eu_rest = slot(eo, [lk.length for lk in eu])
-        self.eu_lprev = link_lengths(self._XP, self.eu_pieces, eo.size)
+        self.eu_lprev = link_lengths(self._XP, np.concatenate([self.eu_pieces, fam]),
+                                     eo.size)
         self.eu_shared = shared_params(self.eu_pieces, eo, self.eu_k, self.eu_z,
                                        self.eu_rest)
         self.W = np.zeros((ROWS, block))
@@ -176,14 +192,14 @@ class Space(Engine):
                             self.port_f, dtype=self.dtype)
 
     def _arrays(self) -> tuple:
-        """The kernels' arrays after ``dim`` and ``block``, from ``x`` to ``p_z``, in
+        """The kernels' arrays after ``dim`` and ``block``, from ``x`` to ``dn_G``, in
         their order (:data:`hapsim.kernels.nd.CONTEXT_ARRAYS`, the arguments of
         :func:`hapsim.kernels.nd.step_nd`): the one place this engine writes the layout."""
         return (self._X, self._XP, self.f, self.t2m, self.lin_pieces, self.lin_ptr,
                 self.lin_k, self.lin_z, self.eu_pieces, self.eu_ptr, self.eu_k, self.eu_z,
                 self.eu_rest, self.eu_lprev, *self.eu_shared, self.W, self.c_i1, self.c_i2,
                 self.c_k, self.c_z, self.c_thr, self.c_lprev, self.p_mass, self.p_normal,
-                self.p_offset, self.p_k, self.p_z)
+                self.p_offset, self.p_k, self.p_z, self.dn_fam, self.dn_G)
 
     @property
     def context(self) -> np.ndarray:

@@ -41,9 +41,10 @@ __all__ = ["play_context", "play_chunk", "play_chunk32", "HEAD", "PLAY_ARRAYS", 
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
-                    "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py")
+                    "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py",
+                    "hapsim/kernels/layout.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "d3083fbcb75fe17d210e57a43808c5a2d2284634b4650fc5e0a07e7e73463ca9"
+COMPILED_SOURCES_SHA256 = "a8d19e3a0cb1a041b53ec476393a51be70490e02674079861021cd8cacb9cb90"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
