@@ -405,7 +405,7 @@ def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv,
     assert "Traceback" not in msg and where in msg and fragment in msg, msg
 
 
-@pytest.mark.parametrize("argv", [["family"], ["advise"]])
+@pytest.mark.parametrize("argv", [["family"]])
 @pytest.mark.parametrize("name, line", [("pantograph_wall.yaml", 8), ("delta_mesh.yaml", 7),
                                         ("delta_sphere.yaml", 5)])
 def test_nd_scene_to_a_1d_command_names_its_dimension_and_reason(capsys, argv, name, line):

@@ -41,7 +41,8 @@ from hapsim.analysis.integrators import (COST_ORDER, closed_loop_matrix, continu
                                   spectral_radius_of)
 from hapsim.errors import ConfigError, UnstableConfigError
 
-__all__ = ["RATES", "LinkAdvice", "Advice", "advise_scene", "felt_pair_error"]
+__all__ = ["RATES", "LinkAdvice", "Advice", "advise_scene", "felt_pair_error",
+           "felt_matrix_error"]
 
 #: Candidate rates [Hz]: the R10 preferred numbers from 250 Hz to 20 kHz.
 RATES = (250.0, 315.0, 400.0, 500.0, 630.0, 800.0, 1000.0, 1250.0, 1600.0, 2000.0, 2500.0,
@@ -276,8 +277,9 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene
-        Validated scene with a port and a device section.
+    scene : hapsim.scene.Scene or hapsim.scene.SceneND
+        Validated scene with a port and a device section; a 2-D or 3-D one gets the rate
+        alone (:func:`_advise_space`: its felt matrices against ``(K, B + B0)``).
     tolerance : float > 0, optional
         Relative error allowed on the felt k and on the felt b (default 1 %).
     margin : float in (0, 1], optional
@@ -321,6 +323,8 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
                           "virtual network sub-stepped at audio.rate_hz); 'hapsim check' "
                           "predicts it at its own rate", file=scene.path, key="audio")
     rates = [float(r) for r in rates]
+    if getattr(scene, "dimension", 1) > 1:
+        return _advise_space(scene, tolerance, margin, rates)
     dev = scene.device
     link_adv = [_advise_link(scene, lk, tolerance, margin, rates) for lk in _port_links(scene)]
     bad = [la for la in link_adv if la.rate_hz is None]
@@ -377,3 +381,86 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
                   reason=f"no rate up to {rates[-1]:g} Hz and no integrator keeps the scene "
                          f"within {tolerance:g} and stable with margin {margin:g} (last: {last})",
                   tolerance=tolerance, margin=margin)
+
+
+def felt_matrix_error(k, b, k_ref, b_ref) -> float:
+    """:func:`felt_pair_error` of matrices: ``max(|k - k_ref| / |k_ref|, |b - b_ref| /
+    |b_ref|)`` [-] in the spectral norm (a zero reference is skipped).
+
+    Parameters
+    ----------
+    k, b : ndarray, shape (n, n) or None
+        Felt stiffness [N/m] and damping [N s/m] matrices (None: no felt matrices -> inf).
+    k_ref, b_ref : ndarray, shape (n, n)
+        Wanted matrices.
+
+    Returns
+    -------
+    float
+    """
+    if k is None or b is None or not (np.all(np.isfinite(k)) and np.all(np.isfinite(b))):
+        return math.inf
+    e = 0.0
+    for x, ref in ((k, k_ref), (b, b_ref)):
+        nr = float(np.linalg.norm(ref, 2))
+        if nr > 0:
+            e = max(e, float(np.linalg.norm(np.asarray(x) - ref, 2)) / nr)
+    return e
+
+
+def _advise_space(scene, tolerance: float, margin: float, rates) -> Advice:
+    """:func:`advise_scene` of a 2-D or 3-D scene: the lowest rate whose felt matrices are
+    within ``tolerance`` of what the port links ask, ``(K, B + B0)`` (the continuous-time
+    loop's, no sampling, no delay: the port's links to grounds and the device's friction),
+    and whose loop is stable with every ``(K, B)`` divided by ``margin`` (the MIMO state
+    matrix, :func:`hapsim.analysis.ths.state_matrix`). The n-D engine has one integrator
+    (centred) and no per-link calibration across axes: the advice is the rate."""
+    from hapsim.analysis.scene_check import closed_loop_nd
+    from hapsim.analysis.ths import MatrixLoop, render_state, state_matrix
+    from hapsim.analysis.virtual_network import link_blocks
+    if scene.port is None or scene.device is None:
+        raise ConfigError("the scene has no port: nothing is felt, no rate to advise "
+                          "('hapsim check SCENE' gives its modes)", file=scene.path,
+                          key="masses")
+    n, dev = scene.dimension, scene.device
+    Kp, Bp = np.zeros((n, n)), np.zeros((n, n))
+    kinds = {m.name: m.kind for m in scene.masses}
+    port = scene.port.name
+    for _, a, b, Kl, Bl in link_blocks(scene):
+        if port in (a, b):
+            other = b if a == port else a
+            if other is not None and kinds[other] != "ground":
+                raise ConfigError(
+                    f"a port link ends on the moving mass {other!r}: the continuous-time "
+                    "felt matrices of a network with virtual masses are not built yet, so "
+                    "there is no reference to advise a rate against ('hapsim check SCENE' "
+                    "gives its felt matrices at its rate)", file=scene.path, key="links")
+            Kp, Bp = Kp + Kl, Bp + Bl
+    wanted_b = Bp + dev.friction
+    best, why = None, "no rate to try"
+    for r in rates:
+        sc = dataclasses.replace(scene, rate_hz=float(r))
+        A, _ = closed_loop_nd(sc)
+        res = render_state(A, dev.mass, sc.period, K=Kp, B=Bp)
+        err = felt_matrix_error(res.felt_stiffness, res.felt_damping, Kp, wanted_b)
+        loop = MatrixLoop(mass=dev.mass, friction=dev.friction, rate_hz=float(r),
+                          delay=dev.delay)
+        rho_m = float(np.max(np.abs(np.linalg.eigvals(
+            state_matrix(loop, Kp / margin, Bp / margin)))))
+        if err <= tolerance and rho_m < 1.0:
+            best = (float(r), err, float(res.spectral_radius), rho_m)
+            break
+        why = (f"no rate of the ladder up to {r:g} Hz keeps the felt matrices within "
+               f"{tolerance:g} of (K, B + B0) and the loop stable at (K, B)/{margin:g}: "
+               f"at {r:g} Hz the error is {err:.3g} and the radius with margin "
+               f"{rho_m:.9f} (the delay's lag costs damping as K T (d + 1/2): a larger "
+               f"--tolerance, or less stiffness for this damping)")
+    if best is None:
+        return Advice(False, None, None, [], math.nan, math.nan, why, tolerance, margin)
+    r, err, rho, rho_m = best
+    reason = (f"{r:g} Hz is the first rate of the ladder whose felt matrices are within "
+              f"{err:.2g} <= {tolerance:g} of (K, B + B0) (spectral norm) with radius "
+              f"{rho:.9f}, stable at (K, B)/{margin:g} (radius {rho_m:.9f}); the 2-D/3-D "
+              "engine has one integrator, centred, and no per-link calibration: the "
+              "advice is the rate")
+    return Advice(True, r, "centred", [], err, rho, reason, tolerance, margin)

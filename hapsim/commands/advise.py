@@ -67,10 +67,13 @@ def run(args) -> int:
     hapsim.errors.ConfigError
         Bad scene file, tolerance or margin.
     """
+    from hapsim import load_scene
     from hapsim.bench.advise import advise_scene
     from hapsim.commands.dimension import load_one_d_scene
 
-    scene = load_one_d_scene(args.scene, "advise")
+    scene = load_scene(args.scene)
+    if getattr(scene, "dimension", 1) == 1:
+        scene = load_one_d_scene(args.scene, "advise")
     adv = advise_scene(scene, args.tolerance, margin=args.margin)
     if args.json:
         d = adv.to_dict()

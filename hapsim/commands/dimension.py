@@ -3,8 +3,8 @@ and what to use instead (issue 30 item 2: every capability in every dimension, o
 by name with the reason).
 
 ``check``, ``simulate``, ``run``, ``play``, ``mock --scene``, ``stability --scene``,
-``identify --mock-scene --lockstep`` and ``zwidth --scene --lockstep`` take a scene of any
-dimension (:func:`hapsim.load_scene` reads every dimension); the commands
+``identify --mock-scene --lockstep``, ``zwidth --scene --lockstep`` and ``advise`` take a
+scene of any dimension (:func:`hapsim.load_scene` reads every dimension); the commands
 below read it with the 1-D reader, whose refusal (at the file's ``dimension`` line) is
 given their reason here.
 """
@@ -21,9 +21,6 @@ __all__ = ["ONE_D_ONLY", "load_one_d_scene"]
 ONE_D_ONLY = {
     "family": "a family of 2-D or 3-D THS (the hand as stiffness and damping matrices) is "
               "not built yet; 'hapsim check SCENE' gives the felt matrices of its one hand",
-    "advise": "its advice (rate, integrator, correction) is chosen on the 1-D felt pair; "
-              "'hapsim check SCENE' gives a 2-D or 3-D loop's stiffness limits along its "
-              "principal axes, 'hapsim stability --scene SCENE --grid N' their map",
 }
 
 
