@@ -392,12 +392,13 @@ def test_kernels_compile_once_per_set_of_link_kinds_not_per_scene(integrator):
 KERNEL_DIR = Path(__file__).resolve().parents[1] / "hapsim" / "kernels"
 
 
-def imported_modules(source: str, module: str) -> set[str]:
+def imported_modules(source: str, module: str, tree=None) -> set[str]:
     """Absolute names of every module ``source`` (the module ``module``) imports, at any
-    depth (function-level imports included), relative imports resolved."""
+    depth (function-level imports included), relative imports resolved; ``tree``, when
+    given, is ``ast.parse(source)`` already made."""
     package = module.rsplit(".", 1)[0]
     out = set()
-    for node in ast.walk(ast.parse(source)):
+    for node in ast.walk(ast.parse(source) if tree is None else tree):
         if isinstance(node, ast.Import):
             out.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):

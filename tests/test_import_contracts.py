@@ -9,7 +9,13 @@ import ast
 import functools
 from pathlib import Path
 
+import pytest
+
 from test_engine import imported_modules  # same directory (pytest prepend import mode)
+
+#: pytest-xdist: the module's tests on one worker, so that the package's sources are parsed
+#: once (:func:`_facts`) rather than by each test on each worker
+pytestmark = pytest.mark.xdist_group("test_import_contracts")
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1] / "hapsim"
 #: The packages that run scenes and devices (both sides of the wire and the run's pipeline)
@@ -101,6 +107,21 @@ def _modules() -> dict[str, Path]:
     return out
 
 
+@functools.lru_cache(maxsize=None)
+def _facts(path: Path) -> tuple:
+    """What the tests read of one source file of the package, from one parse of it per
+    worker (four tests walked every module's parse of their own: 1.0-1.4 CPU-s each, 5.3
+    for the file in the suite): the modules it imports, its private imports, its reads
+    of other objects' private state. The trees are not kept (400,000 nodes that every
+    full collection of the worker would traverse)."""
+    text = path.read_text()
+    tree = ast.parse(text)
+    parts = list(path.relative_to(PACKAGE_DIR.parent).with_suffix("").parts)
+    own = ".".join(parts)               # a package as its __init__, as the scanners take it
+    return (frozenset(imported_modules(text, own, tree)),
+            tuple(_private_imports(text, own, tree)), tuple(_private_reads(text, tree)))
+
+
 def _floor(module: str) -> int:
     """Index in :data:`LAYERS` of the longest prefix naming ``module``'s floor."""
     best, floor = -1, len(LAYERS) - 1
@@ -111,14 +132,15 @@ def _floor(module: str) -> int:
     return floor
 
 
-def _graph(sources: dict[str, str]) -> dict[str, set[str]]:
+def _graph(sources: dict[str, str], imports=None) -> dict[str, set[str]]:
     """module -> the modules of ``sources`` it imports (a name resolved to the longest
-    module it names: ``from hapsim.emulated.mock import MockDevice`` is hapsim.emulated.mock)."""
+    module it names: ``from hapsim.emulated.mock import MockDevice`` is hapsim.emulated.mock);
+    ``imports``, when given, maps each module to what ``imported_modules`` found in it."""
     graph = {}
     for mod, text in sources.items():
         own = mod + ".__init__" if mod + ".__init__" in sources or _is_package(mod) else mod
         deps = set()
-        names = imported_modules(text, own)
+        names = imported_modules(text, own) if imports is None else set(imports[mod])
         # ``from hapsim import scene`` names the package and its module: the module counts
         names = {n for n in names if not any(m.startswith(n + ".") and m in sources
                                              for m in names)}
@@ -178,7 +200,8 @@ def _upward(graph: dict[str, set[str]]) -> list[str]:
 def _house_graph() -> dict[str, set[str]]:
     """The import graph of the package, read once per test session (the tests only read
     it)."""
-    return _graph({m: f.read_text() for m, f in _modules().items()})
+    mods = _modules()
+    return _graph({m: "" for m in mods}, {m: _facts(f)[0] for m, f in mods.items()})
 
 
 def test_scanner_sees_circles_and_upward_imports():
@@ -228,12 +251,13 @@ def test_nothing_imports_upward():
     assert _upward(_house_graph()) == []
 
 
-def _private_imports(text: str, module: str) -> list[str]:
+def _private_imports(text: str, module: str, tree=None) -> list[str]:
     """``from X import _name`` of another module (any depth; ``X`` resolved), as
-    ``"X._name"``; a module's own names and dunders are not counted."""
+    ``"X._name"``; a module's own names and dunders are not counted. ``tree``, when
+    given, is ``ast.parse(text)`` already made."""
     package = module.rsplit(".", 1)[0]
     out = []
-    for node in ast.walk(ast.parse(text)):
+    for node in ast.walk(ast.parse(text) if tree is None else tree):
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
@@ -262,8 +286,7 @@ def test_no_module_imports_another_modules_private_names():
     its module's interface: named, documented, tested as such)."""
     bad = {}
     for mod, f in _modules().items():
-        own = mod + ".__init__" if f.name == "__init__.py" else mod
-        found = _private_imports(f.read_text(), own)
+        found = list(_facts(f)[1])
         if found:
             bad[mod] = found
     assert bad == {}
@@ -422,14 +445,15 @@ def test_no_module_reads_an_engines_private_state():
 
 
 # ------------------------------------------------------- other objects' private state
-def _private_reads(text: str) -> list[str]:
+def _private_reads(text: str, tree=None) -> list[str]:
     """Reads and writes of another object's ``_name`` (``obj._x``, ``getattr(obj,
     "_x")``, ``hasattr``/``setattr`` alike), as ``"obj._x"`` with ``obj`` as written.
 
     Not counted: ``self``/``cls``/``super()`` (an object's own and inherited state),
     dunders, and a name this module's own classes define (``self._x = ...`` or a ``_x``
-    in a class body: another instance of the module's class, read by its own code)."""
-    tree = ast.parse(text)
+    in a class body: another instance of the module's class, read by its own code).
+    ``tree``, when given, is ``ast.parse(text)`` already made."""
+    tree = ast.parse(text) if tree is None else tree
     own = set()
     for n in ast.walk(tree):
         if (isinstance(n, ast.Attribute) and not isinstance(n.ctx, ast.Load)
@@ -521,7 +545,7 @@ def test_no_module_reads_another_objects_private_state():
     are listed with their reason, and an entry no longer needed is an error too."""
     seen, bad = set(), {}
     for mod, f in _modules().items():
-        for r in _private_reads(f.read_text()):
+        for r in _facts(f)[2]:
             if r in PUBLIC_UNDERSCORE:
                 continue
             if (mod, r) in PRIVATE_READS_ALLOWED:

@@ -491,7 +491,7 @@ def filtered_sensitivity_nd(sensitivity, response) -> list:
     list of ndarray, each shape (O, N_r, m)
         Per record, ``O`` the leading entries flattened.
     """
-    from hapsim.analysis.fftconv import fftconvolve
+    from hapsim.analysis.fftconv import fast_length
     H = np.asarray(response, float)
     out = []
     for s in sensitivity:
@@ -501,10 +501,16 @@ def filtered_sensitivity_nd(sensitivity, response) -> list:
         L = min(N, H.shape[0])
         Su = np.zeros((S.shape[0], N, H.shape[2]))
         rev = S[:, ::-1, :]
+        # hapsim.analysis.fftconv.fftconvolve(rev[:, :, c], H[None, :L, c, j], axes=1)
+        # step by step, the same calls on the same arrays (the same bits), with the
+        # transform of each rev[:, :, c] taken once for every input j instead of once each
+        F = [fast_length(N + L - 1)]
         for c in range(S.shape[2]):
+            A = np.fft.rfftn(np.asarray(rev[:, :, c], dtype=float), F, axes=[1])
             for j in range(H.shape[2]):
-                Su[:, :, j] += fftconvolve(rev[:, :, c], H[None, :L, c, j],
-                                           axes=1)[:, :N][:, ::-1]
+                B = np.fft.rfftn(np.asarray(H[None, :L, c, j], dtype=float), F, axes=[1])
+                full = np.fft.irfftn(A * B, F, axes=[1])[:, :N + L - 1]
+                Su[:, :, j] += full[:, :N][:, ::-1]
         out.append(Su)
     return out
 

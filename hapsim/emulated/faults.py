@@ -45,9 +45,11 @@ Device faults:
              ticking, so its watchdog zeroes the force.
 ``reset``    the device resets: disarmed, zero force, its receiver buffer cleared; it sends
              ``0x00`` then HELLO and waits for CONFIG.
-``vanish``   the port disappears for DURATION (default 300 ms): on a pty the master is
-             closed (the host's reads fail) and a new pty is linked at the same path when it
-             comes back (then ``0x00`` + HELLO); the device keeps ticking (watchdog).
+``vanish``   the port disappears for DURATION (default 300 ms): on a pty the link is
+             removed and the master closed (the host's reads fail, and its re-opens find
+             no port, as a USB device's path is gone while it is unplugged), and a new pty
+             is linked at the same path when it comes back (then ``0x00`` + HELLO); the
+             device keeps ticking (watchdog).
 
 Example: ``drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,
 stall@500:200ms,reset@800,vanish@1200:300ms,rx.drop=0.01,rx.corrupt=0.005`` with
@@ -386,7 +388,8 @@ def mock_fault_plan(spec: str | None, seed: int | None, link: str | None):
 
 def reopener(link: str | None, new_pty, announce: bool):
     """The ``reopen() -> fd`` a ``vanish`` fault calls when the port comes back
-    (:func:`hapsim.emulated.serve.serve_fd`): a new pty, ``link`` pointed at it.
+    (:func:`hapsim.emulated.serve.serve_fd`): a new pty, ``link`` pointed at it; and its
+    ``gone()``, which removes ``link`` when the port vanishes.
 
     Parameters
     ----------
@@ -402,6 +405,19 @@ def reopener(link: str | None, new_pty, announce: bool):
     callable
         ``reopen() -> int``: the new pty's master fd. Its slave is closed at once: the
         raw settings stay with the pty, and the mock ignores EIO until the host opens it.
+        Its attribute ``gone() -> None`` removes ``link`` (no error when it is absent);
+        :func:`~hapsim.emulated.serve.serve_fd` calls it before it closes the vanished
+        master.
+
+    Notes
+    -----
+    Why the link goes while the port is away: a vanished pty's number (``/dev/pts/N``) is
+    free once the host closes its slave, and the kernel gives the lowest free number to
+    the next pty opened on the machine. A link left pointing at it would let the host's
+    re-open reach another program's pty (seen in a loaded test suite: a run that lost
+    its device at device tick 300 went on for 877 host ticks on another test's mock,
+    counted as a recovery). Without the link the re-open fails until the new pty is
+    linked, as a USB device's ``/dev/serial/by-id`` path is gone while it is unplugged.
     """
     import os
 
@@ -409,6 +425,15 @@ def reopener(link: str | None, new_pty, announce: bool):
         master, slave = new_pty(link, announce=announce)
         os.close(slave)
         return master
+
+    def gone() -> None:
+        if link:
+            try:
+                os.unlink(link)
+            except FileNotFoundError:
+                pass
+
+    reopen.gone = gone
     return reopen
 
 

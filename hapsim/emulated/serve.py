@@ -88,7 +88,9 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         ticks, no HELLO.
     reopen : callable, optional
         ``reopen() -> fd``: a new port after a ``vanish`` (the old ``fd`` is closed when
-        the port vanishes); required when the plan can make the port vanish.
+        the port vanishes, after ``reopen.gone()`` when it has one: the port's path
+        removed, :func:`hapsim.emulated.faults.reopener`); required when the plan can make
+        the port vanish.
     persistent : bool
         Outlive hosts: when the host closes the port (EIO: no slave fd open, e.g. a run
         that ended or was killed) the device zeroes its force, disarms and waits for the
@@ -177,8 +179,11 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
         while not flag.set:
             now_ns = time.monotonic_ns()
             t_us = (now_ns - t0) // 1000
-            if dev.vanish_pending:               # the port disappears: close the master
-                dev.vanish_pending = False
+            if dev.vanish_pending:               # the port disappears: its path first
+                dev.vanish_pending = False       # (faults.reopener), then the master
+                gone = getattr(reopen, "gone", None)
+                if gone is not None:
+                    gone()
                 if fd is not None:
                     os.close(fd)
                 fd = None
