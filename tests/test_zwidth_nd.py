@@ -94,6 +94,12 @@ def test_the_shipped_kinematic_devices_at_their_operating_point():
             assert lo <= pt["K_max_predicted"] <= hi, (name, pt)
 
 
+def test_a_scene_without_a_device_is_refused_by_name():
+    """(The fuzz of mutated shipped scenes: the membrane gave a KeyError traceback.)"""
+    code, _, err = _zwidth("configs/membrane.yaml", "--lockstep")
+    assert code == 2 and "membrane.yaml: device: the scene has no device section" in err, err
+
+
 @pytest.mark.parametrize("extra, key", [([], "--lockstep"),
                                         (["--port", "/dev/null"], "--port"),
                                         (["--lockstep", "--plot", "x.png"], "--plot")])

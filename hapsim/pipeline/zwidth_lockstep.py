@@ -43,12 +43,17 @@ def isotropic_wall(path, K: float, B: float):
     Raises
     ------
     ConfigError
-        As the reader for the scene's device.
+        A scene without a device section (key ``device``); as the reader for the scene's
+        device.
     """
     import yaml
 
+    from hapsim.errors import ConfigError
     from hapsim.scene import load_scene_nd, parse_scene_nd
     base = load_scene_nd(path)
+    if base.device is None:
+        raise ConfigError("the scene has no device section: no Z-width to measure",
+                          file=str(path), key="device")
     with open(path, encoding="utf-8") as fh:
         doc = yaml.safe_load(fh)
     new = {"dimension": doc["dimension"], "rate_hz": doc["rate_hz"], "device": doc["device"],
