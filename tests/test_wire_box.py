@@ -240,3 +240,25 @@ def test_filtered_sensitivity_is_each_inputs_convolution_to_the_bit():
         assert len(got) == len(ref)
         for g, r in zip(got, ref):
             assert g.shape == r.shape and g.tobytes() == r.tobytes()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_prediction_rows_gathered_at_once_are_the_rows_one_by_one(seed):
+    """``pencil._regression`` gathers each record's lagged rows in one indexing (the
+    suite's time: it was a Python loop per row); the rows, the right-hand sides and the
+    reference are those of the row-by-row construction, to the bit, with and without the
+    offset and with usable masks."""
+    from hapsim.analysis import pencil
+    rng = np.random.default_rng(seed)
+    for t in range(10):
+        n, p = 1 + t % 3, 2 + t % 4
+        recs = [rng.normal(size=(int(rng.integers(p + 1, 60)), n)) * 10 ** rng.uniform(-6, 2)
+                for _ in range(int(rng.integers(1, 4)))]
+        usable = None if t % 2 else [rng.random(len(r)) > 0.1 for r in recs]
+        for off in (False, True):
+            R, Y, eqs, ref = pencil._regression(recs, p, usable, off)
+            rows = [np.concatenate([(r[k - p:k][::-1] - ref).ravel(), [1.0] if off else []])
+                    for r, ks in zip(recs, eqs) for k in ks]
+            rhs = [r[k] - ref for r, ks in zip(recs, eqs) for k in ks]
+            assert np.array_equal(np.asarray(R), np.array(rows).reshape(np.shape(R)))
+            assert np.array_equal(np.asarray(Y), np.array(rhs).reshape(np.shape(Y)))

@@ -285,10 +285,18 @@ def _regression(recs, p: int, usable, offset: bool):
     if offset:
         ys = [r[ks] for r, ks in zip(recs, eqs) if ks.size]
         ref = np.mean(np.concatenate(ys), axis=0) if ys else 0.0
-    rows = [np.concatenate([(r[k - p:k][::-1] - ref).ravel(), [1.0] if offset else []])
-            for r, ks in zip(recs, eqs) for k in ks]
-    rhs = [r[k] - ref for r, ks in zip(recs, eqs) for k in ks]
-    return rows, rhs, eqs, ref
+    # row k: r[k-1], r[k-2], ..., r[k-p] (newest first) less ref, then the 1; gathered
+    # for every k of a record at once (the same values as row by row, to the bit)
+    n = recs[0].shape[1] if recs else 0
+    cols = n * p + int(bool(offset))
+    rows, rhs = [np.zeros((0, cols))], [np.zeros((0, n))]
+    for r, ks in zip(recs, eqs):
+        if not ks.size:
+            continue
+        X = (r[ks[:, None] - 1 - np.arange(p)[None, :]] - ref).reshape(ks.size, n * p)
+        rows.append(np.hstack([X, np.ones((ks.size, 1))]) if offset else X)
+        rhs.append(r[ks] - ref)
+    return np.concatenate(rows), np.concatenate(rhs), eqs, ref
 
 
 def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
