@@ -105,10 +105,11 @@ def register(sub) -> None:
     p.add_argument("--fault-seed", type=Number(int, low=0), default=None, metavar="N",
                    help="seed of the fault generator (default 0)")
     p.add_argument("--rt-priority", type=Number(int, low=0, high=99), default=None, metavar="N",
-                   help="SCHED_FIFO priority of the mock where the OS permits it (default 0: "
-                        "normal scheduling; it is a test rig; 1..99; --firmware in real time: "
-                        "10, the emulated board holds the wall clock). Embedded in 'hapsim "
-                        "run', the mock inherits the run's policy instead")
+                   help="SCHED_FIFO priority of the mock where the OS permits it (default "
+                        "in real time 11, one above a run's: a board is a processor of its "
+                        "own, no host deschedules it; --firmware 10; --lockstep 0, normal "
+                        "scheduling; 1..99). Embedded in 'hapsim run', the mock inherits "
+                        "the run's policy instead")
     p.add_argument("--once", action="store_true",
                    help="serve one run only: exit at the host's STOP (without faults) or when "
                         "it closes the port (default: serve run after run until a signal)")
@@ -212,7 +213,14 @@ def run(args) -> int:
             if board_protocol(args.scene) is not None:
                 return run_board_mock(args, _new_pty, _given)
     if args.rt_priority is None:
-        args.rt_priority = 10 if args.firmware and not args.lockstep else 0
+        # a board is a processor of its own, which no host loop deschedules: the Python
+        # mock in real time one above a run's default, as a driver's board
+        # (hapsim.commands.mock_board.BOARD_RT_PRIORITY); starved at normal scheduling
+        # beside busy processes it held its force for tens of ms, which no board does
+        # (an identification passed its envelope by 0.015 mm at load ~5)
+        from hapsim.commands.mock_board import BOARD_RT_PRIORITY
+        args.rt_priority = (0 if args.lockstep else 10 if args.firmware
+                            else BOARD_RT_PRIORITY)
     if args.scene:
         from hapsim.scene import scene_dimension
         if scene_dimension(args.scene) > 1:         # a 2-D or 3-D scene's device (it
