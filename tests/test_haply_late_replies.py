@@ -26,7 +26,6 @@ measures it (:func:`hapsim.pipeline.runner.identify_run`). What must hold, per s
 from __future__ import annotations
 
 import collections
-import dataclasses
 import math
 import struct
 import types
@@ -35,14 +34,11 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
-from hapsim.drivers import get_driver
 from hapsim.drivers import transport as tp
-from hapsim.emulated.haply_board import HaplyDevice
-from hapsim.engine import Engine
 from hapsim.host.telemetry import FLAG_ESTIMATED
-from test_haply_silence import SimClock, StarvedBoardPort
+from test_haply_lossy_verdict import N_TICKS, host_loop, sim_board
+from test_haply_silence import StarvedBoardPort
 
-N_TICKS = 1500           # 1.5 s at 1 kHz, as tools/driver_timing.py's runs
 SEEDS = range(8)
 
 
@@ -77,15 +73,8 @@ def _late_run(monkeypatch, prep, seed, p, heavier=1.0):
     the transport, the driver, the telemetry columns, the measurement, the torque bytes
     sent per command (``seq -> bytes``) and the board's replies per write it parsed
     (``(torque bytes parsed, angle [deg])``, in order)."""
-    from hapsim.host.host_clock import ESTIMATED_MAX
     from hapsim.pipeline.runner import identify_run
-    clock = SimClock()
-    monkeypatch.setattr(tp, "time", clock)
-    sc, dev = prep.scene, prep.scene.device
-    drv = get_driver("haply", offset_deg=math.degrees(sc.excitation.x0))
-    drv.loop_delay, drv.own_clock = int(dev.delay), True
-    board = HaplyDevice(dataclasses.replace(dev, mass=dev.mass * heavier), sc.rate_hz,
-                        sc.excitation, clock="wall", resolution=drv.resolution)
+    clock, sc, dev, drv, board = sim_board(monkeypatch, prep, heavier)
     # the board's truth: each write it parsed for the joint's id, its torque's bytes and
     # the angle its reply read (the firmware's read_encoder_value, before the wire)
     replies, last = [], [None]
@@ -117,39 +106,8 @@ def _late_run(monkeypatch, prep, seed, p, heavier=1.0):
         sent[tr._cmd] = bytes(data)
     tr._command = command_logged
     tr.send(fp.Config(1000.0, 5000, 10.0))
-    T = sc.period
-    t0 = clock.t = math.ceil(clock.t / T) * T + T
-    eng, lim = Engine(sc), float(dev.force_limit)
-    rows = collections.defaultdict(list)
-    used, run_est = -1, 0
-    st = types.SimpleNamespace(seq=0, time_us=0, status=0, force_seq=0)
-    for k in range(N_TICKS):
-        # the host loop's tick (hapsim.host.host_clock), as tests/test_haply_lossy_verdict
-        clock.t = max(clock.t, t0 + k * T)
-        states = [m for m in tr.receive(0.0) if isinstance(m, fp.State)]
-        if states and states[-1].seq != used:
-            m = states[-1]
-            x, used, run_est, flag, t_us = m.position[0], m.seq, 0, 0, m.time_us
-        elif tr.overdue() and run_est < ESTIMATED_MAX:
-            x = tr.estimate(st, used + 1, 1)
-            if x != x:
-                tr.hold()
-                continue
-            run_est, used, flag, t_us = run_est + 1, st.seq, FLAG_ESTIMATED, st.time_us
-        else:
-            tr.hold()
-            continue
-        f = min(max(eng.port_step(x), -lim), lim)
-        tr.send(fp.Force(used, (f,)))
-        for q, v in (("time", t_us * 1e-6), ("position", x),
-                     ("force", drv.applied_force(f)), ("seq", used), ("flags", flag)):
-            rows[q].append(v)
-    n = len(rows["seq"])
-    cols = {q: np.asarray(rows[q], float) for q in ("time", "position", "force")}
-    cols.update(seq=np.asarray(rows["seq"], np.int64),
-                flags=np.asarray(rows["flags"], np.uint8), late=np.zeros(n, np.uint8),
-                force_seq=np.asarray(rows["seq"], np.int64) - int(dev.delay),
-                status=np.zeros(n, np.uint16))
+    cols = host_loop(tr, drv, sc, clock)
+    n = cols["seq"].size
     tel = types.SimpleNamespace(wrapped=False, n=n, head=n, columns=lambda *a: cols)
     m = identify_run(prep, tel, None, driver=drv)
     return tr, drv, cols, m, sent, replies
