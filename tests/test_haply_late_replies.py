@@ -39,7 +39,7 @@ from hapsim.host.telemetry import FLAG_ESTIMATED
 from test_haply_lossy_verdict import N_TICKS, host_loop, sim_board
 from test_haply_silence import StarvedBoardPort
 
-SEEDS = range(8)
+SEEDS = range(6)
 
 
 @pytest.fixture(scope="module")
@@ -127,7 +127,7 @@ def _kept(drv, cols, late):
 @pytest.mark.parametrize("p", [0.0, 0.005])
 def test_late_replies_are_the_boards_readings_and_more_rows_are_kept(monkeypatch, prep,
                                                                        p):
-    """Seeds 0-7 of the starved board, with and without loss: each late reply recorded
+    """Seeds 0-5 of the starved board, with and without loss: each late reply recorded
     is the board's own reply to that write (exact), and the kept rows rise."""
     checked = gained = 0
     for seed in SEEDS:
@@ -153,10 +153,15 @@ def test_late_replies_are_the_boards_readings_and_more_rows_are_kept(monkeypatch
     assert gained > 0
 
 
-@pytest.mark.parametrize("seed", SEEDS)
-def test_a_heavier_joint_is_never_within(monkeypatch, prep, seed):
-    """A joint 30 % heavier than the scene says, the board starved and the link lossy:
-    the rows kept from late replies do not make it "within"."""
-    tr, drv, cols, m, sent, replies = _late_run(monkeypatch, prep, seed, 0.005, heavier=1.3)
+@pytest.mark.parametrize("p", [0.0, 0.005])
+@pytest.mark.parametrize("seed", range(3))
+def test_a_heavier_joint_is_never_within(monkeypatch, prep, seed, p):
+    """A joint 30 % heavier than the scene says, the board starved, the link lossy or
+    not: the rows kept from late replies do not make it "within"; without loss every
+    record is measured and "differs" (seeds 0-7 measured: 8 of 8; with loss 1 of 8
+    "differs", the others "not measurable")."""
+    tr, drv, cols, m, sent, replies = _late_run(monkeypatch, prep, seed, p, heavier=1.3)
     assert tr.late_answers                   # late replies were kept
     assert m.get("within") is not True, (m.get("verdict"), m.get("k"), prep.pred["k"])
+    if p == 0.0:
+        assert "differs" in m.get("verdict", ""), m.get("verdict")
