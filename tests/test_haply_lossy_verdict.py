@@ -53,13 +53,10 @@ def prep():
                                   duration=N_TICKS * 1e-3))
 
 
-def _lossy_run(monkeypatch, prep, seed, p, heavier=1.0):
-    """One run over a link losing each byte with probability ``p`` each way (seeded), the
-    board's joint ``heavier`` times the scene's inertia. Returns the transport, the
-    measurement and, per record taken, ``(host reading, true angle in the arming's frame,
-    frame_bound then)`` [rad]."""
-    from hapsim.host.host_clock import ESTIMATED_MAX
-    from hapsim.pipeline.runner import identify_run
+def sim_board(monkeypatch, prep, heavier=1.0):
+    """The simulated clock (the transport's ``time``), the scene, its device, the M3
+    driver armed at the scene's start and the emulated board on that clock, its joint
+    ``heavier`` times the scene's inertia: ``(clock, scene, device, driver, board)``."""
     clock = SimClock()
     monkeypatch.setattr(tp, "time", clock)
     sc, dev = prep.scene, prep.scene.device
@@ -67,32 +64,27 @@ def _lossy_run(monkeypatch, prep, seed, p, heavier=1.0):
     drv.loop_delay, drv.own_clock = int(dev.delay), True
     board = HaplyDevice(dataclasses.replace(dev, mass=dev.mass * heavier), sc.rate_hz,
                         sc.excitation, clock="wall", resolution=drv.resolution)
-    truth = []                       # (the angle sent, rounded to binary32; the truth)
-    angle = board.angle_deg
+    return clock, sc, dev, drv, board
 
-    def angle_deg(port=0):
-        a = angle(port)
-        if port == 0 and board._base0 is not None:
-            truth.append((math.radians(struct.unpack("<f", struct.pack("<f", a))[0]),
-                          (board._counts() - board._base0) * 2.0 * math.pi / board.cpr))
-        return a
-    board.angle_deg = angle_deg
-    tr = tp.DriverTransport(drv, "loop://", inertia=dev.mass)
-    tr._ser.close()
-    tr._ser = StarvedBoardPort(clock, board, [], (),
-                               {"drop_rx": p, "drop_tx": p, "seed": 5000 + seed})
-    tr.send(fp.Config(1000.0, 5000, 10.0))
+
+def host_loop(tr, drv, sc, clock, on_states=None):
+    """``N_TICKS`` ticks of the host loop (:mod:`hapsim.host.host_clock`) over the armed
+    transport ``tr`` on the simulated ``clock``, the engine of scene ``sc`` closing it;
+    ``on_states`` is given each tick's STATEs. Returns the telemetry columns (one row per
+    new record or estimated sample, as the loop logs them)."""
+    from hapsim.host.host_clock import ESTIMATED_MAX
+    dev = sc.device
     T = sc.period
     t0 = clock.t = math.ceil(clock.t / T) * T + T
     eng, lim = Engine(sc), float(dev.force_limit)
     rows = collections.defaultdict(list)
-    records = []
     used, run_est = -1, 0
     st = types.SimpleNamespace(seq=0, time_us=0, status=0, force_seq=0)
     for k in range(N_TICKS):
         clock.t = max(clock.t, t0 + k * T)
         states = [m for m in tr.receive(0.0) if isinstance(m, fp.State)]
-        records += [(m.position[0], tr.stats["frame_bound"]) for m in states]
+        if on_states is not None:
+            on_states(states)
         # the host loop's tick (hapsim.host.host_clock): a new record, else an estimated
         # sample (up to ESTIMATED_MAX in a row), else the last force held
         if states and states[-1].seq != used:
@@ -118,6 +110,35 @@ def _lossy_run(monkeypatch, prep, seed, p, heavier=1.0):
                 flags=np.asarray(rows["flags"], np.uint8), late=np.zeros(n, np.uint8),
                 force_seq=np.asarray(rows["seq"], np.int64) - int(dev.delay),
                 status=np.zeros(n, np.uint16))
+    return cols
+
+
+def _lossy_run(monkeypatch, prep, seed, p, heavier=1.0):
+    """One run over a link losing each byte with probability ``p`` each way (seeded), the
+    board's joint ``heavier`` times the scene's inertia. Returns the transport, the
+    measurement and, per record taken, ``(host reading, true angle in the arming's frame,
+    frame_bound then)`` [rad]."""
+    from hapsim.pipeline.runner import identify_run
+    clock, sc, dev, drv, board = sim_board(monkeypatch, prep, heavier)
+    truth = []                       # (the angle sent, rounded to binary32; the truth)
+    angle = board.angle_deg
+
+    def angle_deg(port=0):
+        a = angle(port)
+        if port == 0 and board._base0 is not None:
+            truth.append((math.radians(struct.unpack("<f", struct.pack("<f", a))[0]),
+                          (board._counts() - board._base0) * 2.0 * math.pi / board.cpr))
+        return a
+    board.angle_deg = angle_deg
+    tr = tp.DriverTransport(drv, "loop://", inertia=dev.mass)
+    tr._ser.close()
+    tr._ser = StarvedBoardPort(clock, board, [], (),
+                               {"drop_rx": p, "drop_tx": p, "seed": 5000 + seed})
+    tr.send(fp.Config(1000.0, 5000, 10.0))
+    records = []
+    cols = host_loop(tr, drv, sc, clock, lambda states: records.extend(
+        (m.position[0], tr.stats["frame_bound"]) for m in states))
+    n = cols["seq"].size
     tel = types.SimpleNamespace(wrapped=False, n=n, head=n, columns=lambda *a: cols)
     m = identify_run(prep, tel, None, driver=drv)
     # each record is a reply the board made, in order: matched to its truth

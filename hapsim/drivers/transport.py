@@ -84,6 +84,7 @@ import time
 from collections import deque
 
 import firmware_protocol as fp
+from hapsim.drivers.late_replies import LateReplies
 from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, SILENCE_LOST_S, Resynchronising
 from hapsim.drivers.tick_align import PROBE_TRIES, REARM_INTERVAL, TickAligned
 from hapsim.errors import DeviceError
@@ -138,7 +139,7 @@ class _Dec:
         self.stats = stats
 
 
-class DriverTransport(TickAligned, Resynchronising):
+class DriverTransport(TickAligned, Resynchronising, LateReplies):
     """A driver's device on a serial port, as the host loop's transport.
 
     Parameters
@@ -210,14 +211,13 @@ class DriverTransport(TickAligned, Resynchronising):
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.driver = driver
         self._d = int(delay)
-        # for the driver's account of what was applied: the delay, when it is known (a
-        # scene's stated delay, a mock's own); an identification that searches it: None
+        # for the driver's account: the delay when known (a scene's, a mock's); else None
         driver.loop_delay = self._d if delay_known else None
+        self._init_late(driver)             # late replies kept as readings (late_replies)
         self._deadline_us = int(reply_deadline * 1e6)
         self._reach = bool(getattr(driver, "checks_reach", False))
         self._dec = (driver.decoder(inertia=inertia) if self._reach else driver.decoder())
-        # the frame decoder whose step check is told the time since the last record's
-        # command (ReplyDecoder.elapsed)
+        # the frame decoder told the time since the last record's command (its elapsed)
         self._frames = getattr(self._dec, "frames", self._dec) if self._reach else None
         self.decoder = _Dec(DriverStats(self._dec.stats))
         self._q: deque = deque()
@@ -245,8 +245,7 @@ class DriverTransport(TickAligned, Resynchronising):
         # replies of the frame before the last arming still to come, until when [s]
         self._old_left, self._old_until, self._stop_owed, self._late = 0, 0.0, 0, 0
         self._hist: deque = deque(maxlen=_RING)   # replies: (x, sample's earliest, latest [us])
-        # the largest acceleration [rad/s^2]: the force limit over the inertia (None: no
-        # speed bound)
+        # the largest acceleration [rad/s^2]: force limit / inertia (None: no speed bound)
         self._accel = (float(driver.force_limit) / float(inertia)
                        if inertia is not None and math.isfinite(inertia) and inertia > 0
                        else None)
@@ -514,6 +513,7 @@ class DriverTransport(TickAligned, Resynchronising):
         ``seq - delay``; the position [m] extrapolated from the last two records is
         returned (NaN before two came: no estimate)."""
         x = self._extrapolate(seq)
+        self._mark_estimated(seq)
         out.seq = seq
         out.time_us = self._sent_us[seq % _RING]
         out.status = fp.STATUS_ARMED | fp.STATUS_CONFIGURED
@@ -591,6 +591,8 @@ class DriverTransport(TickAligned, Resynchronising):
             return
         n = len(xs)
         first = self._cmd - n + 1
+        self._note_late(first, xs, first == self._answered + 1
+                        and self._dec.stats.get("damaged", 0) == self._damaged)
         for k, x in enumerate(xs):
             s = first + k
             if s <= self._answered:
