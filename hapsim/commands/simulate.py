@@ -8,11 +8,17 @@ import json
 import os
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from hapsim.errors import ConfigError
 from hapsim.outputs import check_fits, check_writable
 from hapsim.progress import Progress
 from hapsim.option_values import Number
+
+if TYPE_CHECKING:       # the annotations' names (numpy and the engine load lazily)
+    import numpy as np
+
+    from hapsim.engine import Engine
 
 
 def register(sub) -> None:
