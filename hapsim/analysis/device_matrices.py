@@ -61,18 +61,6 @@ def arx_taps(mass, friction, period: float) -> tuple[np.ndarray, np.ndarray, np.
     return E, G1, G2
 
 
-def _phi2(Z: np.ndarray) -> np.ndarray:
-    """``phi2(Z) = sum Z^k / (k + 2)!`` (the exponential of the block matrix, as
-    :func:`hapsim.analysis.ths.zoh_blocks`)."""
-    from scipy.linalg import expm
-    n = Z.shape[0]
-    big = np.zeros((3 * n, 3 * n))
-    big[:n, :n] = Z
-    big[:n, n:2 * n] = np.eye(n)
-    big[n:2 * n, 2 * n:] = np.eye(n)
-    return expm(big)[:n, 2 * n:]
-
-
 @dataclass(frozen=True)
 class DeviceMatrices:
     """A device identified from a record (:func:`fit_device_matrices`).
@@ -241,7 +229,8 @@ def _recover(theta: np.ndarray, n: int, T: float):
     """``(M, B0)`` from the taps (module notes): ``Z = log E``, ``M^-1 = phi2(Z)^-1 G2 /
     T^2``, ``B0 = -M Z / T``."""
     from scipy.linalg import logm
+    from hapsim.analysis.ths.holds import phi_functions
     E, G2 = theta[:n].T, theta[2 * n:].T
     Z = np.real(logm(E))
-    M = np.linalg.inv(np.linalg.solve(_phi2(Z), G2) / (T * T))
+    M = np.linalg.inv(np.linalg.solve(phi_functions(Z)[2], G2) / (T * T))
     return M, -M @ Z / T

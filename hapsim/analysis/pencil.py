@@ -60,7 +60,7 @@ from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "thin_pencil", "RANK_TOL",
            "fit_felt_nd", "felt_sensitivity_nd", "worst_case_nd",
-           "filtered_sensitivity_nd"]
+           "filtered_sensitivity_nd", "companion", "ar_poles"]
 
 
 #: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
@@ -299,6 +299,49 @@ def _regression(recs, p: int, usable, offset: bool):
     return np.concatenate(rows), np.concatenate(rhs), eqs, ref
 
 
+def companion(C: np.ndarray, n: int, p: int) -> np.ndarray:
+    """The block companion matrix of a vector prediction ``y[k] = sum_j y[k-j] C_j``.
+
+    Parameters
+    ----------
+    C : ndarray, shape (n p, n)
+        The coefficients, newest lag first (``C_j`` = rows ``(j-1) n .. j n``).
+    n, p : int
+        Coordinates and lags.
+
+    Returns
+    -------
+    ndarray, shape (n p, n p)
+        Its eigenvalues are the prediction's poles (Lutkepohl, *New Introduction to
+        Multiple Time Series Analysis*, 2005, sec. 2.1.1).
+    """
+    comp = np.zeros((n * p, n * p))
+    comp[:n, :] = C.T
+    comp[n:, :-n] = np.eye(n * (p - 1))
+    return comp
+
+
+def ar_poles(record, order: int) -> np.ndarray:
+    """The poles of a vector autoregression of ``order`` lags fitted to one record by
+    least squares (the prediction of :func:`fit_felt_nd`, without its felt matrices).
+
+    Parameters
+    ----------
+    record : array_like, shape (N, n)
+    order : int
+
+    Returns
+    -------
+    ndarray of complex, shape (n order,)
+        The eigenvalues of :func:`companion` of the fitted coefficients.
+    """
+    rec = np.asarray(record, float)
+    n, p = rec.shape[1], int(order)
+    R, Y, _, _ = _regression([rec], p, None, False)
+    C, *_ = np.linalg.lstsq(R, Y, rcond=None)
+    return np.linalg.eigvals(companion(C, n, p))
+
+
 def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
                 offset: bool = False) -> dict:
     """Measured poles and felt matrices from free responses at the handle.
@@ -362,9 +405,7 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
     C = Ca[:n * p]
     scale = float(np.max(np.abs(Y))) or 1.0
     residual = float(np.max(np.abs(R @ Ca - Y))) / scale
-    comp = np.zeros((n * p, n * p))
-    comp[:n, :] = C.T
-    comp[n:, :-n] = np.eye(n * (p - 1))
+    comp = companion(C, n, p)
     from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of
     zr, U, poles = rendered_pairs_of(comp, n, period)
     out = {"poles": poles, "rendered_poles": zr, "felt_stiffness": None,
@@ -387,9 +428,7 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
 def _felt_of(C, n: int, p: int, mass, period: float):
     """The felt matrices ``(k, b)`` of prediction coefficients ``C`` (shape (n p, n)), or
     None when fewer than n rendered pairs."""
-    comp = np.zeros((n * p, n * p))
-    comp[:n, :] = C.T
-    comp[n:, :-n] = np.eye(n * (p - 1))
+    comp = companion(C, n, p)
     from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of
     zr, U, _ = rendered_pairs_of(comp, n, period)
     if zr.size != n:

@@ -66,7 +66,8 @@ from hapsim.errors import ConfigError
 
 __all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL",
            "OBSERVABLE_TOL", "DEFECTIVE_COND", "closed_loop_nd", "SceneCheckND",
-           "check_scene_nd", "WorkspaceFelt", "felt_over_workspace", "felt_summary"]
+           "check_scene_nd", "port_link_matrices", "WorkspaceFelt", "felt_over_workspace",
+           "felt_summary"]
 
 # STABILITY_TOL (re-exported): spectral radius accepted as stable, ``max |z| <= 1 +
 # STABILITY_TOL``; defined once in :mod:`hapsim.analysis.loop` and shared with ``render``.
@@ -497,6 +498,39 @@ class SceneCheckND:
         return out
 
 
+def port_link_matrices(scene) -> tuple[np.ndarray, np.ndarray, list]:
+    """The virtual stiffness and damping the links at an n-D scene's port add up to.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A validated scene with a port.
+
+    Returns
+    -------
+    Kp : ndarray, shape (n, n)
+        Sum of the port links' stiffness blocks [N/m] (:func:`link_blocks`).
+    Bp : ndarray, shape (n, n)
+        Sum of their damping blocks [N s/m].
+    moving : list of str
+        The moving masses a port link ends on (empty: every port link ends on a ground,
+        and ``(Kp, Bp)`` is what the port feels of the virtual world, as in 1-D).
+    """
+    n = scene.dimension
+    Kp, Bp = np.zeros((n, n)), np.zeros((n, n))
+    port = scene.port.name
+    kinds = {m.name: m.kind for m in scene.masses}
+    moving = []
+    for _, a, b, Kl, Bl in link_blocks(scene):
+        if port in (a, b):
+            Kp += Kl
+            Bp += Bl
+            other = b if a == port else a
+            if other is not None and kinds[other] != "ground":
+                moving.append(other)
+    return Kp, Bp, moving
+
+
 def check_scene_nd(scene, progress=None) -> SceneCheckND:
     """Closed-loop stability and felt matrices of an n-D scene felt through its device.
 
@@ -521,17 +555,8 @@ def check_scene_nd(scene, progress=None) -> SceneCheckND:
     """
     A, _ = closed_loop_nd(scene)
     n = scene.dimension
-    Kp = np.zeros((n, n))
-    Bp = np.zeros((n, n))
-    port = scene.port.name
-    grounded = True
-    kinds = {m.name: m.kind for m in scene.masses}
-    for _, a, b, Kl, Bl in link_blocks(scene):
-        if port in (a, b):
-            Kp += Kl
-            Bp += Bl
-            other = b if a == port else a
-            grounded = grounded and (other is None or kinds[other] == "ground")
+    Kp, Bp, moving = port_link_matrices(scene)
+    grounded = not moving
     r = render_state(A, scene.device.mass, scene.period, K=Kp, B=Bp)
     E = lim = None
     if grounded:

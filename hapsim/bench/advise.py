@@ -415,27 +415,20 @@ def _advise_space(scene, tolerance: float, margin: float, rates) -> Advice:
     and whose loop is stable with every ``(K, B)`` divided by ``margin`` (the MIMO state
     matrix, :func:`hapsim.analysis.ths.state_matrix`). The n-D engine has one integrator
     (centred) and no per-link calibration across axes: the advice is the rate."""
-    from hapsim.analysis.scene_check import closed_loop_nd
+    from hapsim.analysis.scene_check import closed_loop_nd, port_link_matrices
     from hapsim.analysis.ths import MatrixLoop, render_state, state_matrix
-    from hapsim.analysis.virtual_network import link_blocks
     if scene.port is None or scene.device is None:
         raise ConfigError("the scene has no port: nothing is felt, no rate to advise "
                           "('hapsim check SCENE' gives its modes)", file=scene.path,
                           key="masses")
-    n, dev = scene.dimension, scene.device
-    Kp, Bp = np.zeros((n, n)), np.zeros((n, n))
-    kinds = {m.name: m.kind for m in scene.masses}
-    port = scene.port.name
-    for _, a, b, Kl, Bl in link_blocks(scene):
-        if port in (a, b):
-            other = b if a == port else a
-            if other is not None and kinds[other] != "ground":
-                raise ConfigError(
-                    f"a port link ends on the moving mass {other!r}: the continuous-time "
-                    "felt matrices of a network with virtual masses are not built yet, so "
-                    "there is no reference to advise a rate against ('hapsim check SCENE' "
-                    "gives its felt matrices at its rate)", file=scene.path, key="links")
-            Kp, Bp = Kp + Kl, Bp + Bl
+    dev = scene.device
+    Kp, Bp, moving = port_link_matrices(scene)
+    if moving:
+        raise ConfigError(
+            f"a port link ends on the moving mass {moving[0]!r}: the continuous-time "
+            "felt matrices of a network with virtual masses are not built yet, so there "
+            "is no reference to advise a rate against ('hapsim check SCENE' gives its "
+            "felt matrices at its rate)", file=scene.path, key="links")
     wanted_b = Bp + dev.friction
     best, why = None, "no rate to try"
     for r in rates:

@@ -276,22 +276,14 @@ def _run_space(args) -> int:
                                  K_max_measured=Km, K_max_measured_interval=iv,
                                  trials=trials, note=note))
             bar.update(i + 1)
-    pts = []
-    for p in points:
-        d = p.to_dict()
-        km = d["K_max_measured"]
-        d["rel_err"] = None if km is None else (km - p.K_max_predicted) / p.K_max_predicted
-        d["rel_err_coulomb"] = None
-        pts.append(d)
-    errs = [abs(d["rel_err"]) for d in pts if d["rel_err"] is not None]
+    pts, follows, worst = _points(points)
     where = (f"{args.scene}'s {dev.kind} (lockstep, in process"
              + (", at its operating point" if dev.kind != "cartesian" else "") + ")")
     rep = {"where": where, "x0": x0, "wall": "isotropic", "dof": base.dimension,
            "device": {"kind": dev.kind, "mass": np.asarray(dev.mass).tolist(),
                       "friction": np.asarray(dev.friction).tolist(), "coulomb": 0.0,
                       "delay": dev.delay, "hold": dev.hold, "rate_hz": base.rate_hz},
-           "points": pts, "follows": "linear" if errs else None,
-           "worst_rel_err": max(errs) if errs else None}
+           "points": pts, "follows": follows, "worst_rel_err": worst}
     if args.json:
         print(json.dumps(rep))
     else:
@@ -321,6 +313,19 @@ def report(points, base, where: str, x0: float, fc: float) -> dict:
         with Coulomb friction, the describing-function prediction), ``follows``
         (``"linear"``, ``"coulomb"`` or None), ``worst_rel_err`` (against the one followed).
     """
+    pts, follows, worst = _points(points)
+    dev = base.device
+    return {"where": where, "x0": x0,
+            "device": {"mass": dev.mass, "friction": dev.friction, "coulomb": fc,
+                       "delay": dev.delay, "hold": dev.hold, "rate_hz": base.rate_hz,
+                       "force_limit": dev.force_limit},
+            "points": pts, "follows": follows, "worst_rel_err": worst}
+
+
+def _points(points) -> tuple:
+    """The points as :func:`report` gives them (``rel_err`` against the linear and, with
+    Coulomb friction, the describing-function prediction), which prediction they follow
+    and the worst relative error against it."""
     pts = []
     for p in points:
         d = p.to_dict()
@@ -337,12 +342,7 @@ def report(points, base, where: str, x0: float, fc: float) -> dict:
         follows, worst = "linear", max(lin)
         if cou and max(cou) < max(lin):
             follows, worst = "coulomb", max(cou)
-    dev = base.device
-    return {"where": where, "x0": x0,
-            "device": {"mass": dev.mass, "friction": dev.friction, "coulomb": fc,
-                       "delay": dev.delay, "hold": dev.hold, "rate_hz": base.rate_hz,
-                       "force_limit": dev.force_limit},
-            "points": pts, "follows": follows, "worst_rel_err": worst}
+    return pts, follows, worst
 
 
 def format_report(rep: dict) -> str:

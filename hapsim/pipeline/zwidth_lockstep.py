@@ -115,15 +115,10 @@ def lockstep_measure(path, x0: float, duration: float):
 
 def _dominant_modulus(rec: np.ndarray, order: int) -> float:
     """The largest pole modulus of a record of a linear loop's free response: a vector
-    autoregression of ``order`` lags fitted by least squares (a free response of ``n
-    order`` states obeys one exactly: Cayley-Hamilton on the state matrix, observed
-    through ``n`` positions), its companion matrix's eigenvalues. Scaled to the record's
-    RMS first (a growing record's late samples are orders larger)."""
-    n = rec.shape[1]
+    autoregression of ``order`` lags (a free response of ``n order`` states obeys one
+    exactly: Cayley-Hamilton on the state matrix, observed through ``n`` positions;
+    :func:`hapsim.analysis.pencil.ar_poles`), scaled to the record's RMS first (a growing
+    record's late samples are orders larger)."""
+    from hapsim.analysis.pencil import ar_poles
     x = rec / max(float(np.sqrt(np.mean(rec * rec))), 1e-300)
-    rows = np.hstack([x[order - j - 1:len(x) - j - 1] for j in range(order)])
-    theta, *_ = np.linalg.lstsq(rows, x[order:], rcond=None)
-    C = np.zeros((n * order, n * order))
-    C[:n] = theta.T
-    C[n:, :-n] = np.eye(n * (order - 1))
-    return float(np.max(np.abs(np.linalg.eigvals(C))))
+    return float(np.max(np.abs(ar_poles(x, order))))

@@ -18,8 +18,8 @@ from hapsim.analysis.loop import MAX_DELAY, LoopModel
 from hapsim.analysis.ths.matrix_loop import MatrixLoop, as_matrix_loop, gain_matrices
 from hapsim.errors import ConfigError
 
-__all__ = ["zoh_matrices", "zoh_blocks", "split_hold_matrices", "state_matrix",
-           "closed_loop_poles"]
+__all__ = ["zoh_matrices", "zoh_blocks", "phi_functions", "split_hold_matrices",
+           "state_matrix", "closed_loop_poles"]
 
 
 def split_hold_matrices(loop: MatrixLoop):
@@ -95,6 +95,30 @@ def _zoh_over(loop: MatrixLoop, T: float):
     return zoh_blocks(loop.mass, loop.friction, T)
 
 
+def phi_functions(Z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``e^Z``, ``phi1(Z) = sum Z^k/(k+1)!`` and ``phi2(Z) = sum Z^k/(k+2)!`` from one
+    matrix exponential of ``[[Z, I, 0], [0, 0, I], [0, 0, 0]]`` (Higham, *Functions of
+    Matrices*, 2008, Sec. 10.7.4: full relative precision for small ``Z``).
+
+    Parameters
+    ----------
+    Z : ndarray, shape (n, n)
+
+    Returns
+    -------
+    eZ, phi1, phi2 : ndarray, shape (n, n)
+    """
+    from scipy.linalg import expm
+    n = Z.shape[0]
+    I = np.eye(n)
+    big = np.zeros((3 * n, 3 * n))
+    big[:n, :n] = Z
+    big[:n, n:2 * n] = I
+    big[n:2 * n, 2 * n:] = I
+    E = expm(big)
+    return E[:n, :n], E[:n, n:2 * n], E[:n, 2 * n:]
+
+
 def zoh_blocks(mass, friction, T: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`zoh_matrices` of raw matrices, over a hold of length ``T`` [s] (no range
     checks: a joint-space inertia of 2e-4 kg m^2 is outside :data:`MASS_RANGE`).
@@ -118,18 +142,12 @@ def zoh_blocks(mass, friction, T: float) -> tuple[np.ndarray, np.ndarray]:
     numpy.linalg.LinAlgError
         ``mass`` singular.
     """
-    from scipy.linalg import expm
     M = np.asarray(mass, float)
     n = M.shape[0]
     Minv = np.linalg.inv(M)
     Z = -(Minv @ np.asarray(friction, float)) * T
     I = np.eye(n)
-    big = np.zeros((3 * n, 3 * n))
-    big[:n, :n] = Z
-    big[:n, n:2 * n] = I
-    big[n:2 * n, 2 * n:] = I
-    E = expm(big)
-    eZ, phi1, phi2 = E[:n, :n], E[:n, n:2 * n], E[:n, 2 * n:]
+    eZ, phi1, phi2 = phi_functions(Z)
     Ad = np.zeros((2 * n, 2 * n))
     Ad[:n, :n] = I
     Ad[:n, n:] = T * phi1
