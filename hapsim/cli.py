@@ -465,8 +465,8 @@ def _fail(command: str, exc: BaseException, code: int, text: str, want_json: boo
 def entry() -> None:
     """The ``hapsim`` console script and ``python -m hapsim``: exit with :func:`main`'s code.
 
-    Once :func:`main` has returned, SIGINT is ignored (the command is over; a late Ctrl-C
-    must not change its exit code). After Ctrl-C (code 130) the process ends with
+    Once :func:`main` has returned, SIGINT and SIGTERM are ignored (the command is over; a
+    late Ctrl-C or SIGTERM must not change its exit code). After Ctrl-C (code 130) the process ends with
     ``os._exit(130)`` once stdout and stderr are flushed: CPython would otherwise re-raise SIGINT at exit (exit status -2 rather
     than 130) when the interrupt landed inside code run by ``PyRun_String`` during an
     import, even though :func:`main` handled it.
@@ -480,9 +480,11 @@ def entry() -> None:
         pass
     if code == EXIT_BROKEN_PIPE:
         _silence_stdout()
-    try:  # the work is done: a Ctrl-C from now on (flush, interpreter shut-down) changes
-        import signal  # nothing, and must not turn the exit code into 1 or -SIGINT
+    try:  # the work is done: a Ctrl-C or a SIGTERM from now on (flush, interpreter
+        import signal  # shut-down: ~0.2 s) changes nothing, and must not turn the exit
+        # code into 1, -SIGINT or -SIGTERM (a SIGTERM there killed a finished run: -15)
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     except (ValueError, OSError):  # not the main thread
         pass
     if code in (130, EXIT_TERMINATED):

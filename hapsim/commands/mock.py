@@ -218,9 +218,10 @@ def run(args) -> int:
         # (hapsim.commands.mock_board.BOARD_RT_PRIORITY); starved at normal scheduling
         # beside busy processes it held its force for tens of ms, which no board does
         # (an identification passed its envelope by 0.015 mm at load ~5)
+        # (embedded in hapsim run, --fd, no flag means the run's own 0: inherited)
         from hapsim.commands.mock_board import BOARD_RT_PRIORITY
-        args.rt_priority = (0 if args.lockstep else 10 if args.firmware
-                            else BOARD_RT_PRIORITY)
+        args.rt_priority = (0 if args.lockstep or args.fd is not None else
+                            10 if args.firmware else BOARD_RT_PRIORITY)
     if args.scene:
         from hapsim.scene import scene_dimension
         if scene_dimension(args.scene) > 1:         # a 2-D or 3-D scene's device (it
