@@ -52,7 +52,7 @@ def _stopped_run(argv, tmp_path, after, sig):
     tmp.mkdir(parents=True)
     env = {**os.environ, "PYTHONPATH": str(ROOT), "TMPDIR": str(tmp)}
     p = subprocess.Popen([sys.executable, "-m", "hapsim", *argv], cwd=ROOT, env=env,
-                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          start_new_session=True)
     if after is not None:
         time.sleep(after)
@@ -61,12 +61,15 @@ def _stopped_run(argv, tmp_path, after, sig):
         except ProcessLookupError:      # it had ended already: the normal exit path
             pass
     try:
-        _, err = p.communicate(timeout=END_S + (0 if after is not None else 120))
+        out, err = p.communicate(timeout=END_S + (0 if after is not None else 120))
     except subprocess.TimeoutExpired:
         p.kill()
-        _, err = p.communicate()
+        p.communicate()
         pytest.fail(f"hapsim {' '.join(argv)} did not end {END_S} s after the signal")
-    return p.returncode, sorted(os.listdir(tmp)), _alive_naming(str(tmp)), err
+    # the report's end beside stderr: an unexpected exit code says why (a safety stop, a
+    # fault, an unfit link: hapsim.pipeline.report), not only that it happened
+    return (p.returncode, sorted(os.listdir(tmp)), _alive_naming(str(tmp)),
+            err + ("\n--- stdout's end:\n" + out[-1500:] if out else ""))
 
 
 _RNG = random.Random(31)

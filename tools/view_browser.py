@@ -82,21 +82,28 @@ class ViewRun:
         self.url = None
         end = time.monotonic() + timeout
         while time.monotonic() < end and self.proc.poll() is None:
-            self.err.seek(0)
-            m = re.search(r"live view on (http://127\.0\.0\.1:\d+/)", self.err.read())
+            m = re.search(r"live view on (http://127\.0\.0\.1:\d+/)", self._stderr())
             if m:
                 self.url = m.group(1)
                 break
             time.sleep(0.1)
         if self.url is None:
-            self.err.seek(0)
-            raise RuntimeError(f"no view address: {self.err.read()[-2000:]}")
+            raise RuntimeError(f"no view address: {self._stderr()[-2000:]}")
+
+    def _stderr(self) -> str:
+        """What the child wrote on stderr so far.
+
+        Read with ``pread``, which leaves the file offset alone: the child shares this
+        open file (its offset), so a ``seek(0)`` here while it runs made its next line
+        overwrite the file from the start (the view's address lost under the start-up
+        line, a 120 s wait for an address already given)."""
+        fd = self.err.fileno()
+        return os.pread(fd, os.fstat(fd).st_size, 0).decode("utf-8", "replace")
 
     def finish(self, timeout: float = 60.0) -> tuple[int, str, str]:
         """Wait for the child's end; its exit code, stdout and stderr."""
         out, _ = self.proc.communicate(timeout=timeout)
-        self.err.seek(0)
-        return self.proc.returncode, out, self.err.read()
+        return self.proc.returncode, out, self._stderr()
 
     def kill(self) -> None:
         """End the child if it still runs (SIGTERM: its clean stop)."""
