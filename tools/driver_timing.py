@@ -32,6 +32,13 @@ after each answer with probability ``P``, for a silence drawn in ``LO_MS``..``HI
 hook), as a board process behind CPU-bound processes, a USB hub or a descheduled pty
 reader is; no byte is lost by it (``board_silences``: their number and the longest).
 
+``--host-stall MS`` (the 1-D drivers): this process, the host, is stopped once for ``MS``
+ms (``SIGSTOP``, then ``SIGCONT`` from a child) at a seeded moment 1 to 1 + duration/2 s
+after the run starts: the host loop, its reader and everything else here stop together,
+as a descheduled or swapped host does; the board's process runs on, holding the last
+force as its firmware does (a watchdog or none), and the run shows what the host meets
+when it wakes.
+
 Each row: safety stop, re-synchronisations (and why, ``resync_reasons``; the silences the
 host waited for instead, ``silences``; the host's ``frame_bound``: how far their estimates
 may have moved the board's frame, summed; the emulated board's ``frame_walk``: how far its
@@ -80,11 +87,29 @@ def _load():
         return None
 
 
+def _stall_this_process(stall_ms: float, at_s: float) -> subprocess.Popen:
+    """A child that stops this process (SIGSTOP) ``at_s`` seconds from now for
+    ``stall_ms`` ms, then continues it (SIGCONT): every thread here stops, the board's
+    process does not (module notes, ``--host-stall``)."""
+    pid = os.getpid()
+    return subprocess.Popen([sys.executable, "-c", (
+        f"import os, signal, time\ntime.sleep({at_s!r})\nos.kill({pid}, signal.SIGSTOP)\n"
+        f"try:\n    time.sleep({stall_ms / 1e3!r})\nfinally:\n"
+        f"    os.kill({pid}, signal.SIGCONT)")])
+
+
 def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: int = 10,
-           starve=None) -> dict:
+           starve=None, stall_ms=None) -> dict:
     """One run of ``configs/<driver>.yaml`` through the driver's mock (module notes);
-    ``starve``: ``(P, lo_ms, hi_ms)``, the board's process starved (module notes)."""
+    ``starve``: ``(P, lo_ms, hi_ms)``, the board's process starved; ``stall_ms``: one
+    stall of this process (module notes, ``--host-stall``)."""
     faults = {"drop_tx": loss, "drop_rx": loss, "seed": seed}
+    staller = None
+    if stall_ms:
+        # the loop is armed ~0.5-1 s after run_scene starts (imports done, the mock's
+        # start-up, the handshake): the stall falls inside the run's first second or so
+        at_s = float(np.random.default_rng(seed).uniform(1.0, 1.0 + 0.5 * duration))
+        staller = _stall_this_process(float(stall_ms), at_s)
     if starve:
         faults.update(slow=float(starve[0]),
                       slow_s=[float(starve[1]) * 1e-3, float(starve[2]) * 1e-3])
@@ -106,6 +131,9 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             err = f"{type(exc).__name__}: {exc}"
             if rep is None:
                 return {"error": err}
+        finally:
+            if staller is not None:
+                staller.wait()
         x_host = None
         if os.path.exists(tel):
             d = np.load(tel)
@@ -317,6 +345,9 @@ def main(argv=None) -> int:
                    metavar=("P", "LO_MS", "HI_MS"),
                    help="starve the 1-D boards' processes: after an answer, with "
                         "probability P, a silence of LO_MS..HI_MS ms (module notes)")
+    p.add_argument("--host-stall", type=float, default=None, metavar="MS",
+                   help="the 1-D runs: stop the host's process once for MS ms at a seeded "
+                        "moment of its loop (SIGSTOP/SIGCONT; module notes)")
     p.add_argument("--json", default=None, metavar="PATH")
     a = p.parse_args(argv)
     from hapsim.host.realtime import RealtimePriority
@@ -343,7 +374,7 @@ def main(argv=None) -> int:
                         sched = rt.note
                     else:
                         row = run_1d(drv, seed, loss, a.duration, a.rt_priority,
-                                     a.starve)
+                                     a.starve, a.host_stall)
                         sched = row.get("scheduling")
                     row.update(driver=drv, seed=seed, loss=loss, scheduling=sched,
                                seconds=round(time.monotonic() - t, 1), load=_load())
@@ -361,7 +392,7 @@ def main(argv=None) -> int:
             h.kill()
             h.wait()
     out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
-           "starve": a.starve,
+           "starve": a.starve, "host_stall_ms": a.host_stall,
            "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),
            "runs": normalize(rows), "summary": summarize(rows)}
     text = json.dumps(out, indent=1, default=str)
