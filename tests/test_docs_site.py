@@ -77,6 +77,11 @@ def test_site_builds_with_warnings_as_errors(tmp_path):
                        capture_output=True, text=True, cwd=str(ROOT), timeout=300)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     assert "WARNING" not in p.stderr, p.stderr[-3000:]
+    # never silent for seconds (issue 31): a build longer than two of the hook's progress
+    # intervals (tools/docs_macros.PROGRESS_S) has said how far it is at least once
+    took = float(re.search(r"Documentation built in ([0-9.]+) seconds", p.stderr).group(1))
+    if took > 2 * 0.5:
+        assert re.search(r"hapsim docs: \d+ of \d+ pages (read|written)", p.stderr), p.stderr
     soak = json.loads((DOCS / "soak.json").read_text())
     page = (site / "reliability" / "index.html").read_text()
     assert f"{soak['lost']} / {soak['recovered']}" in page

@@ -20,6 +20,11 @@ line or inside a line of Markdown, with arguments quoted as in a shell:
     The device families of the drivers' registry (:data:`hapsim.drivers.FAMILIES`), one
     row each: the page's list of devices cannot drift from what ``--driver`` accepts.
 
+The build also says how far it is (``on_page_markdown``, ``on_post_page``): a line on the
+``mkdocs`` logger at most every :data:`PROGRESS_S` seconds, so ``mkdocs build`` is never
+silent for seconds (issue 31: nothing a newcomer runs is silent over 2 s; it was ~4 s on
+a loaded 2-core machine between "Building documentation" and "Documentation built").
+
 A missing file, key or a malformed macro fails the build (``mkdocs build --strict`` in the
 tests), so a figure cannot silently drift from its file. Used by ``mkdocs.yml`` (``hooks:``)
 and by ``tests/test_docs_site.py``.
@@ -125,8 +130,41 @@ def _families() -> str:
     return "\n".join(lines)
 
 
+#: Most seconds between two of the build's progress lines (module notes).
+PROGRESS_S = 0.5
+_progress = {"last": 0.0, "read": 0, "written": 0, "pages": 0}
+
+
+def on_files(files, config):   # MkDocs hook (event name fixed)
+    """Count the pages the build renders (for its progress lines); the files unchanged."""
+    import time
+    _progress.update(last=time.monotonic(), read=0, written=0,
+                     pages=sum(1 for f in files if f.is_documentation_page()))
+    return files
+
+
+def _say(stage: str, page) -> None:
+    """A progress line on the ``mkdocs`` logger when :data:`PROGRESS_S` has passed."""
+    import logging
+    import time
+    _progress[stage] += 1
+    now = time.monotonic()
+    if now - _progress["last"] >= PROGRESS_S:
+        _progress["last"] = now
+        logging.getLogger("mkdocs").info(
+            f"hapsim docs: {_progress[stage]} of {_progress['pages']} pages {stage} "
+            f"({page.file.src_path})")
+
+
+def on_post_page(output, page, config):   # MkDocs hook (event name fixed)
+    """Say the build's progress (module notes); the page's HTML unchanged."""
+    _say("written", page)
+    return output
+
+
 def on_page_markdown(markdown, page, config, files):   # MkDocs hook (event name fixed)
-    """Expand the macros of one page; the files are read from ``docs_dir``.
+    """Expand the macros of one page; the files are read from ``docs_dir``. Says the
+    build's progress (module notes).
 
     Raises
     ------
@@ -134,6 +172,7 @@ def on_page_markdown(markdown, page, config, files):   # MkDocs hook (event name
         A macro that cannot be expanded (the build stops with the page and the macro).
     """
     from mkdocs.exceptions import PluginError
+    _say("read", page)
     try:
         return expand(markdown, Path(config["docs_dir"]))
     except MacroError as exc:
