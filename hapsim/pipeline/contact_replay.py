@@ -13,8 +13,13 @@ Replay rules (the loop's):
   ``port_step(x)`` of the row;
 * every other row is one ``port_step(x)``;
 * a row flagged ``FLAG_SKIPPED`` follows STATEs the loop stepped the scene with but did not
-  log: their positions are unknown, so the states are unknown from that row to the next
-  restart;
+  answer (a backlog). The loop records each one's position with the row it precedes
+  (:meth:`hapsim.host.telemetry.Telemetry.skipped`): given that record, the replay steps
+  them, in order, before the row's own step, and the row is closed only when every contact
+  was engaged at each of those steps too. Without the record, or on a row past the point
+  where it overflowed (``complete_below``), their positions are unknown, so the states are
+  unknown from that row to the next restart. Recorded steps before a restart row are
+  dropped with the engine they stepped;
 * with a ``velocity_sensor`` correction the scene moves with a velocity the telemetry does
   not hold: only contacts between the port and grounds are known (from the logged port
   position, where the correction places the port).
@@ -69,8 +74,9 @@ class ContactReplay:
     closed : ndarray of bool, shape (n,)
         Every contact engaged at every (sub-)step of the row, and the replay known there.
     known : ndarray of bool, shape (n,)
-        The replay knows the scene's state at the row (False after a skipped STATE until
-        the next restart, and from the first force mismatch on).
+        The replay knows the scene's state at the row (False after a skipped STATE whose
+        position is not recorded until the next restart, and from the first force
+        mismatch on).
     open_link : list of (str or None)
         Per row, the name of the first contact open at the row (None when all closed or
         unknown).
@@ -88,7 +94,20 @@ class ContactReplay:
     reason: str | None = None
 
 
-def computed_forces(scene, cols: dict):
+def _skip_plan(skipped, n: int):
+    """The skipped STATEs' record per row: ``(start, stop, positions, complete_below)``
+    with ``start[i]:stop[i]`` the record's entries before row ``i`` (module notes' rules);
+    None without a record."""
+    if skipped is None:
+        return None
+    rows, xs, below = skipped
+    rows = np.asarray(rows, dtype=np.int64)
+    start = np.searchsorted(rows, np.arange(n), side="left")
+    stop = np.searchsorted(rows, np.arange(n), side="right")
+    return start, stop, np.asarray(xs, dtype=float), int(below)
+
+
+def computed_forces(scene, cols: dict, skipped=None):
     """The port force the run's law computed at every row, before the host clamped it at
     the force limit, replayed from the logged positions (module notes' replay rules).
 
@@ -103,19 +122,26 @@ def computed_forces(scene, cols: dict):
     cols : dict of ndarray
         Telemetry columns from the run's first row: ``position`` [m], ``force`` [N],
         ``flags``, each shape (n,).
+    skipped : tuple, optional
+        The run's skipped STATEs' record (:meth:`hapsim.host.telemetry.Telemetry.skipped`):
+        its steps are replayed (module notes).
 
     Returns
     -------
     ndarray, shape (n,), or None
         Forces [N]; None when the replay cannot give them: a law the telemetry does not
-        hold the inputs of (a velocity sensor), skipped STATEs, a ramp, or a replayed force
+        hold the inputs of (a velocity sensor), skipped STATEs not in the record, a ramp,
+        or a replayed force
         that differs from the logged one on a row the loop did not clamp (a live change,
         the passivity controller).
     """
     x_log = np.asarray(cols["position"], dtype=float)
     f_log = np.asarray(cols["force"], dtype=float)
     flags = np.asarray(cols["flags"]).astype(np.int64)
-    if np.any(flags & (FLAG_SKIPPED | FLAG_RAMP)):
+    plan = _skip_plan(skipped, x_log.size)
+    sk = (flags & FLAG_SKIPPED) != 0
+    if np.any(flags & FLAG_RAMP) or (np.any(sk) and (
+            plan is None or np.any(np.flatnonzero(sk) >= plan[3]))):
         return None
     eng = _replay_engine(scene)
     if eng is None:
@@ -126,6 +152,9 @@ def computed_forces(scene, cols: dict):
             eng = type(eng)(eng.scene)            # the loop's restart (HostLoop._resume)
         if i == 0 or flags[i] & FLAG_LOST:
             eng.set_port_position(float(x_log[i]), at_rest=True)
+        elif plan is not None:
+            for e in range(plan[0][i], plan[1][i]):
+                eng.port_step(float(plan[2][e]))  # the skipped STATEs before the row
         f = eng.port_step(float(x_log[i]))
         if not flags[i] & FLAG_CLAMPED and not f == f_log[i]:
             return None
@@ -221,7 +250,8 @@ def _fixed_contacts(scene, x_log, names, ends, thr) -> ContactReplay:
     return ContactReplay(closed, known, open_link, None, None)
 
 
-def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay:
+def replay_contacts(scene, cols: dict, passivity: bool = False,
+                    skipped=None) -> ContactReplay:
     """Replay a run's logged port positions through a fresh engine; contact states per row.
 
     Parameters
@@ -234,6 +264,10 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
     passivity : bool
         The passivity controller was on (it changes the force sent without a flag: the
         force check is then skipped; the scene's states do not depend on the force sent).
+    skipped : tuple, optional
+        The run's skipped STATEs' record (:meth:`hapsim.host.telemetry.Telemetry.skipped`:
+        rows, positions [m], ``complete_below``); None: no record (a skipped STATE makes
+        the states unknown until the next restart).
 
     Returns
     -------
@@ -262,6 +296,7 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
                              "a corrected multi-rate scene cannot be replayed sub-step by "
                              "sub-step: the contact states are unknown")
     stepper = _AudioStepper(eng, ends) if multi else None
+    plan = _skip_plan(skipped, n)
     alive = True
     mismatch = None
     reason = None
@@ -273,20 +308,27 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
                 stepper = _AudioStepper(eng, ends) if multi else None
             eng.set_port_position(float(x_log[i]), at_rest=True)
             alive = mismatch is None
-        elif fl & FLAG_SKIPPED and alive:
+        elif fl & FLAG_SKIPPED and alive and (plan is None or i >= plan[3]):
             alive = False
             reason = reason or (f"STATEs before row {i} were skipped (a backlog): the scene "
-                                f"took positions the telemetry does not hold")
-        x = float(x_log[i])
-        if multi:
-            f, first = stepper.step(x, thr)
-            ok = first < 0
-        else:
-            f = eng.port_step(x)
-            xp = eng.kernel_pack.state[1]        # positions before this step (shared)
-            op = ~(xp[ends[1]] - xp[ends[0]] < thr)
-            ok = not op.any()
-            first = int(np.argmax(op)) if not ok else -1
+                                f"took positions the telemetry does not hold" +
+                                ("" if plan is None else " (the skipped STATEs' record "
+                                 "was full)"))
+        steps = [] if (i == 0 or fl & FLAG_LOST or plan is None) else \
+            plan[2][plan[0][i]:plan[1][i]].tolist()
+        steps.append(float(x_log[i]))
+        first = -1                                # the first contact open at any step
+        for x in steps:
+            if multi:
+                f, op1 = stepper.step(x, thr)
+            else:
+                f = eng.port_step(x)
+                xp = eng.kernel_pack.state[1]    # positions before this step (shared)
+                op = ~(xp[ends[1]] - xp[ends[0]] < thr)
+                op1 = int(np.argmax(op)) if op.any() else -1
+            if first < 0:
+                first = op1
+        ok = first < 0
         if not alive:
             continue
         if (not passivity and not fl & (FLAG_RAMP | FLAG_CLAMPED)
