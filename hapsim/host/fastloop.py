@@ -198,7 +198,7 @@ class CompiledHostLoop(HostLoop):
             "rb": np.zeros(_RB_SIZE, dtype=np.uint8),
             "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
             "hist_len": np.zeros(_HIST, dtype=np.int64),
-            "skips": (tel.skip_row, tel.skip_x),
+            "skips": (tel.skip_row, tel.skip_x, tel.skip_meta),
             "hist_seen": 0, "samples_seen": 0, "states_seen": 0,
         }
 
@@ -290,7 +290,8 @@ class CompiledHostLoop(HostLoop):
                     self._fast["iv"][I_SKIPFLAG] = self._skip_flag
                     kind, kargs, xs, fs, port, rec, out = self._fast["eng"]
                     skip_sample(kind, kargs, xs, port, rec, out, self._fast["iv"],
-                               self._fast["fv"], float(x), *self._fast["skips"])
+                               self._fast["fv"], float(x), *self._fast["skips"], msg.seq,
+                               msg.force_seq, msg.status, msg.time_us)
                     self._publish()
                     continue
                 code = self._one(msg, x, t_rx)
@@ -423,7 +424,8 @@ def _scratch(engine, fd: int) -> dict:
             "stop": np.zeros(1, dtype=np.int64), "rb": np.zeros(256, dtype=np.uint8),
             "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
             "hist_len": np.zeros(_HIST, dtype=np.int64),
-            "skips": (np.zeros(4, dtype=np.int64), np.zeros(4))}
+            "skips": (np.zeros(4, dtype=np.int64), np.zeros(4),
+                      np.zeros((4, 4), dtype=np.int64))}
 
 
 def _run_stretch(sc: dict) -> int:
@@ -462,7 +464,8 @@ def warm_up(engine) -> float:
         answer_sample(*sc["eng"], iv, fv, pv, sc["fh"], sc["win"], *sc["tel"], 1, 0,
                 fp.STATUS_ARMED, 0, 0.0, 0, w, *io[1:])
         kind, kargs, xs, _, port, rec, out = sc["eng"]
-        skip_sample(kind, kargs, xs, port, rec, out, iv, fv, 0.0, *sc["skips"])
+        skip_sample(kind, kargs, xs, port, rec, out, iv, fv, 0.0, *sc["skips"], 2, 1,
+                    fp.STATUS_ARMED, 0)
     finally:
         os.close(r)
         os.close(w)

@@ -44,7 +44,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "f6e083fb4b410c401770121e08e51fe4d7fb8affda26e569d00ad17e7e1c2189"
+COMPILED_SOURCES_SHA256 = "10778ba3146bc51a80c1a684fac9d55f11eb83b179a96151eab4447306b1c573"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -430,7 +430,8 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
 
 
 @_jit
-def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x):
+def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_meta, seq,
+                force_seq, status, time_us):
     """A STATE the backlog policy skips: the scene steps with its position (the next
     velocity spans one period), nothing is sent; the step goes into the skipped STATEs'
     record (as :meth:`HostLoop._drive`; :mod:`hapsim.host.telemetry`).
@@ -453,6 +454,10 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x):
     sk_row, sk_x : ndarray of int64, float64, shape (skips,)
         The telemetry's skipped STATEs' record: entry ``iv[I_SKIPN]`` (while it fits)
         takes the row it precedes (``iv[I_N]``) and ``x``.
+    sk_meta : ndarray of int64, shape (skips, 4)
+        The same entry's ``seq``, ``force_seq``, ``status``, ``time_us``.
+    seq, force_seq, status, time_us : int
+        The skipped STATE's fields (time [us]).
     """
     if math.isfinite(x):
         xs[port] = x
@@ -463,6 +468,10 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x):
         if sn < sk_row.size:
             sk_row[sn] = iv[I_N]
             sk_x[sn] = x
+            sk_meta[sn, 0] = seq
+            sk_meta[sn, 1] = force_seq
+            sk_meta[sn, 2] = status
+            sk_meta[sn, 3] = time_us
         iv[I_SKIPN] = sn + 1
 
 
@@ -513,7 +522,7 @@ def _keep_frame(rb, a, z, hist, hist_len, iv):
 @_jit
 def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr,
                    f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, fd, rb, stop, pkt,
-                   f8, u8, table, tx, pfd, ts, f4, hist, hist_len, sk_row, sk_x):
+                   f8, u8, table, tx, pfd, ts, f4, hist, hist_len, sk_row, sk_x, sk_meta):
     """Answer clean STATEs on ``fd`` until something needs Python (the notes of
     :mod:`hapsim.host.fastloop`).
 
@@ -562,7 +571,7 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
         ``clock_gettime``'s ``struct timespec``.
     hist, hist_len : ndarray
         The ring of the good frames taken and their lengths (the decoder's history).
-    sk_row, sk_x : ndarray of int64, float64
+    sk_row, sk_x, sk_meta : ndarray
         The skipped STATEs' record (:func:`skip_sample`).
 
     Returns
@@ -656,7 +665,8 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
                                                 compact):
                 iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
                 iv[I_SKIPFLAG] = FLAG_SKIPPED
-                skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x)
+                skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_meta,
+                            seq, fseq, status, tus)
                 continue
             code = answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
                            x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr,

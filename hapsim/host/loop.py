@@ -388,7 +388,7 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
             # STATE at its first deadline, maybe newer than the one it resumed at)
             x_prev = first[1]
             poll = self.poll
-            sk_row, sk_x = tel.skip_row, tel.skip_x   # the skipped STATEs' record
+            sk_row, sk_x, sk_meta = tel.skip_row, tel.skip_x, tel.skip_meta  # skips' record
             sk_cap = sk_row.size
             k = 0                           # samples since this stretch (re)started
             i = tel.n
@@ -404,6 +404,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                         if sn < sk_cap:
                             sk_row[sn] = i
                             sk_x[sn] = x
+                            sk_meta[sn, 0] = msg.seq
+                            sk_meta[sn, 1] = msg.force_seq
+                            sk_meta[sn, 2] = msg.status
+                            sk_meta[sn, 3] = msg.time_us
                         tel.skip_n = sn + 1
                     continue
                 seq = msg.seq

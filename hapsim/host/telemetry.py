@@ -21,8 +21,10 @@ be open-ended: memory holds the head and the last ``ring`` rows, the journal all
   with each skipped one, whose row is never written (the answered row is flagged
   :data:`FLAG_SKIPPED`). Each such step is kept beside the rows, in arrays allocated with
   them (:attr:`Telemetry.skip_row`, :attr:`Telemetry.skip_x`: the row it preceded and its
-  position; both loops write them, nothing is allocated per sample), so that the contact
-  replay (:mod:`hapsim.pipeline.contact_replay`) steps them too. The row format is
+  position; :attr:`Telemetry.skip_meta`: its seq, force_seq, status and time; both loops
+  write them, nothing is allocated per sample), so that the contact replay
+  (:mod:`hapsim.pipeline.contact_replay`) steps them too and the measurement puts them back
+  in the record as the rows they would have been. The row format is
   unchanged; the record is bounded (``skips`` entries): past it the steps are only counted
   (:attr:`Telemetry.skip_n`) and the replay knows it (:meth:`Telemetry.skipped`). It lives
   in memory for the run's own measurement (not in the journal or the exports).
@@ -165,6 +167,8 @@ class Telemetry:
         then written next, flagged :data:`FLAG_SKIPPED`).
     skip_x : ndarray of float64, shape (skips,)
         Its position [m].
+    skip_meta : ndarray of int64, shape (skips, 4)
+        Its STATE's ``seq``, ``force_seq``, ``status`` and ``time_us`` [us].
     skip_n : int
         Skipped STATEs the scene stepped with in all (beyond ``skips``: counted only).
     drain : callable or None
@@ -199,11 +203,13 @@ class Telemetry:
         self.status = np.zeros(capacity, dtype=np.uint16)
         self.skip_row = np.zeros(skips, dtype=np.int64)
         self.skip_x = np.zeros(skips)
+        self.skip_meta = np.zeros((skips, 4), dtype=np.int64)
         self.skip_n = 0
         # np.zeros maps untouched zero pages: writing them once here moves the page
         # faults (the kernel allocating memory) out of the hot loop (docs/design.md, rule 4)
         for a in (self.time, self.position, self.force, self.seq, self.turnaround_us,
-                  self.late, self.flags, self.status, self.skip_row, self.skip_x):
+                  self.late, self.flags, self.status, self.skip_row, self.skip_x,
+                  self.skip_meta):
             a.fill(1)
             a.fill(0)
         self.force_seq.fill(-1)
@@ -261,6 +267,16 @@ class Telemetry:
         m = min(self.skip_n, self.skip_row.size)
         below = self.n if self.skip_n <= m else (int(self.skip_row[m - 1]) if m else 0)
         return self.skip_row[:m], self.skip_x[:m], below
+
+    def skipped_ticks(self) -> np.ndarray:
+        """The recorded skipped STATEs' fields, in the order of :meth:`skipped`.
+
+        Returns
+        -------
+        ndarray of int64, shape (m, 4)
+            Per entry its STATE's ``seq``, ``force_seq``, ``status``, ``time_us`` [us].
+        """
+        return self.skip_meta[:min(self.skip_n, self.skip_meta.shape[0])]
 
     def rows_in_memory(self) -> list[tuple[int, int]]:
         """The rows still in memory.

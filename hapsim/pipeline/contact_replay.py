@@ -45,7 +45,8 @@ import numpy as np
 
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 
-__all__ = ["ContactReplay", "replay_contacts", "contact_links", "computed_forces"]
+__all__ = ["ContactReplay", "replay_contacts", "contact_links", "computed_forces",
+           "fill_skipped"]
 
 
 def contact_links(scene) -> list:
@@ -160,6 +161,103 @@ def computed_forces(scene, cols: dict, skipped=None):
             return None
         out[i] = f
     return out
+
+
+def fill_skipped(scene, cols: dict, skipped, ticks, delay: int, passivity: bool = False):
+    """The record with the recorded skipped STATEs put back as the rows they would have been.
+
+    A skipped STATE is a sample of the device like any other: its position, seq,
+    force_seq and status are recorded (:meth:`hapsim.host.telemetry.Telemetry.skipped`,
+    :meth:`~hapsim.host.telemetry.Telemetry.skipped_ticks`), and the force the law computed
+    with it, which the loop did not send, is replayed. Put back before the row it preceded,
+    the record has no gap in seq there: the device held an older force at the ticks that
+    FORCE would have reached, which its force_seq names, a known input like any late tick
+    (:func:`hapsim.analysis.measurement.late_accounted`), so a backlog no longer cuts the
+    free response into stretches.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The calibrated scene the run stepped.
+    cols : dict of ndarray
+        Telemetry columns from the run's first row (:data:`hapsim.host.telemetry.COLUMNS`),
+        each shape (n,).
+    skipped : tuple
+        :meth:`~hapsim.host.telemetry.Telemetry.skipped`: rows, positions [m],
+        ``complete_below``.
+    ticks : ndarray of int64, shape (m, 4)
+        :meth:`~hapsim.host.telemetry.Telemetry.skipped_ticks`: seq, force_seq, status,
+        time [us] of the same entries.
+    delay : int
+        The device's delay [samples] (a put-back row's late flag, :mod:`hapsim.kernels.ticks`).
+    passivity : bool
+        The passivity controller was on: the forces sent are not the law's; nothing is put
+        back.
+
+    Returns
+    -------
+    (dict, tuple) or None
+        The columns with the rows put back (shape (n + p,); their ``flags`` FLAG_LATE where
+        late, ``turnaround_us`` 0; FLAG_SKIPPED cleared on the rows whose skipped STATEs
+        are all back) and the record for :func:`replay_contacts` on them (empty, its
+        ``complete_below`` moved with its row); None when nothing is put back: no entry
+        before ``complete_below``, a law the telemetry does not hold the inputs of
+        (velocity sensor, multi-rate scene, passivity controller), or a replayed force that
+        differs from a logged one (the scene changed during the run).
+    """
+    from hapsim.kernels.ticks import STATUS_FORCE_APPLIED, tick_late
+    from hapsim.host.telemetry import FLAG_LATE
+    rows, xs, below = (np.asarray(skipped[0], np.int64), np.asarray(skipped[1], float),
+                       int(skipped[2]))
+    ticks = np.asarray(ticks, np.int64)
+    x_log = np.asarray(cols["position"], dtype=float)
+    f_log = np.asarray(cols["force"], dtype=float)
+    flags = np.asarray(cols["flags"]).astype(np.int64)
+    n = x_log.size
+    below = min(below, n)
+    ok_row = (rows < below) & (rows > 0)
+    ok_row[ok_row] = (flags[rows[ok_row]] & FLAG_LOST) == 0   # a restart drops them
+    if passivity or not ok_row.any() or ticks.shape[0] != rows.size:
+        return None
+    eng = _replay_engine(scene)
+    if eng is None or eng.multirate_pack is not None:
+        return None
+    start, stop = (np.searchsorted(rows, np.arange(n), side=sd) for sd in ("left", "right"))
+    law = np.zeros(rows.size)
+    for i in range(n):
+        if i and flags[i] & FLAG_LOST:
+            eng = type(eng)(eng.scene)            # the loop's restart (HostLoop._resume)
+        if i == 0 or flags[i] & FLAG_LOST:
+            eng.set_port_position(float(x_log[i]), at_rest=True)
+        else:
+            for e in range(start[i], stop[i]):
+                law[e] = eng.port_step(float(xs[e]))
+        f = eng.port_step(float(x_log[i]))
+        if not flags[i] & (FLAG_CLAMPED | FLAG_RAMP) and not (
+                f == f_log[i] or (np.isnan(f) and np.isnan(f_log[i]))):
+            if i >= below:
+                break                             # past the record: not put back anyway
+            return None
+    keep = np.flatnonzero(ok_row)
+    at = rows[keep]
+    meta = ticks[keep]
+    applied = np.cumsum((np.asarray(cols["status"], np.int64) & STATUS_FORCE_APPLIED) != 0)
+    seen = applied[np.maximum(at - 1, 0)] > 0
+    late = np.array([tick_late(int(q), int(fq), int(st), int(delay),
+                               bool(sn or st & STATUS_FORCE_APPLIED))
+                     for (q, fq, st, _), sn in zip(meta, seen)], dtype=bool)
+    new = {"time": meta[:, 3] * 1e-6, "position": xs[keep], "force": law[keep],
+           "seq": meta[:, 0], "turnaround_us": np.zeros(keep.size),
+           "late": late.astype(np.int8), "flags": np.where(late, FLAG_LATE, 0),
+           "force_seq": meta[:, 1], "status": meta[:, 2]}
+    done = flags.copy()
+    done[np.unique(at)] &= ~FLAG_SKIPPED
+    out = {}
+    for c, v in cols.items():
+        base = done.astype(np.asarray(v).dtype) if c == "flags" else np.asarray(v)
+        out[c] = np.insert(base, at, new[c].astype(base.dtype)) if c in new else v
+    moved = below + int(np.count_nonzero(at < below))
+    return out, (np.zeros(0, np.int64), np.zeros(0), moved)
 
 
 def _replay_engine(scene):

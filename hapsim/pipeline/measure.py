@@ -116,6 +116,17 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         # the skipped STATEs the loop stepped the scene with (a backlog), kept beside the
         # rows: replayed too, so a backlog does not end what the replay knows
         skipped = tel.skipped() if hasattr(tel, "skipped") else None
+        put_back = 0
+        if skipped is not None and skipped[0].size and hasattr(tel, "skipped_ticks"):
+            # and they are samples of the device: put back in the record as the rows they
+            # would have been (their law forces replayed), a backlog leaves no gap in seq
+            from hapsim.pipeline.contact_replay import fill_skipped
+            filled = fill_skipped(scene, cols, skipped, tel.skipped_ticks(),
+                                  int(math.ceil(float(dev.delay))),
+                                  bool(scene.safety.passivity_controller))
+            if filled is not None:
+                put_back = int(filled[0]["seq"].size - cols["seq"].size)
+                cols, skipped = filled
         replay = contact_replay(scene, cols, skipped)
         from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
         from hapsim.host.telemetry import FLAG_CLAMPED
@@ -231,6 +242,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             # the identified stretch's first row of the run (live changes are journaled
             # by row: hapsim.audio.journal.revise_measurement)
             measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
+        if put_back:
+            measured["skipped_put_back"] = put_back   # rows of skipped STATEs measured too
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
         notes.append("the scene has contacts: the prediction takes them engaged, so only the "
