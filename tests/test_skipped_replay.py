@@ -25,19 +25,17 @@ from __future__ import annotations
 
 import math
 import os
-import time
 
 import numpy as np
 import pytest
 
 from hapsim.engine import Engine
 from hapsim.host.fastloop import CompiledHostLoop
-from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.host.loop import HostLoop
 from hapsim.host.telemetry import FLAG_SKIPPED, Telemetry
-from hapsim.host.transport import SerialTransport
 from hapsim.pipeline.contact_replay import contact_links, fill_skipped, replay_contacts
 from hapsim.scene import load_scene, parse_scene
-from test_compiled_loop import ARMED, D, ScriptedDevice, bursts
+from test_compiled_loop import ARMED, D, bursts, run_loop
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STRING = os.path.join(ROOT, "configs", "string.yaml")
@@ -89,28 +87,14 @@ def random_scene(rng):
 
 
 def run(cls, scene, script, n_rows, skips):
-    """``cls`` against the scripted bursts, backlog ``newest``; (telemetry, result)."""
-    master, slave = os.openpty()
-    tr = SerialTransport(os.ttyname(slave))
-    os.close(slave)
-    dev = ScriptedDevice(master, [script])
-    dev.start()
+    """``cls`` against the scripted bursts (``test_compiled_loop.run_loop``), backlog
+    ``newest``; (telemetry, result)."""
     eng = Engine(scene)
     tel = WatchedTelemetry(n_rows + 10, skips=skips)
     tel.engine = eng
-    cfg = LoopConfig(rate_hz=scene.rate_hz, n_samples=n_rows, delay=D, force_limit=1000.0,
-                     state_timeout=20.0, hello_timeout=20.0, lost_timeout=20.0,
-                     position_bound=0.05, backlog="newest")
     kw = {"sync": 1} if cls is CompiledHostLoop else {}    # every row published
-    loop = cls(eng, tr, cfg, tel, StopFlag(), **kw)
-    try:
-        res = loop.run()
-    finally:
-        time.sleep(0.05)
-        dev.done = True
-        dev.join(2.0)
-        tr.close()
-        os.close(master)
+    res, _, _, loop = run_loop(cls, [script], n_rows, scene=scene, engine=eng, telemetry=tel,
+                               loop_kw=kw, backlog="newest", force_limit=1000.0)
     assert loop.engine is eng and tel.jumps == 0
     if cls is CompiledHostLoop:
         assert loop.compiled and loop.compiled_samples > 0
