@@ -266,3 +266,19 @@ def test_a_lightly_damped_exact_record_is_judged_on_the_pole_s_round_off(duratio
     floor = 1e-9 * pred["k"] / (2 * math.pi * pred["f0_hz"])
     assert meas["b_interval"] >= floor and abs(meas["b"] - pred["b"]) <= floor
     assert abs(meas["b"] - pred["b"]) > 1e-9 * pred["b"]         # the old floor's "differs"
+
+
+@pytest.mark.parametrize("name,seed", [("first_wall", 0), ("wall", 1)])
+def test_skipped_states_put_back_keep_a_wall_exact(name, seed):
+    """A scene without contacts through the same bursts of held STATEs (virtual clock): every
+    skipped STATE is put back in the record (its law force replayed, the force the device
+    held a known input), and the exact record measures the felt pair within the stated
+    interval, whose floor is the round-off of an exact record."""
+    from hapsim.pipeline.runner import run_scene
+
+    rep = run_scene(load_scene(os.path.join(ROOT, "configs", f"{name}.yaml")),
+                    transport="sim", faults="spike=0.02:4ms", fault_seed=seed,
+                    handle_signals=False)
+    meas = rep["measured"]
+    assert meas["skipped_put_back"] == rep["loop"]["skipped"] > 0
+    assert meas["within"] is True and meas["stretches"] == 1, meas["verdict"]
