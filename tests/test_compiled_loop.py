@@ -160,9 +160,10 @@ def faulty_segment(rng, seq0, n, *, reset_at=None, compact=False):
 
 
 def run_loop(cls, segments, n_samples, *, stop=None, stop_at=None, scene=None, compact=False,
-             **cfg_kw):
+             engine=None, telemetry=None, loop_kw=None, **cfg_kw):
     """Run ``cls`` against a scripted device (``compact``: one that offers the compact
-    frames, asked for by the host); (result, telemetry, forces, device)."""
+    frames, asked for by the host; ``engine``, ``telemetry``: the loop's, else new ones;
+    ``loop_kw``: more arguments of ``cls``); (result, telemetry, forces, device)."""
     master, slave = os.openpty()
     tr = SerialTransport(os.ttyname(slave))
     os.close(slave)
@@ -171,15 +172,15 @@ def run_loop(cls, segments, n_samples, *, stop=None, stop_at=None, scene=None, c
                          compact=compact)
     dev.start()
     sc = scene or prepare_scene(load_scene(WALL))[0]
-    eng = Engine(sc)
-    tel = Telemetry(n_samples + 10)
+    eng = engine if engine is not None else Engine(sc)
+    tel = telemetry if telemetry is not None else Telemetry(n_samples + 10)
     kw = dict(rate_hz=sc.rate_hz, n_samples=n_samples, delay=D, force_limit=10.0,
               state_timeout=20.0, hello_timeout=20.0, lost_timeout=20.0, reconnect=True,
               position_bound=0.05, backlog="all",    # chunks arrive at random: answer all
               compact="on" if compact else "off")
     kw.update(cfg_kw)
     cfg = LoopConfig(**kw)
-    loop = cls(eng, tr, cfg, tel, stop)
+    loop = cls(eng, tr, cfg, tel, stop, **(loop_kw or {}))
     try:
         res = loop.run()
     finally:

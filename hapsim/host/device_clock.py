@@ -3,7 +3,9 @@
 :class:`DeviceClock` is the part of :class:`hapsim.host.loop.HostLoop` that reads the
 device's STATEs for the device-clocked loop (:meth:`HostLoop._drive` answers them): it
 drops stale, implausible, wrong-axes and unarmed STATEs, applies the backlog policy
-(:func:`_newer_waiting`), restarts the scene at the first armed STATE after a CONFIG and
+(:func:`_newer_waiting`: a skipped STATE is yielded with ``t_rx = -1``, and
+:meth:`HostLoop._drive` steps the scene with it and records it in the telemetry's skipped
+STATEs' record), restarts the scene at the first armed STATE after a CONFIG and
 declares the device lost on silence. It reads the loop's ``config``, ``tel``, ``stop``,
 ``result``, ``transport`` and ``measured`` (the notes of :mod:`hapsim.host.loop`).
 """

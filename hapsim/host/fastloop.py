@@ -34,7 +34,10 @@ by the compiled stretch and by the samples Python hands over; it is the numba tr
 of :meth:`HostLoop._drive`'s body, operation by operation, so forces and telemetry are
 bit-identical to the Python loop on the same device stream
 (``tests/test_compiled_loop.py``). Backlog (``LoopConfig.backlog``): with ``"newest"`` a
-clean STATE followed in the buffer by a newer one is skipped (counted, flagged on the next row), as the Python loop does within a read.
+clean STATE followed in the buffer by a newer one is skipped (counted, flagged on the next row), as the Python loop does within a read;
+the scene steps with it and the step goes into the telemetry's skipped STATEs' record (the
+row it precedes, its position: :mod:`hapsim.host.telemetry`), the same entries as the
+Python loop's.
 
 The numba code itself, the layout of the arrays it shares with Python and the packing of
 the engine's kernel for it are :mod:`hapsim.host.fastloop_kernels` (numba keys its disk
@@ -54,7 +57,7 @@ from hapsim.host.fastloop_kernels import (
     CACHE_OK, F_E0, F_EMAX, F_ENERGY, F_EXCESS, F_FMAX, F_LAST_RX, F_V, F_VMAX, F_X, F_XMAX,
     F_XPREV, I_CLAMPED, I_CLAST, I_EXPECT, I_FAPPLIED, I_FRAMES_OK, I_HIST, I_LAST_SEQ, I_LATE,
     I_MISSED, I_N, I_NF_SEQ, I_NMAX, I_PSAMPLES, I_RAMP, I_RB_LEN, I_RESTART, I_SAMPLES,
-    I_SKIPFLAG, I_SKIPPED, I_SYNC, I_WSUM, KERNEL_NAMES, N_FV, N_IV, N_PV, P_AHEAD, P_BMAX,
+    I_SKIPFLAG, I_SKIPN, I_SKIPPED, I_SYNC, I_WSUM, KERNEL_NAMES, N_FV, N_IV, N_PV, P_AHEAD, P_BMAX,
     P_CLAMP_MAX, P_COMPACT, P_CRATE, P_D, P_ELIM, P_HL, P_LIM, P_NEWEST, P_PC, P_POLL, P_POS,
     P_RAMP_N, P_RATE, P_RL, P_SILENCE, P_T, P_VLIM, R_DONE, R_HANDOFF, R_IDLE, R_INTR, R_IOERR,
     R_NONFINITE, R_OK, R_PORT, R_STOP, R_SYNC, answer_sample, answer_stretch, kernel_pack,
@@ -154,6 +157,7 @@ class CompiledHostLoop(HostLoop):
         iv[I_FAPPLIED] = 1 if self._applied_seen else 0
         iv[I_LAST_SEQ] = self._last_seq
         iv[I_SYNC] = self._sync
+        iv[I_SKIPN] = tel.skip_n
         fv[F_ENERGY] = self._energy
         fv[F_E0] = self._e0
         fv[F_XPREV] = first_x
@@ -194,6 +198,7 @@ class CompiledHostLoop(HostLoop):
             "rb": np.zeros(_RB_SIZE, dtype=np.uint8),
             "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
             "hist_len": np.zeros(_HIST, dtype=np.int64),
+            "skips": (tel.skip_row, tel.skip_x, tel.skip_meta),
             "hist_seen": 0, "samples_seen": 0, "states_seen": 0,
         }
 
@@ -214,6 +219,7 @@ class CompiledHostLoop(HostLoop):
         iv, fv = fst["iv"], fst["fv"]
         res = self.result
         self.tel.n = int(iv[I_N])
+        self.tel.skip_n = int(iv[I_SKIPN])
         self._ramp = int(iv[I_RAMP])
         self._restart_flag = int(iv[I_RESTART])
         self._applied_seen = bool(iv[I_FAPPLIED])
@@ -284,7 +290,8 @@ class CompiledHostLoop(HostLoop):
                     self._fast["iv"][I_SKIPFLAG] = self._skip_flag
                     kind, kargs, xs, fs, port, rec, out = self._fast["eng"]
                     skip_sample(kind, kargs, xs, port, rec, out, self._fast["iv"],
-                               self._fast["fv"], float(x))
+                               self._fast["fv"], float(x), *self._fast["skips"], msg.seq,
+                               msg.force_seq, msg.status, msg.time_us)
                     self._publish()
                     continue
                 code = self._one(msg, x, t_rx)
@@ -352,7 +359,7 @@ class CompiledHostLoop(HostLoop):
                 code = answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, fst["pv"],
                                 fst["fh"], fst["win"], *fst["tel"], fst["io"][0], rb,
                                 self.stop.shared, *fst["io"][1:], fst["hist"],
-                                fst["hist_len"])
+                                fst["hist_len"], *fst["skips"])
                 self._expect = int(iv[I_EXPECT])
                 self._last_rx = float(fv[F_LAST_RX])
                 if exp is not None and fst["pv"][P_COMPACT] != 0.0:
@@ -416,14 +423,17 @@ def _scratch(engine, fd: int) -> dict:
             "win": np.zeros(4, dtype=np.int8), "tel": tel, "io": io,
             "stop": np.zeros(1, dtype=np.int64), "rb": np.zeros(256, dtype=np.uint8),
             "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
-            "hist_len": np.zeros(_HIST, dtype=np.int64)}
+            "hist_len": np.zeros(_HIST, dtype=np.int64),
+            "skips": (np.zeros(4, dtype=np.int64), np.zeros(4),
+                      np.zeros((4, 4), dtype=np.int64))}
 
 
 def _run_stretch(sc: dict) -> int:
     """:func:`answer_stretch` on the arrays of :func:`_scratch`; its return code."""
     io = sc["io"]
     return answer_stretch(*sc["eng"], sc["iv"], sc["fv"], sc["pv"], sc["fh"], sc["win"], *sc["tel"],
-                    io[0], sc["rb"], sc["stop"], *io[1:], sc["hist"], sc["hist_len"])
+                    io[0], sc["rb"], sc["stop"], *io[1:], sc["hist"], sc["hist_len"],
+                    *sc["skips"])
 
 
 def warm_up(engine) -> float:
@@ -454,7 +464,8 @@ def warm_up(engine) -> float:
         answer_sample(*sc["eng"], iv, fv, pv, sc["fh"], sc["win"], *sc["tel"], 1, 0,
                 fp.STATUS_ARMED, 0, 0.0, 0, w, *io[1:])
         kind, kargs, xs, _, port, rec, out = sc["eng"]
-        skip_sample(kind, kargs, xs, port, rec, out, iv, fv, 0.0)
+        skip_sample(kind, kargs, xs, port, rec, out, iv, fv, 0.0, *sc["skips"], 2, 1,
+                    fp.STATUS_ARMED, 0)
     finally:
         os.close(r)
         os.close(w)

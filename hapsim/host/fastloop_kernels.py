@@ -44,7 +44,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "759c647c80696dfa254de95bf3d31275fef36ef4a75be2332d9055bc1d30bdc1"
+COMPILED_SOURCES_SHA256 = "10778ba3146bc51a80c1a684fac9d55f11eb83b179a96151eab4447306b1c573"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -62,8 +62,8 @@ __all__ = ["COMPILED_SOURCES", "COMPILED_SOURCES_SHA256", "CACHE_OK", "KERNEL_NA
 # iv: int64 state shared by Python and the compiled code
 I_K, I_N, I_WSUM, I_RAMP, I_RESTART, I_FAPPLIED, I_LATE, I_CLAMPED, I_PSAMPLES = range(9)
 I_LAST_SEQ, I_EXPECT, I_MISSED, I_FRAMES_OK, I_RB_LEN, I_NF_SEQ, I_NMAX, I_SYNC = range(9, 17)
-I_HIST, I_ERRNO, I_SAMPLES, I_SKIPPED, I_SKIPFLAG, I_CLAST = 17, 18, 19, 20, 21, 22
-N_IV = 23
+I_HIST, I_ERRNO, I_SAMPLES, I_SKIPPED, I_SKIPFLAG, I_CLAST, I_SKIPN = 17, 18, 19, 20, 21, 22, 23
+N_IV = 24
 # fv: float64 state
 F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
@@ -430,9 +430,11 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
 
 
 @_jit
-def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x):
+def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_meta, seq,
+                force_seq, status, time_us):
     """A STATE the backlog policy skips: the scene steps with its position (the next
-    velocity spans one period), nothing is sent or logged (as :meth:`HostLoop._drive`).
+    velocity spans one period), nothing is sent; the step goes into the skipped STATEs'
+    record (as :meth:`HostLoop._drive`; :mod:`hapsim.host.telemetry`).
 
     Parameters
     ----------
@@ -445,16 +447,32 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x):
     rec, out : ndarray
         The kernel's recording arguments (empty: nothing recorded).
     iv, fv : ndarray of int64, float64
-        The state shared with Python (``I_SAMPLES`` counts the step, ``F_XPREV`` takes
-        ``x``).
+        The state shared with Python (``I_SAMPLES`` counts the step, ``I_SKIPN`` the
+        record's entries, ``F_XPREV`` takes ``x``).
     x : float
-        The skipped STATE's position [m] (not finite: nothing steps).
+        The skipped STATE's position [m] (not finite: nothing steps, nothing recorded).
+    sk_row, sk_x : ndarray of int64, float64, shape (skips,)
+        The telemetry's skipped STATEs' record: entry ``iv[I_SKIPN]`` (while it fits)
+        takes the row it precedes (``iv[I_N]``) and ``x``.
+    sk_meta : ndarray of int64, shape (skips, 4)
+        The same entry's ``seq``, ``force_seq``, ``status``, ``time_us``.
+    seq, force_seq, status, time_us : int
+        The skipped STATE's fields (time [us]).
     """
     if math.isfinite(x):
         xs[port] = x
         _port_step(kind, kargs, rec, out)
         iv[I_SAMPLES] += 1
         fv[F_XPREV] = x
+        sn = iv[I_SKIPN]
+        if sn < sk_row.size:
+            sk_row[sn] = iv[I_N]
+            sk_x[sn] = x
+            sk_meta[sn, 0] = seq
+            sk_meta[sn, 1] = force_seq
+            sk_meta[sn, 2] = status
+            sk_meta[sn, 3] = time_us
+        iv[I_SKIPN] = sn + 1
 
 
 @_jit
@@ -504,7 +522,7 @@ def _keep_frame(rb, a, z, hist, hist_len, iv):
 @_jit
 def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr, x_arr,
                    f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr, fd, rb, stop, pkt,
-                   f8, u8, table, tx, pfd, ts, f4, hist, hist_len):
+                   f8, u8, table, tx, pfd, ts, f4, hist, hist_len, sk_row, sk_x, sk_meta):
     """Answer clean STATEs on ``fd`` until something needs Python (the notes of
     :mod:`hapsim.host.fastloop`).
 
@@ -553,6 +571,8 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
         ``clock_gettime``'s ``struct timespec``.
     hist, hist_len : ndarray
         The ring of the good frames taken and their lengths (the decoder's history).
+    sk_row, sk_x, sk_meta : ndarray
+        The skipped STATEs' record (:func:`skip_sample`).
 
     Returns
     -------
@@ -645,7 +665,8 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
                                                 compact):
                 iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
                 iv[I_SKIPFLAG] = FLAG_SKIPPED
-                skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x)
+                skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_meta,
+                            seq, fseq, status, tus)
                 continue
             code = answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
                            x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr,

@@ -12,7 +12,10 @@ STATEs are :class:`~hapsim.host.device_clock.DeviceClock` and
 Hot path (docs/design.md, rule 4): per sample it decodes the STATE, steps the engine (numba), clamps,
 encodes and writes the FORCE and writes one telemetry row *by index* into preallocated
 arrays (a head kept whole, then a ring that a writer thread drains to the journal: the data
-leaves through a ring buffer, and a run can be open-ended). No logging, no file I/O, no
+leaves through a ring buffer, and a run can be open-ended). A STATE the backlog policy skips
+steps the scene and is written by index into the telemetry's preallocated skipped STATEs'
+record (the row it precedes, its position; bounded, then only counted), so that the contact
+replay knows the scene's state through a backlog (:mod:`hapsim.host.telemetry`). No logging, no file I/O, no
 allocation beyond the protocol's message objects and byte strings (unavoidable in Python).
 Counters (late, missed, clamped, overruns) are kept as integers and reported at the end.
 
@@ -322,7 +325,9 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         states : generator
             Yields ``(msg, x, t_rx)`` per sample to answer: the STATE, its position [m]
             and ``perf_counter_ns()`` when it was read; ``t_rx = -1`` for a STATE the
-            backlog policy skips (the engine steps with it, nothing is sent or logged). It (re)starts the scene
+            backlog policy skips (the engine steps with it, nothing is sent; its row-to-be
+            and position go to the telemetry's skipped STATEs' record,
+            :meth:`~hapsim.host.telemetry.Telemetry.skipped`). It (re)starts the scene
             (:meth:`_resume`) at its first usable STATE, before yielding anything; it ends
             at ``n_max`` rows, on a stop, and raises :class:`_Lost` on a loss.
         """
@@ -383,15 +388,27 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
             # STATE at its first deadline, maybe newer than the one it resumed at)
             x_prev = first[1]
             poll = self.poll
+            sk_row, sk_x, sk_meta = tel.skip_row, tel.skip_x, tel.skip_meta  # skips' record
+            sk_cap = sk_row.size
             k = 0                           # samples since this stretch (re)started
             i = tel.n
             for msg, x, t_rx in chain((first,), states):
                 if t_rx < 0:
                     # a skipped STATE (backlog policy): not answered, but the scene takes
-                    # its position, so that the next velocity spans one period
+                    # its position, so that the next velocity spans one period; the step
+                    # is recorded (the row it precedes, its position) for the replay
                     if isfinite(x):
                         eng.port_step(x)
                         x_prev = x
+                        sn = tel.skip_n
+                        if sn < sk_cap:
+                            sk_row[sn] = i
+                            sk_x[sn] = x
+                            sk_meta[sn, 0] = msg.seq
+                            sk_meta[sn, 1] = msg.force_seq
+                            sk_meta[sn, 2] = msg.status
+                            sk_meta[sn, 3] = msg.time_us
+                        tel.skip_n = sn + 1
                     continue
                 seq = msg.seq
                 lt = 0

@@ -300,7 +300,9 @@ class LoopResult:
         Samples whose force the host clamped.
     skipped : int
         STATEs not answered because a newer one was waiting (backlog policy ``newest``);
-        the row answered after them has :data:`~hapsim.host.telemetry.FLAG_SKIPPED`.
+        the row answered after them has :data:`~hapsim.host.telemetry.FLAG_SKIPPED`, and
+        the scene's steps with them are in the telemetry's skipped STATEs' record
+        (:meth:`~hapsim.host.telemetry.Telemetry.skipped`).
     turnaround_us : dict
         ``p50``, ``p99``, ``p999``, ``max`` of STATE-read to FORCE-written [us].
     hello : Hello or None

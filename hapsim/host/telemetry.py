@@ -16,6 +16,18 @@ be open-ended: memory holds the head and the last ``ring`` rows, the journal all
   run keeps its fault history. When it falls so far behind that the loop has gone round
   the ring over rows it had not written, those rows are counted (``lost_rows``), never
   waited for: the loop does not block.
+- The *skipped STATEs' record*: when the loop falls behind and the backlog policy
+  (``newest``) answers only the newest of several waiting STATEs, the scene still steps
+  with each skipped one, whose row is never written (the answered row is flagged
+  :data:`FLAG_SKIPPED`). Each such step is kept beside the rows, in arrays allocated with
+  them (:attr:`Telemetry.skip_row`, :attr:`Telemetry.skip_x`: the row it preceded and its
+  position; :attr:`Telemetry.skip_meta`: its seq, force_seq, status and time; both loops
+  write them, nothing is allocated per sample), so that the contact replay
+  (:mod:`hapsim.pipeline.contact_replay`) steps them too and the measurement puts them back
+  in the record as the rows they would have been. The row format is
+  unchanged; the record is bounded (``skips`` entries): past it the steps are only counted
+  (:attr:`Telemetry.skip_n`) and the replay knows it (:meth:`Telemetry.skipped`). It lives
+  in memory for the run's own measurement (not in the journal or the exports).
 - :meth:`Telemetry.write`, the ``.npz`` / ``.csv`` export at the end of a run, atomic
   (temporary file, then ``os.replace``); :func:`convert` turns a journal into either.
 
@@ -128,6 +140,9 @@ class Telemetry:
         Rows the later rows go round (>= 0): row ``r >= head`` is kept in slot
         ``head + (r - head) % ring`` until row ``r + ring`` overwrites it. 0: no ring, at
         most ``head`` rows are recorded (the loop stops there).
+    skips : int, optional
+        Entries of the skipped STATEs' record (>= 0; default ``head``: one per row the
+        measurement reads).
 
     Attributes
     ----------
@@ -147,6 +162,15 @@ class Telemetry:
         Rows recorded in all (the loop writes a row's slot, then raises ``n``).
     capacity : int
         ``head + ring`` slots.
+    skip_row : ndarray of int64, shape (skips,)
+        Per skipped STATE the scene stepped with, in order: the row it preceded (the row
+        then written next, flagged :data:`FLAG_SKIPPED`).
+    skip_x : ndarray of float64, shape (skips,)
+        Its position [m].
+    skip_meta : ndarray of int64, shape (skips, 4)
+        Its STATE's ``seq``, ``force_seq``, ``status`` and ``time_us`` [us].
+    skip_n : int
+        Skipped STATEs the scene stepped with in all (beyond ``skips``: counted only).
     drain : callable or None
         When set (by the owner of a :class:`ChunkWriter`, for a loop that is not
         real-time: virtual clock, lockstep), the loop calls it from its own thread each
@@ -156,13 +180,15 @@ class Telemetry:
     Raises
     ------
     ValueError
-        On a negative ``head`` or ``ring``.
+        On a negative ``head``, ``ring`` or ``skips``.
     """
 
-    def __init__(self, head: int, ring: int = 0) -> None:
+    def __init__(self, head: int, ring: int = 0, skips: int | None = None) -> None:
         head, ring = int(head), int(ring)
-        if head < 0 or ring < 0:
-            raise ValueError(f"head and ring must be >= 0, got {head}, {ring}")
+        skips = head if skips is None else int(skips)
+        if head < 0 or ring < 0 or skips < 0:
+            raise ValueError(f"head, ring and skips must be >= 0, got {head}, {ring}, "
+                             f"{skips}")
         self.head = head
         self.ring = ring
         self.capacity = capacity = head + ring
@@ -175,10 +201,15 @@ class Telemetry:
         self.flags = np.zeros(capacity, dtype=np.uint8)
         self.force_seq = np.full(capacity, -1, dtype=np.int64)
         self.status = np.zeros(capacity, dtype=np.uint16)
+        self.skip_row = np.zeros(skips, dtype=np.int64)
+        self.skip_x = np.zeros(skips)
+        self.skip_meta = np.zeros((skips, 4), dtype=np.int64)
+        self.skip_n = 0
         # np.zeros maps untouched zero pages: writing them once here moves the page
         # faults (the kernel allocating memory) out of the hot loop (docs/design.md, rule 4)
         for a in (self.time, self.position, self.force, self.seq, self.turnaround_us,
-                  self.late, self.flags, self.status):
+                  self.late, self.flags, self.status, self.skip_row, self.skip_x,
+                  self.skip_meta):
             a.fill(1)
             a.fill(0)
         self.force_seq.fill(-1)
@@ -218,6 +249,34 @@ class Telemetry:
         if not self.ring:
             raise IndexError(f"row {row} beyond the {self.head} rows of a buffer without ring")
         return self.head + (row - self.head) % self.ring
+
+    def skipped(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """The skipped STATEs' record (module notes), for the contact replay.
+
+        Returns
+        -------
+        rows : ndarray of int64, shape (m,)
+            The row each recorded skipped STATE preceded, non-decreasing
+            (``m = min(skip_n, skips)``).
+        positions : ndarray of float64, shape (m,)
+            Their positions [m].
+        complete_below : int
+            Every skipped STATE before a row below it is recorded: ``n`` when none was
+            dropped, else the row of the last recorded one (that row's may be incomplete).
+        """
+        m = min(self.skip_n, self.skip_row.size)
+        below = self.n if self.skip_n <= m else (int(self.skip_row[m - 1]) if m else 0)
+        return self.skip_row[:m], self.skip_x[:m], below
+
+    def skipped_ticks(self) -> np.ndarray:
+        """The recorded skipped STATEs' fields, in the order of :meth:`skipped`.
+
+        Returns
+        -------
+        ndarray of int64, shape (m, 4)
+            Per entry its STATE's ``seq``, ``force_seq``, ``status``, ``time_us`` [us].
+        """
+        return self.skip_meta[:min(self.skip_n, self.skip_meta.shape[0])]
 
     def rows_in_memory(self) -> list[tuple[int, int]]:
         """The rows still in memory.

@@ -13,8 +13,13 @@ Replay rules (the loop's):
   ``port_step(x)`` of the row;
 * every other row is one ``port_step(x)``;
 * a row flagged ``FLAG_SKIPPED`` follows STATEs the loop stepped the scene with but did not
-  log: their positions are unknown, so the states are unknown from that row to the next
-  restart;
+  answer (a backlog). The loop records each one's position with the row it precedes
+  (:meth:`hapsim.host.telemetry.Telemetry.skipped`): given that record, the replay steps
+  them, in order, before the row's own step, and the row is closed only when every contact
+  was engaged at each of those steps too. Without the record, or on a row past the point
+  where it overflowed (``complete_below``), their positions are unknown, so the states are
+  unknown from that row to the next restart. Recorded steps before a restart row are
+  dropped with the engine they stepped;
 * with a ``velocity_sensor`` correction the scene moves with a velocity the telemetry does
   not hold: only contacts between the port and grounds are known (from the logged port
   position, where the correction places the port).
@@ -40,7 +45,8 @@ import numpy as np
 
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_LOST, FLAG_RAMP, FLAG_SKIPPED
 
-__all__ = ["ContactReplay", "replay_contacts", "contact_links", "computed_forces"]
+__all__ = ["ContactReplay", "replay_contacts", "contact_links", "computed_forces",
+           "fill_skipped"]
 
 
 def contact_links(scene) -> list:
@@ -69,8 +75,9 @@ class ContactReplay:
     closed : ndarray of bool, shape (n,)
         Every contact engaged at every (sub-)step of the row, and the replay known there.
     known : ndarray of bool, shape (n,)
-        The replay knows the scene's state at the row (False after a skipped STATE until
-        the next restart, and from the first force mismatch on).
+        The replay knows the scene's state at the row (False after a skipped STATE whose
+        position is not recorded until the next restart, and from the first force
+        mismatch on).
     open_link : list of (str or None)
         Per row, the name of the first contact open at the row (None when all closed or
         unknown).
@@ -88,7 +95,20 @@ class ContactReplay:
     reason: str | None = None
 
 
-def computed_forces(scene, cols: dict):
+def _skip_plan(skipped, n: int):
+    """The skipped STATEs' record per row: ``(start, stop, positions, complete_below)``
+    with ``start[i]:stop[i]`` the record's entries before row ``i`` (module notes' rules);
+    None without a record."""
+    if skipped is None:
+        return None
+    rows, xs, below = skipped
+    rows = np.asarray(rows, dtype=np.int64)
+    start = np.searchsorted(rows, np.arange(n), side="left")
+    stop = np.searchsorted(rows, np.arange(n), side="right")
+    return start, stop, np.asarray(xs, dtype=float), int(below)
+
+
+def computed_forces(scene, cols: dict, skipped=None):
     """The port force the run's law computed at every row, before the host clamped it at
     the force limit, replayed from the logged positions (module notes' replay rules).
 
@@ -103,19 +123,26 @@ def computed_forces(scene, cols: dict):
     cols : dict of ndarray
         Telemetry columns from the run's first row: ``position`` [m], ``force`` [N],
         ``flags``, each shape (n,).
+    skipped : tuple, optional
+        The run's skipped STATEs' record (:meth:`hapsim.host.telemetry.Telemetry.skipped`):
+        its steps are replayed (module notes).
 
     Returns
     -------
     ndarray, shape (n,), or None
         Forces [N]; None when the replay cannot give them: a law the telemetry does not
-        hold the inputs of (a velocity sensor), skipped STATEs, a ramp, or a replayed force
+        hold the inputs of (a velocity sensor), skipped STATEs not in the record, a ramp,
+        or a replayed force
         that differs from the logged one on a row the loop did not clamp (a live change,
         the passivity controller).
     """
     x_log = np.asarray(cols["position"], dtype=float)
     f_log = np.asarray(cols["force"], dtype=float)
     flags = np.asarray(cols["flags"]).astype(np.int64)
-    if np.any(flags & (FLAG_SKIPPED | FLAG_RAMP)):
+    plan = _skip_plan(skipped, x_log.size)
+    sk = (flags & FLAG_SKIPPED) != 0
+    if np.any(flags & FLAG_RAMP) or (np.any(sk) and (
+            plan is None or np.any(np.flatnonzero(sk) >= plan[3]))):
         return None
     eng = _replay_engine(scene)
     if eng is None:
@@ -126,11 +153,111 @@ def computed_forces(scene, cols: dict):
             eng = type(eng)(eng.scene)            # the loop's restart (HostLoop._resume)
         if i == 0 or flags[i] & FLAG_LOST:
             eng.set_port_position(float(x_log[i]), at_rest=True)
+        elif plan is not None:
+            for e in range(plan[0][i], plan[1][i]):
+                eng.port_step(float(plan[2][e]))  # the skipped STATEs before the row
         f = eng.port_step(float(x_log[i]))
         if not flags[i] & FLAG_CLAMPED and not f == f_log[i]:
             return None
         out[i] = f
     return out
+
+
+def fill_skipped(scene, cols: dict, skipped, ticks, delay: int, passivity: bool = False):
+    """The record with the recorded skipped STATEs put back as the rows they would have been.
+
+    A skipped STATE is a sample of the device like any other: its position, seq,
+    force_seq and status are recorded (:meth:`hapsim.host.telemetry.Telemetry.skipped`,
+    :meth:`~hapsim.host.telemetry.Telemetry.skipped_ticks`), and the force the law computed
+    with it, which the loop did not send, is replayed. Put back before the row it preceded,
+    the record has no gap in seq there: the device held an older force at the ticks that
+    FORCE would have reached, which its force_seq names, a known input like any late tick
+    (:func:`hapsim.analysis.measurement.late_accounted`), so a backlog no longer cuts the
+    free response into stretches.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The calibrated scene the run stepped.
+    cols : dict of ndarray
+        Telemetry columns from the run's first row (:data:`hapsim.host.telemetry.COLUMNS`),
+        each shape (n,).
+    skipped : tuple
+        :meth:`~hapsim.host.telemetry.Telemetry.skipped`: rows, positions [m],
+        ``complete_below``.
+    ticks : ndarray of int64, shape (m, 4)
+        :meth:`~hapsim.host.telemetry.Telemetry.skipped_ticks`: seq, force_seq, status,
+        time [us] of the same entries.
+    delay : int
+        The device's delay [samples] (a put-back row's late flag, :mod:`hapsim.kernels.ticks`).
+    passivity : bool
+        The passivity controller was on: the forces sent are not the law's; nothing is put
+        back.
+
+    Returns
+    -------
+    (dict, tuple) or None
+        The columns with the rows put back (shape (n + p,); their ``flags`` FLAG_LATE where
+        late, ``turnaround_us`` 0; FLAG_SKIPPED cleared on the rows whose skipped STATEs
+        are all back) and the record for :func:`replay_contacts` on them (empty, its
+        ``complete_below`` moved with its row); None when nothing is put back: no entry
+        before ``complete_below``, a law the telemetry does not hold the inputs of
+        (velocity sensor, multi-rate scene, passivity controller), or a replayed force that
+        differs from a logged one (the scene changed during the run).
+    """
+    from hapsim.kernels.ticks import STATUS_FORCE_APPLIED, tick_late
+    from hapsim.host.telemetry import FLAG_LATE
+    rows, xs, below = (np.asarray(skipped[0], np.int64), np.asarray(skipped[1], float),
+                       int(skipped[2]))
+    ticks = np.asarray(ticks, np.int64)
+    x_log = np.asarray(cols["position"], dtype=float)
+    f_log = np.asarray(cols["force"], dtype=float)
+    flags = np.asarray(cols["flags"]).astype(np.int64)
+    n = x_log.size
+    below = min(below, n)
+    ok_row = (rows < below) & (rows > 0)
+    ok_row[ok_row] = (flags[rows[ok_row]] & FLAG_LOST) == 0   # a restart drops them
+    if passivity or not ok_row.any() or ticks.shape[0] != rows.size:
+        return None
+    eng = _replay_engine(scene)
+    if eng is None or eng.multirate_pack is not None:
+        return None
+    start, stop = (np.searchsorted(rows, np.arange(n), side=sd) for sd in ("left", "right"))
+    law = np.zeros(rows.size)
+    for i in range(n):
+        if i and flags[i] & FLAG_LOST:
+            eng = type(eng)(eng.scene)            # the loop's restart (HostLoop._resume)
+        if i == 0 or flags[i] & FLAG_LOST:
+            eng.set_port_position(float(x_log[i]), at_rest=True)
+        else:
+            for e in range(start[i], stop[i]):
+                law[e] = eng.port_step(float(xs[e]))
+        f = eng.port_step(float(x_log[i]))
+        if not flags[i] & (FLAG_CLAMPED | FLAG_RAMP) and not (
+                f == f_log[i] or (np.isnan(f) and np.isnan(f_log[i]))):
+            if i >= below:
+                break                             # past the record: not put back anyway
+            return None
+    keep = np.flatnonzero(ok_row)
+    at = rows[keep]
+    meta = ticks[keep]
+    applied = np.cumsum((np.asarray(cols["status"], np.int64) & STATUS_FORCE_APPLIED) != 0)
+    seen = applied[np.maximum(at - 1, 0)] > 0
+    late = np.array([tick_late(int(q), int(fq), int(st), int(delay),
+                               bool(sn or st & STATUS_FORCE_APPLIED))
+                     for (q, fq, st, _), sn in zip(meta, seen)], dtype=bool)
+    new = {"time": meta[:, 3] * 1e-6, "position": xs[keep], "force": law[keep],
+           "seq": meta[:, 0], "turnaround_us": np.zeros(keep.size),
+           "late": late.astype(np.int8), "flags": np.where(late, FLAG_LATE, 0),
+           "force_seq": meta[:, 1], "status": meta[:, 2]}
+    done = flags.copy()
+    done[np.unique(at)] &= ~FLAG_SKIPPED
+    out = {}
+    for c, v in cols.items():
+        base = done.astype(np.asarray(v).dtype) if c == "flags" else np.asarray(v)
+        out[c] = np.insert(base, at, new[c].astype(base.dtype)) if c in new else v
+    moved = below + int(np.count_nonzero(at < below))
+    return out, (np.zeros(0, np.int64), np.zeros(0), moved)
 
 
 def _replay_engine(scene):
@@ -221,7 +348,8 @@ def _fixed_contacts(scene, x_log, names, ends, thr) -> ContactReplay:
     return ContactReplay(closed, known, open_link, None, None)
 
 
-def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay:
+def replay_contacts(scene, cols: dict, passivity: bool = False,
+                    skipped=None) -> ContactReplay:
     """Replay a run's logged port positions through a fresh engine; contact states per row.
 
     Parameters
@@ -234,6 +362,10 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
     passivity : bool
         The passivity controller was on (it changes the force sent without a flag: the
         force check is then skipped; the scene's states do not depend on the force sent).
+    skipped : tuple, optional
+        The run's skipped STATEs' record (:meth:`hapsim.host.telemetry.Telemetry.skipped`:
+        rows, positions [m], ``complete_below``); None: no record (a skipped STATE makes
+        the states unknown until the next restart).
 
     Returns
     -------
@@ -262,6 +394,7 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
                              "a corrected multi-rate scene cannot be replayed sub-step by "
                              "sub-step: the contact states are unknown")
     stepper = _AudioStepper(eng, ends) if multi else None
+    plan = _skip_plan(skipped, n)
     alive = True
     mismatch = None
     reason = None
@@ -273,20 +406,27 @@ def replay_contacts(scene, cols: dict, passivity: bool = False) -> ContactReplay
                 stepper = _AudioStepper(eng, ends) if multi else None
             eng.set_port_position(float(x_log[i]), at_rest=True)
             alive = mismatch is None
-        elif fl & FLAG_SKIPPED and alive:
+        elif fl & FLAG_SKIPPED and alive and (plan is None or i >= plan[3]):
             alive = False
             reason = reason or (f"STATEs before row {i} were skipped (a backlog): the scene "
-                                f"took positions the telemetry does not hold")
-        x = float(x_log[i])
-        if multi:
-            f, first = stepper.step(x, thr)
-            ok = first < 0
-        else:
-            f = eng.port_step(x)
-            xp = eng.kernel_pack.state[1]        # positions before this step (shared)
-            op = ~(xp[ends[1]] - xp[ends[0]] < thr)
-            ok = not op.any()
-            first = int(np.argmax(op)) if not ok else -1
+                                f"took positions the telemetry does not hold" +
+                                ("" if plan is None else " (the skipped STATEs' record "
+                                 "was full)"))
+        steps = [] if (i == 0 or fl & FLAG_LOST or plan is None) else \
+            plan[2][plan[0][i]:plan[1][i]].tolist()
+        steps.append(float(x_log[i]))
+        first = -1                                # the first contact open at any step
+        for x in steps:
+            if multi:
+                f, op1 = stepper.step(x, thr)
+            else:
+                f = eng.port_step(x)
+                xp = eng.kernel_pack.state[1]    # positions before this step (shared)
+                op = ~(xp[ends[1]] - xp[ends[0]] < thr)
+                op1 = int(np.argmax(op)) if op.any() else -1
+            if first < 0:
+                first = op1
+        ok = first < 0
         if not alive:
             continue
         if (not passivity and not fl & (FLAG_RAMP | FLAG_CLAMPED)

@@ -28,7 +28,7 @@ MEASURE_KEYS = ("k", "b", "k_unc", "b_unc", "verdict", "within", "comparable", "
                 "error")
 
 
-def contact_replay(scene: Scene, cols: dict):
+def contact_replay(scene: Scene, cols: dict, skipped=None):
     """Contact states of the run's rows, replayed from its telemetry.
 
     Parameters
@@ -38,6 +38,9 @@ def contact_replay(scene: Scene, cols: dict):
     cols : dict of ndarray
         Telemetry columns (:meth:`hapsim.host.telemetry.Telemetry.columns`), each of
         shape ``(n,)``: ``position`` [m], ``force`` [N], ``seq``, ``flags``...
+    skipped : tuple, optional
+        The run's skipped STATEs' record (:meth:`hapsim.host.telemetry.Telemetry.skipped`),
+        replayed too; None: none kept (a snapshot of the rows).
 
     Returns
     -------
@@ -48,7 +51,8 @@ def contact_replay(scene: Scene, cols: dict):
     from hapsim.pipeline.contact_replay import contact_links, replay_contacts
     if not contact_links(scene) or scene.port is None:
         return None
-    return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller))
+    return replay_contacts(scene, cols, passivity=bool(scene.safety.passivity_controller),
+                           skipped=skipped)
 
 
 
@@ -109,7 +113,21 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
                 response = sensor_error_response(scene, int(cols["seq"].size))
             except ConfigError:
                 response = None
-        replay = contact_replay(scene, cols)
+        # the skipped STATEs the loop stepped the scene with (a backlog), kept beside the
+        # rows: replayed too, so a backlog does not end what the replay knows
+        skipped = tel.skipped() if hasattr(tel, "skipped") else None
+        put_back = 0
+        if skipped is not None and skipped[0].size and hasattr(tel, "skipped_ticks"):
+            # and they are samples of the device: put back in the record as the rows they
+            # would have been (their law forces replayed), a backlog leaves no gap in seq
+            from hapsim.pipeline.contact_replay import fill_skipped
+            filled = fill_skipped(scene, cols, skipped, tel.skipped_ticks(),
+                                  int(math.ceil(float(dev.delay))),
+                                  bool(scene.safety.passivity_controller))
+            if filled is not None:
+                put_back = int(filled[0]["seq"].size - cols["seq"].size)
+                cols, skipped = filled
+        replay = contact_replay(scene, cols, skipped)
         from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
         from hapsim.host.telemetry import FLAG_CLAMPED
         computed = None
@@ -117,9 +135,12 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             # the host's clamp at the force limit: a known input (the law's force
             # replayed from the logged positions), taken out with the late ticks'
             from hapsim.pipeline.contact_replay import computed_forces
-            computed = computed_forces(scene, cols)
+            # (the record passed only when it holds steps: the law's signature otherwise)
+            extra = {"skipped": skipped} if skipped is not None and skipped[0].size else {}
+            computed = computed_forces(scene, cols, **extra)
         # rows the host clamped at the force limit whose law force the replay cannot give
-        # (skipped STATEs: their positions, which the law stepped through, are not logged;
+        # (skipped STATEs past the skipped STATEs' record: their positions, which the law
+        # stepped through, are not kept;
         # a live change; the passivity controller): the force the device held there is
         # the clamped one, not the linear loop's, an input the account does not know. Left
         # out, the record cut there: the stretch after them is a free response from its
@@ -221,6 +242,8 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             # the identified stretch's first row of the run (live changes are journaled
             # by row: hapsim.audio.journal.revise_measurement)
             measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
+        if put_back:
+            measured["skipped_put_back"] = put_back   # rows of skipped STATEs measured too
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
         notes.append("the scene has contacts: the prediction takes them engaged, so only the "
