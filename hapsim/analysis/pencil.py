@@ -304,20 +304,22 @@ def companion(C: np.ndarray, n: int, p: int) -> np.ndarray:
 
     Parameters
     ----------
-    C : ndarray, shape (n p, n)
-        The coefficients, newest lag first (``C_j`` = rows ``(j-1) n .. j n``).
+    C : ndarray, shape (..., n p, n)
+        The coefficients, newest lag first (``C_j`` = rows ``(j-1) n .. j n``); leading
+        axes: a stack of predictions.
     n, p : int
         Coordinates and lags.
 
     Returns
     -------
-    ndarray, shape (n p, n p)
+    ndarray, shape (..., n p, n p)
         Its eigenvalues are the prediction's poles (Lutkepohl, *New Introduction to
         Multiple Time Series Analysis*, 2005, sec. 2.1.1).
     """
-    comp = np.zeros((n * p, n * p))
-    comp[:n, :] = C.T
-    comp[n:, :-n] = np.eye(n * (p - 1))
+    C = np.asarray(C)
+    comp = np.zeros(C.shape[:-2] + (n * p, n * p))
+    comp[..., :n, :] = np.swapaxes(C, -1, -2)
+    comp[..., n:, :-n] = np.eye(n * (p - 1))
     return comp
 
 
@@ -425,19 +427,21 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
     return out
 
 
-def _felt_of(C, n: int, p: int, mass, period: float):
-    """The felt matrices ``(k, b)`` of prediction coefficients ``C`` (shape (n p, n)), or
-    None when fewer than n rendered pairs."""
-    comp = companion(C, n, p)
-    from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of
-    zr, U, _ = rendered_pairs_of(comp, n, period)
-    if zr.size != n:
-        return None
-    try:
-        return felt_matrices(np.asarray(mass, float),
-                             continuous_poles(zr.astype(complex), period), U)
-    except ConfigError:
-        return None
+def _felt_of(C, n: int, p: int, mass, period: float) -> list:
+    """The felt matrices ``(k, b)`` of each of a stack of prediction coefficients ``C``
+    (shape (B, n p, n)), or None where fewer than n rendered pairs: one eigen
+    decomposition call for the stack (:func:`hapsim.analysis.ths.rendered_pairs_of_many`,
+    each the same bits as alone)."""
+    from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of_many
+    M = np.asarray(mass, float)
+    out = []
+    for zr, U, _ in rendered_pairs_of_many(companion(C, n, p), n, period):
+        try:
+            out.append(None if zr.size != n else felt_matrices(
+                M, continuous_poles(zr.astype(complex), period), U))
+        except ConfigError:
+            out.append(None)
+    return out
 
 
 def felt_sensitivity_nd(records, mass, period: float, order: int, *,
@@ -490,20 +494,21 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
     R, Y = np.array(rows), np.array(rhs)
     P = np.linalg.pinv(R)[:n * p]                           # (n p, rows)
     C = P @ Y
-    if _felt_of(C, n, p, mass, period) is None:
-        return None
     h = step * max(float(np.max(np.abs(C))), 1.0)
+    # C itself, then C with each coefficient (a, c) moved by +h and by -h: one stack
+    cs = np.repeat(C[None], 1 + 2 * n * p * n, axis=0)
+    a_, c_ = np.divmod(np.arange(n * p * n), n)
+    k_ = 1 + 2 * np.arange(n * p * n)
+    cs[k_, a_, c_] = C[a_, c_] + h
+    cs[k_ + 1, a_, c_] = C[a_, c_] - h
+    felt = _felt_of(cs, n, p, mass, period)
+    if any(f is None for f in felt):
+        return None
     G = np.empty((2, n, n, n * p, n))
-    for a in range(n * p):
-        for c in range(n):
-            Cp, Cm = C.copy(), C.copy()
-            Cp[a, c] += h
-            Cm[a, c] -= h
-            fp, fm = _felt_of(Cp, n, p, mass, period), _felt_of(Cm, n, p, mass, period)
-            if fp is None or fm is None:
-                return None
-            G[0, :, :, a, c] = (fp[0] - fm[0]) / (2 * h)
-            G[1, :, :, a, c] = (fp[1] - fm[1]) / (2 * h)
+    for a, c, k in zip(a_, c_, k_):
+        fp, fm = felt[k], felt[k + 1]
+        G[0, :, :, a, c] = (fp[0] - fm[0]) / (2 * h)
+        G[1, :, :, a, c] = (fp[1] - fm[1]) / (2 * h)
     W = np.einsum("ar,oac->orc", P, G.reshape(2 * n * n, n * p, n))   # (O, rows, n)
     Cj = C.reshape(p, n, n)                                 # C_j = Cj[j-1]: y[k-j] @ C_j
     out, row = [], 0
@@ -540,24 +545,27 @@ def filtered_sensitivity_nd(sensitivity, response) -> list:
     """
     from hapsim.analysis.fftconv import fast_length
     H = np.asarray(response, float)
-    out = []
+    out, spectra = [], {}
     for s in sensitivity:
         sh = s.shape
         S = s.reshape(-1, sh[-2], sh[-1])                 # (O, N, n)
         N = S.shape[1]
         L = min(N, H.shape[0])
-        Su = np.zeros((S.shape[0], N, H.shape[2]))
-        rev = S[:, ::-1, :]
         # hapsim.analysis.fftconv.fftconvolve(rev[:, :, c], H[None, :L, c, j], axes=1)
-        # step by step, the same calls on the same arrays (the same bits), with the
-        # transform of each rev[:, :, c] taken once for every input j instead of once each
+        # (rev = S reversed in time) for every c and j, its steps on the same lines:
+        # each transform, product and inverse is taken line by line (pocketfft's
+        # transforms, numpy's product), so one call over the stacked lines gives the same
+        # bits as one call per line; the response's transforms once for every record
         F = [fast_length(N + L - 1)]
+        if (F[0], L) not in spectra:                      # (n, m, 1, F / 2 + 1)
+            spectra[F[0], L] = np.fft.rfftn(H[:L].transpose(1, 2, 0)[:, :, None, :], F,
+                                            axes=[3])
+        A = np.fft.rfftn(S[:, ::-1, :].transpose(2, 0, 1), F, axes=[2])   # (n, O, F/2+1)
+        full = np.fft.irfftn(A[:, None] * spectra[F[0], L], F, axes=[3])  # (n, m, O, F)
+        Su = np.zeros((S.shape[0], N, H.shape[2]))
         for c in range(S.shape[2]):
-            A = np.fft.rfftn(np.asarray(rev[:, :, c], dtype=float), F, axes=[1])
             for j in range(H.shape[2]):
-                B = np.fft.rfftn(np.asarray(H[None, :L, c, j], dtype=float), F, axes=[1])
-                full = np.fft.irfftn(A * B, F, axes=[1])[:, :N + L - 1]
-                Su[:, :, j] += full[:, :N][:, ::-1]
+                Su[:, :, j] += full[c, j, :, :N][:, ::-1]
         out.append(Su)
     return out
 

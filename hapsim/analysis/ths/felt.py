@@ -50,7 +50,8 @@ from hapsim.analysis.ths.holds import state_matrix
 from hapsim.analysis.ths.matrix_loop import MatrixLoop, as_matrix_loop
 from hapsim.errors import ConfigError
 
-__all__ = ["continuous_poles", "rendered_pairs", "rendered_pairs_of", "felt_matrices",
+__all__ = ["continuous_poles", "rendered_pairs", "rendered_pairs_of",
+           "rendered_pairs_of_many", "felt_matrices",
            "MatrixRenderResult", "render_state"]
 
 
@@ -125,10 +126,45 @@ def rendered_pairs_of(A, n: int, period: float):
         eigenvector's norm is a mode of the object the hand does not feel, never rendered.
     """
     z, V = np.linalg.eig(A)
+    return _pairs_of_modes(z, V, n, period)
+
+
+def rendered_pairs_of_many(A, n: int, period: float) -> list:
+    """:func:`rendered_pairs_of` of each of a stack of closed-loop state matrices, their
+    eigen decompositions taken in one call (LAPACK's ``geev`` on each matrix, as one call
+    on that matrix makes it: the same pairs and shapes bit for bit, without the call's
+    overhead per matrix; :func:`hapsim.analysis.pencil.felt_sensitivity_nd`'s central
+    differences take dozens at once).
+
+    Parameters
+    ----------
+    A : ndarray, shape (B, N, N)
+        Closed-loop state matrices.
+    n : int
+        Degrees of freedom of the handle.
+    period : float
+        Sample period ``T`` [s].
+
+    Returns
+    -------
+    list of (z, U, poles)
+        Per matrix, as :func:`rendered_pairs_of` (``poles`` complex even where every pole
+        of that matrix is real).
+    """
+    z, V = np.linalg.eig(np.asarray(A))
+    return [_pairs_of_modes(zi, Vi, n, period) for zi, Vi in zip(z, V)]
+
+
+def _pairs_of_modes(z, V, n: int, period: float):
+    """:func:`rendered_pairs_of` from the state matrix's eigenvalues ``z`` and
+    eigenvectors ``V`` (columns)."""
     order = np.argsort(-np.abs(z), kind="stable")
     z, V = z[order], V[:, order]
     chosen, shapes, cols_taken = [], [], []
-    for i in np.flatnonzero(z.imag > 1e-12 * np.maximum(1.0, np.abs(z))):
+    pairs = np.flatnonzero(z.imag > 1e-12 * np.maximum(1.0, np.abs(z)))
+    # s = ln(z) / T of every candidate at once (element by element: the same bits as one
+    # at a time, checked)
+    for i, si in zip(pairs, continuous_poles(z[pairs], period)):
         u = V[:n, i]
         nu = np.linalg.norm(u)
         if not nu > 1e-8 * np.linalg.norm(V[:, i]):
@@ -138,11 +174,14 @@ def rendered_pairs_of(A, n: int, period: float):
         u = u * (abs(u[j]) / u[j])
         # the inverse problem needs [W; W S] invertible: test the columns [u; s u / |s|]
         # of this pair with the ones taken (conjugates included)
-        si = complex(continuous_poles(np.array([z[i]]), period)[0])
+        si = complex(si)
         unit = si / abs(si) if si != 0 else 0.0
         cols = cols_taken + [np.concatenate([u, unit * u]),
                              np.concatenate([u.conj(), np.conj(unit) * u.conj()])]
-        if np.linalg.matrix_rank(np.column_stack(cols), tol=1e-6) < len(cols):
+        # their rank at the tolerance 1e-6 (np.linalg.matrix_rank's own test on the
+        # singular values, without its wrapper)
+        sv = np.linalg.svd(np.column_stack(cols), compute_uv=False)
+        if np.count_nonzero(sv > 1e-6) < len(cols):
             continue
         cols_taken = cols
         chosen.append(z[i])
