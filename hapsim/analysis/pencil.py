@@ -573,21 +573,23 @@ def filtered_sensitivity_nd(sensitivity, response) -> list:
         S = s.reshape(-1, sh[-2], sh[-1])                 # (O, N, n)
         N = S.shape[1]
         L = min(N, H.shape[0])
-        # hapsim.analysis.fftconv.fftconvolve(rev[:, :, c], H[None, :L, c, j], axes=1)
-        # (rev = S reversed in time) for every c and j, its steps on the same lines:
-        # each transform, product and inverse is taken line by line (pocketfft's
-        # transforms, numpy's product), so one call over the stacked lines gives the same
-        # bits as one call per line; the response's transforms once for every record
-        F = [fast_length(N + L - 1)]
-        if (F[0], L) not in spectra:                      # (n, m, 1, F / 2 + 1)
-            spectra[F[0], L] = np.fft.rfftn(H[:L].transpose(1, 2, 0)[:, :, None, :], F,
-                                            axes=[3])
-        A = np.fft.rfftn(S[:, ::-1, :].transpose(2, 0, 1), F, axes=[2])   # (n, O, F/2+1)
-        full = np.fft.irfftn(A[:, None] * spectra[F[0], L], F, axes=[3])  # (n, m, O, F)
         Su = np.zeros((S.shape[0], N, H.shape[2]))
+        rev = S[:, ::-1, :]
+        # hapsim.analysis.fftconv.fftconvolve(rev[:, :, c], H[None, :L, c, j], axes=1)
+        # step by step, the same calls on the same arrays (the same bits), with the
+        # transform of each rev[:, :, c] taken once for every input j instead of once
+        # each, and the response's once for every record of the same length
+        F = [fast_length(N + L - 1)]
+        if (F[0], L) not in spectra:
+            spectra[F[0], L] = [[np.fft.rfftn(np.asarray(H[None, :L, c, j], dtype=float),
+                                              F, axes=[1]) for j in range(H.shape[2])]
+                                for c in range(S.shape[2])]
+        B = spectra[F[0], L]
         for c in range(S.shape[2]):
+            A = np.fft.rfftn(np.asarray(rev[:, :, c], dtype=float), F, axes=[1])
             for j in range(H.shape[2]):
-                Su[:, :, j] += full[c, j, :, :N][:, ::-1]
+                full = np.fft.irfftn(A * B[c][j], F, axes=[1])[:, :N + L - 1]
+                Su[:, :, j] += full[:, :N][:, ::-1]
         out.append(Su)
     return out
 
