@@ -30,29 +30,12 @@ IMAGE = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
 
 @pytest.fixture(scope="module", autouse=True)
 def _feasibility_once():
-    """:func:`hapsim.emulated.falcon_felt.felt_feasibility` of one scene, plan and
-    encoder computed once for the module: the fixture below, `hapsim run`'s prediction
-    (twice) and a real Falcon's statement all ask it of configs/falcon_spring.yaml
-    (~1.3 CPU-s each). It is deterministic (the emulated Falcon in lockstep: the same
-    records, the same box), so each caller gets a deep copy of exactly what it computed
-    alone; a scene, plan or count that differs (the key: the pickled scene, the plan's
-    order and length, the decoder's step and the Falcon's count) is computed anew."""
-    import copy
-    import pickle
-    import hapsim.drivers.falcon as falcon
-    import hapsim.emulated.falcon_felt as ff
-    real, memo = ff.felt_feasibility, {}
-
-    def once(scene, plan=None, *, max_step=8):
-        key = pickle.dumps((scene, None if plan is None else tuple(plan[1:]), max_step,
-                            falcon.DEG_PER_TICK, falcon.THETA_OFFSET_DEG,
-                            falcon.START_STEP))
-        if key not in memo:
-            memo[key] = real(scene, plan, max_step=max_step)
-        return copy.deepcopy(memo[key])
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(ff, "felt_feasibility", once)
-        yield memo
+    """configs/falcon_spring.yaml's feasibility computed once for the module's four
+    askers (this module's fixture, a real Falcon's statement, `hapsim run`'s prediction
+    twice): tests/falcon_memo.py, each a copy of exactly what it computed alone."""
+    from tests.falcon_memo import feasibility_once
+    with feasibility_once():
+        yield
 
 
 @pytest.fixture(scope="module")
