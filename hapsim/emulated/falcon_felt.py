@@ -430,8 +430,10 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     first, only until every statement is beyond it
     (:func:`hapsim.analysis.wire_box.box_worst_case`'s ``settled``): on
     configs/falcon_spring.yaml 1 point of the 24, on configs/delta_sphere.yaml none (the
-    records' own point settles every statement); the feasibility 1.6-1.7 s of CPU,
-    against ~4.6 s for the box's 24 points alone.
+    records' own point settles every statement); the feasibility ~1.0 s of CPU on
+    either, where sampling the whole box would add ~1.2 s (measured on a 2-core
+    machine: configs/falcon_spring.yaml's :func:`measure_felt_falcon` 0.65 s settled,
+    1.84 s in full).
     Where something is stated every point is sampled (the run's full term).
 
     The first-order figures about the exact records (:func:`quantiser_terms`: the worst
