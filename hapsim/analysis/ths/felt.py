@@ -141,10 +141,8 @@ def rendered_pairs_of_many(A, n: int, period: float) -> list:
     ----------
     A : ndarray, shape (B, N, N)
         Closed-loop state matrices.
-    n : int
-        Degrees of freedom of the handle.
-    period : float
-        Sample period ``T`` [s].
+    n, period
+        As :func:`rendered_pairs_of` (handle axes; ``T`` [s]).
 
     Returns
     -------
