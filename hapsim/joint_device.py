@@ -26,6 +26,47 @@ def _kinematics_of(scene):
     return device(dev.kind, dev.geometry)
 
 
+#: The quadratic kinematics ``(J0, f0, H)`` of :class:`LocalJointDeviceND` at the
+#: operating points last asked, keyed by the device's kind, geometry and joints: each is
+#: eight closed-loop solves of a delta (~10 ms), and an emulated Falcon builds the same
+#: device twice a record (its start and its hand's start, :mod:`hapsim.emulated.
+#: falcon_device`), 16 times a measurement of the felt matrices. At most
+#: :data:`_QUADRATIC_KEPT` points are kept.
+_QUADRATIC: dict = {}
+_QUADRATIC_KEPT = 16
+
+
+def _quadratic_model(scene) -> tuple:
+    """``(J0, f0, H)`` of :class:`LocalJointDeviceND` for ``scene``'s device: copies of
+    the ones computed at the same kind, geometry and joints (the same calls on the same
+    numbers, so the same bits), else computed and kept."""
+    dev = scene.device
+    kin = _kinematics_of(scene)
+    q0 = np.asarray(dev.joints, float)
+    try:
+        key = (dev.kind, dev.geometry, q0.tobytes())
+        hash(key)
+    except TypeError:                                    # an unhashable geometry
+        key = None
+    got = _QUADRATIC.get(key) if key is not None else None
+    if got is None:
+        n = q0.size
+        h = 1e-5
+        H = np.empty((n, n, n))
+        J0 = kin.jacobian(q0)
+        f0 = kin.forward(q0)
+        for k in range(n):
+            e = np.zeros(n)
+            e[k] = h
+            H[:, :, k] = (kin.jacobian(q0 + e) - kin.jacobian(q0 - e)) / (2 * h)
+        got = (J0, f0, 0.5 * (H + H.transpose(0, 2, 1)))  # d2f/dq_j dq_k is symmetric
+        if key is not None:
+            if len(_QUADRATIC) >= _QUADRATIC_KEPT:
+                _QUADRATIC.pop(next(iter(_QUADRATIC)))
+            _QUADRATIC[key] = got
+    return tuple(a.copy() for a in got)
+
+
 class JointDeviceND:
     """A kinematic device's joint-space dynamics, integrated over each sample period.
 
@@ -146,19 +187,10 @@ class LocalJointDeviceND:
 
     def __init__(self, scene, x0, v0, substeps: int = 2) -> None:
         dev = scene.device
-        kin = _kinematics_of(scene)
         q0 = np.asarray(dev.joints, float)
         n = q0.size
         self.q0 = q0.copy()
-        self.J0 = kin.jacobian(q0)
-        self.f0 = kin.forward(q0)
-        h = 1e-5
-        H = np.empty((n, n, n))
-        for k in range(n):
-            e = np.zeros(n)
-            e[k] = h
-            H[:, :, k] = (kin.jacobian(q0 + e) - kin.jacobian(q0 - e)) / (2 * h)
-        self.H = 0.5 * (H + H.transpose(0, 2, 1))      # d2f/dq_j dq_k is symmetric
+        self.J0, self.f0, self.H = _quadratic_model(scene)
         self.Mq, self.Bq = dev.joint_inertia, dev.joint_friction
         self.mh, self.bh = dev.hand_mass, dev.hand_damping
         self.substeps = int(substeps)

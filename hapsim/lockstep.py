@@ -386,7 +386,7 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
                   mass=None, responses=None, period=None, box: bool = False,
-                  settle: float | None = None) -> dict:
+                  settle: float | None = None, sensitivity=None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces, and changes of the device's state.
@@ -459,6 +459,11 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         ``settle`` (the limit of a statement: which statements are made is then known;
         :func:`hapsim.analysis.wire_box.box_worst_case`'s ``settled``). The terms are
         then lower bounds of the full sampling's and ``box_complete`` is False.
+    sensitivity : list of ndarray, optional
+        :func:`hapsim.analysis.pencil.felt_sensitivity_nd` of ``diffs`` with this
+        ``mass``, period, ``order`` and ``usable``, already computed (not None): taken
+        at the records instead of computing it again (a caller stating several error
+        kinds of the same records, :func:`hapsim.emulated.falcon_felt.quantiser_terms`).
 
     Returns
     -------
@@ -505,15 +510,16 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
              list(bounds[1:]) + [bounds[0]] if isinstance(bounds, (list, tuple))
              else [bounds] * (len(diffs) + 1)) for kind, G, bounds in errors]
 
-    def terms_at(d):
-        sens = felt_sensitivity_nd(d, mass, scene.period if period is None else period,
-                                   order, usable=usable)
+    def terms_at(d, sens=None):
+        if sens is None:
+            sens = felt_sensitivity_nd(d, mass, scene.period if period is None else period,
+                                       order, usable=usable)
         if sens is None:
             return None
         # the rest record's errors enter each difference
         return statement_terms(list(sens) + [-sum(sens)], E, plan)
     if not box:
-        got = terms_at(diffs)
+        got = terms_at(diffs, sensitivity)
         return inf if got is None else relative_terms(chk, got[0], got[0])
     settled = None if settle is None else (lambda wc: beyond(chk, wc, settle))
     got = box_worst_case(terms_at, [np.asarray(x, float) for x in diffs], rest_last=True,

@@ -19,8 +19,19 @@ from tests.tolerance import rel_tol
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _feasibility_once():
+    """configs/delta_sphere.yaml's feasibility computed once per process for its
+    askers (this module's fixture; `hapsim run`'s
+    prediction in tests/test_falcon_usb.py): tests/falcon_memo.py, each a copy of
+    exactly what it computed alone."""
+    from tests.falcon_memo import feasibility_once
+    with feasibility_once():
+        yield
+
+
 @pytest.fixture(scope="module")
-def sphere():
+def sphere(_feasibility_once):
     """configs/delta_sphere.yaml, its identification plan and its feasibility."""
     from hapsim.emulated.falcon_felt import felt_feasibility
     from hapsim.lockstep import identification_plan

@@ -28,8 +28,18 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 IMAGE = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _feasibility_once():
+    """configs/falcon_spring.yaml's feasibility computed once for the module's four
+    askers (this module's fixture, a real Falcon's statement, `hapsim run`'s prediction
+    twice): tests/falcon_memo.py, each a copy of exactly what it computed alone."""
+    from tests.falcon_memo import feasibility_once
+    with feasibility_once():
+        yield
+
+
 @pytest.fixture(scope="module")
-def spring():
+def spring(_feasibility_once):
     """configs/falcon_spring.yaml, its identification plan and its feasibility."""
     from hapsim.emulated.falcon_felt import felt_feasibility
     from hapsim.lockstep import identification_plan

@@ -81,10 +81,13 @@ def _sim_run(monkeypatch, stall_at=(), stall_s=0.0, samples=600, faults=None,
              timeout=0.002):
     import types
     from hapsim.drivers import falcon_usb
-    from hapsim.emulated import falcon_device
+    from hapsim.emulated import falcon_device, ftdi_usb
     clk = SimClock()
     fake = types.SimpleNamespace(perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep)
-    for mod in (fr, falcon_usb, falcon_device):
+    # the emulated FT232R's poll while an answer is on its way (ftdi_usb.POLL_S) sleeps
+    # in simulated time too: on the wall clock it was 2.2 s of each 3-s run's waiting,
+    # while the simulated time moved one reading's step
+    for mod in (fr, falcon_usb, falcon_device, ftdi_usb):
         monkeypatch.setattr(mod, "time", fake)
     sc = load_scene_nd(CONFIGS / "delta_sphere.yaml")
     link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="wall", faults=faults)

@@ -27,6 +27,19 @@ from tolerance import rel_tol  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 IMAGE = bytes(np.random.default_rng(7).integers(0, 256, 1000, dtype=np.uint8))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _feasibility_once():
+    """configs/delta_sphere.yaml's feasibility computed once per process for its
+    askers (`hapsim run`'s prediction in two tests here;
+    tests/test_falcon_felt.py's fixture): tests/falcon_memo.py, each a copy of
+    exactly what it computed alone."""
+    from tests.falcon_memo import feasibility_once
+    with feasibility_once():
+        yield
+
+
 FAST = 0.002          # reply wait [s]: the emulated chip answers at once (lockstep by name:
 #                       the host's handling of the link, packet by packet; the Falcon on
 #                       its own clock: tests/test_wallclock.py)

@@ -304,20 +304,22 @@ def companion(C: np.ndarray, n: int, p: int) -> np.ndarray:
 
     Parameters
     ----------
-    C : ndarray, shape (n p, n)
-        The coefficients, newest lag first (``C_j`` = rows ``(j-1) n .. j n``).
+    C : ndarray, shape (..., n p, n)
+        The coefficients, newest lag first (``C_j`` = rows ``(j-1) n .. j n``); leading
+        axes: a stack of predictions.
     n, p : int
         Coordinates and lags.
 
     Returns
     -------
-    ndarray, shape (n p, n p)
+    ndarray, shape (..., n p, n p)
         Its eigenvalues are the prediction's poles (Lutkepohl, *New Introduction to
         Multiple Time Series Analysis*, 2005, sec. 2.1.1).
     """
-    comp = np.zeros((n * p, n * p))
-    comp[:n, :] = C.T
-    comp[n:, :-n] = np.eye(n * (p - 1))
+    C = np.asarray(C)
+    comp = np.zeros(C.shape[:-2] + (n * p, n * p))
+    comp[..., :n, :] = np.swapaxes(C, -1, -2)
+    comp[..., n:, :-n] = np.eye(n * (p - 1))
     return comp
 
 
@@ -425,19 +427,21 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
     return out
 
 
-def _felt_of(C, n: int, p: int, mass, period: float):
-    """The felt matrices ``(k, b)`` of prediction coefficients ``C`` (shape (n p, n)), or
-    None when fewer than n rendered pairs."""
-    comp = companion(C, n, p)
-    from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of
-    zr, U, _ = rendered_pairs_of(comp, n, period)
-    if zr.size != n:
-        return None
-    try:
-        return felt_matrices(np.asarray(mass, float),
-                             continuous_poles(zr.astype(complex), period), U)
-    except ConfigError:
-        return None
+def _felt_of(C, n: int, p: int, mass, period: float) -> list:
+    """The felt matrices ``(k, b)`` of each of a stack of prediction coefficients ``C``
+    (shape (B, n p, n)), or None where fewer than n rendered pairs: one eigen
+    decomposition call for the stack (:func:`hapsim.analysis.ths.rendered_pairs_of_many`,
+    each the same bits as alone)."""
+    from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of_many
+    M = np.asarray(mass, float)
+    out = []
+    for zr, U, _ in rendered_pairs_of_many(companion(C, n, p), n, period):
+        try:
+            out.append(None if zr.size != n else felt_matrices(
+                M, continuous_poles(zr.astype(complex), period), U))
+        except ConfigError:
+            out.append(None)
+    return out
 
 
 def felt_sensitivity_nd(records, mass, period: float, order: int, *,
@@ -490,33 +494,56 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
     R, Y = np.array(rows), np.array(rhs)
     P = np.linalg.pinv(R)[:n * p]                           # (n p, rows)
     C = P @ Y
-    if _felt_of(C, n, p, mass, period) is None:
-        return None
     h = step * max(float(np.max(np.abs(C))), 1.0)
+    # C itself, then C with each coefficient (a, c) moved by +h and by -h: one stack
+    cs = np.repeat(C[None], 1 + 2 * n * p * n, axis=0)
+    a_, c_ = np.divmod(np.arange(n * p * n), n)
+    k_ = 1 + 2 * np.arange(n * p * n)
+    cs[k_, a_, c_] = C[a_, c_] + h
+    cs[k_ + 1, a_, c_] = C[a_, c_] - h
+    felt = _felt_of(cs, n, p, mass, period)
+    if any(f is None for f in felt):
+        return None
     G = np.empty((2, n, n, n * p, n))
+    for a, c, k in zip(a_, c_, k_):
+        fp, fm = felt[k], felt[k + 1]
+        G[0, :, :, a, c] = (fp[0] - fm[0]) / (2 * h)
+        G[1, :, :, a, c] = (fp[1] - fm[1]) / (2 * h)
+    # W[o, r, c] = sum_a P[a, r] G[o, a, c] (O, rows, n), the sum over a in order from
+    # 0 (einsum("ar,oac->orc")'s order, the same bits: checked), laid out (O, n, rows)
+    # so that each step runs along the rows
+    Gr = G.reshape(2 * n * n, n * p, n)
+    W = np.zeros((Gr.shape[0], n, P.shape[1]))
     for a in range(n * p):
-        for c in range(n):
-            Cp, Cm = C.copy(), C.copy()
-            Cp[a, c] += h
-            Cm[a, c] -= h
-            fp, fm = _felt_of(Cp, n, p, mass, period), _felt_of(Cm, n, p, mass, period)
-            if fp is None or fm is None:
-                return None
-            G[0, :, :, a, c] = (fp[0] - fm[0]) / (2 * h)
-            G[1, :, :, a, c] = (fp[1] - fm[1]) / (2 * h)
-    W = np.einsum("ar,oac->orc", P, G.reshape(2 * n * n, n * p, n))   # (O, rows, n)
+        W = W + Gr[:, a, :, None] * P[a]
     Cj = C.reshape(p, n, n)                                 # C_j = Cj[j-1]: y[k-j] @ C_j
     out, row = [], 0
     for r, ks in zip(recs, eqs):
         N = r.shape[0]
-        Wr = np.zeros((W.shape[0], N + p, n))
-        Wr[:, ks] = W[:, row:row + ks.size]
+        Wr = np.zeros((W.shape[0], n, N + p))
+        Wr[:, :, ks] = W[:, :, row:row + ks.size]
         row += ks.size
-        s = Wr[:, :N].copy()
-        for j in range(1, p + 1):
-            s -= np.einsum("otc,ic->oti", Wr[:, j:N + j], Cj[j - 1])
-        out.append(s.reshape(2, n, n, N, n))
+        s = Wr[:, :, :N].copy()
+        lags = _lag_terms(np.stack([Wr[:, :, j:N + j] for j in range(1, p + 1)]), Cj)
+        for j in range(p):
+            s -= lags[j]                   # s -= einsum("otc,ic->oti", X_j, C_j), in order
+        out.append(s.transpose(0, 2, 1).reshape(2, n, n, N, n))
     return out
+
+
+def _lag_terms(X, Cj) -> np.ndarray:
+    """``sum_c X[j, o, c, t] Cj[j, i, c]`` for every lag ``j`` (X shape (p, O, n, N), Cj
+    (p, n, n); result (p, O, n, N), index ``i`` in place of ``c``), the sum over ``c``
+    associated as ``np.einsum("otc,ic->oti")`` associates it on x86-64 (a two-lane dot:
+    the even terms, the odd terms, their sum, from 0; the same bits there, checked for
+    n = 1, 2, 3 with signed zeros; elsewhere within the round-off of an n-term sum), in
+    whole-array steps along the samples instead of a kernel call per element."""
+    n = X.shape[2]
+    q = [X[:, :, c, None, :] * Cj[:, None, :, c, None] for c in range(n)]
+    lanes = [q[0], q[1] if n > 1 else None]
+    for c in range(2, n):
+        lanes[c % 2] = lanes[c % 2] + q[c]
+    return (lanes[0] if n == 1 else lanes[0] + lanes[1]) + 0.0
 
 
 def filtered_sensitivity_nd(sensitivity, response) -> list:
@@ -540,7 +567,7 @@ def filtered_sensitivity_nd(sensitivity, response) -> list:
     """
     from hapsim.analysis.fftconv import fast_length
     H = np.asarray(response, float)
-    out = []
+    out, spectra = [], {}
     for s in sensitivity:
         sh = s.shape
         S = s.reshape(-1, sh[-2], sh[-1])                 # (O, N, n)
@@ -550,13 +577,18 @@ def filtered_sensitivity_nd(sensitivity, response) -> list:
         rev = S[:, ::-1, :]
         # hapsim.analysis.fftconv.fftconvolve(rev[:, :, c], H[None, :L, c, j], axes=1)
         # step by step, the same calls on the same arrays (the same bits), with the
-        # transform of each rev[:, :, c] taken once for every input j instead of once each
+        # transform of each rev[:, :, c] taken once for every input j instead of once
+        # each, and the response's once for every record of the same length
         F = [fast_length(N + L - 1)]
+        if (F[0], L) not in spectra:
+            spectra[F[0], L] = [[np.fft.rfftn(np.asarray(H[None, :L, c, j], dtype=float),
+                                              F, axes=[1]) for j in range(H.shape[2])]
+                                for c in range(S.shape[2])]
+        B = spectra[F[0], L]
         for c in range(S.shape[2]):
             A = np.fft.rfftn(np.asarray(rev[:, :, c], dtype=float), F, axes=[1])
             for j in range(H.shape[2]):
-                B = np.fft.rfftn(np.asarray(H[None, :L, c, j], dtype=float), F, axes=[1])
-                full = np.fft.irfftn(A * B, F, axes=[1])[:, :N + L - 1]
+                full = np.fft.irfftn(A * B[c][j], F, axes=[1])[:, :N + L - 1]
                 Su[:, :, j] += full[:, :N][:, ::-1]
         out.append(Su)
     return out

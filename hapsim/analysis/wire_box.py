@@ -69,18 +69,27 @@ def moved_records(records, inputs, *, rest_last: bool = False) -> list:
         ``records[r] + sum_kinds (H * u_r)`` (causal convolution), less the rest record's
         change with ``rest_last``.
     """
-    from hapsim.analysis.fftconv import fftconvolve
+    from hapsim.analysis.fftconv import fast_length
     N, n = records[0].shape
     count = len(records) + int(rest_last)
     dx = [np.zeros((N, n)) for _ in range(count)]
     for H, us in inputs:
         H = np.asarray(H, float)
         L = min(N, H.shape[0])
-        for r, u in enumerate(us):
-            u = np.broadcast_to(np.asarray(u, float), (N, H.shape[2]))
+        m = H.shape[2]
+        # hapsim.analysis.fftconv.fftconvolve(u_r[:, j], H[:L, c, j])[:N] for every r, c
+        # and j, its steps on the same lines: each transform, product and inverse is
+        # taken line by line (pocketfft's transforms, numpy's product), so one call over
+        # the stacked lines gives the same bits as one call per line
+        F = [fast_length(N + L - 1)]
+        U = np.fft.rfftn(np.stack([np.broadcast_to(np.asarray(u, float), (N, m)).T
+                                   for u in us]), F, axes=[2])          # (R, m, F/2+1)
+        Hf = np.fft.rfftn(H[:L].transpose(1, 2, 0), F, axes=[2])        # (n, m, F/2+1)
+        conv = np.fft.irfftn(U[:, None] * Hf[None], F, axes=[3])        # (R, n, m, F)
+        for r in range(len(us)):
             for c in range(n):
-                for j in range(H.shape[2]):
-                    dx[r][:, c] += fftconvolve(u[:, j], H[:L, c, j])[:N]
+                for j in range(m):
+                    dx[r][:, c] += conv[r, c, j, :N]
     if rest_last:
         return [x + d - dx[-1] for x, d in zip(records, dx[:-1])]
     return [x + d for x, d in zip(records, dx)]

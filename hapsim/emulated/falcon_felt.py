@@ -361,7 +361,12 @@ def quantiser_terms(scene, amplitude: float, plan) -> dict:
     G = [("reading", J, math.radians(DEG_PER_TICK)),
          ("force", np.linalg.inv(J).T, TORQUE_PER_COUNT)]
     keys = ("felt_stiffness", "felt_damping")
-    each = [wire_terms_nd(scene, diffs, chk, order, [(k, g, np.full(3, c / 2.0))])
+    # the loop's responses and the fit's sensitivity at the records, once for every
+    # figure below (each the same call on the same records)
+    resp = error_responses(scene, N)
+    sens = felt_sensitivity_nd(diffs, scene.device.mass, scene.period, order)
+    each = [wire_terms_nd(scene, diffs, chk, order, [(k, g, np.full(3, c / 2.0))],
+                          responses=resp, sensitivity=sens)
             for k, g, c in G]
     out = {"worst": {k: each[0][k] + each[1][k] for k in keys},
            "worst_reading": {k: each[0][k] for k in keys},
@@ -370,11 +375,10 @@ def quantiser_terms(scene, amplitude: float, plan) -> dict:
            "excursion": float(max(np.max(np.linalg.norm(d_, axis=1)) for d_ in diffs))}
     fit = fit_felt_nd(diffs, scene.device.mass, scene.period, order)
     out["fit_exact"] = felt_deviation(fit, chk)
-    sens = felt_sensitivity_nd(diffs, scene.device.mass, scene.period, order)
     if sens is None:
         return out
     sens = list(sens) + [-sum(sens)]                 # the rest record's, in each
-    resp = dict(zip(("reading", "force"), error_responses(scene, N)))
+    resp = dict(zip(("reading", "force"), resp))
     var = 0.0
     for kind, g, c in G:
         H = resp[kind] @ g
@@ -426,8 +430,10 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     first, only until every statement is beyond it
     (:func:`hapsim.analysis.wire_box.box_worst_case`'s ``settled``): on
     configs/falcon_spring.yaml 1 point of the 24, on configs/delta_sphere.yaml none (the
-    records' own point settles every statement); the feasibility 1.6-1.7 s of CPU,
-    against ~4.6 s for the box's 24 points alone.
+    records' own point settles every statement); the feasibility ~1.0 s of CPU on
+    either, where sampling the whole box would add ~1.2 s (measured on a 2-core
+    machine: configs/falcon_spring.yaml's :func:`measure_felt_falcon` 0.65 s settled,
+    1.84 s in full).
     Where something is stated every point is sampled (the run's full term).
 
     The first-order figures about the exact records (:func:`quantiser_terms`: the worst

@@ -72,7 +72,7 @@ REPLY_SLACK_S = 0.002
 #: (:data:`FIRMWARE_PROBES` of them): the wait each reply had before, not the loop's.
 PROBE_TIMEOUT_S = 0.05
 #: The most states of a scene's loop whose felt feasibility a run computes
-#: (:func:`felt_prediction`): configs/delta_sphere.yaml's 12 take ~2 s of CPU (the
+#: (:func:`felt_prediction`): configs/delta_sphere.yaml's 12 take ~1 s of CPU (the
 #: lockstep records and their statement);
 #: configs/delta_mesh.yaml's 162 took 3.5 min (its 3,240-sample records' sensitivities).
 FEASIBILITY_STATES = 24

@@ -23,7 +23,8 @@ from hapsim.analysis.ths.matrix_loop import MATRIX_HOLDS, MatrixLoop, as_matrix_
 from hapsim.analysis.ths.holds import (closed_loop_poles, split_hold_matrices, state_matrix,
                                        zoh_blocks, zoh_matrices)
 from hapsim.analysis.ths.felt import (MatrixRenderResult, continuous_poles, felt_matrices,
-                                      render_state, rendered_pairs, rendered_pairs_of)
+                                      render_state, rendered_pairs, rendered_pairs_of,
+                                      rendered_pairs_of_many)
 from hapsim.analysis.ths.render import (CalibrationResult, RenderResult, calibrate,
                                         calibrate_core, check_target, log_abs_w, render)
 
@@ -31,6 +32,6 @@ __all__ = ["MATRIX_HOLDS", "MatrixLoop", "as_matrix_loop", "gain_matrices",
            "closed_loop_poles", "split_hold_matrices", "state_matrix", "zoh_blocks",
            "zoh_matrices",
            "MatrixRenderResult", "continuous_poles", "felt_matrices", "render_state",
-           "rendered_pairs", "rendered_pairs_of",
+           "rendered_pairs", "rendered_pairs_of", "rendered_pairs_of_many",
            "CalibrationResult", "RenderResult", "calibrate", "calibrate_core", "check_target",
            "log_abs_w", "render"]

@@ -50,7 +50,8 @@ from hapsim.analysis.ths.holds import state_matrix
 from hapsim.analysis.ths.matrix_loop import MatrixLoop, as_matrix_loop
 from hapsim.errors import ConfigError
 
-__all__ = ["continuous_poles", "rendered_pairs", "rendered_pairs_of", "felt_matrices",
+__all__ = ["continuous_poles", "rendered_pairs", "rendered_pairs_of",
+           "rendered_pairs_of_many", "felt_matrices",
            "MatrixRenderResult", "render_state"]
 
 
@@ -125,32 +126,92 @@ def rendered_pairs_of(A, n: int, period: float):
         eigenvector's norm is a mode of the object the hand does not feel, never rendered.
     """
     z, V = np.linalg.eig(A)
-    order = np.argsort(-np.abs(z), kind="stable")
-    z, V = z[order], V[:, order]
-    chosen, shapes, cols_taken = [], [], []
-    for i in np.flatnonzero(z.imag > 1e-12 * np.maximum(1.0, np.abs(z))):
-        u = V[:n, i]
-        nu = np.linalg.norm(u)
-        if not nu > 1e-8 * np.linalg.norm(V[:, i]):
-            continue                                   # not seen at the handle
-        u = u / nu
-        j = int(np.argmax(np.abs(u)))
-        u = u * (abs(u[j]) / u[j])
-        # the inverse problem needs [W; W S] invertible: test the columns [u; s u / |s|]
-        # of this pair with the ones taken (conjugates included)
-        si = complex(continuous_poles(np.array([z[i]]), period)[0])
-        unit = si / abs(si) if si != 0 else 0.0
-        cols = cols_taken + [np.concatenate([u, unit * u]),
-                             np.concatenate([u.conj(), np.conj(unit) * u.conj()])]
-        if np.linalg.matrix_rank(np.column_stack(cols), tol=1e-6) < len(cols):
-            continue
-        cols_taken = cols
-        chosen.append(z[i])
-        shapes.append(u)
-        if len(chosen) == n:
+    return _pairs_of_modes(z[None], V[None], n, period)[0]
+
+
+def rendered_pairs_of_many(A, n: int, period: float) -> list:
+    """:func:`rendered_pairs_of` of each of a stack of closed-loop state matrices, their
+    eigen decompositions taken in one call (LAPACK's ``geev`` on each matrix, as one call
+    on that matrix makes it) and the pairs chosen for all of them at once: the same
+    pairs and shapes bit for bit, without the calls' overhead per matrix
+    (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`'s central differences take
+    dozens at once).
+
+    Parameters
+    ----------
+    A : ndarray, shape (B, N, N)
+        Closed-loop state matrices.
+    n, period
+        As :func:`rendered_pairs_of` (handle axes; ``T`` [s]).
+
+    Returns
+    -------
+    list of (z, U, poles)
+        Per matrix, as :func:`rendered_pairs_of` (``poles`` complex even where every pole
+        of that matrix is real).
+    """
+    z, V = np.linalg.eig(np.asarray(A))
+    return _pairs_of_modes(z, V, n, period)
+
+
+def _pairs_of_modes(z, V, n: int, period: float) -> list:
+    """:func:`rendered_pairs_of` of each of a stack of state matrices from their
+    eigenvalues ``z`` (B, N) and eigenvectors ``V`` (B, N, N; columns).
+
+    Each matrix's candidates (its complex poles, largest ``|z|`` first) are taken in
+    turn, one candidate of every matrix per round: the norms one by one (BLAS's dot, as
+    ``np.linalg.norm`` takes them), the scalars by the same scalar operations, the
+    shapes' array operations on the round's rows at once (element by element, the same
+    bits), the rank tests as one stacked SVD per size (LAPACK's on each matrix)."""
+    B = z.shape[0]
+    order = np.argsort(-np.abs(z), axis=-1, kind="stable")
+    z = np.take_along_axis(z, order, -1)
+    V = np.take_along_axis(V, order[:, None, :], -1)
+    cand = z.imag > 1e-12 * np.maximum(1.0, np.abs(z))
+    s = np.zeros(z.shape, complex)
+    s[cand] = continuous_poles(z[cand], period)
+    todo = [list(np.flatnonzero(c)) for c in cand]
+    chosen = [[] for _ in range(B)]
+    shapes = [[] for _ in range(B)]
+    taken = [np.zeros((2 * n, 0), complex) for _ in range(B)]
+    active = list(range(B))
+    while active:
+        rows = []                                      # (matrix, pole, |u|) this round
+        for b in active:
+            while todo[b]:
+                i = todo[b].pop(0)
+                nu = np.linalg.norm(V[b, :n, i])
+                if nu > 1e-8 * np.linalg.norm(V[b, :, i]):
+                    rows.append((b, i, nu))
+                    break                              # else: not seen at the handle
+        if not rows:
             break
-    U = np.column_stack(shapes) if shapes else np.zeros((n, 0), complex)
-    return np.array(chosen, complex), U, z
+        bs = np.array([r[0] for r in rows])
+        ii = np.array([r[1] for r in rows])
+        u = V[bs, :n, ii] / np.array([r[2] for r in rows])[:, None]
+        big = u[np.arange(len(rows)), np.argmax(np.abs(u), axis=1)]
+        u = u * np.array([abs(x) / x for x in big])[:, None]
+        # the inverse problem needs [W; W S] invertible: test the columns [u; s u / |s|]
+        # of this pair with the ones taken (conjugates included), their rank at the
+        # tolerance 1e-6 (np.linalg.matrix_rank's own test on the singular values)
+        unit = [(si / abs(si) if si != 0 else 0.0) for si in map(complex, s[bs, ii])]
+        up = np.array(unit, complex)[:, None]
+        new = np.stack([np.concatenate([u, up * u], axis=1),
+                        np.concatenate([u.conj(), np.conj(up) * u.conj()], axis=1)], axis=2)
+        cols = [np.concatenate([taken[b], new[g]], axis=1) for g, b in enumerate(bs)]
+        for k in {c.shape[1] for c in cols}:
+            same = [g for g, c in enumerate(cols) if c.shape[1] == k]
+            sv = np.linalg.svd(np.stack([cols[g] for g in same]), compute_uv=False)
+            for g, full in zip(same, np.count_nonzero(sv > 1e-6, axis=1) == k):
+                if full:
+                    b = int(bs[g])
+                    taken[b] = cols[g]
+                    chosen[b].append(z[b, ii[g]])
+                    shapes[b].append(u[g])
+        active = [b for b in active if todo[b] and len(chosen[b]) < n]
+    return [(np.array(c, complex),
+             np.column_stack(sh) if sh else np.zeros((n, 0), complex), zb)
+            for c, sh, zb in zip(chosen, shapes, z)]
 
 
 def felt_matrices(mass, s, U) -> tuple[np.ndarray, np.ndarray]:
