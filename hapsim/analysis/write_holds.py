@@ -12,6 +12,8 @@ stated uncertainty. Dimension-free: the Haply 2DIY's records (n = 2,
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["HOLD_CUT_PERIODS", "VELOCITY_WINDOW", "device_matrices", "hold_bounds", "hold_corrections",
@@ -300,45 +302,52 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     ok_hold[0] = False
     QV = _known_motion(b, Fall, Mi) if window else None
     acc = np.zeros((N, 2))                # rounding_apart with a window: per reading
+    # (the loop's numpy calls as written before, each evaluated once: a vector's norm as
+    # numpy.linalg.norm forms it, sqrt(v.dot(v)); the same numbers, bit for bit)
+    eye, eF_max = np.eye(n), float(np.max(eFall)) if window else 0.0
+    state, corrected, delta_ok = out["state"], out["corrected"], np.isfinite(out["delta"])
+    dX = np.diff(x, axis=0)               # row k - 1: x[k] - x[k - 1]
+    dx_ok = np.isfinite(dX).all(axis=1)
     for k in range(1 if first_torque is not None else 2, N):
         h = b[k] - b[k - 1]
         dh = h - T
-        dx = x[k] - x[k - 1]
         h_lo, h_hi = h - L, h + L
-        if not (np.isfinite(dx).all() and np.isfinite(h) and np.isfinite(out["delta"][k])
+        if not (dx_ok[k - 1] and math.isfinite(h) and delta_ok[k]
                 and h_lo > 0 and h_hi * nMiB < 2):
             continue
+        dx = dX[k - 1]
         F, eF = Fall[k - 1], float(eFall[k - 1])
         c = 1.0 / (1.0 - h_hi * nMiB / 2)
-        v_hat = np.linalg.solve(np.eye(n) + h / 2 * MiB, dx / h + h / 2 * (Mi @ F))
-        a_hat = Mi @ (F - B @ v_hat)
-        ndx = float(np.linalg.norm(dx))
+        MiF = Mi @ F
+        ndx = math.sqrt(dx.dot(dx))
         V = (ndx + 2 * eps) / h_lo + a_max * h_hi
-        e_v = (c * ((0.0 if rounding_apart else 2 * eps / h_lo) + nMiB * a_max * h_hi ** 2 / 6
-                    + h_hi / 2 * nMi * eF)
-               + L * c * ((ndx + 2 * eps) / h_lo ** 2 + float(np.linalg.norm(Mi @ F)) / 2)
-               + L * c * c * nMiB * V / 2)
-        g_r = 2 * c / h_lo                # the rounding's gain on v_hat (sd multiplier)
         fit = _window_velocity(k, window, b, x, QV, ok_hold) if window else None
         cw = None
-        if fit is not None:
+        if fit is None:
+            v_hat = np.linalg.solve(eye + h / 2 * MiB, dx / h + h / 2 * MiF)
+            e_v = (c * ((0.0 if rounding_apart else 2 * eps / h_lo)
+                        + nMiB * a_max * h_hi ** 2 / 6 + h_hi / 2 * nMi * eF)
+                   + L * c * ((ndx + 2 * eps) / h_lo ** 2 + math.sqrt(MiF.dot(MiF)) / 2)
+                   + L * c * c * nMiB * V / 2)
+            g_r = 2 * c / h_lo            # the rounding's gain on v_hat (sd multiplier)
+        else:
             # the readings around s_k, their known forces' motion taken off, fitted with a
             # straight line in the host's write times (module notes of the window)
             v_hat, sc1, sc2, sq, tmax, lo, cw = fit
-            a_hat = Mi @ (F - B @ v_hat)
-            e_v = (nMiB * V * sc2 / 2 + nMi * float(np.max(eFall)) * sc2 / 2
+            e_v = (nMiB * V * sc2 / 2 + nMi * eF_max * sc2 / 2
                    + (0.0 if rounding_apart else eps * sc1)
                    + 2 * L * sc1 * (V + a_max * tmax))
             g_r = sq * np.sqrt(2 * window + 1)
-        out["state"][k, :n] = dh * v_hat - dh * dh / 2 * a_hat
-        out["state"][k, n:] = dh * a_hat
+        a_hat = Mi @ (F - B @ v_hat)
+        state[k, :n] = dh * v_hat - dh * dh / 2 * a_hat
+        state[k, n:] = dh * a_hat
         e_a = nMi * eF + nMiB * e_v
         D = abs(dh) + L
-        nv, na = float(np.linalg.norm(v_hat)), float(np.linalg.norm(a_hat))
+        nv, na = math.sqrt(v_hat.dot(v_hat)), math.sqrt(a_hat.dot(a_hat))
         pos[k] = (D * e_v + L * nv + D * D / 2 * e_a + L * (2 * abs(dh) + L) / 2 * na
                   + nMiB * a_max * D ** 3 / 6)
         vel[k] = D * e_a + L * na + nMiB * a_max * D * D / 2
-        out["corrected"][k] = True
+        corrected[k] = True
         if rounding_apart and window and abs(dh) <= HOLD_CUT_PERIODS * T:
             # per reading, the squared weights of the windows that hold it (docstring;
             # a hold further off is cut, :func:`write_time_terms`: its change not used)
@@ -387,11 +396,13 @@ def _window_velocity(k: int, m: int, b, x, QV, ok_hold):
     Q, V = QV
     tau = b[lo:hi + 1] - b[k]
     y = x[lo:hi + 1] - (Q[lo:hi + 1] - Q[k] - tau[:, None] * V[k])
-    tc = tau - tau.mean()
+    # (ndarray.mean, .sum, numpy.max and numpy.sqrt without their wrappers: the same
+    # reductions, bit for bit)
+    tc = tau - np.add.reduce(tau) / tau.size
     c = tc / float(tc @ tc)
     ac = np.abs(c)
-    return (c @ y, float(ac.sum()), float(ac @ tau ** 2), float(np.sqrt(c @ c)),
-            float(np.max(np.abs(tau))), lo, c)
+    return (c @ y, float(np.add.reduce(ac)), float(ac @ tau ** 2), math.sqrt(c @ c),
+            float(np.maximum.reduce(np.abs(tau))), lo, c)
 
 
 def hold_motion(scene, state: np.ndarray, *, responses=None, seq=None) -> np.ndarray:
