@@ -301,65 +301,155 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     ok_hold[1:] &= read[1:] & read[:-1]
     ok_hold[0] = False
     QV = _known_motion(b, Fall, Mi) if window else None
-    acc = np.zeros((N, 2))                # rounding_apart with a window: per reading
-    # (the loop's numpy calls as written before, each evaluated once: a vector's norm as
-    # numpy.linalg.norm forms it, sqrt(v.dot(v)); the same numbers, bit for bit)
-    eye, eF_max = np.eye(n), float(np.max(eFall)) if window else 0.0
-    state, corrected, delta_ok = out["state"], out["corrected"], np.isfinite(out["delta"])
+    ks = np.arange(1 if first_torque is not None else 2, N)
     dX = np.diff(x, axis=0)               # row k - 1: x[k] - x[k - 1]
-    dx_ok = np.isfinite(dX).all(axis=1)
-    for k in range(1 if first_torque is not None else 2, N):
-        h = b[k] - b[k - 1]
-        dh = h - T
-        h_lo, h_hi = h - L, h + L
-        if not (dx_ok[k - 1] and math.isfinite(h) and delta_ok[k]
-                and h_lo > 0 and h_hi * nMiB < 2):
-            continue
-        dx = dX[k - 1]
-        F, eF = Fall[k - 1], float(eFall[k - 1])
-        c = 1.0 / (1.0 - h_hi * nMiB / 2)
-        MiF = Mi @ F
-        ndx = math.sqrt(dx.dot(dx))
-        V = (ndx + 2 * eps) / h_lo + a_max * h_hi
-        fit = _window_velocity(k, window, b, x, QV, ok_hold) if window else None
-        cw = None
-        if fit is None:
-            v_hat = np.linalg.solve(eye + h / 2 * MiB, dx / h + h / 2 * MiF)
-            e_v = (c * ((0.0 if rounding_apart else 2 * eps / h_lo)
-                        + nMiB * a_max * h_hi ** 2 / 6 + h_hi / 2 * nMi * eF)
-                   + L * c * ((ndx + 2 * eps) / h_lo ** 2 + math.sqrt(MiF.dot(MiF)) / 2)
-                   + L * c * c * nMiB * V / 2)
-            g_r = 2 * c / h_lo            # the rounding's gain on v_hat (sd multiplier)
-        else:
-            # the readings around s_k, their known forces' motion taken off, fitted with a
-            # straight line in the host's write times (module notes of the window)
-            v_hat, sc1, sc2, sq, tmax, lo, cw = fit
-            e_v = (nMiB * V * sc2 / 2 + nMi * eF_max * sc2 / 2
-                   + (0.0 if rounding_apart else eps * sc1)
-                   + 2 * L * sc1 * (V + a_max * tmax))
-            g_r = sq * np.sqrt(2 * window + 1)
-        a_hat = Mi @ (F - B @ v_hat)
-        state[k, :n] = dh * v_hat - dh * dh / 2 * a_hat
-        state[k, n:] = dh * a_hat
-        e_a = nMi * eF + nMiB * e_v
-        D = abs(dh) + L
-        nv, na = math.sqrt(v_hat.dot(v_hat)), math.sqrt(a_hat.dot(a_hat))
-        pos[k] = (D * e_v + L * nv + D * D / 2 * e_a + L * (2 * abs(dh) + L) / 2 * na
-                  + nMiB * a_max * D ** 3 / 6)
-        vel[k] = D * e_a + L * na + nMiB * a_max * D * D / 2
-        corrected[k] = True
-        if rounding_apart and window and abs(dh) <= HOLD_CUT_PERIODS * T:
-            # per reading, the squared weights of the windows that hold it (docstring;
-            # a hold further off is cut, :func:`write_time_terms`: its change not used)
-            if cw is None:                 # the hold's two readings: +-c / h_lo
-                lo, cw = k - 1, np.array([-c / h_lo, c / h_lo])
-            G = np.array([D * (1 + D * nMiB / 2), D * nMiB])
-            acc[lo:lo + cw.size] += np.outer(cw * cw, G * G)
+    h = b[ks] - b[ks - 1]
+    good = (np.isfinite(dX).all(axis=1)[ks - 1] & np.isfinite(h)
+            & np.isfinite(out["delta"])[ks] & (h - L > 0) & ((h + L) * nMiB < 2))
+    ks, h = ks[good], h[good]
+    if ks.size:
+        rows = _corrected_rows(ks, h, dX[ks - 1], Fall[ks - 1], eFall[ks - 1], T=T, L=L,
+                               Mi=Mi, B=B, MiB=MiB, nMi=nMi, nMiB=nMiB, eps=eps,
+                               a_max=a_max, window=window, b=b, x=x, QV=QV,
+                               ok_hold=ok_hold, rounding_apart=rounding_apart,
+                               eF_max=float(np.max(eFall)) if window else 0.0)
+        out["state"][ks] = rows["state"]
+        out["corrected"][ks] = True
+        pos[ks] = rows["pos"][:, None]
+        vel[ks] = rows["vel"][:, None]
+        if rounding_apart and window:
+            # per reading, the squared weights of the windows that hold it (docstring; a
+            # hold further off is cut, :func:`write_time_terms`: its change not used),
+            # summed over the windows in the order of their rows
+            acc = np.zeros((N, 2))
+            np.add.at(acc, rows["acc_rows"], rows["acc_terms"])
+            out["rounding_gain"] = np.sqrt((2 * window + 1) * acc)
         elif rounding_apart:
-            out["rounding_gain"][k] = (g_r * D * (1 + D * nMiB / 2), g_r * D * nMiB)
-    if rounding_apart and window:
-        out["rounding_gain"] = np.sqrt((2 * window + 1) * acc)
+            out["rounding_gain"][ks] = rows["gain"]
+    elif rounding_apart and window:
+        out["rounding_gain"] = np.sqrt((2 * window + 1) * np.zeros((N, 2)))
     out["position"], out["velocity"] = pos, vel
+    return out
+
+
+def _rows_matvec(A, X):
+    """``A @ X[i]`` for every row ``i`` of ``X`` (shape (K, n); ``A`` (n, n) or (K, n, n)),
+    each product as numpy forms the one of a matrix and a vector (the same BLAS call per
+    row: the same numbers, bit for bit)."""
+    return np.matmul(A, X[:, :, None])[:, :, 0]
+
+
+def _rows_dot(X, Y):
+    """``X[i].dot(Y[i])`` for every row, each as numpy forms a vector's dot product."""
+    return np.matmul(X[:, None, :], Y[:, :, None])[:, 0, 0]
+
+
+def _scalar_pow(v, e):
+    """``v[i] ** e`` as a binary64 scalar's power is (``pow``), elementwise (an array's
+    ``** 2`` is a square instead)."""
+    return np.array([t ** e for t in v], float)
+
+
+def _corrected_rows(ks, h, dx, F, eF, *, T, L, Mi, B, MiB, nMi, nMiB, eps, a_max, window,
+                    b, x, QV, ok_hold, rounding_apart, eF_max):
+    """:func:`hold_corrections`' estimate and bounds on the rows ``ks`` it corrects, all
+    rows at once: each row's operations those of its docstring in the order written there
+    (elementwise, and numpy's own matrix-vector products, dot products, solves and
+    reductions row by row: the numbers of a loop over the rows, bit for bit). The
+    windows of all ``2 m + 1`` readings are fitted together; the shorter ones (at a
+    record's ends and its cuts) by :func:`_window_velocity`.
+
+    Returns
+    -------
+    dict
+        ``state`` (K, 2 n), ``pos`` and ``vel`` (K,); with ``rounding_apart`` and a
+        window, ``acc_rows`` (M,) and ``acc_terms`` (M, 2), each window's readings' rows
+        and squared weights in the order of the rows ``ks``; with ``rounding_apart``
+        alone, ``gain`` (K, 2).
+    """
+    K, n = dx.shape
+    dh = h - T
+    h_lo, h_hi = h - L, h + L
+    c = 1.0 / (1.0 - h_hi * nMiB / 2)
+    MiF = _rows_matvec(Mi, F)
+    ndx = np.sqrt(_rows_dot(dx, dx))
+    V = (ndx + 2 * eps) / h_lo + a_max * h_hi
+    v_hat = np.empty((K, n))
+    fitted = np.zeros(K, bool)
+    sc1, sc2, sq, tmax = np.zeros(K), np.zeros(K), np.zeros(K), np.zeros(K)
+    lo = ks - 1
+    cws = [None] * K
+    if window:
+        m = int(window)
+        N = len(b)
+        bad = np.concatenate(([0], np.cumsum(~np.asarray(ok_hold, bool))))
+        # a whole window: ok_hold on rows k - m + 1 .. k + m, rows k - m .. k + m there
+        inside = (ks - m >= 0) & (ks + m <= N - 1)
+        full = np.zeros(K, bool)
+        kin = ks[inside]
+        full[inside] = bad[kin + m + 1] - bad[kin - m + 1] == 0
+        f = np.flatnonzero(full)
+        if f.size:
+            kf = ks[f]
+            idx = kf[:, None] + np.arange(-m, m + 1)
+            Q, Vq = QV
+            tau = b[idx] - b[kf][:, None]
+            y = x[idx] - (Q[idx] - Q[kf][:, None, :] - tau[:, :, None] * Vq[kf][:, None, :])
+            tc = tau - (np.add.reduce(tau, axis=1) / (2 * m + 1))[:, None]
+            cf = tc / _rows_dot(tc, tc)[:, None]
+            ac = np.abs(cf)
+            v_hat[f] = np.matmul(cf[:, None, :], y)[:, 0, :]
+            sc1[f] = np.add.reduce(ac, axis=1)
+            sc2[f] = _rows_dot(ac, tau ** 2)
+            sq[f] = np.sqrt(_rows_dot(cf, cf))
+            tmax[f] = np.maximum.reduce(np.abs(tau), axis=1)
+            fitted[f] = True
+            lo[f] = kf - m
+            for i, r in zip(f, cf):
+                cws[i] = r
+        for i in np.flatnonzero(~full):
+            fit = _window_velocity(int(ks[i]), m, b, x, QV, ok_hold)
+            if fit is not None:
+                v_hat[i], sc1[i], sc2[i], sq[i], tmax[i], lo[i], cws[i] = fit
+                fitted[i] = True
+    s = ~fitted                           # the hold's two readings: the solve
+    if s.any():
+        hs = h[s]
+        A = np.eye(n) + (hs / 2)[:, None, None] * MiB
+        rhs = dx[s] / hs[:, None] + (hs / 2)[:, None] * MiF[s]
+        v_hat[s] = np.linalg.solve(A, rhs[:, :, None])[:, :, 0]
+    nMiF = np.sqrt(_rows_dot(MiF, MiF))
+    e_v = np.where(
+        fitted,
+        nMiB * V * sc2 / 2 + nMi * eF_max * sc2 / 2 + (0.0 if rounding_apart else eps * sc1)
+        + 2 * L * sc1 * (V + a_max * tmax),
+        c * ((0.0 if rounding_apart else 2 * eps / h_lo)
+             + nMiB * a_max * _scalar_pow(h_hi, 2) / 6 + h_hi / 2 * nMi * eF)
+        + L * c * ((ndx + 2 * eps) / _scalar_pow(h_lo, 2) + nMiF / 2)
+        + L * c * c * nMiB * V / 2)
+    # the rounding's gain on v_hat (sd multiplier)
+    g_r = np.where(fitted, sq * np.sqrt(2 * window + 1), 2 * c / h_lo)
+    a_hat = _rows_matvec(Mi, F - _rows_matvec(B, v_hat))
+    out = {"state": np.concatenate([dh[:, None] * v_hat - (dh * dh / 2)[:, None] * a_hat,
+                                    dh[:, None] * a_hat], axis=1)}
+    e_a = nMi * eF + nMiB * e_v
+    D = np.abs(dh) + L
+    nv, na = np.sqrt(_rows_dot(v_hat, v_hat)), np.sqrt(_rows_dot(a_hat, a_hat))
+    out["pos"] = (D * e_v + L * nv + D * D / 2 * e_a + L * (2 * np.abs(dh) + L) / 2 * na
+                  + nMiB * a_max * _scalar_pow(D, 3) / 6)
+    out["vel"] = D * e_a + L * na + nMiB * a_max * D * D / 2
+    if rounding_apart and window:
+        G2 = np.stack([D * (1 + D * nMiB / 2), D * nMiB], axis=1) ** 2
+        rows_, terms = [], []
+        for i in np.flatnonzero(np.abs(dh) <= HOLD_CUT_PERIODS * T):
+            cw = cws[i] if cws[i] is not None else np.array([-c[i] / h_lo[i],
+                                                             c[i] / h_lo[i]])
+            rows_.append(np.arange(lo[i], lo[i] + cw.size))
+            terms.append(np.multiply.outer(cw * cw, G2[i]))
+        out["acc_rows"] = np.concatenate(rows_) if rows_ else np.zeros(0, int)
+        out["acc_terms"] = np.concatenate(terms) if terms else np.zeros((0, 2))
+    elif rounding_apart:
+        out["gain"] = np.stack([g_r * D * (1 + D * nMiB / 2), g_r * D * nMiB], axis=1)
     return out
 
 
