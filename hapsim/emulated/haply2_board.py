@@ -47,6 +47,7 @@ read one write later); a scene stating more delays each write's torques by the r
 
 from __future__ import annotations
 
+import copy
 import math
 import struct
 from collections import deque
@@ -167,11 +168,18 @@ class Haply2DIYBoard:
         self.writes = 0
         self.clamped = 0
         self.held = self.last_command = 0.0
-        self.plant = LocalJointDeviceND(scene, np.zeros(2), np.zeros(2))
+        # the plant as each set-up leaves it, built once per start (its Newton solve and
+        # finite-difference Hessian, ~1 ms, were most of a set-up) and copied at each:
+        # the same state, bit for bit, as building it again
+        self._starts = excitation_starts(2, self.amplitude, scene.period)
+        self._rest = LocalJointDeviceND(scene, np.zeros(2), np.zeros(2))
+        self._at_start: dict = {}
+        self.plant = copy.deepcopy(self._rest)
         self._base = {}                       # port -> (count at set-up, hardware count then)
 
-    def _hw_count(self, joint: int) -> int:
-        return round(math.degrees(self.plant.joints()[joint]) * self.cpr / 360.0)
+    def _hw_count(self, joint: int, plant=None) -> int:
+        q = (self.plant if plant is None else plant).joints()[joint]
+        return round(math.degrees(q) * self.cpr / 360.0)
 
     def _joint_of_port(self, port: int) -> int | None:
         return JOINT_PORTS.index(port) if port in JOINT_PORTS else None
@@ -179,18 +187,20 @@ class Haply2DIYBoard:
     def _on_setup(self) -> None:
         p = self.parser
         # the hand holds the handle at the operating point while the board is set up
-        self.plant = LocalJointDeviceND(self.scene, np.zeros(2), np.zeros(2))
         self._base = {}
         for port in range(1, 5):
             if p.encoder_addr[port - 1]:
                 off = p.encoder_offset[port - 1] * p.encoder_res[port - 1] / 360.0
                 c0 = int(off) if math.isfinite(off) and abs(off) < 2 ** 31 else 0
                 j = self._joint_of_port(port)
-                self._base[port] = (c0, self._hw_count(j) if j is not None else 0)
-        starts = excitation_starts(2, self.amplitude, self.scene.period)
-        x0, v0 = starts[self.setups % len(starts)]
+                self._base[port] = (c0, self._hw_count(j, self._rest) if j is not None
+                                    else 0)
+        i = self.setups % len(self._starts)
         self.setups += 1
-        self.plant = LocalJointDeviceND(self.scene, x0, v0)
+        if i not in self._at_start:
+            x0, v0 = self._starts[i]
+            self._at_start[i] = LocalJointDeviceND(self.scene, x0, v0)
+        self.plant = copy.deepcopy(self._at_start[i])
         self._fifo = deque([None] * self.delay)
         self._due.clear()
 
