@@ -23,47 +23,16 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 def _loop(rec, scene, J, delta, *, latency_s=0.0, first_torque=None, rounding_apart=False,
           window=0):
     """The oracle: ``hold_corrections``' loop over the rows as it was (its numpy calls,
-    one row at a time), from the same set-up."""
-    T = scene.period
-    L = float(latency_s)
-    out = wh.hold_bounds(rec, scene, J, delta, latency_s=L)
-    N = len(out["delta"])
-    n = np.asarray(J).shape[0]
-    out["state"] = np.zeros((N, 2 * n))
-    out["corrected"] = np.zeros(N, bool)
-    if rounding_apart:
-        out["rounding_gain"] = np.zeros((N, 2))
-    if not np.any(out["delta"]):
+    one row at a time), from the same set-up (``write_holds._hold_setup``)."""
+    out, su = wh._hold_setup(rec, scene, J, delta, latency_s=latency_s,
+                             first_torque=first_torque, rounding_apart=rounding_apart)
+    if su is None:
         return out
-    b = np.asarray(rec["write_s"], float)[:, 0]
-    x = np.asarray(rec.get("readings", rec["position"]), float)
-    M, B = wh.device_matrices(scene)
-    Mi = np.linalg.inv(M)
-    MiB = Mi @ B
-    nMi, nMiB = float(np.linalg.norm(Mi, 2)), float(np.linalg.norm(MiB, 2))
-    eps = float(np.linalg.norm(np.abs(J) @ np.asarray(delta, float)))
-    tau = np.asarray(rec["torque"], float)
-    Fall = np.linalg.solve(J.T, tau.T).T
-    eFall = 2.0 ** -24 * np.linalg.norm(np.abs(np.linalg.inv(J.T)) @ np.abs(tau).T, axis=0)
-    Fall = np.vstack([np.zeros((1, n)) if first_torque is None else
-                      np.linalg.solve(J.T, np.asarray(first_torque, float)), Fall])
-    eFall = np.concatenate([[0.0 if first_torque is None else 2.0 ** -24 * float(
-        np.linalg.norm(np.abs(np.linalg.inv(J.T)) @ np.abs(np.asarray(first_torque, float))))],
-        eFall])
-    m_min = float(np.min(np.linalg.eigvalsh(M)))
-    b_max = float(np.max(np.abs(np.linalg.eigvalsh(0.5 * (B + B.T)))))
-    steps = np.linalg.norm(np.diff(x, axis=0), axis=1)
-    h_all = np.maximum(np.diff(b) - L, 1e-6 * T)
-    mean = (steps + 2 * eps) / h_all
-    v_rec = float(np.nanmax(mean)) if np.isfinite(mean).any() else 0.0
-    a_max = (float(np.max(np.linalg.norm(Fall, axis=1), initial=0.0)) + b_max * v_rec) / m_min
+    T, L, N, b, x = su.T, su.L, su.N, su.b, su.x
+    Mi, B, MiB, nMi, nMiB, eps = su.Mi, su.B, su.MiB, su.nMi, su.nMiB, su.eps
+    Fall, eFall, a_max, ok_hold = su.Fall, su.eFall, su.a_max, su.ok_hold
+    n = Mi.shape[0]
     pos, vel = out["position"].copy(), out["velocity"].copy()
-    ok_hold = np.zeros(N, bool)
-    ok_hold[1 if first_torque is not None else 2:] = True
-    ok_hold[1:] &= np.abs(np.diff(b) - T) <= wh.HOLD_CUT_PERIODS * T
-    read = np.isfinite(x).all(axis=1)
-    ok_hold[1:] &= read[1:] & read[:-1]
-    ok_hold[0] = False
     QV = wh._known_motion(b, Fall, Mi) if window else None
     acc = np.zeros((N, 2))
     for k in range(1 if first_torque is not None else 2, N):

@@ -13,6 +13,7 @@ stated uncertainty. Dimension-free: the Haply 2DIY's records (n = 2,
 from __future__ import annotations
 
 import math
+import types
 
 import numpy as np
 
@@ -257,6 +258,61 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
         ``state_error``); ``position`` (N, 2) [m] and ``velocity`` (N, 2) [m/s]: the
         bounds of ``w - w_hat`` per axis; ``corrected`` (N,) bool.
     """
+    out, su = _hold_setup(rec, scene, J, delta, latency_s=latency_s,
+                           first_torque=first_torque, rounding_apart=rounding_apart)
+    if su is None:
+        return out
+    N, b, L = su.N, su.b, su.L
+    pos, vel = out["position"].copy(), out["velocity"].copy()
+    ks = np.arange(1 if first_torque is not None else 2, N)
+    dX = np.diff(su.x, axis=0)            # row k - 1: x[k] - x[k - 1]
+    h = b[ks] - b[ks - 1]
+    good = (np.isfinite(dX).all(axis=1)[ks - 1] & np.isfinite(h)
+            & np.isfinite(out["delta"])[ks] & (h - L > 0) & ((h + L) * su.nMiB < 2))
+    ks, h = ks[good], h[good]
+    if ks.size:
+        rows = _corrected_rows(su, ks, h, dX[ks - 1], window=window,
+                               rounding_apart=rounding_apart)
+        out["state"][ks] = rows["state"]
+        out["corrected"][ks] = True
+        pos[ks] = rows["pos"][:, None]
+        vel[ks] = rows["vel"][:, None]
+        if rounding_apart and window:
+            # per reading, the squared weights of the windows that hold it (docstring; a
+            # hold further off is cut, :func:`write_time_terms`: its change not used),
+            # summed over the windows in the order of their rows
+            acc = np.zeros((N, 2))
+            np.add.at(acc, rows["acc_rows"], rows["acc_terms"])
+            out["rounding_gain"] = np.sqrt((2 * window + 1) * acc)
+        elif rounding_apart:
+            out["rounding_gain"][ks] = rows["gain"]
+    elif rounding_apart and window:
+        out["rounding_gain"] = np.sqrt((2 * window + 1) * np.zeros((N, 2)))
+    out["position"], out["velocity"] = pos, vel
+    return out
+
+
+def _hold_setup(rec: dict, scene, J, delta, *, latency_s: float = 0.0, first_torque=None,
+                rounding_apart: bool = False):
+    """What :func:`hold_corrections` computes before its rows (the same arguments): its
+    output with :func:`hold_bounds`' bounds and nothing corrected yet, and the record's
+    quantities its rows read.
+
+    Parameters
+    ----------
+    rec, scene, J, delta, latency_s, first_torque, rounding_apart
+        As :func:`hold_corrections`.
+
+    Returns
+    -------
+    (dict, types.SimpleNamespace or None)
+        The output so far; ``T``, ``L``, ``N``, ``b`` (the write times, (N,)), ``x``
+        (the readings, (N, n)), ``Mi``, ``B``, ``MiB``, ``nMi``, ``nMiB``, ``eps``,
+        ``Fall``, ``eFall`` (the force held over each hold and its float32 error,
+        (N + 1, n) and (N + 1,)), ``a_max`` and ``ok_hold`` ((N,) bool), as the
+        docstring of :func:`hold_corrections` names them; None when no hold departs
+        from a period (nothing to correct).
+    """
     T = scene.period
     L = float(latency_s)
     out = hold_bounds(rec, scene, J, delta, latency_s=L)
@@ -267,7 +323,7 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     if rounding_apart:
         out["rounding_gain"] = np.zeros((N, 2))
     if not np.any(out["delta"]):
-        return out
+        return out, None
     b = np.asarray(rec["write_s"], float)[:, 0]
     x = np.asarray(rec.get("readings", rec["position"]), float)
     M, B = device_matrices(scene)
@@ -293,43 +349,15 @@ def hold_corrections(rec: dict, scene, J, delta, *, latency_s: float = 0.0,
     mean = (steps + 2 * eps) / h_all
     v_rec = float(np.nanmax(mean)) if np.isfinite(mean).any() else 0.0
     a_max = (float(np.max(np.linalg.norm(Fall, axis=1), initial=0.0)) + b_max * v_rec) / m_min
-    pos, vel = out["position"].copy(), out["velocity"].copy()
     ok_hold = np.zeros(N, bool)           # hold i (s_(i-1) .. s_i) known and near a period
     ok_hold[1 if first_torque is not None else 2:] = True
     ok_hold[1:] &= np.abs(np.diff(b) - T) <= HOLD_CUT_PERIODS * T
     read = np.isfinite(x).all(axis=1)
     ok_hold[1:] &= read[1:] & read[:-1]
     ok_hold[0] = False
-    QV = _known_motion(b, Fall, Mi) if window else None
-    ks = np.arange(1 if first_torque is not None else 2, N)
-    dX = np.diff(x, axis=0)               # row k - 1: x[k] - x[k - 1]
-    h = b[ks] - b[ks - 1]
-    good = (np.isfinite(dX).all(axis=1)[ks - 1] & np.isfinite(h)
-            & np.isfinite(out["delta"])[ks] & (h - L > 0) & ((h + L) * nMiB < 2))
-    ks, h = ks[good], h[good]
-    if ks.size:
-        rows = _corrected_rows(ks, h, dX[ks - 1], Fall[ks - 1], eFall[ks - 1], T=T, L=L,
-                               Mi=Mi, B=B, MiB=MiB, nMi=nMi, nMiB=nMiB, eps=eps,
-                               a_max=a_max, window=window, b=b, x=x, QV=QV,
-                               ok_hold=ok_hold, rounding_apart=rounding_apart,
-                               eF_max=float(np.max(eFall)) if window else 0.0)
-        out["state"][ks] = rows["state"]
-        out["corrected"][ks] = True
-        pos[ks] = rows["pos"][:, None]
-        vel[ks] = rows["vel"][:, None]
-        if rounding_apart and window:
-            # per reading, the squared weights of the windows that hold it (docstring; a
-            # hold further off is cut, :func:`write_time_terms`: its change not used),
-            # summed over the windows in the order of their rows
-            acc = np.zeros((N, 2))
-            np.add.at(acc, rows["acc_rows"], rows["acc_terms"])
-            out["rounding_gain"] = np.sqrt((2 * window + 1) * acc)
-        elif rounding_apart:
-            out["rounding_gain"][ks] = rows["gain"]
-    elif rounding_apart and window:
-        out["rounding_gain"] = np.sqrt((2 * window + 1) * np.zeros((N, 2)))
-    out["position"], out["velocity"] = pos, vel
-    return out
+    return out, types.SimpleNamespace(T=T, L=L, N=N, b=b, x=x, Mi=Mi, B=B, MiB=MiB, nMi=nMi,
+                                      nMiB=nMiB, eps=eps, Fall=Fall, eFall=eFall,
+                                      a_max=a_max, ok_hold=ok_hold)
 
 
 def _rows_matvec(A, X):
@@ -350,10 +378,10 @@ def _scalar_pow(v, e):
     return np.array([t ** e for t in v], float)
 
 
-def _corrected_rows(ks, h, dx, F, eF, *, T, L, Mi, B, MiB, nMi, nMiB, eps, a_max, window,
-                    b, x, QV, ok_hold, rounding_apart, eF_max):
-    """:func:`hold_corrections`' estimate and bounds on the rows ``ks`` it corrects, all
-    rows at once: each row's operations those of its docstring in the order written there
+def _corrected_rows(su, ks, h, dx, *, window, rounding_apart):
+    """:func:`hold_corrections`' estimate and bounds on the rows ``ks`` it corrects (``su``
+    its set-up, :func:`_hold_setup`; ``h`` the rows' holds, ``dx`` their readings'
+    differences), all rows at once: each row's operations those of its docstring in the order written there
     (elementwise, and numpy's own matrix-vector products, dot products, solves and
     reductions row by row: the numbers of a loop over the rows, bit for bit). The
     windows of all ``2 m + 1`` readings are fitted together; the shorter ones (at a
@@ -367,6 +395,11 @@ def _corrected_rows(ks, h, dx, F, eF, *, T, L, Mi, B, MiB, nMi, nMiB, eps, a_max
         and squared weights in the order of the rows ``ks``; with ``rounding_apart``
         alone, ``gain`` (K, 2).
     """
+    T, L, b, x, ok_hold = su.T, su.L, su.b, su.x, su.ok_hold
+    Mi, B, MiB, nMi, nMiB, eps, a_max = su.Mi, su.B, su.MiB, su.nMi, su.nMiB, su.eps, su.a_max
+    F, eF = su.Fall[ks - 1], su.eFall[ks - 1]
+    eF_max = float(np.max(su.eFall)) if window else 0.0
+    QV = _known_motion(b, su.Fall, Mi) if window else None
     K, n = dx.shape
     dh = h - T
     h_lo, h_hi = h - L, h + L
