@@ -146,6 +146,7 @@ def box_worst_case(terms_at, records, *, rest_last: bool = False, settled=None):
     sup = wc0.copy()
     left = list(range(wc0.size))
     complete = True
+    sampled = set()
     while left:
         o = left[0]
         if settled is not None:
@@ -157,6 +158,13 @@ def box_worst_case(terms_at, records, *, rest_last: bool = False, settled=None):
         left.remove(o)
         inputs = [(H, [np.broadcast_to(np.asarray(b, float), S[o].shape) * np.sign(S[o])
                        for S, b in zip(fil, bounds)]) for H, fil, bounds in kinds]
+        # a point already sampled (two statements whose worst errors are the same, e.g.
+        # the two off-diagonal entries of a symmetric felt matrix): the same terms again,
+        # and np.maximum with them changes nothing
+        point = tuple(u.tobytes() for _, us in inputs for u in us)
+        if point in sampled:
+            continue
+        sampled.add(point)
         moved = terms_at(moved_records(records, inputs, rest_last=rest_last))
         if moved is None:
             return None
