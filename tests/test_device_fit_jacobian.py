@@ -67,6 +67,19 @@ def test_least_squares_ends_at_the_same_point_bit_for_bit(seed, k, ns, m):
     assert np.array_equal(a.jac.toarray(), b.jac.toarray())
 
 
+@pytest.mark.parametrize("seed,k,ns,m", [(1, 4, 7, 300), (2, 2, 1, 50), (3, 3, 20, 400)])
+def test_the_dense_jacobian_holds_the_sparse_ones_entries_bit_for_bit(seed, k, ns, m):
+    """The refinement's dense path (up to DENSE_JACOBIAN_MAX entries, scipy's "exact"
+    trust-region solver) gets the very entries of the sparse one, zeros elsewhere: scipy's
+    own dense 2-point difference, which steps each column alone, bit for bit. (The
+    solver's answers on the refinement's records are tested against the devices' truths:
+    tests/test_identify.py's blind identification.)"""
+    f, S, sid, p0 = _problem(seed, k, ns, m)
+    jac = _BlockDifference(f, k, sid, ns)
+    assert np.array_equal(jac.dense(p0), jac(p0).toarray())
+    assert np.array_equal(jac.dense(p0), approx_derivative(f, p0, method="2-point"))
+
+
 def test_the_fit_quantiles_are_scipy_stats_own_bit_for_bit():
     """The device fit takes its quantiles from scipy.special (hapsim.analysis.device_fit:
     ``scipy.stats`` costs ~1 CPU-s to import in each process that fits): the same numbers

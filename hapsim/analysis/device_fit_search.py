@@ -456,6 +456,15 @@ def search_candidates(x, f, T, late, holds, max_delay, st, d0, h0, m0, known=Non
     return cands
 
 
+#: Most Jacobian entries (rows x parameters) the refinement hands to least squares as a
+#: dense array, solved by its ``tr_solver="exact"`` (an SVD of the Jacobian per step); a
+#: larger one goes as a sparse matrix to its ``"lsmr"`` (scipy's documentation: "exact"
+#: for small dense Jacobians, "lsmr" for large sparse ones). A 2 s record at 1 kHz with
+#: its stretches (~2,000 x 10-30) is well under it: the sparse path's operator layers were
+#: three quarters of a refinement there (the blind identification of 50 devices, 12.9 ->
+#: 5.2 CPU-s); 2e5 entries (1.6 MB) keep the SVD at a few ms.
+DENSE_JACOBIAN_MAX = 200_000
+
 #: Grid of the sub-sample delay's fraction searched first (then refined around the best).
 FRACTION_GRID = (0.25, 0.5, 0.75)
 #: Half-width of the bounded search around the grid's best [periods]: one grid step.
@@ -617,6 +626,13 @@ class _BlockDifference(_Difference):
             data[:, g] = df / dx[self._cols[:, g]]
         return data
 
+    def dense(self, p):
+        """The Jacobian at ``p`` as a dense array, shape ``(n_rows, n)``: the entries of
+        :meth:`data` in their columns, zeros elsewhere."""
+        d = np.zeros(self.shape)
+        d[np.arange(self.shape[0])[:, None], self._cols] = self.data(p)
+        return d
+
     def __call__(self, p):
         """The Jacobian at ``p``: a ``scipy.sparse.csr_array`` of shape ``(n_rows, n)``."""
         from scipy.sparse import csr_array
@@ -633,7 +649,14 @@ def _refine_residual(mod, out, xi):
     ns = mod.starts.size
     i = mod.idx
 
+    lo, hi = _LM_RANGE
+
     def resid(p):
+        if not lo <= p[0] <= hi:
+            # no device there (exp(ln m) under- or overflows the simulation): a residual
+            # that is not finite, which the trust region answers by shrinking its step
+            # (scipy's trf), not an exception
+            return np.full(i.size, np.inf)
         fp_, fn = (p[2], p[3]) if mod.coulomb else (0.0, 0.0)
         simulate_device(mod.u, math.exp(p[0]), p[1], fp_, fn, mod.starts, mod.ends,
                         np.ascontiguousarray(p[k:k + ns]),
@@ -670,7 +693,8 @@ def refine(mod, p_lin):
     reversal rules), from the variable-projection solution: a velocity that reverses for a
     sample inside a stretch (too briefly for the positions to show) is then modelled.
     Trust-region reflective least squares over all parameters, its Jacobian by
-    :class:`_BlockDifference`; the stretch states are partialled out of the Jacobian
+    :class:`_BlockDifference`, dense and solved exactly up to :data:`DENSE_JACOBIAN_MAX`
+    entries, sparse (LSMR) beyond; the stretch states are partialled out of the Jacobian
     stretch by stretch (Frisch-Waugh-Lovell).
 
     Parameters
@@ -702,7 +726,10 @@ def refine(mod, p_lin):
     jac = _BlockDifference(resid, k, mod.sid, ns)
     jac.data = _refine_difference(mod, jac, out, xi)     # the same entries, compiled
     try:
-        r = least_squares(jac.fun, p0, method="trf", x_scale="jac", jac=jac,
+        dense = jac.shape[0] * jac.shape[1] <= DENSE_JACOBIAN_MAX
+        r = least_squares(jac.fun, p0, method="trf", x_scale="jac",
+                          jac=jac.dense if dense else jac,
+                          tr_solver="exact" if dense else "lsmr",
                           xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=60)
     except (ValueError, FloatingPointError, OverflowError, np.linalg.LinAlgError):
         return None
