@@ -69,14 +69,20 @@ def continuous_poles(z, T: float) -> np.ndarray:
     -------
     ndarray of complex, shape of ``z``
         ``(ln|z| + i arg z) / T`` with ``arg z`` in ``(-pi, pi]``; ``ln|z|`` as
-        ``log1p(2 Re w + |w|^2) / 2``, ``w = z - 1``, so that a pole near the unit circle
-        keeps the relative precision of its damping (as :func:`hapsim.analysis.modes.log_z`
-        for one pole).
+        ``log1p(2 Re w + |w|^2) / 2``, ``w = z - 1``, where ``|z|^2 > 1/2``, so that a
+        pole near the unit circle keeps the relative precision of its damping (as
+        :func:`hapsim.analysis.modes.log_z` for one pole); ``ln|z|`` itself inside, where
+        that sum cancels (``|z| = 1e-9`` made it ``-1`` exactly: ``-inf`` for ``-20.7``);
+        ``z = 0`` (a delay line's pole) gives ``-inf``, its true limit, without a warning.
     """
     z = np.asarray(z)
     w = z - 1.0
-    re = 0.5 * np.log1p(2.0 * w.real + w.real ** 2 + w.imag ** 2)
-    return (re + 1j * np.angle(z)) / T
+    x = 2.0 * w.real + w.real ** 2 + w.imag ** 2          # |z|^2 - 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        re = np.where(x > -0.5, 0.5 * np.log1p(np.maximum(x, -0.5)), np.log(np.abs(z)))
+        s = (re + 1j * np.angle(z)) / T
+    # z = 0: the quotient's -inf * 0 made its imaginary part NaN
+    return np.where(np.isneginf(re), complex(-np.inf, 0.0), s)[()]
 
 
 def rendered_pairs(loop: MatrixLoop, K, B=0.0):
