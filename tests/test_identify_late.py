@@ -520,7 +520,7 @@ def test_a_clamp_the_replay_cannot_give_is_left_out_not_taken_as_linear(seed, bu
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(_LateMock, "LATE", pattern)
         mp.setattr(runner, "MockDevice", _WatchdogLateMock)
-        mp.setattr(contact_replay, "computed_forces", lambda scene, cols: None)
+        mp.setattr(contact_replay, "computed_forces", lambda scene, cols, skipped=None: None)
         rep = runner.run_scene(scene, lockstep=True, transport="inprocess",
                                handle_signals=False, duration=0.3, allow_unstable=True)
     meas, pred = rep["measured"], rep["predicted"]

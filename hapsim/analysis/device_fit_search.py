@@ -607,6 +607,7 @@ class _BlockDifference(_Difference):
         self._cols[:, :self.k] = np.arange(self.k)
         self._cols[:, self.k] = self.k + self.sid
         self._cols[:, self.k + 1] = self.k + self.ns + self.sid
+        self._rows = np.arange(m)[:, None]
         self._indices = self._cols.ravel()
         self._indptr = np.arange(0, m * w + 1, w, dtype=np.int32)
         self._groups = [np.arange(n) == j for j in range(self.k)]
@@ -630,7 +631,7 @@ class _BlockDifference(_Difference):
         """The Jacobian at ``p`` as a dense array, shape ``(n_rows, n)``: the entries of
         :meth:`data` in their columns, zeros elsewhere."""
         d = np.zeros(self.shape)
-        d[np.arange(self.shape[0])[:, None], self._cols] = self.data(p)
+        d[self._rows, self._cols] = self.data(p)
         return d
 
     def __call__(self, p):

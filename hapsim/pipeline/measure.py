@@ -117,7 +117,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         # rows: replayed too, so a backlog does not end what the replay knows
         skipped = tel.skipped() if hasattr(tel, "skipped") else None
         put_back = 0
-        if skipped is not None and skipped[0].size and hasattr(tel, "skipped_ticks"):
+        if skipped is not None and skipped[0].size:
             # and they are samples of the device: put back in the record as the rows they
             # would have been (their law forces replayed), a backlog leaves no gap in seq
             from hapsim.pipeline.contact_replay import fill_skipped
@@ -135,9 +135,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             # the host's clamp at the force limit: a known input (the law's force
             # replayed from the logged positions), taken out with the late ticks'
             from hapsim.pipeline.contact_replay import computed_forces
-            # (the record passed only when it holds steps: the law's signature otherwise)
-            extra = {"skipped": skipped} if skipped is not None and skipped[0].size else {}
-            computed = computed_forces(scene, cols, **extra)
+            # (an empty record replays as none)
+            computed = computed_forces(
+                scene, cols, skipped=skipped if skipped is not None and skipped[0].size
+                else None)
         # rows the host clamped at the force limit whose law force the replay cannot give
         # (skipped STATEs past the skipped STATEs' record: their positions, which the law
         # stepped through, are not kept;
