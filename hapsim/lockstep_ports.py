@@ -112,7 +112,8 @@ class LockstepPorts:
         self.B = np.array([lk.damping for lk in scene.links], float)
         self._buffers = None                 # :meth:`forces`' scratch, made at first use
 
-    def step(self, samples: int, *, reading_error=None, force_error=None) -> np.ndarray:
+    def step(self, samples: int, *, reading_error=None, force_error=None,
+             limits=None, forces=None) -> np.ndarray:
         """Advance the loop and record the ports.
 
         Parameters
@@ -123,6 +124,15 @@ class LockstepPorts:
             are given, and the record holds, the device's sample plus it.
         force_error : ndarray, shape (samples, P), optional
             A force error [N] added to the force each device takes at sample ``i``.
+        limits : ndarray, shape (P,), optional
+            Each device's force limit [N] (``inf``: none): the force a device takes is
+            clipped to ``[-limit, limit]`` (after ``force_error``), as the host clamps
+            every force to its device's ``force_limit`` before it is sent
+            (docs/design.md, 'The data path', step 4). None: not clipped (the
+            measurement's records, :func:`measure_felt_ports`, keep the linear loop).
+        forces : ndarray, shape (samples, P), optional
+            Filled with the force [N] each device took at each sample (the links' force
+            on its port, plus ``force_error``, clipped to ``limits``).
 
         Returns
         -------
@@ -138,6 +148,10 @@ class LockstepPorts:
             force = self.forces()
             if force_error is not None:
                 force[:self.P] += force_error[n]
+            if limits is not None:
+                np.clip(force[:self.P], -limits, limits, out=force[:self.P])
+            if forces is not None:
+                forces[n] = force[:self.P]
             self.xp = self.x.copy()
             for i, dev in enumerate(self.devices):
                 dev.tick(force[i])

@@ -28,18 +28,24 @@ function                      result                      command
                                                           no port)
 :func:`run_nd`                :class:`RunReportND`        ``hapsim run SCENE
                                                           --lockstep`` (n-D)
+:func:`simulate`              :class:`SimulateReport`     ``hapsim simulate SCENE``
+                                                          (several ports)
 ============================  ==========================  ===========================
 
 A 2-D or 3-D scene (``dimension: 2`` or ``3``) is read by :func:`load_scene` too (a
 :class:`~hapsim.scene.SceneND`, whose ``dimension`` says which) or
 :func:`load_scene_nd`; :func:`check`, :func:`run` and :func:`play` take a scene of any
 dimension (``check_nd``, ``modes_nd`` and ``run_nd`` are the same computations by their
-n-D names); :func:`family` and :func:`identify` are 1-D yet and say so.
+n-D names); :func:`family` and :func:`identify` are 1-D yet and say so. A scene with
+several ports (``devices:``, a :class:`~hapsim.scene.ScenePorts`) is taken by
+:func:`check`, :func:`run` and :func:`simulate` (its trajectory, each port closed
+through its own device model); :func:`simulate` takes that scene only yet (``hapsim
+simulate`` runs the others).
 
 The package is split by capability, each module holding every dimension's report and
 function: :mod:`~hapsim.api.checking` (check), :mod:`~hapsim.api.loops` (render,
 calibrate, stability), :mod:`~hapsim.api.families`, :mod:`~hapsim.api.identifying`,
-:mod:`~hapsim.api.running`, :mod:`~hapsim.api.playing`, and :mod:`~hapsim.api.common`
+:mod:`~hapsim.api.running`, :mod:`~hapsim.api.playing`, :mod:`~hapsim.api.simulating`, and :mod:`~hapsim.api.common`
 (reading a scene, what the others share).
 
 ``render``, ``calibrate`` and ``stability`` take a :class:`LoopModel` (the real side of
@@ -64,6 +70,7 @@ from hapsim.api.loops import (CalibrateReport, RenderReport, StabilityReport, ca
 from hapsim.api.playing import PLAY_OPTIONS, PlayReport, PlayReportND, play
 from hapsim.api.running import (RunReport, RunReportND, run, run_nd, run_options,
                                 run_report_nd, run_scene_nd, stable_prediction_nd)
+from hapsim.api.simulating import SimulateReport, simulate
 from hapsim.results import Report
 
 if TYPE_CHECKING:     # bound for readers and checkers; at run time by __getattr__
@@ -75,7 +82,7 @@ __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability
            "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport", "PlayReport",
            "PLAY_OPTIONS", "Report", "load_scene_nd", "check_nd", "modes_nd", "run_nd",
            "run_report_nd", "run_scene_nd", "stable_prediction_nd", "CheckReportND",
-           "ModesReportND", "RunReportND", "PlayReportND"]
+           "ModesReportND", "RunReportND", "PlayReportND", "simulate", "SimulateReport"]
 
 
 #: Public names provided on first use (PEP 562), with the module that defines them:

@@ -11,7 +11,7 @@ import numpy as np
 
 from hapsim.errors import ConfigError
 
-__all__ = ["load_scene", "load_scene_nd", "refuse_ports", "known_digits", "known_decimals", "draw_report",
+__all__ = ["load_scene", "load_scene_nd", "refuse_ports", "ONE_PORT_ONLY", "known_digits", "known_decimals", "draw_report",
            "MeasuredPair",
            "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
 
@@ -83,6 +83,35 @@ def draw_report(report, draw, path_or_ax):
     return draw(report, ax=path_or_ax)
 
 
+#: Why each command that takes one port refuses a scene with several ports (``devices:``),
+#: one line each; what takes the scene instead. ``hapsim.commands.dimension`` says it at
+#: the file's ``devices:`` line.
+ONE_PORT_ONLY = {
+    "advise": "it finds, for each link to the one port, the lowest rate and cheapest "
+              "method that keep that port's felt (k, b), a pair of numbers, within "
+              "tolerance; across several ports what is felt is a pair of matrices, which "
+              "its tolerance does not cover yet; 'hapsim check SCENE' gives the felt "
+              "matrices and 'hapsim stability --scene SCENE' each port's K_max",
+    "family": "a family varies the hand at the one port (devices.NAME.hand is refused in "
+              "a scene with several ports: no hand per port is built), so there is no "
+              "hand to vary; 'hapsim check SCENE' gives the felt matrices of the devices "
+              "as written",
+    "zwidth": "the Z-width is a per-port measure: K_max(B) of a one-link wall on one "
+              "device, raised until that device's record grows; 'hapsim stability "
+              "--scene SCENE' gives each port's K_max in the coupled loop; a one-port "
+              "scene with one port's devices.NAME values as its device: measures that "
+              "device",
+    "identify": "it identifies one device (mass, friction, delay, hold, ...) from the "
+                "records of the one mock the scene's device: section models; a one-port "
+                "scene with one port's devices.NAME values as its device: identifies "
+                "that one",
+    "play": "play closes one device's loop and plays the scene's audio: listening "
+            "points; a scene with several ports has no audio: section and no virtual "
+            "mass to hear (its reader refuses both), so there is nothing to play; "
+            "'hapsim simulate SCENE --x0 PORT=M --out FILE.npz' gives the ports' motion",
+}
+
+
 def refuse_ports(scene, what: str) -> None:
     """Refuse a scene with several ports by name, for a function that takes one port.
 
@@ -101,10 +130,12 @@ def refuse_ports(scene, what: str) -> None:
     """
     from hapsim.scene import ScenePorts
     if isinstance(scene, ScenePorts):
+        why = ONE_PORT_ONLY.get(what)
         raise ConfigError(f"a scene with several ports ({', '.join(scene.ports)}): "
-                          f"hapsim.{what} takes one port; hapsim.check and hapsim.run (in "
-                          "lockstep, or the FireFader's two faders in real time) take "
-                          "several (docs/ports.md)",
+                          f"hapsim.{what} takes one port"
+                          + (f": {why}" if why else "; hapsim.check, hapsim.simulate and "
+                             "hapsim.run (in lockstep, or the FireFader's two faders in "
+                             "real time) take several (docs/ports.md)"),
                           file=scene.path, key="devices")
 
 

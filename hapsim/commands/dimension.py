@@ -15,7 +15,7 @@ import os
 
 from hapsim.errors import ConfigError
 
-__all__ = ["ONE_D_ONLY", "load_one_d_scene"]
+__all__ = ["ONE_D_ONLY", "load_one_d_scene", "refuse_ports_scene"]
 
 #: Why each command takes dimension 1 only, and what a 2-D or 3-D scene has instead.
 ONE_D_ONLY = {
@@ -44,13 +44,16 @@ def load_one_d_scene(path: str | os.PathLike, command: str, flag: str | None = N
     Raises
     ------
     ConfigError
-        A 2-D or 3-D scene (its file, the ``dimension`` line, key ``dimension``), or any
-        error of the 1-D reader (file, line, key).
+        A 2-D or 3-D scene (its file, the ``dimension`` line, key ``dimension``), a scene
+        with several ports (:func:`refuse_ports_scene`), or any error of the 1-D reader
+        (file, line, key).
     """
     from hapsim.scene import load_scene
     try:
         return load_scene(path)
     except ConfigError as exc:
+        if exc.key == "devices":
+            refuse_ports_scene(path, command, flag)
         if exc.key != "dimension":
             raise
         from hapsim.scene import scene_dimension
@@ -61,3 +64,39 @@ def load_one_d_scene(path: str | os.PathLike, command: str, flag: str | None = N
         raise ConfigError(f"a {n}-D scene{given}: hapsim {command} takes dimension 1: "
                           f"{ONE_D_ONLY[command]}", file=exc.file, line=exc.line,
                           key="dimension") from None
+
+
+def refuse_ports_scene(path: str | os.PathLike, command: str, flag: str | None = None
+                       ) -> None:
+    """Refuse a scene with several ports (``devices:``) for ``command``, which takes one
+    port, with the command's own reason (:data:`hapsim.api.common.ONE_PORT_ONLY`); a
+    scene without several ports passes.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The scene file.
+    command : str
+        A key of :data:`hapsim.api.common.ONE_PORT_ONLY`.
+    flag : str, optional
+        The option that named the file (``--mock-scene``), said in the refusal.
+
+    Raises
+    ------
+    ConfigError
+        The scene has several ports: one line naming the file, the line of ``devices:``
+        and key ``devices``, the command and why it takes one port.
+    """
+    from hapsim.api.common import ONE_PORT_ONLY
+    from hapsim.scene import load_scene, scene_has_ports
+    if not scene_has_ports(path):
+        return
+    try:
+        load_scene(path)                 # the one-port reader: its refusal has the line
+    except ConfigError as exc:
+        if exc.key != "devices":
+            raise
+        given = f" ({flag})" if flag else ""
+        raise ConfigError(f"a scene with several ports{given}: hapsim {command} takes one "
+                          f"port: {ONE_PORT_ONLY[command]}", file=exc.file, line=exc.line,
+                          key="devices") from None

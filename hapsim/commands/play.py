@@ -159,8 +159,10 @@ def _play(args: argparse.Namespace, stop) -> int:
     :func:`hapsim.pipeline.play.play_scene`, its report printed (``--json``: one object;
     else :func:`hapsim.pipeline.play.play_text`), a refusal before playing printed on
     stderr (exit 1)."""
+    from hapsim.commands.dimension import refuse_ports_scene
     from hapsim.pipeline.play import play_scene, play_text
     from hapsim.errors import DeviceError, UnstableConfigError
+    refuse_ports_scene(args.scene, "play")        # several ports: nothing to hear
     try:
         code, report = play_scene(args, stop)
     except (UnstableConfigError, DeviceError) as exc:

@@ -52,10 +52,17 @@ def register(sub) -> None:
             "  along a recorded position profile (time [s], position [m]; .csv or .npz).\n"
             "  A 2-D or 3-D scene is heard at its own rate_hz (its audio.listen points name\n"
             "  a mass, an axis and position or velocity; a port is held at rest).\n"
+            "several ports (a devices: scene, docs/ports.md):\n"
+            "  each port is closed through its own device model, the lockstep run's (mass,\n"
+            "  friction, delay, zero-order hold, force_limit); --x0 PORT=M and --v0 PORT=M/S\n"
+            "  start a port displaced or moving (default: at rest). .npz: time, position\n"
+            "  (N+1, R, 1), names, and ports (P,), port_position [m] and port_force [N]\n"
+            "  (N+1, P): the force each device took at each sample.\n"
             "examples:\n"
             "  hapsim simulate configs/string.yaml --steps 2000 --out string.npz --record s25 s10\n"
             "  hapsim simulate configs/audio_string.yaml --steps 2000 --audio pluck.wav\n"
-            "  hapsim simulate configs/membrane.yaml --steps 88200 --audio drum.wav"),
+            "  hapsim simulate configs/membrane.yaml --steps 88200 --audio drum.wav\n"
+            "  hapsim simulate configs/two_faders.yaml -n 2000 --x0 fader_a=0.004 --out faders.npz"),
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="YAML scene file")
     p.add_argument("--steps", "-n", type=Number(int, low=0), required=True, metavar="N",
@@ -70,6 +77,12 @@ def register(sub) -> None:
                         "or a position profile file for the port (time [s], position [m])")
     p.add_argument("--record", nargs="+", metavar="NAME",
                    help="masses to record, in this order (default: all)")
+    p.add_argument("--x0", action="append", metavar="PORT=M",
+                   help="a scene with several ports: this port's initial displacement [m] "
+                        "(repeat per port; default 0)")
+    p.add_argument("--v0", action="append", metavar="PORT=M/S",
+                   help="a scene with several ports: this port's initial velocity [m/s] "
+                        "(repeat per port; default 0)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.set_defaults(func=run)
 
@@ -102,7 +115,14 @@ def run(args: argparse.Namespace) -> int:
         (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
     """
     from hapsim.blas import preload_numba_blas
-    from hapsim.scene import load_scene, scene_dimension
+    from hapsim.scene import load_scene, scene_dimension, scene_has_ports
+    if scene_has_ports(args.scene):            # several ports, each its own device
+        return _run_ports(args)
+    for opt in ("x0", "v0"):
+        if getattr(args, opt, None):
+            raise ConfigError(f"names a port of a scene with several ports (devices:); a "
+                              f"one-port, 2-D or 3-D scene's port starts at its excitation's "
+                              f"{opt} (the scene file)", key=f"--{opt}")
     preload_numba_blas()                # before numba's first kernel (hapsim.blas)
     if scene_dimension(args.scene) > 1:        # a 2-D or 3-D scene: the n-D engine
         return _run_nd(args)
@@ -465,3 +485,92 @@ def _run_audio_nd(args) -> int:
               + (f", {info['clipped']} samples clipped" if info["clipped"] else "")
               + f" ({elapsed:.2f} s)")
     return 0
+
+
+# ------------------------------------------------- a scene with several ports
+def _port_values(given, flag: str) -> dict:
+    """``--x0``/``--v0``'s ``PORT=VALUE`` items as a mapping (each port once)."""
+    out = {}
+    for item in given or ():
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ConfigError(f"give PORT=VALUE, got {item!r}", key=flag)
+        if name in out:
+            raise ConfigError(f"names port {name!r} twice; each once", key=flag)
+        out[name] = value
+    return out
+
+
+def _run_ports(args) -> int:
+    """Simulate a scene with several ports (``devices:``; :func:`hapsim.api.simulate`),
+    each port closed through its own device model.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene``, ``steps``, ``out`` (``.npz``), ``record``, ``x0``/``v0`` (``PORT=VALUE``
+        items), ``json``; ``audio`` and ``gesture`` refused.
+
+    Returns
+    -------
+    int
+        0, or 1 when a port's position becomes non-finite (an unstable loop without a
+        force limit; the rows before it are written). The ``.npz`` holds ``time`` [s]
+        (N+1,), ``position`` [m] (N+1, R, 1), ``names`` (R,), ``ports`` (P,),
+        ``port_position`` [m] and ``port_force`` [N] (N+1, P).
+
+    Raises
+    ------
+    ConfigError
+        ``--audio`` or ``--gesture`` (no sound of several ports), an output that is not
+        ``.npz``, an unknown or repeated ``--record`` name or ``--x0``/``--v0`` port, a
+        value that is not a finite number, an invalid scene (file, line, key).
+    """
+    import numpy as np
+    from hapsim.api.simulating import simulate
+    from hapsim.scene import load_scene_ports
+    if args.audio is not None or args.gesture != "excitation":
+        flag = "--audio" if args.audio is not None else "--gesture"
+        raise ConfigError("a scene with several ports has no sound: its reader takes no "
+                          "audio: section and no virtual mass to hear (the ports couple "
+                          "through spring-dampers only); --out FILE.npz gives the ports' "
+                          "motion", key=flag)
+    if args.out is None or os.path.splitext(args.out)[1].lower() != ".npz":
+        raise ConfigError(f"a scene with several ports is written as .npz (time, position "
+                          f"(N+1, R, 1), names, ports, port_position, port_force), got "
+                          f"{args.out!r}", key="--out")
+    check_writable(args.out, "--out")
+    scene = load_scene_ports(args.scene)
+    x0, v0 = _port_values(args.x0, "--x0"), _port_values(args.v0, "--v0")
+    t0 = time.perf_counter()
+    try:
+        with Progress(args.steps, "simulate", unit="samples") as bar:
+            rep = simulate(scene, args.steps, record=args.record, x0=x0, v0=v0,
+                           progress=bar.update)
+    except ConfigError as exc:
+        if exc.key not in ("record", "x0", "v0"):
+            raise
+        raise ConfigError(exc.reason, key=f"--{exc.key}") from None
+    elapsed = time.perf_counter() - t0
+    tmp = f"{args.out}.partial"
+    with open(tmp, "wb") as fh:
+        np.savez(fh, time=rep.time, position=rep.position, names=rep.names,
+                 ports=np.array(rep.ports), port_position=rep.port_position,
+                 port_force=rep.port_force)
+    os.replace(tmp, args.out)
+    summary = {**rep.to_dict(), "out": args.out, "seconds": elapsed}
+    bad = rep.diverged
+    if bad is not None:
+        summary["exit"] = 1
+        print(f"hapsim simulate: the loop diverged: port {bad['port']!r}'s position is not "
+              f"finite at step {bad['step']} (t = {bad['step'] / scene.rate_hz:.6g} s; "
+              f"hapsim check {args.scene}); wrote the {bad['step']} rows before it to "
+              f"{args.out}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(summary))
+    elif bad is None:
+        print(f"wrote {args.out}: {args.steps} samples x {len(rep.names)} masses, "
+              f"{len(rep.ports)} ports each closed through its own device (delays "
+              f"{', '.join(f'{d:g}' for d in rep.delays)}; {args.steps / scene.rate_hz:g} s "
+              f"simulated in {elapsed:.3f} s)")
+    return rep.exit_code
