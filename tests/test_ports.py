@@ -18,6 +18,7 @@ from scipy.linalg import expm
 
 from hapsim.analysis.loop import LoopModel, characteristic
 from hapsim.analysis.ports import check_ports, ports_state_matrix
+from hapsim.api.common import ONE_PORT_ONLY
 from hapsim.analysis.ths import render
 from hapsim.errors import ConfigError
 from hapsim.scene import Device, Link, Mass, ScenePorts, parse_scene, parse_scene_ports
@@ -341,7 +342,7 @@ def test_one_port_reader_refuses_several_ports_by_name():
 #: it needs; ``None``: it takes several ports (tests above).
 SCENE_COMMANDS = {
     "check": None, "run": ("{f}",), "family": ("{f}",), "advise": ("{f}",),
-    "simulate": ("{f}", "-n", "10", "--out", "{tmp}/x.npz"),
+    "simulate": None,
     "identify": ("--mock-scene", "{f}"), "play": ("{f}", "--duration", "0.1"),
     "mock": ("--scene", "{f}"), "stability": None,
     "zwidth": ("--scene", "{f}"),
@@ -362,9 +363,11 @@ def _scene_commands() -> set:
 def test_commands_without_several_ports_refuse_them_in_one_line(tmp_path, capsys):
     """Every command of the parser that takes a scene file (a new one fails here until it
     is listed) either takes several ports or refuses them: exit 2, one line naming the
-    command, "several ports" and what takes them. ``run`` without ``--lockstep`` refuses
-    the real-time run of ports of different protocols (only the FireFader's two faders
-    run in real time: tests/test_faders_realtime.py)."""
+    command, "several ports" and what takes them; a command that takes one port
+    (``hapsim.api.common.ONE_PORT_ONLY``) says its own reason, at the file's ``devices:``
+    line. ``run`` without ``--lockstep`` refuses the real-time run of ports of different
+    protocols (only the FireFader's two faders run in real time:
+    tests/test_faders_realtime.py)."""
     from hapsim.cli import main
     assert _scene_commands() == set(SCENE_COMMANDS)
     f = tmp_path / "two.yaml"
@@ -378,6 +381,8 @@ def test_commands_without_several_ports_refuse_them_in_one_line(tmp_path, capsys
         assert code == 2, (argv, err)
         assert len(err) == 1 and err[0].startswith(f"hapsim {argv[0]}: error:"), err
         assert "several ports" in err[0], err
+        if name in ONE_PORT_ONLY:
+            assert f"{f}:9: devices: " in err[0] and ONE_PORT_ONLY[name] in err[0], err
 
 
 def test_check_json_gives_the_felt_matrices_across_ports(tmp_path, capsys):
@@ -572,4 +577,4 @@ def test_the_api_takes_a_scene_of_several_ports(tmp_path):
     assert e.value.key == "duration" and "several ports" in str(e.value)
     with pytest.raises(ConfigError) as e:
         hapsim.play(s)
-    assert e.value.key == "devices"
+    assert e.value.key == "devices" and ONE_PORT_ONLY["play"] in str(e.value)
