@@ -100,8 +100,8 @@ def simulate(scene, steps: int, *, record=None, x0=None, v0=None,
 
     The loop is the lockstep run's (:class:`hapsim.lockstep_ports.LockstepPorts`, the
     model ``hapsim run SCENE --lockstep`` measures): each sample every port is at its
-    device's sample, the links' forces follow the scheme's law (docs/design.md, 'The
-    scheme'), and each device (:class:`hapsim.lockstep_ports.PortDevice`: ``m x'' + b0
+    device's sample, the links' forces follow the scheme's law
+    (docs/design.md, 'The scheme'), and each device (:class:`hapsim.lockstep_ports.PortDevice`: ``m x'' + b0
     x' = u``, its exact zero-order hold, its own delay line, a real number of periods)
     takes the force on its port, clipped to its ``force_limit``, and ticks once.
 

@@ -176,9 +176,9 @@ def _built(ctx: LineContext, doc: LDict, make: Callable):
 #: What the one-port reader, and every command that takes it, says of a scene with
 #: several ports (``devices:``).
 PORTS_REFUSAL = ("a scene with several ports (devices:, one device per port): this takes one "
-                 "port (a device: section); 'hapsim check', 'hapsim run' (in lockstep, or the "
-                 "FireFader's two faders in real time) and 'hapsim mock' (the two faders' "
-                 "board) take several (docs/ports.md)")
+                 "port (a device: section); 'hapsim check', 'hapsim simulate', 'hapsim run' "
+                 "(in lockstep, or the FireFader's two faders in real time) and 'hapsim "
+                 "mock' (the two faders' board) take several (docs/ports.md)")
 #: The top-level keys of a scene with several ports.
 PORTS_TOP_KEYS = ("rate_hz", "integrator", "masses", "links", "devices")
 #: Top-level keys of a one-port scene a scene with several ports refuses, and why.
@@ -186,7 +186,8 @@ _PORTS_REFUSED = {
     "device": "give every port's device under devices: (one device: section is a one-port "
               "scene), not both",
     "excitation": "an excitation of several ports is not built yet ('hapsim run --lockstep' "
-                  "excites each port in turn)",
+                  "excites each port in turn; 'hapsim simulate SCENE --x0 PORT=M --v0 "
+                  "PORT=M/S' starts a port displaced or moving)",
     "audio": "the sound of a scene with several ports is not built yet",
     "safety": "the safety limits of a run on several ports are not built yet (its real-time "
               "run is not built)",
