@@ -110,7 +110,8 @@ _API = ("load_scene", "LoopModel", "check", "render", "calibrate", "stability", 
         "identify", "run", "play", "CheckReport", "RenderReport", "CalibrateReport",
         "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport", "PlayReport",
         "load_scene_nd", "check_nd", "modes_nd", "run_nd", "CheckReportND", "ModesReportND",
-        "RunReportND", "PlayReportND", "simulate", "SimulateReport")
+        "RunReportND", "PlayReportND", "simulate", "SimulateReport", "SimulateReportND",
+        "SimulateReportPorts")
 
 __all__ = ["HapsimError", "ConfigError", "ProtocolError", "DeviceError",
            "UnstableConfigError", "__version__", *_API]

@@ -176,11 +176,36 @@ def test_bad_options_name_their_flag(tmp_path, capsys, argv, key):
     assert code == 2 and len(err) == 1 and f"error: {key}:" in err[0], err
 
 
-def test_port_options_on_a_one_port_scene_and_the_api_on_one_are_refused(tmp_path, capsys):
-    """--x0 on a one-port scene names the flag (its port starts at its excitation's x0);
-    hapsim.simulate of a one-port scene names the command that runs it."""
+def test_port_options_on_a_one_port_scene_are_refused(tmp_path, capsys):
+    """--x0 on a one-port scene names the flag (its port starts at its excitation's x0),
+    and hapsim.simulate's x0 the keyword."""
     assert main(["simulate", "configs/wall.yaml", "-n", "10", "--x0", "a=1", "--out",
                  str(tmp_path / "w.npz")]) == 2
     assert "error: --x0:" in capsys.readouterr().err
-    with pytest.raises(ConfigError, match="'hapsim simulate SCENE' runs a 1-D"):
-        hapsim.simulate(hapsim.load_scene("configs/wall.yaml"), 10)
+    with pytest.raises(ConfigError) as e:
+        hapsim.simulate("configs/wall.yaml", 10, x0=[1.0])
+    assert e.value.key == "x0" and "several ports" in str(e.value)
+
+
+@pytest.mark.parametrize("config, report", [
+    ("configs/oscillator.yaml", "SimulateReport"),
+    ("configs/felt_wall.yaml", "SimulateReport"),
+    ("configs/pantograph_wall.yaml", "SimulateReportND"),
+    ("configs/two_faders.yaml", "SimulateReportPorts"),
+])
+def test_one_function_and_one_command_for_every_kind_of_scene(tmp_path, config, report):
+    """``hapsim.simulate`` takes a 1-D (a felt target calibrated first), a 2-D and a
+    several-port scene, and ``hapsim simulate`` writes the very arrays it returns (the
+    command calls it)."""
+    rep = hapsim.simulate(config, 120)
+    assert type(rep).__name__ == report and rep.exit_code == 0 and rep.steps == 120
+    out = tmp_path / "x.npz"
+    assert main(["simulate", config, "-n", "120", "--out", str(out)]) == 0
+    data = np.load(out)
+    assert np.array_equal(data["time"], rep.time)
+    assert np.array_equal(data["position"], rep.position)
+    assert list(data["names"]) == list(rep.names)
+    if report == "SimulateReport":
+        assert rep.calibrations == ([] if "oscillator" in config
+                                    else [c.to_dict() for c in rep.calibrated])
+        assert "felt_wall" not in config or len(rep.calibrations) == 1

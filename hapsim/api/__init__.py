@@ -29,7 +29,7 @@ function                      result                      command
 :func:`run_nd`                :class:`RunReportND`        ``hapsim run SCENE
                                                           --lockstep`` (n-D)
 :func:`simulate`              :class:`SimulateReport`     ``hapsim simulate SCENE``
-                                                          (several ports)
+                              (``...ND``, ``...Ports``)   (any dimension, ports)
 ============================  ==========================  ===========================
 
 A 2-D or 3-D scene (``dimension: 2`` or ``3``) is read by :func:`load_scene` too (a
@@ -39,8 +39,8 @@ dimension (``check_nd``, ``modes_nd`` and ``run_nd`` are the same computations b
 n-D names); :func:`family` and :func:`identify` are 1-D yet and say so. A scene with
 several ports (``devices:``, a :class:`~hapsim.scene.ScenePorts`) is taken by
 :func:`check`, :func:`run` and :func:`simulate` (its trajectory, each port closed
-through its own device model); :func:`simulate` takes that scene only yet (``hapsim
-simulate`` runs the others).
+through its own device model); :func:`simulate` takes every dimension too (the
+trajectory ``hapsim simulate SCENE --out FILE`` writes).
 
 The package is split by capability, each module holding every dimension's report and
 function: :mod:`~hapsim.api.checking` (check), :mod:`~hapsim.api.loops` (render,
@@ -70,7 +70,8 @@ from hapsim.api.loops import (CalibrateReport, RenderReport, StabilityReport, ca
 from hapsim.api.playing import PLAY_OPTIONS, PlayReport, PlayReportND, play
 from hapsim.api.running import (RunReport, RunReportND, run, run_nd, run_options,
                                 run_report_nd, run_scene_nd, stable_prediction_nd)
-from hapsim.api.simulating import SimulateReport, simulate
+from hapsim.api.simulating import (SimulateReport, SimulateReportND, SimulateReportPorts,
+                                   simulate)
 from hapsim.results import Report
 
 if TYPE_CHECKING:     # bound for readers and checkers; at run time by __getattr__
@@ -82,7 +83,8 @@ __all__ = ["load_scene", "LoopModel", "check", "render", "calibrate", "stability
            "StabilityReport", "FamilyReport", "IdentifyReport", "RunReport", "PlayReport",
            "PLAY_OPTIONS", "Report", "load_scene_nd", "check_nd", "modes_nd", "run_nd",
            "run_report_nd", "run_scene_nd", "stable_prediction_nd", "CheckReportND",
-           "ModesReportND", "RunReportND", "PlayReportND", "simulate", "SimulateReport"]
+           "ModesReportND", "RunReportND", "PlayReportND", "simulate", "SimulateReport",
+           "SimulateReportND", "SimulateReportPorts"]
 
 
 #: Public names provided on first use (PEP 562), with the module that defines them:

@@ -1,6 +1,8 @@
-"""``simulate``: a scene with several ports run offline, each port closed through its own
-device model (issue 30: the same command takes a 1-D, a 2-D, a 3-D and a several-port
-scene; docs/ports.md, 'Offline: simulate')."""
+"""``simulate``: a scene run offline, in any dimension or with several ports (issue 30: the
+same function and command take a 1-D, a 2-D, a 3-D and a several-port scene): the engine
+with its port held (a 1-D, 2-D or 3-D scene, ``hapsim simulate``'s trajectory), or each
+port closed through its own device model (several ports; docs/ports.md, 'Offline:
+simulate')."""
 
 from __future__ import annotations
 
@@ -13,11 +15,74 @@ import numpy as np
 from hapsim.errors import ConfigError
 from hapsim.results import Report
 
-__all__ = ["SimulateReport", "simulate"]
+__all__ = ["SimulateReport", "SimulateReportND", "SimulateReportPorts", "simulate",
+           "run_finite"]
 
 
 @dataclasses.dataclass(frozen=True)
 class SimulateReport(Report):
+    """What ``hapsim simulate SCENE --json`` says of a 1-D scene (without ``out`` and
+    ``seconds``, the command's), with the trajectory beside it.
+
+    Attributes
+    ----------
+    scene : str
+    steps : int
+        Samples simulated: the ones asked, or the step at which a position became
+        non-finite (the rows before it kept).
+    rate_hz : float
+    recorded : int
+        Masses recorded (R).
+    calibrations : list of dict
+        One per felt ``target`` link, calibrated for the scene's device first
+        (:meth:`hapsim.analysis.targets.TargetCalibration.to_dict`).
+    diverged : dict or None
+        ``{"step", "mass", "recorded"}`` of the first non-finite position (for a mass not
+        recorded, the end of the stretch it was found in), else None.
+
+    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R), ``names`` (R,),
+    ``exit_code`` (0, or 1 when diverged).
+    """
+
+    scene: str
+    steps: int
+    rate_hz: float
+    recorded: int
+    calibrations: list
+    diverged: dict | None
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulateReportND(Report):
+    """What ``hapsim simulate SCENE --json`` says of a 2-D or 3-D scene (without ``out``
+    and ``seconds``), with the trajectory beside it.
+
+    Attributes
+    ----------
+    scene : str
+    dimension : int
+        2 or 3 (n).
+    steps : int
+        Samples simulated (as :class:`SimulateReport`'s).
+    rate_hz : float
+    recorded : int
+    diverged : dict or None
+        ``{"step"}``: the first step at which a position is not finite, else None.
+
+    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R, n), ``names`` (R,),
+    ``exit_code``.
+    """
+
+    scene: str
+    dimension: int
+    steps: int
+    rate_hz: float
+    recorded: int
+    diverged: dict | None
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulateReportPorts(Report):
     """What ``hapsim simulate SCENE --json`` says of a scene with several ports, with the
     trajectory beside it.
 
@@ -93,12 +158,17 @@ def _finite(v, key: str) -> float:
     return f
 
 
-def simulate(scene, steps: int, *, record=None, x0=None, v0=None,
-             progress=None) -> SimulateReport:
-    """Run a scene with several ports offline, each port closed through its own device
-    (``hapsim simulate SCENE`` of a ``devices:`` scene).
+def simulate(scene, steps: int, *, record=None, x0=None, v0=None, progress=None):
+    """Run a scene offline (``hapsim simulate SCENE``), in the dimension it declares or
+    with several ports.
 
-    The loop is the lockstep run's (:class:`hapsim.lockstep_ports.LockstepPorts`, the
+    A 1-D scene: its felt targets calibrated for its device first (as ``hapsim run``
+    does), the engine run with the port (if any) held at the excitation's ``x0`` (no
+    device is simulated). A 2-D or 3-D scene: the engine run with the port (if any) held
+    at its rest position. A scene with several ports: each port closed through its own
+    device, below.
+
+    The several ports' loop is the lockstep run's (:class:`hapsim.lockstep_ports.LockstepPorts`, the
     model ``hapsim run SCENE --lockstep`` measures): each sample every port is at its
     device's sample, the links' forces follow the scheme's law
     (docs/design.md, 'The scheme'), and each device (:class:`hapsim.lockstep_ports.PortDevice`: ``m x'' + b0
@@ -107,44 +177,58 @@ def simulate(scene, steps: int, *, record=None, x0=None, v0=None,
 
     Parameters
     ----------
-    scene : hapsim.scene.ScenePorts or str or path-like
-        A scene with several ports (``devices:``; docs/ports.md), or its file.
+    scene : hapsim.scene.Scene, SceneND or ScenePorts, or str or path-like
+        A scene (docs/scenes.md, docs/dimensions.md, docs/ports.md), or its file.
     steps : int
         Samples to simulate, N >= 0.
     record : list of str, optional
         Masses to record, in this order (default: every mass, in file order).
     x0, v0 : dict or sequence, optional
-        Each port's initial displacement [m] and velocity [m/s] (a mapping port name ->
-        value, ports left out at 0, or one value per port in port order); default 0:
-        the ports at rest, as a one-port scene's port without an excitation.
+        Several ports only: each port's initial displacement [m] and velocity [m/s] (a
+        mapping port name -> value, ports left out at 0, or one value per port in port
+        order); default 0: the ports at rest, as a one-port scene's port without an
+        excitation.
     progress : callable, optional
         ``progress(done, steps)`` after each stretch of samples.
 
     Returns
     -------
-    SimulateReport
-        The summary (the command's ``--json`` object) with the arrays beside it.
+    SimulateReport, SimulateReportND or SimulateReportPorts
+        The summary (the command's ``--json`` object but its ``out`` and ``seconds``)
+        with the arrays beside it; ``exit_code`` 1 when a position became non-finite.
 
     Raises
     ------
     ConfigError
-        A scene without several ports (key ``devices``: ``hapsim simulate SCENE`` runs a
-        1-D, 2-D or 3-D one), negative ``steps``, an unknown or repeated ``record`` name,
-        an unknown port or a non-finite value in ``x0``/``v0``, a trajectory too large
-        for memory (key ``steps``), an invalid scene file (file, line, key).
+        Negative ``steps``, an unknown or repeated ``record`` name, ``x0``/``v0`` for a
+        scene without several ports or naming no port, a value that is not a finite
+        number, a trajectory too large for memory (key ``steps``), an invalid scene file
+        (file, line, key).
+    UnrenderableTargetError
+        A 1-D felt target no (K, B) renders (key ``links.NAME.target``).
     """
-    from hapsim.lockstep_ports import LockstepPorts
-    from hapsim.outputs import check_fits
-    from hapsim.scene import ScenePorts, load_scene_ports
+    from hapsim.api.common import load_scene
+    from hapsim.scene import SceneND, ScenePorts
     if isinstance(scene, (str, os.PathLike)):
-        scene = load_scene_ports(scene)
-    if not isinstance(scene, ScenePorts):
-        raise ConfigError("hapsim.simulate takes a scene with several ports (devices:); "
-                          "'hapsim simulate SCENE' runs a 1-D, 2-D or 3-D scene",
-                          file=getattr(scene, "path", None), key="devices")
+        scene = load_scene(scene)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ConfigError(f"must be a whole number >= 0, got {steps!r}", key="steps")
-    N = int(steps)
+    if isinstance(scene, ScenePorts):
+        return _simulate_ports(scene, int(steps), record, x0, v0, progress)
+    for key, given in (("x0", x0), ("v0", v0)):
+        if given is not None:
+            raise ConfigError(f"names a port of a scene with several ports (devices:); a "
+                              f"one-port, 2-D or 3-D scene's port starts at its "
+                              f"excitation's {key} (the scene file)", key=key)
+    if isinstance(scene, SceneND):
+        return _simulate_nd(scene, int(steps), record, progress)
+    return _simulate_line(scene, int(steps), record, progress)
+
+
+def _simulate_ports(scene, N: int, record, x0, v0, progress) -> SimulateReportPorts:
+    """:func:`simulate` of a scene with several ports (its notes)."""
+    from hapsim.lockstep_ports import LockstepPorts
+    from hapsim.outputs import check_fits
     ports = scene.ports
     P = len(ports)
     every = [m.name for m in scene.masses]
@@ -185,7 +269,140 @@ def simulate(scene, steps: int, *, record=None, x0=None, v0=None,
          "rate_hz": scene.rate_hz, "recorded": len(names), "ports": list(ports),
          "delays": [float(dv.delay) for _, dv in scene.devices],
          "x0": start.tolist(), "v0": speed.tolist(), "diverged": bad}
-    return SimulateReport.from_dict(
+    return SimulateReportPorts.from_dict(
         d, time=np.arange(rows) / scene.rate_hz, position=position,
         names=np.array(names), port_position=xs[:rows], port_force=fs[:rows],
         exit_code=0 if bad is None else 1)
+
+
+def _noop(done: int, total: int | None = None) -> None:
+    """A progress callback that says nothing."""
+
+
+def _simulate_line(scene, N: int, record, progress) -> SimulateReport:
+    """:func:`simulate` of a 1-D scene: targets calibrated, the port held at the
+    excitation's ``x0``, :func:`run_finite`."""
+    from hapsim.outputs import check_fits
+    calibrations = []
+    if scene.unresolved_targets:
+        # the one place that turns felt targets into (K, B), as hapsim run and check do
+        from hapsim.analysis.targets import apply_targets
+        scene, calibrations = apply_targets(scene)
+    masses = tuple(m.name for m in scene.masses)
+    names = list(record) if record else list(masses)
+    from hapsim.engine import Engine, mass_indices     # numba: after the input's checks
+    mass_indices(masses, names, key="record")
+    if len(set(names)) != len(names):
+        twice = sorted({n for n in names if names.count(n) > 1})
+        raise ConfigError(f"names a mass twice: {', '.join(twice)}; each column once",
+                          key="record")
+    # time and positions, (N+1) x (R+1) float64, plus the engine's chunk
+    check_fits(8.0 * (N + 1) * (len(names) + 1),
+               f"{N} samples x {len(names)} masses of positions", "steps")
+    engine = Engine(scene)
+    if scene.port is not None:
+        engine.set_port_position(scene.excitation.x0, at_rest=True)
+    t, x, bad = run_finite(engine, N, names, progress or _noop)
+    diverged = (None if bad is None
+                else {"step": bad[0], "mass": bad[1], "recorded": bad[2]})
+    d = {"scene": scene.path, "steps": N if bad is None else bad[0],
+         "rate_hz": scene.rate_hz, "recorded": len(names),
+         "calibrations": [c.to_dict() for c in calibrations], "diverged": diverged}
+    return SimulateReport.from_dict(d, time=t, position=x, names=names,
+                                    calibrated=calibrations, engine=engine,
+                                    exit_code=0 if bad is None else 1)
+
+
+def _simulate_nd(scene, N: int, record, progress) -> SimulateReportND:
+    """:func:`simulate` of a 2-D or 3-D scene: the port (if any) held at its rest
+    position, every step; stopped at the first non-finite position."""
+    from hapsim.engine import Engine
+    from hapsim.outputs import check_fits
+    engine = Engine(scene)
+    names = list(record) if record else list(engine.names)
+    for nm in names:
+        if nm not in engine.names:
+            raise ConfigError(f"no mass named {nm!r}; masses: {', '.join(engine.names)}",
+                              key="record")
+    if len(set(names)) != len(names):
+        raise ConfigError("names a mass twice; each once", key="record")
+    idx = np.array([engine.names.index(nm) for nm in names], dtype=np.int64)
+    n = scene.dimension
+    check_fits(8.0 * (N + 1) * (len(names) * n + 1),
+               f"{N} samples x {len(names)} masses x {n} axes", "steps")
+    pos = np.empty((N + 1, len(names), n))
+    pos[0] = engine.x[:, idx].T
+    rest = None if engine.port is None else engine.x[:, engine.port].copy()
+    bad = None
+    progress = progress or _noop
+    for k in range(1, N + 1):
+        if rest is not None:
+            engine.set_port_position(rest)
+        engine.step()
+        pos[k] = engine.x[:, idx].T
+        if not np.all(np.isfinite(engine.x)):
+            bad = k
+            break
+        if k % 4096 == 0:
+            progress(k)
+    rows = N + 1 if bad is None else bad
+    d = {"scene": scene.path, "dimension": n, "steps": N if bad is None else bad,
+         "rate_hz": scene.rate_hz, "recorded": len(names),
+         "diverged": None if bad is None else {"step": bad}}
+    return SimulateReportND.from_dict(d, time=np.arange(rows) / scene.rate_hz,
+                                      position=pos[:rows], names=names, engine=engine,
+                                      exit_code=0 if bad is None else 1)
+
+
+def run_finite(engine, steps: int, names: list, progress,
+               chunk: int = 65536) -> tuple:
+    """Run a 1-D engine ``steps`` samples in chunks, stopping at the first non-finite
+    position.
+
+    Parameters
+    ----------
+    engine : hapsim.engine.Engine
+        The engine, at its initial state.
+    steps : int
+        Samples to run, >= 0.
+    names : list of str
+        Masses to record (R of them).
+    progress : callable
+        ``progress(done, steps)`` after each chunk.
+    chunk : int
+        Samples per engine call.
+
+    Returns
+    -------
+    time : ndarray, shape (M+1,)
+        Time [s]; M = steps, or the last finite step when the scene diverged.
+    position : ndarray, shape (M+1, R)
+        Positions [m], all finite.
+    bad : (int, str, bool) or None
+        ``(step, mass, recorded)`` of the first non-finite position (any mass of the scene;
+        for a mass not recorded the step is the end of the chunk it was found in), or None.
+    """
+    t = np.empty(steps + 1)
+    x = np.empty((steps + 1, len(names)))
+    t[0:1], x[0:1] = engine.run(0, names)
+    done = 0
+    all_names = list(engine.names)
+    while done < steps:
+        m = min(chunk, steps - done)
+        tc, xc = engine.run(m, names)
+        t[done + 1:done + m + 1], x[done + 1:done + m + 1] = tc[1:], xc[1:]
+        state = engine.x[0]
+        if not (np.isfinite(xc).all() and np.isfinite(state).all()):
+            rows = np.flatnonzero(~np.isfinite(xc[1:]).all(axis=1))
+            if rows.size:
+                step = done + 1 + int(rows[0])
+                col = int(np.flatnonzero(~np.isfinite(xc[1 + rows[0]]))[0])
+                mass = names[col]
+            else:  # an unrecorded mass went first: name it, at the chunk's end
+                step = done + m
+                mass = all_names[int(np.flatnonzero(~np.isfinite(state))[0])]
+                return t[:step], x[:step], (step, mass, False)
+            return t[:step], x[:step], (step, mass, True)
+        done += m
+        progress(done, steps)
+    return t, x, None

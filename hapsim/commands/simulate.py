@@ -15,10 +15,8 @@ from hapsim.outputs import check_fits, check_writable
 from hapsim.progress import Progress
 from hapsim.option_values import Number
 
-if TYPE_CHECKING:       # the annotations' names (numpy and the engine load lazily)
+if TYPE_CHECKING:       # the annotations' names (numpy loads lazily)
     import numpy as np
-
-    from hapsim.engine import Engine
 
 
 def register(sub) -> None:
@@ -147,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     # the memory they need
     masses = tuple(m.name for m in scene.masses)
     names = list(args.record) if args.record else list(masses)
-    from hapsim.engine import Engine, mass_indices     # numba: after the input's checks
+    from hapsim.engine import mass_indices     # numba: after the input's checks
     mass_indices(masses, names, key="--record")
     if len(set(names)) != len(names):
         twice = sorted({n for n in names if names.count(n) > 1})
@@ -157,19 +155,20 @@ def run(args: argparse.Namespace) -> int:
     check_fits(8.0 * (args.steps + 1) * (len(names) + 1),
                f"{args.steps} samples x {len(names)} masses of positions", "--steps")
     _announce_compilation(scene)
-    engine = Engine(scene)
-    if scene.port is not None:
-        engine.set_port_position(scene.excitation.x0, at_rest=True)
+    from hapsim.api.simulating import simulate     # the engine, its port held at x0
     t0 = time.perf_counter()
     try:
         with Progress(args.steps, "simulate", unit="samples") as bar:
-            t, x, bad = _run_finite(engine, args.steps, names, bar.update)
+            rep = simulate(scene, args.steps, record=names, progress=bar.update)
     except ConfigError as exc:
         if exc.key != "record":
             raise
         # the names came from the command line, not from the scene file
         raise ConfigError(exc.reason, key="--record") from None
     elapsed = time.perf_counter() - t0
+    t, x, bad = rep.time, rep.position, rep.diverged
+    if bad is not None:
+        bad = (bad["step"], bad["mass"], bad["recorded"])
     write_trajectory(args.out, t, x, names)
     if bad is not None:
         step, mass, recorded = bad
@@ -266,60 +265,6 @@ def _run_audio(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_finite(engine: Engine, steps: int, names: list[str], progress,
-                chunk: int = 65536) -> tuple[np.ndarray, np.ndarray, tuple[int, str, bool] | None]:
-    """Run ``steps`` samples in chunks, stopping at the first non-finite position.
-
-    Parameters
-    ----------
-    engine : Engine
-        The engine, at its initial state.
-    steps : int
-        Samples to run, >= 0.
-    names : list of str
-        Masses to record (R of them).
-    progress : callable
-        ``progress(done, steps)`` after each chunk.
-    chunk : int
-        Samples per engine call.
-
-    Returns
-    -------
-    time : ndarray, shape (M+1,)
-        Time [s]; M = steps, or the last finite step when the scene diverged.
-    position : ndarray, shape (M+1, R)
-        Positions [m], all finite.
-    bad : (int, str, bool) or None
-        ``(step, mass, recorded)`` of the first non-finite position (any mass of the scene;
-        for a mass not recorded the step is the end of the chunk it was found in), or None.
-    """
-    import numpy as np
-    t = np.empty(steps + 1)
-    x = np.empty((steps + 1, len(names)))
-    t[0:1], x[0:1] = engine.run(0, names)
-    done = 0
-    all_names = list(engine.names)
-    while done < steps:
-        m = min(chunk, steps - done)
-        tc, xc = engine.run(m, names)
-        t[done + 1:done + m + 1], x[done + 1:done + m + 1] = tc[1:], xc[1:]
-        state = engine.x[0]
-        if not (np.isfinite(xc).all() and np.isfinite(state).all()):
-            rows = np.flatnonzero(~np.isfinite(xc[1:]).all(axis=1))
-            if rows.size:
-                step = done + 1 + int(rows[0])
-                col = int(np.flatnonzero(~np.isfinite(xc[1 + rows[0]]))[0])
-                mass = names[col]
-            else:  # an unrecorded mass went first: name it, at the chunk's end
-                step = done + m
-                mass = all_names[int(np.flatnonzero(~np.isfinite(state))[0])]
-                return t[:step], x[:step], (step, mass, False)
-            return t[:step], x[:step], (step, mass, True)
-        done += m
-        progress(done, steps)
-    return t, x, None
-
-
 def write_trajectory(path: str, time_s: np.ndarray, position: np.ndarray, names: list[str]) -> None:
     """Write a trajectory atomically (``path.partial``, then renamed to ``path``).
 
@@ -374,8 +319,7 @@ def _run_nd(args) -> int:
         ``--record`` name, an invalid scene (file, line, key).
     """
     import numpy as np
-    from hapsim.engine import Engine
-    from hapsim.outputs import check_fits, check_writable
+    from hapsim.outputs import check_writable
     from hapsim.progress import Progress
     from hapsim.scene import load_scene_nd
     if args.audio is not None:
@@ -389,38 +333,19 @@ def _run_nd(args) -> int:
                           f"(N+1, R, n), names), got {args.out!r}", key="--out")
     check_writable(args.out, "--out")
     scene = load_scene_nd(args.scene)
-    engine = Engine(scene)
-    names = list(args.record) if args.record else list(engine.names)
-    for nm in names:
-        if nm not in engine.names:
-            raise ConfigError(f"no mass named {nm!r}; masses: {', '.join(engine.names)}",
-                              key="--record")
-    if len(set(names)) != len(names):
-        raise ConfigError("names a mass twice; each once", key="--record")
-    idx = np.array([engine.names.index(nm) for nm in names], dtype=np.int64)
-    n = scene.dimension
-    check_fits(8.0 * (args.steps + 1) * (len(names) * n + 1),
-               f"{args.steps} samples x {len(names)} masses x {n} axes", "--steps")
-    pos = np.empty((args.steps + 1, len(names), n))
-    pos[0] = engine.x[:, idx].T
-    rest = None if engine.port is None else engine.x[:, engine.port].copy()
-    bad = None
+    from hapsim.api.simulating import simulate     # the engine, its port held at rest
     t0 = time.perf_counter()
-    with Progress(args.steps, "simulate", unit="samples") as bar:
-        for k in range(1, args.steps + 1):
-            if rest is not None:
-                engine.set_port_position(rest)
-            engine.step()
-            pos[k] = engine.x[:, idx].T
-            if not np.all(np.isfinite(engine.x)):
-                bad = k
-                break
-            if k % 4096 == 0:
-                bar.update(k)
+    try:
+        with Progress(args.steps, "simulate", unit="samples") as bar:
+            rep = simulate(scene, args.steps, record=args.record, progress=bar.update)
+    except ConfigError as exc:
+        if exc.key not in ("record", "steps"):
+            raise
+        raise ConfigError(exc.reason, key=f"--{exc.key}") from None
     elapsed = time.perf_counter() - t0
-    rows = args.steps + 1 if bad is None else bad
-    t = np.arange(rows) / scene.rate_hz
-    np.savez(args.out, time=t, position=pos[:rows], names=np.array(names))
+    names, n = rep.names, scene.dimension
+    bad = None if rep.diverged is None else rep.diverged["step"]
+    np.savez(args.out, time=rep.time, position=rep.position, names=np.array(names))
     summary = {"scene": args.scene, "out": args.out, "dimension": n,
                "steps": args.steps if bad is None else bad, "rate_hz": scene.rate_hz,
                "recorded": len(names), "seconds": elapsed}
