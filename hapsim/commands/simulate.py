@@ -34,7 +34,8 @@ def register(sub) -> None:
             "Run the mass-interaction scene offline with the CORDIS-ANIMA scheme and write "
             "the positions of the recorded masses. No device is involved: the port, if any, "
             "is held at the excitation's initial displacement x0 (so a plucking port starts "
-            "pressed into the string). Links given as a felt target {k, b} are first "
+            "pressed into the string); a scene with several ports (devices:) closes each "
+            "port through its own device model instead (below). Links given as a felt target {k, b} are first "
             "calibrated for the scene's device, as hapsim run does, and the (K, B) used are "
             "printed."),
         epilog=(
@@ -88,11 +89,15 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``hapsim simulate``.
 
+    The trajectory is :func:`hapsim.api.simulate`'s (a 2-D or 3-D scene: :func:`_run_nd`;
+    several ports: :func:`_run_ports`).
+
     Parameters
     ----------
     args : argparse.Namespace
         Parsed options: ``scene`` (path), ``steps`` (N >= 0), ``out`` (``.npz`` or
-        ``.csv``), ``record`` (mass names or None for all), ``json`` (bool).
+        ``.csv``), ``record`` (mass names or None for all), ``x0``/``v0`` (several ports'
+        ``PORT=VALUE`` items, refused otherwise), ``json`` (bool).
 
     Returns
     -------
@@ -109,8 +114,9 @@ def run(args: argparse.Namespace) -> int:
     ConfigError
         Unknown output extension (key ``--out``), negative ``--steps``, an unknown mass
         in ``--record`` (key ``--record``, with the valid names), an invalid scene file
-        (file, line, key), or a target no (K, B) renders
-        (:class:`~hapsim.errors.UnrenderableTargetError`, key ``links.NAME.target``).
+        (file, line, key), ``--x0``/``--v0`` on a scene without several ports, or a
+        target no (K, B) renders (:class:`~hapsim.errors.UnrenderableTargetError`, key
+        ``links.NAME.target``).
     """
     from hapsim.blas import preload_numba_blas
     from hapsim.scene import load_scene, scene_dimension, scene_has_ports
@@ -350,16 +356,27 @@ def _run_nd(args) -> int:
                "steps": args.steps if bad is None else bad, "rate_hz": scene.rate_hz,
                "recorded": len(names), "seconds": elapsed}
     if bad is not None:
-        summary.update(diverged={"step": bad}, exit=1)
-        print(f"hapsim simulate: the scene diverged: a position is not finite at step {bad} "
-              f"(t = {bad / scene.rate_hz:.6g} s); wrote the {bad} rows before it to "
-              f"{args.out}", file=sys.stderr)
+        summary["diverged"] = {"step": bad}
+    return _outcome(args, summary, None if bad is None else (
+        f"hapsim simulate: the scene diverged: a position is not finite at step {bad} "
+        f"(t = {bad / scene.rate_hz:.6g} s); wrote the {bad} rows before it to "
+        f"{args.out}"),
+        f"wrote {args.out}: {args.steps} samples x {len(names)} masses x {n} axes "
+        f"({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
+
+
+def _outcome(args, summary: dict, diverged: str | None, written: str) -> int:
+    """Say how a trajectory ended: ``diverged`` (the message, or None) on stderr, with
+    ``exit: 1`` added to ``summary``; then the summary as one JSON object with ``--json``,
+    else ``written`` when it did not diverge. Returns the exit code (0, or 1 diverged)."""
+    if diverged is not None:
+        summary["exit"] = 1
+        print(diverged, file=sys.stderr)
     if args.json:
         print(json.dumps(summary))
-    elif bad is None:
-        print(f"wrote {args.out}: {args.steps} samples x {len(names)} masses x {n} axes "
-              f"({args.steps / scene.rate_hz:g} s simulated in {elapsed:.3f} s)")
-    return 0 if bad is None else 1
+    elif diverged is None:
+        print(written)
+    return 0 if diverged is None else 1
 
 
 def _run_audio_nd(args) -> int:
@@ -485,17 +502,12 @@ def _run_ports(args) -> int:
     os.replace(tmp, args.out)
     summary = {**rep.to_dict(), "out": args.out, "seconds": elapsed}
     bad = rep.diverged
-    if bad is not None:
-        summary["exit"] = 1
-        print(f"hapsim simulate: the loop diverged: port {bad['port']!r}'s position is not "
-              f"finite at step {bad['step']} (t = {bad['step'] / scene.rate_hz:.6g} s; "
-              f"hapsim check {args.scene}); wrote the {bad['step']} rows before it to "
-              f"{args.out}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(summary))
-    elif bad is None:
-        print(f"wrote {args.out}: {args.steps} samples x {len(rep.names)} masses, "
-              f"{len(rep.ports)} ports each closed through its own device (delays "
-              f"{', '.join(f'{d:g}' for d in rep.delays)}; {args.steps / scene.rate_hz:g} s "
-              f"simulated in {elapsed:.3f} s)")
-    return rep.exit_code
+    return _outcome(args, summary, None if bad is None else (
+        f"hapsim simulate: the loop diverged: port {bad['port']!r}'s position is not "
+        f"finite at step {bad['step']} (t = {bad['step'] / scene.rate_hz:.6g} s; "
+        f"hapsim check {args.scene}); wrote the {bad['step']} rows before it to "
+        f"{args.out}"),
+        f"wrote {args.out}: {args.steps} samples x {len(rep.names)} masses, "
+        f"{len(rep.ports)} ports each closed through its own device (delays "
+        f"{', '.join(f'{d:g}' for d in rep.delays)}; {args.steps / scene.rate_hz:g} s "
+        f"simulated in {elapsed:.3f} s)")
