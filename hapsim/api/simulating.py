@@ -40,7 +40,7 @@ class SimulateReport(Report):
         ``{"step", "mass", "recorded"}`` of the first non-finite position (for a mass not
         recorded, the end of the stretch it was found in), else None.
 
-    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R), ``names`` (R,),
+    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R), ``names`` (list of R str),
     ``exit_code`` (0, or 1 when diverged).
     """
 
@@ -69,7 +69,7 @@ class SimulateReportND(Report):
     diverged : dict or None
         ``{"step"}``: the first step at which a position is not finite, else None.
 
-    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R, n), ``names`` (R,),
+    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R, n), ``names`` (list of R str),
     ``exit_code``.
     """
 
@@ -108,7 +108,7 @@ class SimulateReportPorts(Report):
         (the loop is unstable and the port's device has no force limit), else None.
 
     Other attributes (arrays, not in the ``--json`` object): ``time`` [s] shape (M+1,),
-    ``position`` [m] shape (M+1, R, 1), ``names`` shape (R,), ``port_position`` [m] and
+    ``position`` [m] shape (M+1, R, 1), ``names`` (list of R str), ``port_position`` [m] and
     ``port_force`` [N] shape (M+1, P) (row ``k``: the port's sample at ``t = k T`` and the
     force its device took from it, applied ``delay`` periods later), ``exit_code`` (0, or
     1 when diverged); ``M = steps``.
@@ -271,7 +271,7 @@ def _simulate_ports(scene, N: int, record, x0, v0, progress) -> SimulateReportPo
          "x0": start.tolist(), "v0": speed.tolist(), "diverged": bad}
     return SimulateReportPorts.from_dict(
         d, time=np.arange(rows) / scene.rate_hz, position=position,
-        names=np.array(names), port_position=xs[:rows], port_force=fs[:rows],
+        names=names, port_position=xs[:rows], port_force=fs[:rows],
         exit_code=0 if bad is None else 1)
 
 

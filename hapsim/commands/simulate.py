@@ -496,7 +496,7 @@ def _run_ports(args) -> int:
     elapsed = time.perf_counter() - t0
     tmp = f"{args.out}.partial"
     with open(tmp, "wb") as fh:
-        np.savez(fh, time=rep.time, position=rep.position, names=rep.names,
+        np.savez(fh, time=rep.time, position=rep.position, names=np.array(rep.names),
                  ports=np.array(rep.ports), port_position=rep.port_position,
                  port_force=rep.port_force)
     os.replace(tmp, args.out)
