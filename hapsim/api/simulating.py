@@ -40,8 +40,8 @@ class SimulateReport(Report):
         ``{"step", "mass", "recorded"}`` of the first non-finite position (for a mass not
         recorded, the end of the stretch it was found in), else None.
 
-    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R), ``names`` (list of R str),
-    ``exit_code`` (0, or 1 when diverged).
+    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R), ``names`` (list
+    of R str), ``exit_code`` (0, or 1 when diverged).
     """
 
     scene: str
@@ -69,8 +69,8 @@ class SimulateReportND(Report):
     diverged : dict or None
         ``{"step"}``: the first step at which a position is not finite, else None.
 
-    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R, n), ``names`` (list of R str),
-    ``exit_code``.
+    Other attributes: ``time`` [s] (M+1,), ``position`` [m] (M+1, R, n), ``names``
+    (list of R str), ``exit_code``.
     """
 
     scene: str
