@@ -82,13 +82,18 @@ RANK_TOL = 1e-12
 #: a few samples, so some of the fit's poles are set by the readings' errors alone and may
 #: lie anywhere, outside the unit circle too (issue 29: a noise pair moved to
 #: ``|z| = 1.016`` near the Nyquist frequency by errors within half a count outranked the
-#: true rendered pair by ``|z|`` and made the 2DIY's box term 5.6e3 relative). Measured on
-#: 85 records of the 2DIY's wall (``configs/pantograph_wall.yaml``, 2^22 counts per
-#: revolution, on the wall clock beside busy processes and on a simulated clock with write
-#: jitter): the noise pairs' amplitudes at most 1.42 times the readings' bound at the
-#: handle, the rendered pairs' at least 73 times (250 and more where the records were not
-#: cut to a few rows): 10 leaves a factor 7 either side.
-MODE_FLOOR = 10.0
+#: true rendered pair by ``|z|`` and made the 2DIY's box term 5.6e3 relative). Measured,
+#: in units of the bound at the handle (half a count through ``|J|``, twice in a
+#: difference): on 85 records of the 2DIY's wall (``configs/pantograph_wall.yaml``, 2^22
+#: counts per revolution, on the wall clock beside busy processes and on a simulated
+#: clock with write jitter) the noise pairs at most 1.42, the rendered pairs at least 73;
+#: on the seeded loops of ``tests/test_wire_box.py`` at each entry's worst errors (25
+#: rows, a = 2e-5 m, 2^20 to 2^22 counts) the noise pairs at most 0.60, the loop's pairs
+#: at least 9.2 (150 rows at 1e-4 m: 0.18 and 27). 3.5 leaves a factor 2.5 over the
+#: largest noise pair and 2.6 under the smallest pair of the loop. A pair of the loop
+#: under it leaves fewer than n pairs: no felt matrices, "not measurable", never a wrong
+#: statement.
+MODE_FLOOR = 3.5
 
 
 def mode_amplitudes(z, V, states, n: int) -> np.ndarray:
