@@ -181,6 +181,14 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
         directions=felt_directions(fit, chk), excluded=excluded)
+    if fit["felt_stiffness"] is None and short is None:
+        # fewer than n of the fit's pairs above the floor (hapsim.analysis.pencil.
+        # MODE_FLOOR): the records do not carry every rendered mode above their errors
+        v["reason"] = (f"the records give no felt matrices: fewer than {n} of the fit's "
+                       f"pairs stand above {MODE_FLOOR:g} times the readings' bound at the "
+                       f"handle ({floor / MODE_FLOOR:.3g} m) in the records: the excitation "
+                       f"{amplitude:g} m is too small for the wire's resolution, or the "
+                       "stretches are cut too short")
     if any(h is not None for h in holds):
         # the largest hold off a period among the rows whose errors were counted
         kept = (own if own is not None else
