@@ -386,7 +386,8 @@ def state_responses(scene, samples: int, *, size: float = 1e-9) -> tuple:
 
 def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
                   mass=None, responses=None, period=None, box: bool = False,
-                  settle: float | None = None, sensitivity=None) -> dict:
+                  settle: float | None = None, sensitivity=None,
+                  floor: float | None = None) -> dict:
     """The wire's term of the stated uncertainty: the first-order worst case of the felt
     matrices' change, as a whole and along each principal direction, under bounded
     errors of the readings and of the forces, and changes of the device's state.
@@ -464,6 +465,10 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
         ``mass``, period, ``order`` and ``usable``, already computed (not None): taken
         at the records instead of computing it again (a caller stating several error
         kinds of the same records, :func:`hapsim.emulated.falcon_felt.quantiser_terms`).
+    floor : float, optional
+        :func:`hapsim.analysis.pencil.fit_felt_nd`'s: the fit's pairs the records do not
+        determine never taken for rendered ones, at the records and at every point of
+        the box (the fit the measurement states must be made with the same ``floor``).
 
     Returns
     -------
@@ -513,7 +518,7 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
     def terms_at(d, sens=None):
         if sens is None:
             sens = felt_sensitivity_nd(d, mass, scene.period if period is None else period,
-                                       order, usable=usable)
+                                       order, usable=usable, floor=floor)
         if sens is None:
             return None
         # the rest record's errors enter each difference

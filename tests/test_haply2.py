@@ -313,6 +313,13 @@ def test_verdict_over_amplitudes_and_encoders(bits, quanta, gen, name):
     dev, w, lin = r["deviation"], r["wire"], r["bound"].to_dict()
     assert r["verdict"] in ("within", "partly within", "not measurable"), \
         (a, bits, r["reason"], dev)
+    if r["measured"]["felt_stiffness"] is None:
+        # a rendered mode the records do not carry above their errors (a pair within
+        # hapsim.analysis.pencil.MODE_FLOOR of the bound: 20 reading steps at 2^19):
+        # no felt matrices, nothing stated, and the excitation named
+        assert r["verdict"] == "not measurable" and "too small" in r["reason"], r["reason"]
+        assert r["statements"] == [] and r["uncertainty"] is None
+        return
     assert len(r["statements"]) == 6
     for s in r["statements"]:
         measurable = s["wire"] is not None and s["wire"] <= MEASURABLE_WIRE

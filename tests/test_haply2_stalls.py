@@ -435,13 +435,21 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
     elif late:
         assert r["verdict"] != "differs", r["verdict"]
         assert r["within"] is True or any(w in r["reason"] for w in (
-            "own time", "too few", "depth", "clamp", "may move")), r["reason"]
+            "own time", "too few", "depth", "clamp", "may move",
+            "no felt matrices")), r["reason"]
     elif r["verdict"] == "not measurable":
         # kept in time by the counters above, and yet the readings' error box may move a
         # statement beyond the measurable (its term 3e4-1.4e5 relative on some records
-        # beside two busy processes: 4 of 12 runs of this test on d6cb5c5, 1 of 6 now;
-        # its cause not found yet): said so, with the box named, never "differs"
-        assert "may move" in r["reason"] and "box" in r["reason"], r["reason"]
+        # beside two busy processes: 4 of 12 runs of this test on d6cb5c5, 1 of 6 on
+        # fa4b2ee). Its cause, found: the fit took a noise pair for a rendered one where
+        # its |z| outranked a pair of the loop (hapsim.analysis.wire_box, module notes),
+        # now never (pencil.MODE_FLOOR). What stays is real: these counters do not count
+        # the holds cut more than half a period off (write_holds.HOLD_CUT_PERIODS), and
+        # stretches cut short may not determine a rendered pair within the errors (the
+        # box's term then inf; at the records already: no felt matrices): said so, with
+        # the box named, never "differs"
+        assert ("may move" in r["reason"] and "box" in r["reason"]
+                or "no felt matrices" in r["reason"]), r["reason"]
     else:
         assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
             (r["reason"], r["deviation"])

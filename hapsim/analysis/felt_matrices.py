@@ -312,6 +312,15 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                       f"stiffness by {wk:.2g} and the damping by {wd:.2g} (relative, "
                       f"{how}), above {limit:g}, and no principal direction is measurable "
                       "either: fewer missing replies (or a larger excitation) are needed")
+        elif not math.isfinite(max(wk, wd)) and how != "first order" and first is None:
+            # a point of the box gave no felt matrices (hapsim.analysis.wire_box: fewer
+            # than n pairs of the fit above the records' errors there)
+            reason = (f"the readings' rounding alone may move the felt stiffness by "
+                      f"{wk:.2g} and the damping by {wd:.2g} (relative, {how}), "
+                      f"above {limit:g}, and no principal direction is measurable either: "
+                      "within the errors' box the records do not determine every rendered "
+                      "pair (stretches cut short, or an excitation "
+                      f"{bound.amplitude:g} m too small for the wire's resolution)")
         else:
             reason = (f"the readings' rounding alone may move the felt stiffness by "
                       f"{wk:.2g} and the damping by {wd:.2g} (relative, {how}), "

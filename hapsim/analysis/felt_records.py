@@ -37,7 +37,8 @@ __all__ = ["wire_terms_records", "within_excursion", "window_rows"]
 _KINDS = ("reading", "force", "position", "velocity")
 
 
-def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> dict:
+def wire_terms_records(scene, records, chk, order: int, errors, *, usable,
+                       floor: float | None = None) -> dict:
     """The wire's term of the felt matrices fitted on records cut at their disturbances,
     each record on its own stretches about a common equilibrium (module notes): as
     :func:`hapsim.lockstep.wire_terms_nd` (the first-order worst case, Hoelder's
@@ -67,6 +68,9 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
         every record.
     usable : sequence of array_like of bool, shape (N,)
         Per record, the rows of its undisturbed stretches, as fitted.
+    floor : float, optional
+        :func:`hapsim.lockstep.wire_terms_nd`'s (the pairs the records do not determine
+        never taken for rendered ones).
 
     Returns
     -------
@@ -109,7 +113,7 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable) -> di
 
     def terms_at(x):
         sens = felt_sensitivity_nd(x, scene.device.mass, scene.period, order,
-                                   usable=usable, offset=True)
+                                   usable=usable, offset=True, floor=floor)
         if sens is None:
             return None
         return statement_terms(sens, E, plan)

@@ -60,7 +60,8 @@ from hapsim.errors import ConfigError
 
 __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "thin_pencil", "RANK_TOL",
            "fit_felt_nd", "felt_sensitivity_nd", "worst_case_nd",
-           "filtered_sensitivity_nd", "companion", "ar_poles"]
+           "filtered_sensitivity_nd", "companion", "ar_poles", "mode_amplitudes",
+           "MODE_FLOOR"]
 
 
 #: Singular values of the Hankel matrix below ``RANK_TOL`` times the largest are round-off:
@@ -72,6 +73,89 @@ __all__ = ["pencil_poles", "fit_modes", "fit_rendered", "thin_pencil", "RANK_TOL
 #: ``d + 3``: the extra singular vectors are noise and their pencil eigenvalues spurious
 #: poles, some outside the unit circle, taken for the least damped pair.
 RANK_TOL = 1e-12
+
+#: The factor over the records' error bound [-] at or below which a fitted mode's size in
+#: the records (its RMS amplitude at the handle over the rows fitted,
+#: :func:`mode_amplitudes`) is taken as not determined by them: such a pair is never taken
+#: for a rendered one (:func:`fit_felt_nd`'s ``floor``). A vector prediction of order
+#: ``p`` has ``n p`` poles; the loop's fast ones (the hold's, the delay's) die out within
+#: a few samples, so some of the fit's poles are set by the readings' errors alone and may
+#: lie anywhere, outside the unit circle too (issue 29: a noise pair moved to
+#: ``|z| = 1.016`` near the Nyquist frequency by errors within half a count outranked the
+#: true rendered pair by ``|z|`` and made the 2DIY's box term 5.6e3 relative). Measured,
+#: in units of the bound at the handle (half a count through ``|J|``, twice in a
+#: difference): on 85 records of the 2DIY's wall (``configs/pantograph_wall.yaml``, 2^22
+#: counts per revolution, on the wall clock beside busy processes and on a simulated
+#: clock with write jitter) the noise pairs at most 1.42, the rendered pairs at least 73;
+#: on the seeded loops of ``tests/test_wire_box.py`` at each entry's worst errors (25
+#: rows, a = 2e-5 m, 2^20 to 2^22 counts) the noise pairs at most 0.60, the loop's pairs
+#: at least 9.2 (150 rows at 1e-4 m: 0.18 and 27). 3.5 leaves a factor 2.5 over the
+#: largest noise pair and 2.6 under the smallest pair of the loop. A pair of the loop
+#: under it leaves fewer than n pairs: no felt matrices, "not measurable", never a wrong
+#: statement.
+MODE_FLOOR = 3.5
+
+
+def mode_amplitudes(z, V, states, n: int) -> np.ndarray:
+    """Each mode's size in the records: the RMS over the rows fitted of its modal
+    coordinate times the norm of its handle shape [m].
+
+    The states ``s_k`` (the lagged samples of each equation, about the equilibrium) are
+    decomposed on the eigenvectors, ``s_k = sum_i w_ik v_i``; mode ``i`` contributes
+    ``w_ik v_i[:n]`` to the handle's position, whose RMS over ``k`` is returned: the
+    modal amplitude a mode indicator of the eigensystem realisation ranks modes by
+    (J.-N. Juang and R. S. Pappa, "An eigensystem realization algorithm for modal
+    parameter identification and model reduction", J. Guidance 8(5), 1985, Sec. IV:
+    noise modes carry no amplitude the records hold above their errors).
+
+    Parameters
+    ----------
+    z : ndarray of complex, shape (B, N)
+        The poles of each of ``B`` companion matrices (unused but for the shape).
+    V : ndarray of complex, shape (B, N, N)
+        Their eigenvectors (columns), the handle's ``n`` coordinates first.
+    states : ndarray, shape (K, N)
+        The ``K`` states of the rows fitted [m].
+    n : int
+        Handle coordinates.
+
+    Returns
+    -------
+    ndarray, shape (B, N)
+        [m]; a matrix whose eigenvectors are singular gets inf (every mode kept).
+    """
+    V = np.asarray(V)
+    X = np.asarray(states, float).T
+    out = np.full(np.asarray(z).shape, np.inf)
+    for b in range(V.shape[0]):
+        try:
+            W = np.linalg.solve(V[b], X)                         # (N, K)
+        except np.linalg.LinAlgError:
+            continue
+        out[b] = np.linalg.norm(V[b, :n], axis=0) * np.sqrt(np.mean(np.abs(W) ** 2, axis=1))
+    return out
+
+
+def _determined(states, n: int, floor):
+    """``keep`` for :func:`hapsim.analysis.ths.rendered_pairs_of`: the poles whose
+    :func:`mode_amplitudes` exceed ``floor`` [m] (None: every pole)."""
+    if floor is None:
+        return None
+    return lambda z, V: mode_amplitudes(z, V, states, n) > float(floor)
+
+
+def _states(R, Ca, n: int, p: int, offset: bool):
+    """The fitted rows' states about the fitted equilibrium (the regression's lagged
+    samples, less the equilibrium relative to the reference with ``offset``)."""
+    X = R[:, :n * p]
+    if not offset:
+        return X
+    A = np.eye(n) - Ca[:n * p].reshape(p, n, n).sum(axis=0).T
+    try:
+        c = np.linalg.solve(A, Ca[n * p])
+    except np.linalg.LinAlgError:
+        return X
+    return X - np.tile(c, p)
 
 
 def _validate(y, period: float, order: int, offset: bool, pencil: int | None):
@@ -345,7 +429,7 @@ def ar_poles(record, order: int) -> np.ndarray:
 
 
 def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
-                offset: bool = False) -> dict:
+                offset: bool = False, floor: float | None = None) -> dict:
     """Measured poles and felt matrices from free responses at the handle.
 
     Parameters
@@ -371,6 +455,12 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
         notes: the affine prediction, one more unknown per coordinate): e.g. every
         record of a run taken whole, the record from rest among them, instead of the
         differences against that record. Default False: free responses about 0.
+    floor : float, optional
+        The records' error bound times :data:`MODE_FLOOR` [m]: a complex pair whose size
+        in the records (:func:`mode_amplitudes`) is at most this is not determined by
+        them and never taken for a rendered pair (fewer than n pairs above it: no felt
+        matrices). Default: every pair a candidate, largest ``|z|`` first (exact
+        records).
 
     Returns
     -------
@@ -409,7 +499,8 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
     residual = float(np.max(np.abs(R @ Ca - Y))) / scale
     comp = companion(C, n, p)
     from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of
-    zr, U, poles = rendered_pairs_of(comp, n, period)
+    zr, U, poles = rendered_pairs_of(comp, n, period, keep=_determined(
+        _states(R, Ca, n, p, offset), n, floor))
     out = {"poles": poles, "rendered_poles": zr, "felt_stiffness": None,
            "felt_damping": None, "residual": residual, "rank": int(rank)}
     if offset:
@@ -427,15 +518,15 @@ def fit_felt_nd(records, mass, period: float, order: int, *, usable=None,
     return out
 
 
-def _felt_of(C, n: int, p: int, mass, period: float) -> list:
+def _felt_of(C, n: int, p: int, mass, period: float, keep=None) -> list:
     """The felt matrices ``(k, b)`` of each of a stack of prediction coefficients ``C``
     (shape (B, n p, n)), or None where fewer than n rendered pairs: one eigen
     decomposition call for the stack (:func:`hapsim.analysis.ths.rendered_pairs_of_many`,
-    each the same bits as alone)."""
+    each the same bits as alone; ``keep`` its)."""
     from hapsim.analysis.ths import continuous_poles, felt_matrices, rendered_pairs_of_many
     M = np.asarray(mass, float)
     out = []
-    for zr, U, _ in rendered_pairs_of_many(companion(C, n, p), n, period):
+    for zr, U, _ in rendered_pairs_of_many(companion(C, n, p), n, period, keep=keep):
         try:
             out.append(None if zr.size != n else felt_matrices(
                 M, continuous_poles(zr.astype(complex), period), U))
@@ -445,7 +536,8 @@ def _felt_of(C, n: int, p: int, mass, period: float) -> list:
 
 
 def felt_sensitivity_nd(records, mass, period: float, order: int, *,
-                        step: float = 1e-7, usable=None, offset: bool = False) -> list | None:
+                        step: float = 1e-7, usable=None, offset: bool = False,
+                        floor: float | None = None) -> list | None:
     """First-order sensitivity of the measured felt matrices to each sample of the records.
 
     The fit (:func:`fit_felt_nd`) is ``C = R^+ Y`` (``R`` the lagged samples, ``Y`` the
@@ -473,6 +565,10 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
         ``R^+ Y`` with ``R`` holding the column of ones (an error of the samples does not
         enter that column: ``eps[k]`` as above, ``dC`` the first ``n p`` rows of
         ``R^+ eps``).
+    floor : float, optional
+        As :func:`fit_felt_nd`: the pairs taken for rendered ones, at ``C`` and at each
+        difference's point, only those whose size in the records (about the equilibrium
+        fitted at ``C``) exceeds it.
 
     Returns
     -------
@@ -492,8 +588,10 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
     p = int(order)
     rows, rhs, eqs, _ = _regression(recs, p, usable, offset)
     R, Y = np.array(rows), np.array(rhs)
-    P = np.linalg.pinv(R)[:n * p]                           # (n p, rows)
+    Pa = np.linalg.pinv(R)
+    P = Pa[:n * p]                                          # (n p, rows)
     C = P @ Y
+    keep = _determined(_states(R, Pa @ Y, n, p, offset), n, floor)
     h = step * max(float(np.max(np.abs(C))), 1.0)
     # C itself, then C with each coefficient (a, c) moved by +h and by -h: one stack
     cs = np.repeat(C[None], 1 + 2 * n * p * n, axis=0)
@@ -501,7 +599,7 @@ def felt_sensitivity_nd(records, mass, period: float, order: int, *,
     k_ = 1 + 2 * np.arange(n * p * n)
     cs[k_, a_, c_] = C[a_, c_] + h
     cs[k_ + 1, a_, c_] = C[a_, c_] - h
-    felt = _felt_of(cs, n, p, mass, period)
+    felt = _felt_of(cs, n, p, mass, period, keep)
     if any(f is None for f in felt):
         return None
     G = np.empty((2, n, n, n * p, n))

@@ -26,6 +26,29 @@ computed exactly; it is sampled at the records and at each statement's worst err
 the first-order map at the records, ``u_o = bounds sign((s * H)[o])`` (the point where
 that statement's change is largest to first order), and the largest, times
 :data:`BOX_MARGIN`, is stated: a sample of the supremum is no bound on it.
+
+The fit's branch (issue 29: the term 3e4 to 1.4e5 relative on the 2DIY's wall-clock
+records kept in time). The fit renders the first ``n`` complex pairs of its ``n p``
+poles; those of the loop's fast modes carry nothing the records hold above their errors
+(their RMS amplitude at the handle at most 1.42 times the readings' bound on the 2DIY's
+records, :func:`hapsim.analysis.pencil.mode_amplitudes`), so the errors alone place them,
+anywhere. Taken by ``|z|`` alone, such a noise pair was rendered wherever it outranked a
+pair of the loop, and the felt matrices there were no mode's: captured beside two busy
+processes (records cut at host stalls to 18-39 rows a record), at the records the fit was
+right (the first-order term 0.15) while at one entry's worst errors in the box (moved at
+most 2.4e-7 m) a noise pair went to ``z = -0.975 + 0.284j`` (``|z| = 1.016``, near the
+Nyquist frequency) and outranked the slow pair (``|z| = 0.996``): the felt stiffness's
+(2, 2) entry there 2.8e5 N/m against 1.2e3, a term of 5.6e3; in another run the slow pair
+was missing from the stretches at the records already (three singular values of the
+regression above its noise, not four: the first-order term 4.5e4). Neither the
+regression's conditioning, the write-timing correction's ``H`` nor the units: the term was
+the real sensitivity of a selection that jumps. Now a pair whose size in the records is
+within :data:`hapsim.analysis.pencil.MODE_FLOOR` times the readings' bound is never
+rendered (``floor``, at the records and at every point sampled): the first run's term
+falls to 0.62 (the stiffness along one direction stated), and where a point of the box
+leaves fewer than ``n`` pairs of the loop (a pair turned real, 1.052 and 0.899, or below
+the floor) nothing is stated (term inf): the records, within their errors, do not
+determine that pair, which is what the cut stretches of a loaded host give.
 """
 
 from __future__ import annotations

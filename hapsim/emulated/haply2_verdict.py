@@ -74,7 +74,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         the verdict is "not measurable" with the reason (the whole records' fit reported,
         nothing stated of it).
     """
-    from hapsim.analysis.pencil import fit_felt_nd
+    from hapsim.analysis.pencil import MODE_FLOOR, fit_felt_nd
     from hapsim.analysis.felt_records import window_rows, wire_terms_records, within_excursion
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.drivers.haply import MAX_TORQUE
@@ -106,12 +106,23 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         d = int(math.ceil(float(scene.device.delay)))
         own = within_excursion(scene, [r["position"] - x_eq for r in runs],
                                 [_without_estimates(r, N, d) for r in runs], amplitude)
+    # the readings' rounding (half a count and the float32 degrees sent) per joint [rad]
+    ang = np.max([np.nanmax(np.abs(r["joints"]), axis=0) for r in runs], axis=0)
+    ulp = np.radians(np.spacing(np.float32(np.degrees(ang))).astype(float))
+    delta = math.pi / float(resolution) + ulp                 # [rad] per joint
+    # the fit's pairs the records do not determine (their size in the records within
+    # MODE_FLOOR of the readings' bound at the handle, twice that in a difference) are
+    # never taken for rendered ones, at the records nor at any point of the error box
+    # (issue 29: a noise pair moved near the Nyquist frequency by errors within half a
+    # count, taken for a rendered pair, made the box's term 3e4-1.4e5 relative)
+    floor = MODE_FLOOR * float(np.linalg.norm(np.abs(J) @ delta)) * (1 if own is not None
+                                                                      else 2)
     try:
         if own is not None:
             fit = fit_felt_nd([r["position"] for r in runs], mass, T, order, usable=own,
-                              offset=True)
+                              offset=True, floor=floor)
         else:
-            fit = fit_felt_nd(diffs, mass, T, order, usable=usable)
+            fit = fit_felt_nd(diffs, mass, T, order, usable=usable, floor=floor)
     except ConfigError as exc:
         if usable is None:
             raise
@@ -122,13 +133,11 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
                  f"re-synchronisations, missing replies) leave too few undisturbed "
                  f"stretches of more than {order} rows for the fit ({exc})")
         usable = own = None
-        fit = fit_felt_nd(diffs, mass, T, order)
+        floor = MODE_FLOOR * float(np.linalg.norm(np.abs(J) @ delta)) * 2
+        fit = fit_felt_nd(diffs, mass, T, order, floor=floor)
     dev = felt_deviation(fit, chk)
     bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
     # the wire's term (docstring)
-    ang = np.max([np.nanmax(np.abs(r["joints"]), axis=0) for r in runs], axis=0)
-    ulp = np.radians(np.spacing(np.float32(np.degrees(ang))).astype(float))
-    delta = math.pi / float(resolution) + ulp                 # [rad] per joint
     torque_rel = 2.0 ** -24
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta.tolist(), "torque_rel": torque_rel}
@@ -157,12 +166,12 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
             for i in range(len(runs))]) for kind, G, b in errors]
     if own is not None:
         wire.update(wire_terms_records(scene, [r["position"] for r in runs], chk, order,
-                                       errors, usable=own))
+                                       errors, usable=own, floor=floor))
     else:
         # over the error box (hapsim.analysis.wire_box): the first-order term at the
         # records alone did not bound what errors within the bounds do to the fit
         wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable,
-                                  box=True))
+                                  box=True, floor=floor))
     # a torque at the clamp in a row fitted (a record cut there has none in its
     # stretches: hapsim.pipeline.haply2_host.usable_rows)
     clamped = int(sum(np.count_nonzero(
@@ -172,6 +181,14 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
         directions=felt_directions(fit, chk), excluded=excluded)
+    if fit["felt_stiffness"] is None and short is None:
+        # fewer than n of the fit's pairs above the floor (hapsim.analysis.pencil.
+        # MODE_FLOOR): the records do not carry every rendered mode above their errors
+        v["reason"] = (f"the records give no felt matrices: fewer than {n} of the fit's "
+                       f"pairs stand above {MODE_FLOOR:g} times the readings' bound at the "
+                       f"handle ({floor / MODE_FLOOR:.3g} m) in the records: the excitation "
+                       f"{amplitude:g} m is too small for the wire's resolution, or the "
+                       "stretches are cut too short")
     if any(h is not None for h in holds):
         # the largest hold off a period among the rows whose errors were counted
         kept = (own if own is not None else

@@ -112,7 +112,7 @@ def rendered_pairs(loop: MatrixLoop, K, B=0.0):
     return rendered_pairs_of(state_matrix(loop, K, B), loop.dof, loop.period)
 
 
-def rendered_pairs_of(A, n: int, period: float):
+def rendered_pairs_of(A, n: int, period: float, *, keep=None):
     """:func:`rendered_pairs` of any closed-loop state matrix whose first ``n`` states
     are the handle position (a whole scene: :mod:`hapsim.analysis.scene_check`).
 
@@ -124,6 +124,12 @@ def rendered_pairs_of(A, n: int, period: float):
         Degrees of freedom of the handle.
     period : float
         Sample period ``T`` [s].
+    keep : callable, optional
+        ``keep(z, V) -> ndarray of bool``, ``z`` shape (B, N) the eigenvalues and ``V``
+        shape (B, N, N) the eigenvectors (columns) as ``np.linalg.eig`` gives them (here
+        ``B = 1``): per pole, whether it may be taken for a rendered pair (a fit's poles
+        its records determine, :func:`hapsim.analysis.pencil.fit_felt_nd`'s ``floor``).
+        Default: every pole.
 
     Returns
     -------
@@ -132,10 +138,10 @@ def rendered_pairs_of(A, n: int, period: float):
         eigenvector's norm is a mode of the object the hand does not feel, never rendered.
     """
     z, V = np.linalg.eig(A)
-    return _pairs_of_modes(z[None], V[None], n, period)[0]
+    return _pairs_of_modes(z[None], V[None], n, period, keep)[0]
 
 
-def rendered_pairs_of_many(A, n: int, period: float) -> list:
+def rendered_pairs_of_many(A, n: int, period: float, *, keep=None) -> list:
     """:func:`rendered_pairs_of` of each of a stack of closed-loop state matrices, their
     eigen decompositions taken in one call (LAPACK's ``geev`` on each matrix, as one call
     on that matrix makes it) and the pairs chosen for all of them at once: the same
@@ -147,8 +153,9 @@ def rendered_pairs_of_many(A, n: int, period: float) -> list:
     ----------
     A : ndarray, shape (B, N, N)
         Closed-loop state matrices.
-    n, period
-        As :func:`rendered_pairs_of` (handle axes; ``T`` [s]).
+    n, period, keep
+        As :func:`rendered_pairs_of` (handle axes; ``T`` [s]; ``keep`` called once on
+        the whole stack).
 
     Returns
     -------
@@ -157,10 +164,10 @@ def rendered_pairs_of_many(A, n: int, period: float) -> list:
         of that matrix is real).
     """
     z, V = np.linalg.eig(np.asarray(A))
-    return _pairs_of_modes(z, V, n, period)
+    return _pairs_of_modes(z, V, n, period, keep)
 
 
-def _pairs_of_modes(z, V, n: int, period: float) -> list:
+def _pairs_of_modes(z, V, n: int, period: float, keep=None) -> list:
     """:func:`rendered_pairs_of` of each of a stack of state matrices from their
     eigenvalues ``z`` (B, N) and eigenvectors ``V`` (B, N, N; columns).
 
@@ -170,10 +177,13 @@ def _pairs_of_modes(z, V, n: int, period: float) -> list:
     shapes' array operations on the round's rows at once (element by element, the same
     bits), the rank tests as one stacked SVD per size (LAPACK's on each matrix)."""
     B = z.shape[0]
+    ok = None if keep is None else np.asarray(keep(z, V), bool)
     order = np.argsort(-np.abs(z), axis=-1, kind="stable")
     z = np.take_along_axis(z, order, -1)
     V = np.take_along_axis(V, order[:, None, :], -1)
     cand = z.imag > 1e-12 * np.maximum(1.0, np.abs(z))
+    if ok is not None:
+        cand &= np.take_along_axis(ok, order, -1)
     s = np.zeros(z.shape, complex)
     s[cand] = continuous_poles(z[cand], period)
     todo = [list(np.flatnonzero(c)) for c in cand]
