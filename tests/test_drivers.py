@@ -682,6 +682,81 @@ def test_firefader_answers_read_after_a_stop_are_no_streaming_firmware():
     assert rep["unprompted_before_arming"] == 0
     assert rep["firmware"].startswith("haptics_firmware.ino"), rep
 
+@pytest.mark.parametrize("hold_ms", [35, 45, 55])
+def test_firefader_answers_read_late_at_a_rearming_are_no_streaming_firmware(hold_ms):
+    """The .ino answers one record a packet; a board (or a host) late by more than the
+    re-arming's quiet wait (LISTEN_S after the STOP's write) delivers the answers to the
+    last packets and to the STOP while the transport listens for a streaming firmware.
+    Before, time alone decided and those answers were counted as unprompted: a loaded
+    suite's FireFader run named the streaming .pde. Now the records the board owes are
+    answers whatever their time; only records beyond them are unprompted. The board is
+    played by the test on the pty's other side: each packet answered at once, or held
+    ``hold_ms`` after the STOP (30-60 ms: inside the listening window)."""
+    import os
+    import pty
+    import select
+    import threading
+    import time as _t
+    import tty
+
+    import firmware_protocol as fp
+    from hapsim.drivers.firefader import encode_record
+    from hapsim.drivers.transport import DriverTransport
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    board = {"stop": False, "hold_until": 0.0, "held": 0, "packets": 0}
+
+    def serve():
+        buf = b""
+        due = []
+        while not board["stop"]:
+            try:
+                r = os.read(master, 64) if select.select([master], [], [], 0.002)[0] else b""
+            except OSError:
+                return
+            buf += r
+            while len(buf) >= 3:                 # [127, fA, fB]: one record each
+                buf = buf[3:]
+                board["packets"] += 1
+                held = _t.monotonic() < board["hold_until"]
+                board["held"] += held
+                due.append(held)
+            if due and (not due[0] or _t.monotonic() >= board["hold_until"]):
+                os.write(master, encode_record(127, 127) * len(due))
+                due.clear()
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    try:
+        drv = get_driver("firefader")
+        drv.arming_records = 0
+        tr = DriverTransport(drv, os.ttyname(slave), delay=1)
+        tr.send(fp.Config(250.0, 50_000, 1.0))
+        end = _t.monotonic() + 3.0
+        while not [m for m in tr.receive(0.02) if type(m) is fp.State]:
+            assert _t.monotonic() < end, "no first record"
+        board["hold_until"] = _t.monotonic() + 1.0      # the next answers wait
+        for _ in range(5):
+            tr.send(fp.Force(0, (0.01,)))
+            _t.sleep(0.004)
+        tr.send(fp.Stop())
+        board["hold_until"] = _t.monotonic() + hold_ms / 1000.0
+        tr.send(fp.Config(250.0, 50_000, 1.0))          # listens, then arms
+        again = []
+        end = _t.monotonic() + 2.0
+        while not again and _t.monotonic() < end:
+            again = [m for m in tr.receive(0.02) if type(m) is fp.State]
+        rep = tr.report()
+        tr.close()
+    finally:
+        board["stop"] = True
+        th.join(2.0)
+        os.close(slave)
+        os.close(master)
+    assert board["held"] == 6, board                      # 5 FORCEs and the STOP
+    assert again and rep["unprompted_before_arming"] == 0, rep
+    assert rep["firmware"].startswith("haptics_firmware.ino"), rep
+
+
 def ff_lockstep_drive(mass: float, fs_true: float | None = None, n: int = 1500,
                       seed: int = 1):
     """A FireFader board on its lockstep clock, in-process, driven by random counts with a

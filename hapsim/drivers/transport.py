@@ -382,7 +382,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
             seen = st.get("frames", 0) + st.get("unreachable", 0)
             owed = (max(0, self._cmd - self._answered) + self._stop_owed
                     if self._ever_armed else 0)
-            self._listen()
+            self._listen(owed)
             # the replies still owed (a starved board's) and the arming's own first one
             # (its zero write, before its set-up) are in the frame before it: out of the
             # new offset's reach, they are no evidence (before: a re-arming with the joint
@@ -454,12 +454,11 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
                 self._n_read += len(data)
                 last = t
 
-    def _listen(self) -> None:
-        """Before arming: listen for :data:`LISTEN_S` without asking anything; records
-        that come are a firmware that streams (counted in ``unprompted_before_arming``)."""
+    def _listen(self, owed: int = 0) -> None:
+        """Before arming: listen for :data:`LISTEN_S`, asking nothing; records beyond the
+        ``owed`` answers (a late board's, a STOP's: read late by a loaded host, the .ino was
+        once taken for the .pde) are a streaming firmware (``unprompted_before_arming``)."""
         dec = self._dec
-        # answers to what was sent last (a STOP's zero force before a re-arming) are not
-        # unprompted: let them come and drop them first
         quiet = self._t_write + LISTEN_S
         end = max(time.monotonic(), quiet) + LISTEN_S
         try:
@@ -468,8 +467,9 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
                 if data:
                     self._n_read += len(data)
                     n = len(dec.feed(data))
+                    answers, owed = min(n, owed), max(owed - n, 0)
                     if time.monotonic() >= quiet:
-                        self.stats["unprompted_before_arming"] += n
+                        self.stats["unprompted_before_arming"] += n - answers
         except Exception as exc:  # serial.SerialException, OSError
             raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
 
