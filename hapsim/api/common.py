@@ -12,7 +12,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["load_scene", "load_scene_nd", "refuse_ports", "ONE_PORT_ONLY", "known_digits", "known_decimals", "draw_report",
-           "MeasuredPair",
+           "MeasuredPair", "PolesPlot",
            "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
 
 
@@ -319,3 +319,32 @@ class MeasuredPair:
         """Ran or played to its end, or was stopped by a signal, with no device error:
         what exit code 0 means."""
         return self.exit_code == 0
+
+
+class PolesPlot:
+    """What a 1-D report with closed-loop poles draws (:class:`hapsim.api.CheckReport`,
+    :class:`hapsim.api.RenderReport`): a mixin before :class:`hapsim.results.Report`, with
+    no field of its own."""
+
+    def plot(self, path_or_ax=None):
+        """The closed-loop poles in the z-plane, the felt pair marked
+        (:func:`hapsim.plots.plot_poles`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
+        from hapsim.plots import plot_poles
+        return draw_report(self, plot_poles, path_or_ax)
