@@ -24,7 +24,7 @@ import numpy as np
 
 from hapsim.analysis.hand import HAND_FIELDS, hand_stiffness
 from hapsim.analysis.family_loops import (family_matrices, family_members, family_poles,
-                                          full_members, require_family_scene)
+                                          full_members, require_port_scene)
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
@@ -275,7 +275,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     """
     from hapsim.analysis.targets import apply_targets
 
-    require_family_scene(scene)
+    require_port_scene(scene)
     if calibrated is None:
         sc, cals = apply_targets(scene)
         calibrated = {c.link: (c.result.K, c.result.B) for c in cals}

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hapsim.analysis import LoopModel, calibrate, render, spectral_radius
+from hapsim.analysis.family_loops import require_port_scene
 from hapsim.analysis.modes import modes_from_poles, rendered_pair
 from hapsim.analysis.integrators import (COST_ORDER, closed_loop_matrix, continuous_loop_matrix,
                                   spectral_radius_of)
@@ -310,18 +311,11 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
         raise ConfigError(f"must be > 0, got {tolerance!r}", key="tolerance")
     if not (0 < margin <= 1):
         raise ConfigError(f"must be in (0, 1], got {margin!r}", key="margin")
-    if scene.port is None or scene.device is None:
-        first = getattr(scene.masses[0], "line", 0) if scene.masses else 0
-        raise ConfigError("advise needs a scene with a port (a mass of kind 'port') and a "
-                          "device section", file=scene.path,
-                          line=None if scene.port else (first or None),
-                          key="device" if scene.port else "masses")
-    if getattr(scene, "audio", None) is not None:
-        # its loop matrices (hapsim.bench.methods) step the network at the device period
-        # only, and the rate ladder meets rates the audio rate is no multiple of
-        raise ConfigError("advise does not model a scene with an audio section (the "
-                          "virtual network sub-stepped at audio.rate_hz); 'hapsim check' "
-                          "predicts it at its own rate", file=scene.path, key="audio")
+    # its loop matrices (hapsim.bench.methods) step the network at the device period only,
+    # and the rate ladder meets rates the audio rate is no multiple of
+    require_port_scene(scene, "advise needs", "advise does not model a scene with an audio "
+                       "section (the virtual network sub-stepped at audio.rate_hz); 'hapsim "
+                       "check' predicts it at its own rate")
     rates = [float(r) for r in rates]
     if getattr(scene, "dimension", 1) > 1:
         return _advise_space(scene, tolerance, margin, rates)
