@@ -46,7 +46,7 @@ from hapsim.analysis import LoopModel, calibrate, render
 from hapsim.errors import ConfigError
 
 __all__ = ["TARGETS", "DEVICE", "FULL_RATES", "QUICK_RATES", "STATUSES", "felt_pair",
-           "felt_status", "felt_error", "method_ok", "accuracy_vs_rate"]
+           "felt_status", "method_ok", "accuracy_vs_rate"]
 
 #: The three targets of chart 1: name -> (k [N/m], b [N s/m]) (b includes the device b0).
 TARGETS = {"soft spring": (200.0, 1.0),
@@ -143,32 +143,6 @@ def felt_status(loop: LoopModel, k: float, b: float, method: str) -> dict:
     else:
         out.update(status="ok", err=max(abs(pair.k - k) / k, abs(pair.b - b) / b))
     return out
-
-
-def felt_error(loop: LoopModel, k: float, b: float, method: str) -> tuple[bool, float, float, float]:
-    """:func:`felt_status` as a tuple.
-
-    Parameters
-    ----------
-    loop, k, b, method
-        As for :func:`felt_status`.
-
-    Returns
-    -------
-    ok : bool
-        ``status == "ok"``: stable (naive) / renderable (calibrated), with a felt pair.
-    err : float
-        ``max(|k' - k|/k, |b' - b|/b)`` [-]; nan when not ``ok``.
-    k_felt, b_felt : float
-        The felt pair [N/m], [N s/m] (:func:`felt_pair`); nan when none.
-
-    Raises
-    ------
-    hapsim.errors.ConfigError
-        For an unknown ``method``.
-    """
-    st = felt_status(loop, k, b, method)
-    return st["status"] == "ok", st["err"], st["k_felt"], st["b_felt"]
 
 
 def method_ok(loop: LoopModel, k: float, b: float, method: str) -> bool:
