@@ -10,13 +10,13 @@ import os
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.api.common import PolesPlot, figure, load_scene, matrix_or_nan, n_d_scene
+from hapsim.api.common import Charted, figure, load_scene, matrix_or_nan, n_d_scene
 from hapsim.results import Report
 
 
 # ---------------------------------------------------------------------------- check
 @dataclasses.dataclass(frozen=True)
-class CheckReport(PolesPlot, Report):
+class CheckReport(Charted, Report):
     """What ``hapsim check SCENE --json`` says: stability and the (k, b) felt at the port.
 
     Attributes

@@ -12,7 +12,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["load_scene", "load_scene_nd", "refuse_ports", "ONE_PORT_ONLY", "known_digits", "known_decimals", "draw_report",
-           "MeasuredPair", "PolesPlot",
+           "MeasuredPair", "Charted",
            "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
 
 
@@ -321,14 +321,19 @@ class MeasuredPair:
         return self.exit_code == 0
 
 
-class PolesPlot:
-    """What a 1-D report with closed-loop poles draws (:class:`hapsim.api.CheckReport`,
-    :class:`hapsim.api.RenderReport`): a mixin before :class:`hapsim.results.Report`, with
-    no field of its own."""
+class Charted:
+    """The chart of a 1-D report that draws into given axes, a new figure or a file: a mixin
+    before :class:`hapsim.results.Report`, with no field of its own; the class names its
+    :mod:`hapsim.plots` function in ``_chart``."""
+
+    _chart = "plot_poles"
 
     def plot(self, path_or_ax=None):
-        """The closed-loop poles in the z-plane, the felt pair marked
-        (:func:`hapsim.plots.plot_poles`).
+        """The report's chart: for :class:`hapsim.api.CheckReport` and
+        :class:`hapsim.api.RenderReport` the closed-loop poles in the z-plane, the felt pair
+        marked (:func:`hapsim.plots.plot_poles`); for :class:`hapsim.api.RunReport` the
+        felt (k, b) of the run: simulated, predicted, measured (with its stated uncertainty)
+        and the targets, in the (k, b) plane (:func:`hapsim.plots.plot_felt`).
 
         Parameters
         ----------
@@ -346,5 +351,5 @@ class PolesPlot:
             matplotlib missing (the hint names the plot extra), or a path that cannot be
             written (key ``plot``).
         """
-        from hapsim.plots import plot_poles
-        return draw_report(self, plot_poles, path_or_ax)
+        import hapsim.plots
+        return draw_report(self, getattr(hapsim.plots, self._chart), path_or_ax)

@@ -8,13 +8,13 @@ import math
 
 
 from hapsim.option_values import check_values
-from hapsim.api.common import PolesPlot, known_digits
+from hapsim.api.common import Charted, known_digits
 from hapsim.results import Report
 
 
 # ---------------------------------------------------------------------------- a loop
 @dataclasses.dataclass(frozen=True)
-class RenderReport(PolesPlot, Report):
+class RenderReport(Charted, Report):
     """What ``hapsim render --json`` says: the (k, b) felt for a virtual (K, B).
 
     Attributes
