@@ -11,7 +11,8 @@ import os
 
 from hapsim.errors import ConfigError
 
-__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe"]
+__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe",
+           "finite_or_none"]
 
 
 def check_writable(path: str, option: str) -> None:
@@ -126,6 +127,24 @@ def check_fits(nbytes: float, what: str, option: str, fraction: float = 0.8) -> 
                 else "more than this machine can address")
         raise ConfigError(f"{what} need {format_bytes(nbytes)}; {have}: ask for less",
                           key=option)
+
+
+def finite_or_none(v) -> float | None:
+    """A number as JSON writes it strictly: ``float(v)``, or None when it is not finite or
+    is None (``null``).
+
+    Parameters
+    ----------
+    v : float, int, numpy scalar or None
+
+    Returns
+    -------
+    float or None
+    """
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
 
 
 def json_safe(obj):

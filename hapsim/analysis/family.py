@@ -28,6 +28,7 @@ from hapsim.analysis.family_loops import (family_matrices, family_members, famil
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
+from hapsim.outputs import finite_or_none as _f
 
 __all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "family_poles",
            "felt_pairs",
@@ -117,11 +118,6 @@ def _stats(v: np.ndarray, nominal: float) -> dict:
     lo, hi = float(v[ok].min()), float(v[ok].max())
     return {"min": lo, "max": hi, "nominal": _f(nominal),
             "spread": (hi - lo) / abs(nominal) if math.isfinite(nominal) and nominal else None}
-
-
-def _f(v):
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ import numpy as np
 
 from hapsim.analysis import LoopModel, calibrate, render
 from hapsim.errors import ConfigError
+from hapsim.outputs import finite_or_none
 
 __all__ = ["TARGETS", "DEVICE", "FULL_RATES", "QUICK_RATES", "STATUSES", "felt_pair",
            "felt_status", "method_ok", "accuracy_vs_rate"]
@@ -258,10 +259,7 @@ def accuracy_vs_rate(rates=FULL_RATES, targets=None, *, mass: float = DEVICE["ma
                         "the dominant mode (no real pole decays more slowly); otherwise "
                         "'no felt pair'",
            "targets": []}
-
-    def nz(v):
-        return None if not math.isfinite(v) else float(v)
-
+    nz = finite_or_none
     for name, (k, b) in targets.items():
         curves = []
         for method in methods:

@@ -41,6 +41,7 @@ from hapsim.analysis.modes import modes_from_poles, rendered_pair
 from hapsim.analysis.integrators import (COST_ORDER, closed_loop_matrix, continuous_loop_matrix,
                                   spectral_radius_of)
 from hapsim.errors import ConfigError, UnstableConfigError
+from hapsim.outputs import finite_or_none
 
 __all__ = ["RATES", "LinkAdvice", "Advice", "advise_scene", "felt_pair_error",
            "felt_matrix_error"]
@@ -114,7 +115,7 @@ class LinkAdvice:
             ``link``, ``wanted`` (``{k [N/m], b [N s/m]}``), ``rate_hz`` [Hz], ``method``,
             ``K`` [N/m], ``B`` [N s/m], ``error`` [-], ``reason``.
         """
-        f = (lambda v: None if v is None or not math.isfinite(v) else float(v))
+        f = finite_or_none
         return {"link": self.link, "wanted": {"k": self.wanted[0], "b": self.wanted[1]},
                 "rate_hz": self.rate_hz, "method": self.method, "K": f(self.K), "B": f(self.B),
                 "error": f(self.error), "reason": self.reason}
@@ -191,7 +192,7 @@ class Advice:
             [-], ``reason``, ``tolerance``, ``margin``, and ``links`` (list of
             :meth:`LinkAdvice.to_dict`).
         """
-        f = (lambda v: None if v is None or not math.isfinite(v) else float(v))
+        f = finite_or_none
         return {"ok": self.ok, "rate_hz": self.rate_hz, "integrator": self.integrator,
                 "error": f(self.error), "spectral_radius": f(self.spectral_radius),
                 "reason": self.reason, "tolerance": self.tolerance, "margin": self.margin,
