@@ -425,11 +425,6 @@ class MockPhysics:
         self._hand_f = [float(h) for h in value]
 
     @property
-    def excitation_end(self) -> float:
-        """Time after which no hand force acts [s] (0.0 without impulse or profile)."""
-        return self.hand.size * self.period
-
-    @property
     def step_coefficients(self) -> dict:
         """The one-body step's coefficients by name, for a compiled twin of :meth:`advance`.
 

@@ -6,12 +6,14 @@ simulation or a run on a device does not end in a traceback after minutes (issue
 
 from __future__ import annotations
 
+import json
 import math
 import os
 
 from hapsim.errors import ConfigError
 
-__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe"]
+__all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe",
+           "finite_or_none", "write_json"]
 
 
 def check_writable(path: str, option: str) -> None:
@@ -126,6 +128,42 @@ def check_fits(nbytes: float, what: str, option: str, fraction: float = 0.8) -> 
                 else "more than this machine can address")
         raise ConfigError(f"{what} need {format_bytes(nbytes)}; {have}: ask for less",
                           key=option)
+
+
+def write_json(path: str, obj, indent: int | None = None) -> None:
+    """Write ``obj`` as JSON to ``path``, whole or not at all: through ``path.partial``,
+    renamed into place (a reader never sees half a report).
+
+    Parameters
+    ----------
+    path : str
+    obj : object
+        What ``json.dump`` writes.
+    indent : int, optional
+        As ``json.dump``'s.
+    """
+    tmp = f"{path}.partial"
+    with open(tmp, "w") as fh:
+        json.dump(obj, fh, indent=indent)
+    os.replace(tmp, path)
+
+
+def finite_or_none(v) -> float | None:
+    """A number as JSON writes it strictly: ``float(v)``, or None when it is not finite or
+    is None (``null``).
+
+    Parameters
+    ----------
+    v : float, int, numpy scalar or None
+
+    Returns
+    -------
+    float or None
+    """
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
 
 
 def json_safe(obj):

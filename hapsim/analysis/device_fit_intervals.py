@@ -375,7 +375,6 @@ def noise_estimate(y, xm, q, delta, z, dof, offs=None):
         def loglik(sig):
             s2 = sig * sig + floor2
             return -0.5 * (ss / s2 + n * math.log(s2))
-    from scipy.optimize import brentq, minimize_scalar
     with np.errstate(divide="ignore", invalid="ignore"):
         return _noise_interval(loglik, r, crit)
 
@@ -460,8 +459,3 @@ def grid_replicates(mod, ym, theta, q, sigma, reps=REPLICATES, seed=0):
         if np.all(np.isfinite(th)):
             out.append(np.asarray(th, float)[:theta.size])
     return np.array(out).reshape(-1, theta.size)
-
-
-def _estimate(value, sd, z, unit, floor=0.0):
-    h = z * sd + floor
-    return Estimate(float(value), float(value - h), float(value + h), unit)

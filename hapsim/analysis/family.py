@@ -24,10 +24,11 @@ import numpy as np
 
 from hapsim.analysis.hand import HAND_FIELDS, hand_stiffness
 from hapsim.analysis.family_loops import (family_matrices, family_members, family_poles,
-                                          full_members, require_family_scene)
+                                          full_members, require_port_scene)
 from hapsim.analysis.loop import STABILITY_TOL
 from hapsim.analysis.scene_check import RIGID_TOL
 from hapsim.errors import ConfigError
+from hapsim.outputs import finite_or_none as _f
 
 __all__ = ["FamilyResult", "FamilyCalibration", "family", "family_matrices", "family_poles",
            "felt_pairs",
@@ -117,11 +118,6 @@ def _stats(v: np.ndarray, nominal: float) -> dict:
     lo, hi = float(v[ok].min()), float(v[ok].max())
     return {"min": lo, "max": hi, "nominal": _f(nominal),
             "spread": (hi - lo) / abs(nominal) if math.isfinite(nominal) and nominal else None}
-
-
-def _f(v):
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 @dataclass(frozen=True)
@@ -275,7 +271,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     """
     from hapsim.analysis.targets import apply_targets
 
-    require_family_scene(scene)
+    require_port_scene(scene)
     if calibrated is None:
         sc, cals = apply_targets(scene)
         calibrated = {c.link: (c.result.K, c.result.B) for c in cals}

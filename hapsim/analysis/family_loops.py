@@ -19,7 +19,7 @@ from hapsim.analysis.loop import zoh_state_space
 from hapsim.errors import ConfigError
 
 __all__ = ["family_members", "full_members", "family_matrices", "family_poles",
-           "require_family_scene"]
+           "require_port_scene"]
 
 
 def family_members(scene, samples: int | None = None, *, grid: int = 9,
@@ -66,33 +66,41 @@ def full_members(mem) -> np.ndarray:
 
 
 
-def require_family_scene(scene) -> None:
-    """Refuse a scene whose hand family this module cannot build.
+#: Why a family refuses a scene with an audio section (:func:`require_port_scene`).
+FAMILY_AUDIO = ("a family of a scene with an audio section (the virtual network sub-stepped "
+                "at audio.rate_hz) is not modelled; 'hapsim check' predicts this scene, or "
+                "give the family a scene without audio")
+
+
+def require_port_scene(scene, needs: str = "a family needs", audio: str = FAMILY_AUDIO) -> None:
+    """Refuse a scene whose loop matrices at the device period cannot be built: the hand
+    family's here, :func:`hapsim.bench.advise.advise`'s rate ladder.
 
     Parameters
     ----------
     scene : hapsim.scene.Scene
+    needs : str, optional
+        Who needs the port and device, the message's start (``"advise needs"``).
+    audio : str, optional
+        The message refusing an ``audio`` section (default: the family's).
 
     Raises
     ------
     ConfigError
         No port or no device section (key ``masses`` / ``device``), or an ``audio``
-        section: the family's matrices step the virtual network at the device period
-        only, while a multi-rate scene's loop is the product of its audio sub-steps
+        section: the matrices step the virtual network at the device period only, while
+        a multi-rate scene's loop is the product of its audio sub-steps
         (:mod:`hapsim.analysis.network`, multi-rate), so a family of it would judge
         another loop.
     """
     if scene.port is None or scene.device is None:
         first = getattr(scene.masses[0], "line", 0) if scene.masses else 0
-        raise ConfigError("a family needs a scene with a port (a mass of kind 'port') and a "
+        raise ConfigError(f"{needs} a scene with a port (a mass of kind 'port') and a "
                           "device section", file=scene.path,
                           line=None if scene.port else (first or None),
                           key="device" if scene.port else "masses")
     if getattr(scene, "audio", None) is not None:
-        raise ConfigError("a family of a scene with an audio section (the virtual network "
-                          "sub-stepped at audio.rate_hz) is not modelled; 'hapsim check' "
-                          "predicts this scene, or give the family a scene without audio",
-                          file=scene.path, key="audio")
+        raise ConfigError(audio, file=scene.path, key="audio")
 
 
 def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None):
@@ -127,7 +135,7 @@ def family_matrices(scene, mem: np.ndarray, *, calibrated=None, integrator=None)
     from hapsim.analysis.virtual_network import (check_integrator, network, virtual_blocks,
                                                  virtual_state_names)
 
-    require_family_scene(scene)
+    require_port_scene(scene)
     dev = scene.device
     mem = np.atleast_2d(np.asarray(mem, float))
     finite = np.isfinite(mem[:, 2])

@@ -85,11 +85,6 @@ class GridResult:
         return self.B + self.b_bias
 
     @property
-    def identity_B_axis(self) -> np.ndarray:
-        """Identity grid on the damping axis: ``b`` itself [N s/m], shape (nk, nb)."""
-        return self.identity_B + self.b_bias
-
-    @property
     def boundary_B_axis(self) -> np.ndarray:
         """Stability boundary on the damping axis, ``B + b0`` [N s/m], shape (nB,)."""
         return self.boundary_B + self.b_bias

@@ -58,6 +58,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapsim.outputs import finite_or_none
+
 __all__ = ["LinearisationBound", "linearisation_bound", "kinematic_coefficient"]
 
 
@@ -199,8 +201,7 @@ class LinearisationBound:
         ``damping_factor``, ``felt_stiffness`` and ``felt_damping`` (the relative bounds;
         None when a contact or plane opens, or without rendered poles), ``roundoff``
         (:attr:`roundoff`, relative)."""
-        def num(x):
-            return float(x) if math.isfinite(x) else None
+        num = finite_or_none
         return {"amplitude": self.amplitude, "kinematic_per_m": self.kinematic,
                 "link_per_m": self.link, "link": self.link_name,
                 "contact_depth": num(self.depth), "contact": self.depth_name,

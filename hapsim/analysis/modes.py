@@ -48,6 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapsim.outputs import finite_or_none
+
 __all__ = ["Mode", "modes_from_poles", "rendered_pair", "log_abs", "log_z", "OBSERVABLE_TOL",
            "ModeND", "SceneModesND", "scene_modes_nd"]
 
@@ -165,15 +167,11 @@ class Mode:
             Keys ``z_re, z_im, abs_z, s_re, s_im, f0_hz, damping_ratio, k, b, kind,
             participation``.
         """
-        def f(v: float):
-            v = float(v)
-            return v if math.isfinite(v) else None
+        f = finite_or_none
         return {"z_re": f(self.z.real), "z_im": f(self.z.imag), "abs_z": f(abs(self.z)),
                 "s_re": f(self.s.real), "s_im": f(self.s.imag), "f0_hz": f(self.f0_hz),
                 "damping_ratio": f(self.damping_ratio), "k": f(self.k), "b": f(self.b),
-                "kind": self.kind,
-                "participation": None if self.participation is None
-                else f(self.participation)}
+                "kind": self.kind, "participation": f(self.participation)}
 
 
 def mode_from_pole(z: complex, mass: float, period: float, kind: str,

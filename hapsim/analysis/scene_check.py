@@ -63,6 +63,7 @@ from hapsim.analysis.virtual_network import MAX_STATES_ND, link_blocks
 from hapsim.analysis.ths import (MatrixLoop, MatrixRenderResult, render_state, split_hold_matrices,
                                  zoh_matrices)
 from hapsim.errors import ConfigError
+from hapsim.outputs import finite_or_none
 
 __all__ = ["SceneCheck", "check_scene", "scene_state_matrix", "STABILITY_TOL", "RIGID_TOL",
            "OBSERVABLE_TOL", "DEFECTIVE_COND", "closed_loop_nd", "SceneCheckND",
@@ -141,9 +142,7 @@ class SceneCheck:
             integrator, rendered (dict or None), modes (list of dict), eigenvalues (list of
             [re, im]), state_names, calibrated``.
         """
-        def f(v):
-            v = float(v)
-            return v if math.isfinite(v) else None
+        f = finite_or_none
         return {
             "stable": bool(self.stable),
             "marginal": bool(self.marginal),

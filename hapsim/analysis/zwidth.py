@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.outputs import finite_or_none
 
 __all__ = ["Trial", "ZPoint", "predicted_coulomb", "locate_onset", "wall_scene",
            "device_loop", "release", "FORCE_SHARE", "MIN_GROWTH_TICKS", "RECORD_ATTEMPTS",
@@ -196,8 +197,7 @@ class ZPoint:
 
     def to_dict(self) -> dict:
         """JSON-ready dict (``trials`` as dicts; non-finite values as None)."""
-        def f(v):
-            return None if v is None or not math.isfinite(v) else float(v)
+        f = finite_or_none
         iv = self.K_max_measured_interval
         return {"B": self.B, "K_max_predicted": f(self.K_max_predicted),
                 "K_max_predicted_coulomb": f(self.K_max_predicted_coulomb),

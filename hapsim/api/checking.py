@@ -10,13 +10,13 @@ import os
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.api.common import draw_report, figure, load_scene, matrix_or_nan, n_d_scene
+from hapsim.api.common import Charted, figure, load_scene, matrix_or_nan, n_d_scene
 from hapsim.results import Report
 
 
 # ---------------------------------------------------------------------------- check
 @dataclasses.dataclass(frozen=True)
-class CheckReport(Report):
+class CheckReport(Charted, Report):
     """What ``hapsim check SCENE --json`` says: stability and the (k, b) felt at the port.
 
     Attributes
@@ -87,29 +87,6 @@ class CheckReport(Report):
     def b(self) -> float:
         """Felt damping b [N s/m] (NaN when nothing rings at the port)."""
         return figure(self.rendered, "b")
-
-    def plot(self, path_or_ax=None):
-        """The closed-loop poles in the z-plane, the felt pair marked
-        (:func:`hapsim.plots.plot_poles`).
-
-        Parameters
-        ----------
-        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
-            A figure file to write (its extension picks the format), axes to draw into,
-            or None (a new figure).
-
-        Returns
-        -------
-        matplotlib.figure.Figure
-
-        Raises
-        ------
-        ConfigError
-            matplotlib missing (the hint names the plot extra), or a path that cannot be
-            written (key ``plot``).
-        """
-        from hapsim.plots import plot_poles
-        return draw_report(self, plot_poles, path_or_ax)
 
 
 def check(scene, progress=None):

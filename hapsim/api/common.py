@@ -12,7 +12,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["load_scene", "load_scene_nd", "refuse_ports", "ONE_PORT_ONLY", "known_digits", "known_decimals", "draw_report",
-           "MeasuredPair",
+           "MeasuredPair", "Charted",
            "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
 
 
@@ -319,3 +319,37 @@ class MeasuredPair:
         """Ran or played to its end, or was stopped by a signal, with no device error:
         what exit code 0 means."""
         return self.exit_code == 0
+
+
+class Charted:
+    """The chart of a 1-D report that draws into given axes, a new figure or a file: a mixin
+    before :class:`hapsim.results.Report`, with no field of its own; the class names its
+    :mod:`hapsim.plots` function in ``_chart``."""
+
+    _chart = "plot_poles"
+
+    def plot(self, path_or_ax=None):
+        """The report's chart: for :class:`hapsim.api.CheckReport` and
+        :class:`hapsim.api.RenderReport` the closed-loop poles in the z-plane, the felt pair
+        marked (:func:`hapsim.plots.plot_poles`); for :class:`hapsim.api.RunReport` the
+        felt (k, b) of the run: simulated, predicted, measured (with its stated uncertainty)
+        and the targets, in the (k, b) plane (:func:`hapsim.plots.plot_felt`).
+
+        Parameters
+        ----------
+        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
+            A figure file to write (its extension picks the format), axes to draw into,
+            or None (a new figure).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        ConfigError
+            matplotlib missing (the hint names the plot extra), or a path that cannot be
+            written (key ``plot``).
+        """
+        import hapsim.plots
+        return draw_report(self, getattr(hapsim.plots, self._chart), path_or_ax)

@@ -8,13 +8,13 @@ import math
 
 
 from hapsim.option_values import check_values
-from hapsim.api.common import draw_report, known_digits
+from hapsim.api.common import Charted, known_digits
 from hapsim.results import Report
 
 
 # ---------------------------------------------------------------------------- a loop
 @dataclasses.dataclass(frozen=True)
-class RenderReport(Report):
+class RenderReport(Charted, Report):
     """What ``hapsim render --json`` says: the (k, b) felt for a virtual (K, B).
 
     Attributes
@@ -55,26 +55,6 @@ class RenderReport(Report):
     def eigenvalues(self) -> list:
         """Closed-loop poles as [re, im] (from :attr:`modes`)."""
         return [[m["z_re"], m["z_im"]] for m in self.modes]
-
-    def plot(self, path_or_ax=None):
-        """The closed-loop poles in the z-plane (:func:`hapsim.plots.plot_poles`).
-
-        Parameters
-        ----------
-        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
-            A figure file to write, axes to draw into, or None (a new figure).
-
-        Returns
-        -------
-        matplotlib.figure.Figure
-
-        Raises
-        ------
-        ConfigError
-            matplotlib missing, or a path that cannot be written (key ``plot``).
-        """
-        from hapsim.plots import plot_poles
-        return draw_report(self, plot_poles, path_or_ax)
 
 
 def render(loop, K: float, B: float = 0.0) -> RenderReport:

@@ -13,14 +13,14 @@ import numpy as np
 from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
-from hapsim.api.common import (MeasuredPair, draw_report, load_scene, matrix_list,
+from hapsim.api.common import (Charted, MeasuredPair, load_scene, matrix_list,
                                matrix_or_nan, n_d_scene)
 from hapsim.results import Report
 
 
 # ---------------------------------------------------------------------------- run
 @dataclasses.dataclass(frozen=True)
-class RunReport(MeasuredPair, Report):
+class RunReport(Charted, MeasuredPair, Report):
     """What ``hapsim run SCENE --json`` says: the loop closed, what was felt, how it ran.
 
     Attributes
@@ -75,28 +75,7 @@ class RunReport(MeasuredPair, Report):
     within: bool | None = None
     reason: str | None = None
 
-    def plot(self, path_or_ax=None):
-        """The felt (k, b) of the run: simulated, predicted, measured (with its stated
-        uncertainty) and the targets, in the (k, b) plane (:func:`hapsim.plots.plot_felt`).
-
-        Parameters
-        ----------
-        path_or_ax : str, path-like or matplotlib.axes.Axes, optional
-            A figure file to write (its extension picks the format), axes to draw into,
-            or None (a new figure).
-
-        Returns
-        -------
-        matplotlib.figure.Figure
-
-        Raises
-        ------
-        ConfigError
-            matplotlib missing (the hint names the plot extra), or a path that cannot be
-            written (key ``plot``).
-        """
-        from hapsim.plots import plot_felt
-        return draw_report(self, plot_felt, path_or_ax)
+    _chart = "plot_felt"
 
     def text(self) -> str:
         """The human report ``hapsim run`` prints (:func:`hapsim.pipeline.report.format_report`).

@@ -16,7 +16,7 @@ from hapsim.errors import ConfigError
 from hapsim.results import Report
 
 __all__ = ["SimulateReport", "SimulateReportND", "SimulateReportPorts", "simulate",
-           "run_finite"]
+           "line_columns", "run_finite"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,9 +279,34 @@ def _noop(done: int, total: int | None = None) -> None:
     """A progress callback that says nothing."""
 
 
-def _simulate_line(scene, N: int, record, progress) -> SimulateReport:
-    """:func:`simulate` of a 1-D scene: targets calibrated, the port held at the
-    excitation's ``x0``, :func:`run_finite`."""
+def line_columns(scene, N: int, record, keys=("record", "steps")):
+    """A 1-D scene with its felt targets calibrated and the masses a run of ``N`` samples
+    records, checked before the engine is compiled (:func:`simulate`, ``hapsim simulate``).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    N : int
+        Samples to record.
+    record : sequence of str or None
+        Masses to record, in order (None or empty: every mass of the scene).
+    keys : (str, str), optional
+        The keys the errors name for ``record`` and ``N``.
+
+    Returns
+    -------
+    (hapsim.scene.Scene, list, list of str)
+        The scene with (K, B) for its targets (:func:`hapsim.analysis.targets.apply_targets`),
+        its calibrations and the recorded masses.
+
+    Raises
+    ------
+    ConfigError
+        An unknown or repeated name; time and positions, (N + 1) x (R + 1) float64, too
+        large for memory.
+    UnrenderableTargetError
+        A felt target no (K, B) renders.
+    """
     from hapsim.outputs import check_fits
     calibrations = []
     if scene.unresolved_targets:
@@ -290,15 +315,22 @@ def _simulate_line(scene, N: int, record, progress) -> SimulateReport:
         scene, calibrations = apply_targets(scene)
     masses = tuple(m.name for m in scene.masses)
     names = list(record) if record else list(masses)
-    from hapsim.engine import Engine, mass_indices     # numba: after the input's checks
-    mass_indices(masses, names, key="record")
+    from hapsim.engine import mass_indices     # numba: after the input's checks
+    mass_indices(masses, names, key=keys[0])
     if len(set(names)) != len(names):
         twice = sorted({n for n in names if names.count(n) > 1})
         raise ConfigError(f"names a mass twice: {', '.join(twice)}; each column once",
-                          key="record")
-    # time and positions, (N+1) x (R+1) float64, plus the engine's chunk
+                          key=keys[0])
     check_fits(8.0 * (N + 1) * (len(names) + 1),
-               f"{N} samples x {len(names)} masses of positions", "steps")
+               f"{N} samples x {len(names)} masses of positions", keys[1])
+    return scene, calibrations, names
+
+
+def _simulate_line(scene, N: int, record, progress) -> SimulateReport:
+    """:func:`simulate` of a 1-D scene: targets calibrated, the port held at the
+    excitation's ``x0``, :func:`run_finite`."""
+    scene, calibrations, names = line_columns(scene, N, record)
+    from hapsim.engine import Engine
     engine = Engine(scene)
     if scene.port is not None:
         engine.set_port_position(scene.excitation.x0, at_rest=True)

@@ -148,11 +148,5 @@ def write_journal(path: str, journal: list) -> None:
         ``--journal FILE.json``.
     journal : list of dict
     """
-    import json
-    import os
-
-    from hapsim.outputs import json_safe
-    tmp = path + ".partial"
-    with open(tmp, "w") as fh:
-        json.dump(json_safe(journal), fh, indent=1)
-    os.replace(tmp, path)
+    from hapsim.outputs import json_safe, write_json
+    write_json(path, json_safe(journal), indent=1)

@@ -44,9 +44,10 @@ import numpy as np
 
 from hapsim.analysis import LoopModel, calibrate, render
 from hapsim.errors import ConfigError
+from hapsim.outputs import finite_or_none
 
 __all__ = ["TARGETS", "DEVICE", "FULL_RATES", "QUICK_RATES", "STATUSES", "felt_pair",
-           "felt_status", "felt_error", "method_ok", "accuracy_vs_rate"]
+           "felt_status", "method_ok", "accuracy_vs_rate"]
 
 #: The three targets of chart 1: name -> (k [N/m], b [N s/m]) (b includes the device b0).
 TARGETS = {"soft spring": (200.0, 1.0),
@@ -143,32 +144,6 @@ def felt_status(loop: LoopModel, k: float, b: float, method: str) -> dict:
     else:
         out.update(status="ok", err=max(abs(pair.k - k) / k, abs(pair.b - b) / b))
     return out
-
-
-def felt_error(loop: LoopModel, k: float, b: float, method: str) -> tuple[bool, float, float, float]:
-    """:func:`felt_status` as a tuple.
-
-    Parameters
-    ----------
-    loop, k, b, method
-        As for :func:`felt_status`.
-
-    Returns
-    -------
-    ok : bool
-        ``status == "ok"``: stable (naive) / renderable (calibrated), with a felt pair.
-    err : float
-        ``max(|k' - k|/k, |b' - b|/b)`` [-]; nan when not ``ok``.
-    k_felt, b_felt : float
-        The felt pair [N/m], [N s/m] (:func:`felt_pair`); nan when none.
-
-    Raises
-    ------
-    hapsim.errors.ConfigError
-        For an unknown ``method``.
-    """
-    st = felt_status(loop, k, b, method)
-    return st["status"] == "ok", st["err"], st["k_felt"], st["b_felt"]
 
 
 def method_ok(loop: LoopModel, k: float, b: float, method: str) -> bool:
@@ -284,10 +259,7 @@ def accuracy_vs_rate(rates=FULL_RATES, targets=None, *, mass: float = DEVICE["ma
                         "the dominant mode (no real pole decays more slowly); otherwise "
                         "'no felt pair'",
            "targets": []}
-
-    def nz(v):
-        return None if not math.isfinite(v) else float(v)
-
+    nz = finite_or_none
     for name, (k, b) in targets.items():
         curves = []
         for method in methods:

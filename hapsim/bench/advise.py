@@ -36,10 +36,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hapsim.analysis import LoopModel, calibrate, render, spectral_radius
+from hapsim.analysis.family_loops import require_port_scene
 from hapsim.analysis.modes import modes_from_poles, rendered_pair
 from hapsim.analysis.integrators import (COST_ORDER, closed_loop_matrix, continuous_loop_matrix,
                                   spectral_radius_of)
 from hapsim.errors import ConfigError, UnstableConfigError
+from hapsim.outputs import finite_or_none
 
 __all__ = ["RATES", "LinkAdvice", "Advice", "advise_scene", "felt_pair_error",
            "felt_matrix_error"]
@@ -113,7 +115,7 @@ class LinkAdvice:
             ``link``, ``wanted`` (``{k [N/m], b [N s/m]}``), ``rate_hz`` [Hz], ``method``,
             ``K`` [N/m], ``B`` [N s/m], ``error`` [-], ``reason``.
         """
-        f = (lambda v: None if v is None or not math.isfinite(v) else float(v))
+        f = finite_or_none
         return {"link": self.link, "wanted": {"k": self.wanted[0], "b": self.wanted[1]},
                 "rate_hz": self.rate_hz, "method": self.method, "K": f(self.K), "B": f(self.B),
                 "error": f(self.error), "reason": self.reason}
@@ -190,7 +192,7 @@ class Advice:
             [-], ``reason``, ``tolerance``, ``margin``, and ``links`` (list of
             :meth:`LinkAdvice.to_dict`).
         """
-        f = (lambda v: None if v is None or not math.isfinite(v) else float(v))
+        f = finite_or_none
         return {"ok": self.ok, "rate_hz": self.rate_hz, "integrator": self.integrator,
                 "error": f(self.error), "spectral_radius": f(self.spectral_radius),
                 "reason": self.reason, "tolerance": self.tolerance, "margin": self.margin,
@@ -310,18 +312,11 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
         raise ConfigError(f"must be > 0, got {tolerance!r}", key="tolerance")
     if not (0 < margin <= 1):
         raise ConfigError(f"must be in (0, 1], got {margin!r}", key="margin")
-    if scene.port is None or scene.device is None:
-        first = getattr(scene.masses[0], "line", 0) if scene.masses else 0
-        raise ConfigError("advise needs a scene with a port (a mass of kind 'port') and a "
-                          "device section", file=scene.path,
-                          line=None if scene.port else (first or None),
-                          key="device" if scene.port else "masses")
-    if getattr(scene, "audio", None) is not None:
-        # its loop matrices (hapsim.bench.methods) step the network at the device period
-        # only, and the rate ladder meets rates the audio rate is no multiple of
-        raise ConfigError("advise does not model a scene with an audio section (the "
-                          "virtual network sub-stepped at audio.rate_hz); 'hapsim check' "
-                          "predicts it at its own rate", file=scene.path, key="audio")
+    # its loop matrices (hapsim.bench.methods) step the network at the device period only,
+    # and the rate ladder meets rates the audio rate is no multiple of
+    require_port_scene(scene, "advise needs", "advise does not model a scene with an audio "
+                       "section (the virtual network sub-stepped at audio.rate_hz); 'hapsim "
+                       "check' predicts it at its own rate")
     rates = [float(r) for r in rates]
     if getattr(scene, "dimension", 1) > 1:
         return _advise_space(scene, tolerance, margin, rates)

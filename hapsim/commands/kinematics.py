@@ -9,6 +9,7 @@ import sys
 
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
+from hapsim.outputs import finite_or_none
 
 #: Parameters of ``--geometry`` per device, in order (lengths [m]).
 GEOMETRY_FIELDS = {"pantograph": ("l", "L", "d"), "delta": ("a", "b", "c", "d", "e", "f")}
@@ -209,8 +210,7 @@ def _limits(args, dev, q, n) -> dict:
     w, V = np.linalg.eigh(loop.mass)
     K = direction_limits(loop, V, args.B * np.eye(n))
 
-    def f(v):
-        return float(v) if np.isfinite(v) else None
+    f = finite_or_none
     out = {"limits": {"mass": loop.mass.tolist(), "friction": loop.friction.tolist(),
                       "mass_eigenvalues": w.tolist(), "directions": V.T.tolist(),
                       "K_max": [f(v) for v in K], "B": args.B}}
@@ -270,8 +270,7 @@ def workspace_map(dev, q, joint_inertia, joint_friction, *, B, grid: int, span: 
     if not 2 <= grid <= 40:
         raise ConfigError(f"must be between 2 and 40, got {grid}", key="--grid")
 
-    def f(v):
-        return float(v) if np.isfinite(v) else None
+    f = finite_or_none
     axes = [np.linspace(v - np.radians(span), v + np.radians(span), grid) for v in q]
     Q = np.array(list(itertools.product(*axes)))
     with Progress(len(Q), "workspace map", unit="configurations") as bar:

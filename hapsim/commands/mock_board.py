@@ -170,7 +170,8 @@ def run_board_mock(args, new_pty, given) -> int:
         An option not taken, a device protocol without an emulated board, ports that are
         not one FireFader's two faders, a bad amplitude (exit 2).
     """
-    from hapsim.emulated.driver_mock import serve, write_report
+    from hapsim.emulated.driver_mock import serve
+    from hapsim.outputs import write_json
     _refuse_untaken(args, given)
     import termios
 
@@ -205,7 +206,7 @@ def run_board_mock(args, new_pty, given) -> int:
             except OSError:
                 pass
     if args.report:
-        write_report(args.report, rep)
+        write_json(args.report, rep)
     print(f"hapsim mock: stopped; {dev.hosts} host(s) served, the last one's "
           f"{rep.get('packets', 0)} commands applied",
           file=sys.stderr, flush=True)

@@ -8,8 +8,6 @@ import json
 import math
 import sys
 
-import numpy as np
-
 from hapsim.braking import brake_text
 from hapsim.pipeline.felt_run import print_statements, scene_for_run
 from hapsim.errors import ConfigError
@@ -116,11 +114,9 @@ def run_haply2_command(args) -> int:
     bound, wire = res["bound"], res["wire"]
     real = res["quantum_encoders"]
 
-    def num(x):
-        return float(x) if math.isfinite(x) else None
+    from hapsim.api.common import matrix_list as mat
+    from hapsim.outputs import finite_or_none as num
     if args.json:
-        def mat(x):
-            return None if x is None else np.asarray(x, float).tolist()
         print(json.dumps({
             "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
             "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,

@@ -11,7 +11,7 @@ import time
 from typing import TYPE_CHECKING
 
 from hapsim.errors import ConfigError
-from hapsim.outputs import check_fits, check_writable
+from hapsim.outputs import check_writable
 from hapsim.progress import Progress
 from hapsim.option_values import Number
 
@@ -140,28 +140,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"unknown output format {ext or '(none)'!r}; valid: .npz, .csv",
                           key="--out")
     check_writable(args.out, "--out")
-    scene = load_scene(args.scene)
-    calibrations = []
-    if scene.unresolved_targets:
-        # the one place that turns felt targets into (K, B), as hapsim run and check do
-        from hapsim.analysis.targets import apply_targets
-        scene, calibrations = apply_targets(scene)
     # what the command line asks is refused before the engine is compiled (seconds on a
     # first run): the columns (the engine's names are the scene's masses, in order) and
     # the memory they need
-    masses = tuple(m.name for m in scene.masses)
-    names = list(args.record) if args.record else list(masses)
-    from hapsim.engine import mass_indices     # numba: after the input's checks
-    mass_indices(masses, names, key="--record")
-    if len(set(names)) != len(names):
-        twice = sorted({n for n in names if names.count(n) > 1})
-        raise ConfigError(f"names a mass twice: {', '.join(twice)}; each column once",
-                          key="--record")
-    # time and positions, (N+1) x (R+1) float64, plus the engine's chunk
-    check_fits(8.0 * (args.steps + 1) * (len(names) + 1),
-               f"{args.steps} samples x {len(names)} masses of positions", "--steps")
+    from hapsim.api.simulating import line_columns, simulate   # the engine, port at x0
+    scene, calibrations, names = line_columns(load_scene(args.scene), args.steps,
+                                              args.record, ("--record", "--steps"))
     _announce_compilation(scene)
-    from hapsim.api.simulating import simulate     # the engine, its port held at x0
     t0 = time.perf_counter()
     try:
         with Progress(args.steps, "simulate", unit="samples") as bar:

@@ -9,6 +9,7 @@ import sys
 from hapsim.commands._loop_args import fmt, loop_from_args, loop_line, loop_parser
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
+from hapsim.outputs import finite_or_none
 
 
 def register(sub) -> None:
@@ -213,8 +214,7 @@ def _run_scene(args) -> int:
     lim = chk.stiffness_limits
     E = chk.limit_directions
 
-    def f(v):
-        return float(v) if np.isfinite(v) else None
+    f = finite_or_none
     w = np.linalg.eigvalsh(dev.mass)
     d = {"scene": str(args.scene), "dof": n, "device": dev.kind, "rate_hz": scene.rate_hz,
          "delay": dev.delay, "port_stiffness": chk.port_stiffness.tolist(),

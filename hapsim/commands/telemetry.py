@@ -10,6 +10,7 @@ import zipfile
 
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number
+from hapsim.outputs import finite_or_none as _finite
 
 __all__ = ["register", "run", "read", "summarize", "felt_energy", "format_summary"]
 
@@ -169,11 +170,6 @@ def felt_energy(position: np.ndarray, force: np.ndarray, flags: np.ndarray,
         inc = f[a:b - 1 - delay] * np.diff(x[a + delay:b])     # k = a + d .. b - 2
         e[a + delay + 1:b] = np.cumsum(inc)
     return e
-
-
-def _finite(v) -> float | None:
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 def _range(a: np.ndarray) -> dict:

@@ -26,11 +26,12 @@ from hapsim.emulated.actuated import Actuated, WallClock
 from hapsim.emulated.firefader_board import FireFaderDevice
 from hapsim.emulated.hapkit_serial_board import HapkitSerialDevice
 from hapsim.emulated.haply_board import HaplyDevice
+from hapsim.outputs import write_json
 from hapsim.spawn import PtyChild
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
            "WallClock", "MOCKS", "WALL_CLOCK_MOCKS",
-           "EmbeddedDriverMock", "firefader_offline_loop", "main", "write_report"]
+           "EmbeddedDriverMock", "firefader_offline_loop", "main"]
 
 #: The emulated device of each 1-D driver family, by its name (the registry's
 #: :attr:`hapsim.drivers.Family.mock`).
@@ -394,24 +395,8 @@ def main(argv=None) -> int:
                 poll=0.02 if getattr(dev, "firmware", "") != "pde" else 1.0 / a.rate,
                 handled=HandledBytes(a.handled) if a.handled else None)
     if a.report:
-        write_report(a.report, rep)
+        write_json(a.report, rep)
     return 0
-
-
-def write_report(path: str, rep: dict) -> None:
-    """Write a board's report (:func:`serve`'s) as JSON, whole or not at all: through
-    ``path + ".partial"``, renamed into place (a reader never sees half a report).
-
-    Parameters
-    ----------
-    path : str
-        The report's file.
-    rep : dict
-        :func:`serve`'s result.
-    """
-    with open(path + ".partial", "w") as fh:
-        json.dump(rep, fh)
-    os.replace(path + ".partial", path)
 
 
 class EmbeddedDriverMock(PtyChild):

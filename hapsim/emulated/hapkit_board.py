@@ -265,10 +265,3 @@ def board_command(device, excitation, *, elf: str | None = None, realtime: bool 
         cmd += ["--spin-us", repr(float(spin_us))]
     return cmd
 
-
-# ---------------------------------------------------------------------------- the bound
-# One implementation serves `hapsim run`, the board tests and any other caller: they live
-# in the analysis (hapsim.analysis.identify, hapsim.analysis.quantisation) and are
-# re-exported here for old imports.
-from hapsim.analysis.identify import fit_free_response  # noqa: E402,F401
-from hapsim.analysis.quantisation import quantisation_bound, quantiser_gain  # noqa: E402,F401

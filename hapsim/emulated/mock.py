@@ -232,13 +232,9 @@ class MockStats:
         Returns
         -------
         dict
-            Every attribute of the class by name (``faults`` copied).
+            Every attribute of the class by name, in their order (``faults`` copied).
         """
-        return {"ticks": self.ticks, "forces_rx": self.forces_rx, "late": self.late,
-                "watchdog_trips": self.watchdog_trips, "clamped": self.clamped,
-                "overruns": self.overruns, "unexpected": self.unexpected,
-                "stale": self.stale, "saw_stop": self.saw_stop, "last_applied": self.last_applied,
-                "last_host_message": self.last_host_message, "faults": list(self.faults)}
+        return dataclasses.asdict(self)
 
 
 class MockDevice:

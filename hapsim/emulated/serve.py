@@ -6,7 +6,6 @@ signal or a vanished host does. The device itself is :class:`hapsim.emulated.moc
 from __future__ import annotations
 
 import gc
-import json
 import os
 import select
 import signal
@@ -16,6 +15,7 @@ import firmware_protocol as fp
 from hapsim.device_model import DEFAULT_DEVICE, DEFAULT_EXCITATION, MockPhysics
 from hapsim.emulated.mock import MockDevice
 from hapsim.errors import ConfigError
+from hapsim.outputs import write_json
 from hapsim.spawn import StopFlag
 
 __all__ = ["serve_fd", "compiled_reason", "warm_up_mock", "AUTO_COMPILED_HZ", "MOCK_SPIN_NS"]
@@ -291,10 +291,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
             report["faults_injected"] = dict(plan.to_dict()["injected"])
             report["fault_events"] = dev.events
         if report_path:
-            tmp = report_path + ".partial"
-            with open(tmp, "w") as fh:
-                json.dump(report, fh)
-            os.replace(tmp, report_path)
+            write_json(report_path, report)
     return report
 
 

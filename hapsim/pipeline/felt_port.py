@@ -36,8 +36,6 @@ __all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "handshak
 
 #: CONFIG's force limit [N]: the scene's device has none (finite, as CONFIG requires).
 FORCE_LIMIT = 1e9
-#: STATEs of a record that may be lost (a gap in seq) before the record is run again.
-RETRIES = 3
 
 
 class RecordND:

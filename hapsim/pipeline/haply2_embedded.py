@@ -8,14 +8,13 @@ real-time loop (:mod:`hapsim.pipeline.haply2_record`) to drive as it would a rea
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import sys
 
 from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import ConfigError
+from hapsim.outputs import write_json
 from hapsim.spawn import PtyChild
 
 __all__ = ["Embedded2DIY", "main"]
@@ -143,9 +142,7 @@ def main(argv=None) -> int:
         rep = serve(a.fd, board, stop=lambda: flag["stop"])
     rep["scheduling"] = rt.note
     if a.report:
-        with open(a.report + ".partial", "w") as fh:
-            json.dump(rep, fh)
-        os.replace(a.report + ".partial", a.report)
+        write_json(a.report, rep)
     return 0
 
 

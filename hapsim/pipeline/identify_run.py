@@ -396,11 +396,6 @@ class ExcitationEngine:
         """The square wave's force level ``A`` now [N]."""
         return self._g
 
-    @property
-    def mass_bound(self) -> float:
-        """The apparent mass bound ``M`` the stop ahead uses now [kg] (class notes)."""
-        return self._mass if self._mass > 0.0 else None
-
     def set_port_position(self, position: float, at_rest: bool = False) -> None:
         """Centre the excitation at the device's position ``position`` [m]."""
         self._xc = float(position)

@@ -85,8 +85,8 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
         ikK, ikB = g.iso_k_K, g.iso_k_B + b0
         ibK, ibB = g.iso_b_K, g.iso_b_B + b0
     else:
-        ikK, ikB = g.K, g.B + b0
-        ibK, ibB = g.K.T, g.B.T + b0
+        ikK, ikB = g.K, g.B_axis
+        ibK, ibB = g.K.T, g.B_axis.T
 
     labels = []   # (x, y, text, colour, from_start), placed once the limits are known
     for i, k in enumerate(kv):
@@ -102,7 +102,7 @@ def plot_grid(result, ax=None, title: str | None = None, *, label_every: int = 1
     ax.plot([], [], ls="--", color="0.6", lw=0.8, label="identity (K = k, B + b0 = b)")
     # boundary
     bK = np.where(np.isfinite(g.boundary_K), g.boundary_K, np.nan)
-    ax.plot(bK, g.boundary_B + b0, color="black", lw=2.6, zorder=4,
+    ax.plot(bK, g.boundary_B_axis, color="black", lw=2.6, zorder=4,
             label="stability boundary (spectral radius 1)")
     # limits: the grid, with a margin
     xs = np.concatenate([np.ravel(ikK), np.ravel(ibK)])

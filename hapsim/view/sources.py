@@ -9,9 +9,10 @@ source never makes the loop wait and never allocates on its behalf.
 from __future__ import annotations
 
 import collections
-import math
 
 import numpy as np
+
+from hapsim.outputs import finite_or_none as _num
 
 __all__ = ["RunSource", "PlaySource", "ChunkSource", "scene_layout"]
 
@@ -51,11 +52,6 @@ def scene_layout(scene) -> dict:
               for p in getattr(scene, "planes", ()) or ()]
     return {"dim": dim, "masses": masses, "links": links, "planes": planes,
             "targets": targets, "rate_hz": float(scene.rate_hz)}
-
-
-def _num(v) -> float | None:
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 class _Base:

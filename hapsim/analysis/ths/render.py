@@ -24,18 +24,12 @@ from hapsim.analysis.loop_poles import roots_w, scaled_gains
 from hapsim.analysis.modes import Mode, mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.analysis.ths.felt import MatrixRenderResult, render_state
 from hapsim.analysis.ths.holds import state_matrix
+from hapsim.outputs import finite_or_none as _f
 from hapsim.analysis.ths.matrix_loop import MatrixLoop, gain_matrices
 from hapsim.errors import ConfigError
 
 __all__ = ["RenderResult", "CalibrationResult", "render", "calibrate", "calibrate_core",
            "check_target", "log_abs_w"]
-
-
-def _f(v):
-    if v is None:
-        return None
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 def _modes_of(loop: LoopModel, w: np.ndarray) -> list[Mode]:
