@@ -590,17 +590,23 @@ def _pty_device(dev):
 
 def _arm_and_wait(drv, path, timeout=3.0):
     """Open the driver's transport on ``path``, arm it, return (transport, first STATEs)."""
-    import time as _t
-
     import firmware_protocol as fp
     from hapsim.drivers.transport import DriverTransport
     tr = DriverTransport(drv, path, delay=1)
     tr.send(fp.Config(250.0, 50_000, 1.0))
+    return tr, _states_within(tr, timeout)
+
+
+def _states_within(tr, timeout):
+    """The first STATEs the transport ``tr`` gives within ``timeout`` s ([] if none)."""
+    import time as _t
+
+    import firmware_protocol as fp
     end = _t.monotonic() + timeout
     got = []
     while not got and _t.monotonic() < end:
         got = [m for m in tr.receive(0.02) if type(m) is fp.State]
-    return tr, got
+    return got
 
 
 def test_firefader_bootloader_and_firmware_detection():
@@ -666,10 +672,7 @@ def test_firefader_answers_read_after_a_stop_are_no_streaming_firmware():
         late = tr.receive(0.02)
         before = tr.report()
         tr.send(fp.Config(250.0, 50_000, 1.0))
-        again = []
-        end = _t.monotonic() + 2.0
-        while not again and _t.monotonic() < end:
-            again = [m for m in tr.receive(0.02) if type(m) is fp.State]
+        again = _states_within(tr, 2.0)
         rep = tr.report()
         tr.close()
     finally:
@@ -731,9 +734,7 @@ def test_firefader_answers_read_late_at_a_rearming_are_no_streaming_firmware(hol
         drv.arming_records = 0
         tr = DriverTransport(drv, os.ttyname(slave), delay=1)
         tr.send(fp.Config(250.0, 50_000, 1.0))
-        end = _t.monotonic() + 3.0
-        while not [m for m in tr.receive(0.02) if type(m) is fp.State]:
-            assert _t.monotonic() < end, "no first record"
+        assert _states_within(tr, 3.0), "no first record"
         board["hold_until"] = _t.monotonic() + 1.0      # the next answers wait
         for _ in range(5):
             tr.send(fp.Force(0, (0.01,)))
@@ -741,10 +742,7 @@ def test_firefader_answers_read_late_at_a_rearming_are_no_streaming_firmware(hol
         tr.send(fp.Stop())
         board["hold_until"] = _t.monotonic() + hold_ms / 1000.0
         tr.send(fp.Config(250.0, 50_000, 1.0))          # listens, then arms
-        again = []
-        end = _t.monotonic() + 2.0
-        while not again and _t.monotonic() < end:
-            again = [m for m in tr.receive(0.02) if type(m) is fp.State]
+        again = _states_within(tr, 2.0)
         rep = tr.report()
         tr.close()
     finally:
@@ -944,10 +942,7 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
             tr.receive(0.0)
         tr.send(fp.Stop())
         tr.send(fp.Config(1000.0, 50_000, 0.12))
-        again = []
-        end = _t.monotonic() + 2.0
-        while not again and _t.monotonic() < end:
-            again = [m for m in tr.receive(0.02) if type(m) is fp.State]
+        again = _states_within(tr, 2.0)
         rep = tr.report()
         tr.close()
     finally:
