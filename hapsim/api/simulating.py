@@ -225,13 +225,9 @@ def simulate(scene, steps: int, *, record=None, x0=None, v0=None, progress=None)
     return _simulate_line(scene, int(steps), record, progress)
 
 
-def _simulate_ports(scene, N: int, record, x0, v0, progress) -> SimulateReportPorts:
-    """:func:`simulate` of a scene with several ports (its notes)."""
-    from hapsim.lockstep_ports import LockstepPorts
-    from hapsim.outputs import check_fits
-    ports = scene.ports
-    P = len(ports)
-    every = [m.name for m in scene.masses]
+def _recorded(every: list, record) -> list:
+    """The masses to record: ``record`` (each a mass of ``every``, once) or, when None or
+    empty, every mass in file order (key ``record`` in the errors)."""
     names = list(record) if record else list(every)
     for nm in names:
         if nm not in every:
@@ -239,6 +235,16 @@ def _simulate_ports(scene, N: int, record, x0, v0, progress) -> SimulateReportPo
                               key="record")
     if len(set(names)) != len(names):
         raise ConfigError("names a mass twice; each once", key="record")
+    return names
+
+
+def _simulate_ports(scene, N: int, record, x0, v0, progress) -> SimulateReportPorts:
+    """:func:`simulate` of a scene with several ports (its notes)."""
+    from hapsim.lockstep_ports import LockstepPorts
+    from hapsim.outputs import check_fits
+    ports = scene.ports
+    P = len(ports)
+    names = _recorded([m.name for m in scene.masses], record)
     start, speed = _per_port(x0, ports, "x0"), _per_port(v0, ports, "v0")
     check_fits(8.0 * (N + 1) * (len(names) + 2 * P + 1),
                f"{N} samples x ({len(names)} masses + {P} ports' positions and forces)",
@@ -351,13 +357,7 @@ def _simulate_nd(scene, N: int, record, progress) -> SimulateReportND:
     from hapsim.engine import Engine
     from hapsim.outputs import check_fits
     engine = Engine(scene)
-    names = list(record) if record else list(engine.names)
-    for nm in names:
-        if nm not in engine.names:
-            raise ConfigError(f"no mass named {nm!r}; masses: {', '.join(engine.names)}",
-                              key="record")
-    if len(set(names)) != len(names):
-        raise ConfigError("names a mass twice; each once", key="record")
+    names = _recorded(list(engine.names), record)
     idx = np.array([engine.names.index(nm) for nm in names], dtype=np.int64)
     n = scene.dimension
     check_fits(8.0 * (N + 1) * (len(names) * n + 1),
@@ -376,7 +376,7 @@ def _simulate_nd(scene, N: int, record, progress) -> SimulateReportND:
             bad = k
             break
         if k % 4096 == 0:
-            progress(k)
+            progress(k, N)
     rows = N + 1 if bad is None else bad
     d = {"scene": scene.path, "dimension": n, "steps": N if bad is None else bad,
          "rate_hz": scene.rate_hz, "recorded": len(names),
