@@ -43,7 +43,7 @@ def test_unmodelled_resonance_is_reported():
     """A compliant transmission (handle on a spring to a motor mass) is not a rigid mass:
     the verdict says the model does not explain the data."""
     from scipy.signal import cont2discrete, dlsim
-    from hapsim.pipeline.identify_run import excitation_plan
+    from hapsim.pipeline.excitation import excitation_plan
     T = 1e-3
     n = 3000
     r = excitation_plan(n, 1000.0, 2.0, 0.01).r

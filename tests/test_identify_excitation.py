@@ -11,7 +11,7 @@ of Coulomb friction never broke loose under the 0.4 N the level could reach at t
 The records of the property test come from the independent simulation of
 ``tests/test_identify_gaps.py`` (exact zero-order hold from the matrix exponential, the
 first-order Coulomb rule, a device applying the answer to tick ``t`` from ``t + d``), driven
-by :class:`hapsim.pipeline.identify_run.ExcitationEngine` at the default options.
+by :class:`hapsim.pipeline.excitation.ExcitationEngine` at the default options.
 """
 
 import math
@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from hapsim.analysis.device_fit_search import moving_stretches
-from hapsim.pipeline.identify_run import LEVEL_SHARE, PRBS_SHARE
+from hapsim.pipeline.excitation import LEVEL_SHARE, PRBS_SHARE
 
 from intervals import assert_within  # same directory (pytest prepend import mode)
 from test_identify_gaps import simulate  # same directory (pytest prepend import mode)
@@ -132,7 +132,7 @@ def test_the_centring_gains_radii_are_numpy_roots_bit_for_bit():
     ``_rho_mass``'s (``numpy.roots`` of the same characteristic polynomial) bit for bit, a
     damping of 0 (a root at 0, which ``numpy.roots`` strips) included; so the gains are
     the same numbers."""
-    from hapsim.pipeline.identify_run import (MASS_RANGE, _rho_mass, _rho_masses,
+    from hapsim.pipeline.excitation import (MASS_RANGE, _rho_mass, _rho_masses,
                                               centring_gains)
     rng = np.random.default_rng(31)
     for i in range(200):

@@ -46,7 +46,7 @@ def _lost(rng, n: int, frac: float) -> np.ndarray:
 def simulate(m, b0, fc, d, n, lost, rng, *, quantum=0.0, noise=0.0, force_limit=4.0,
              prbs=False):
     """The record a host keeps of a device behind a lossy link (module notes), excited as
-    ``hapsim identify`` excites (its :class:`~hapsim.pipeline.identify_run.ExcitationEngine`,
+    ``hapsim identify`` excites (its :class:`~hapsim.pipeline.excitation.ExcitationEngine`,
     answering only the STATEs received, the force clamped to ``force_limit`` [N]).
 
     Returns ``(seq, position, force, force_seq, status)`` of the received rows: the ticks,
@@ -55,7 +55,7 @@ def simulate(m, b0, fc, d, n, lost, rng, *, quantum=0.0, noise=0.0, force_limit=
     plain binary force of ``0.1 force_limit`` (random holds of 1-40 ticks) on a 1 Hz
     centring spring instead, free of the envelope (many encoder steps on a coarse one).
     """
-    from hapsim.pipeline.identify_run import ExcitationEngine, excitation_plan
+    from hapsim.pipeline.excitation import ExcitationEngine, excitation_plan
     eng = ExcitationEngine(excitation_plan(n, 1.0 / T, force_limit, 0.01, max_delay=20,
                                            seed=int(rng.integers(1 << 30))))
     eng.set_port_position(0.0)

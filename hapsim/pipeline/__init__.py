@@ -10,8 +10,9 @@ Modules
     :mod:`hapsim.pipeline.report`, its start-up :mod:`hapsim.pipeline.startup`.
 :mod:`hapsim.pipeline.felt_port`
     The run of a 2-D or 3-D scene.
-:mod:`hapsim.pipeline.identify_run`
-    ``hapsim identify``'s run: the device's mass, friction and delay from a record.
+:mod:`hapsim.pipeline.identify_run`, :mod:`hapsim.pipeline.excitation`
+    ``hapsim identify``'s run: the device's mass, friction and delay from a record, and
+    the excitation it designs from what the device shows.
 :mod:`hapsim.pipeline.haply2_host`, :mod:`hapsim.pipeline.falcon_run`
     The runs of the Haply 2DIY and the Novint Falcon (the 2DIY's real-time record loop
     :mod:`hapsim.pipeline.haply2_record`, its emulated board's child process
