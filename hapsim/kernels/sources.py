@@ -35,7 +35,8 @@ __all__ = ["source_paths", "sources_digest", "cache_ok", "LOOP_SOURCES", "MOCK_S
 #: it to be updated (which touches ``fastloop_kernels.py``, so numba recompiles).
 LOOP_SOURCES = ("hapsim/kernels/compiled_io.py", "hapsim/host/telemetry.py",
                 "hapsim/kernels/ticks.py", "hapsim/kernels/cordis.py",
-                "hapsim/kernels/schemes.py", "firmware_protocol/codec.py")
+                "hapsim/kernels/schemes.py", "hapsim/kernels/arguments.py",
+                "firmware_protocol/codec.py")
 
 
 #: The modules whose code or constants numba compiles into the compiled mock
