@@ -42,7 +42,9 @@ class KernelPack(NamedTuple):
         The module-level kernel of :mod:`hapsim.kernels.cordis` or
         :mod:`hapsim.kernels.schemes`, called as ``kernel(n, *args, rec, out, row0)``.
     args : tuple
-        Its arguments, in its order.
+        Its state arguments, in its order: those
+        :data:`hapsim.kernels.arguments.KERNELS` declares (taken from the engine's arrays
+        by name).
     state : tuple of ndarray
         ``(x, xp, f, mobile, t2m, fixed)``: positions [m] now and one period ago, forces
         [N], indices of the mobile masses, their ``T^2 / m`` [s^2/kg], indices of the port
@@ -85,7 +87,8 @@ class MultiRatePack(NamedTuple):
         ``(x, xp, f, mobile, t2m, fixed)`` (as :attr:`KernelPack.state`), the
         spring-dampers' ``(i1, i2, k, z)`` and the contacts' ``(i1, i2, k, z, thr)``
         (empty arrays when the scene has none), the listening points' ``(index, code,
-        gain)`` and ``1 / Ta`` [1/s]: 19 entries.
+        gain)`` and ``1 / Ta`` [1/s]: 19 entries (the state arguments of ``run_periods``
+        in :data:`hapsim.kernels.arguments.KERNELS`, as ``head`` its head).
     """
 
     head: tuple

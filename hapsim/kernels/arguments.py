@@ -15,7 +15,7 @@ Each argument has a name (the kernel's parameter name), a type and a role:
 role      what it is and who provides it
 ========  ==================================================================================
 count     the samples (device periods) to advance: ``ctx[0]`` of a runner, 1 in the loop
-head      an integer parameter (``int64``, or ``bool`` stored as 0/1) in ``ctx[1:HEAD]``
+head      an integer parameter (``int64``, or ``bool`` stored as 0/1): a context's ``ctx[1:]``
 state     one of the engine's arrays or floats: :attr:`KernelPack.args` (in this order)
 call      a per-call buffer (the port positions, audio frames, forces, ``rec``, ``out``)
 row       a first row to write (``row0``, ``arow0``): ``int64`` 0 from a step
@@ -25,10 +25,12 @@ Types: ``F`` float64 array (n,), ``I`` int64 array (n,), ``F2`` float64 array (r
 ``FLOAT`` a float (a 1-element float64 array in a context, taken as ``[0]``), ``INT`` int64,
 ``BOOL`` bool.
 
-The callers' compiled code is generated from the table at numba's typing time
-(:func:`call_function`): the call it compiles is the call written out by hand, with the
-same argument expressions, so the kernels compile for the same signatures and the callers
-keep numba's disk cache (their own functions stay in their files). Plain Python: no numba.
+The compiled callers' kernel calls are generated from the table (:func:`call_function`):
+step1d's at import, as numba functions that numba inlines into the runners' IR, the
+compiled loop's by its ``@overload`` when numba types the loop. The call compiled is the
+call written out by hand, with the same argument expressions, so the kernels compile for
+the same signatures (the runners' machine code is the hand-written one's) and the callers,
+whose functions stay in their files, keep numba's disk cache. Plain Python: no numba.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from typing import Callable, NamedTuple
 
 __all__ = ["Arg", "Kernel", "KERNELS", "COUNT", "HEAD", "STATE", "CALL", "ROW", "F", "I", "F2",
            "FLOAT", "INT", "BOOL", "ROLES", "STATE_NAMES", "SD_NAMES", "CONTACT_NAMES", "take",
-           "state_names", "call_function"]
+           "call_function"]
 
 # roles
 COUNT, HEAD, STATE, CALL, ROW = ROLES = ("count", "head", "state", "call", "row")
@@ -146,26 +148,6 @@ def take(kernel: str, named: dict, roles=(STATE,)) -> tuple:
         An unknown kernel, or an argument of those roles missing from ``named``.
     """
     return tuple(named[a.name] for a in KERNELS[kernel].args if a.role in roles)
-
-
-def state_names(kernel: str) -> tuple[str, ...]:
-    """The names of a kernel's ``state`` arguments, in its order.
-
-    Parameters
-    ----------
-    kernel : str
-        A key of :data:`KERNELS`.
-
-    Returns
-    -------
-    tuple of str
-
-    Raises
-    ------
-    KeyError
-        Not a kernel of :data:`KERNELS`.
-    """
-    return tuple(a.name for a in KERNELS[kernel].args if a.role == STATE)
 
 
 def call_function(kernel: str, fn: Callable, params: str,

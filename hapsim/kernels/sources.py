@@ -27,7 +27,7 @@ __all__ = ["source_paths", "sources_digest", "cache_ok", "LOOP_SOURCES", "MOCK_S
 
 #: The modules, besides ``hapsim/host/fastloop_kernels.py``, whose code or constants numba
 #: compiles into the compiled host loop (the late-tick rule, the I/O primitives, the engine
-#: kernels, the telemetry flags, the protocol's constants). numba keys its on-disk cache of
+#: kernels and their argument table, the telemetry flags, the protocol's constants). numba keys its on-disk cache of
 #: a function on its own file's modification time and size only, so an edit to one of these
 #: alone would leave the cached loop on the old code: ``fastloop_kernels.py`` holds their
 #: SHA-256 (:data:`hapsim.host.fastloop_kernels.COMPILED_SOURCES_SHA256`), compiles without

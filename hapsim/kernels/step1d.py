@@ -36,7 +36,7 @@ COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
                     "hapsim/kernels/arguments.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "9acc9773bd968c16f3e576fef525a2768a86e396789731828eb2cf51fd686127"
+COMPILED_SOURCES_SHA256 = "06bd77750a77ed45011325f21c23d2ac6fbbc816a269000f4854e728e1c7a305"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
