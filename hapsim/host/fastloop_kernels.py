@@ -44,7 +44,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "801ad9571c215320cdce4c7e25224ce19b61912e87cc413def160d76a0d30607"
+COMPILED_SOURCES_SHA256 = "ba0840bdf3ede7056fb7b20d40fc4825c6af38483b80b32056755e828e89ce56"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

@@ -29,7 +29,8 @@ The compiled callers' kernel calls are generated from the table (:func:`call_fun
 step1d's at import, as numba functions that numba inlines into the runners' IR, the
 compiled loop's by its ``@overload`` when numba types the loop. The call compiled is the
 call written out by hand, with the same argument expressions, so the kernels compile for
-the same signatures (the runners' machine code is the hand-written one's) and the callers,
+the same signatures (six of the seven runners compile to the hand-written calls' machine
+code; step_periods rebuilds two more arrays in its loop) and the callers,
 whose functions stay in their files, keep numba's disk cache. Plain Python: no numba.
 """
 

@@ -36,7 +36,7 @@ COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
                     "hapsim/kernels/arguments.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "06bd77750a77ed45011325f21c23d2ac6fbbc816a269000f4854e728e1c7a305"
+COMPILED_SOURCES_SHA256 = "489b15b996a8d86547e08fb934fbd296ec935d1e09b1181ded67e4e663883659"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
