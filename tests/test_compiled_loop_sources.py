@@ -223,6 +223,11 @@ def test_every_cached_module_holds_the_digest_of_what_it_compiles_in(module_name
                 and v.__wrapped__.__module__ == module_name]
     assert compiled, module_name
     for fn in compiled:             # cached only under a matching digest
+        if getattr(fn, "py_func", fn.__wrapped__).__code__.co_filename.startswith("<"):
+            # generated from a table (hapsim.kernels.arguments): no file numba could cache
+            # it by, and it needs none: inlined into its callers' IR, which are cached
+            assert fn.targetoptions.get("inline") == "always", fn
+            continue
         assert (fn._cache.__class__.__name__ != "NullCache") == mod.CACHE_OK, fn
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from hapsim.engine._api import Engine, mass_indices
 from hapsim.errors import ConfigError
 from hapsim.kernels import audio as audio_kernel
-from hapsim.kernels import cordis, schemes, step1d
+from hapsim.kernels import arguments, cordis, schemes, step1d
 from hapsim.scene import Scene, audio_substeps
 
 __all__ = ["KernelPack", "Line", "MultiRatePack"]
@@ -23,6 +23,11 @@ __all__ = ["KernelPack", "Line", "MultiRatePack"]
 _NDARRAY = np.ndarray
 _EMPTY_REC = np.empty(0, dtype=np.int64)
 _EMPTY_OUT = np.empty((0, 0), dtype=np.float64)
+#: The arrays of a link kind a scene lacks (the kernels that take them loop over none).
+_NO_SD = (_EMPTY_REC, _EMPTY_REC, np.empty(0), np.empty(0))
+_NO_CONTACT = _NO_SD + (np.empty(0),)
+#: The multi-rate kernel's name in hapsim.kernels.arguments.KERNELS.
+_PERIODS = audio_kernel.run_periods.__name__
 
 
 class KernelPack(NamedTuple):
@@ -37,7 +42,9 @@ class KernelPack(NamedTuple):
         The module-level kernel of :mod:`hapsim.kernels.cordis` or
         :mod:`hapsim.kernels.schemes`, called as ``kernel(n, *args, rec, out, row0)``.
     args : tuple
-        Its arguments, in its order.
+        Its state arguments, in its order: those
+        :data:`hapsim.kernels.arguments.KERNELS` declares (taken from the engine's arrays
+        by name).
     state : tuple of ndarray
         ``(x, xp, f, mobile, t2m, fixed)``: positions [m] now and one period ago, forces
         [N], indices of the mobile masses, their ``T^2 / m`` [s^2/kg], indices of the port
@@ -80,7 +87,8 @@ class MultiRatePack(NamedTuple):
         ``(x, xp, f, mobile, t2m, fixed)`` (as :attr:`KernelPack.state`), the
         spring-dampers' ``(i1, i2, k, z)`` and the contacts' ``(i1, i2, k, z, thr)``
         (empty arrays when the scene has none), the listening points' ``(index, code,
-        gain)`` and ``1 / Ta`` [1/s]: 19 entries.
+        gain)`` and ``1 / Ta`` [1/s]: 19 entries (the state arguments of ``run_periods``
+        in :data:`hapsim.kernels.arguments.KERNELS`, as ``head`` its head).
     """
 
     head: tuple
@@ -202,12 +210,18 @@ class Line(Engine):
         integrator = getattr(scene, "integrator", "centred")
         if integrator == "centred":
             kernel = cordis.KERNELS[kinds]
-            args = state + sum((arr for arr in links.values() if arr is not None), ())
             extras = {}
         else:  # hapsim.kernels.schemes: symplectic_euler, exact
-            kernel, args, extras = schemes.build(integrator, T, *state,
-                                                 sd=links["spring_damper"],
-                                                 contact=links["contact"])
+            kernel, _, extras = schemes.build(integrator, T, *state,
+                                              sd=links["spring_damper"],
+                                              contact=links["contact"])
+        #: The kernels' arguments by name (empty link arrays for the kinds the scene
+        #: lacks), taken in each kernel's order from hapsim.kernels.arguments.
+        self._named = {**dict(zip(arguments.STATE_NAMES, state)),
+                       **dict(zip(arguments.SD_NAMES, links["spring_damper"] or _NO_SD)),
+                       **dict(zip(arguments.CONTACT_NAMES, links["contact"] or _NO_CONTACT)),
+                       **extras}
+        args = arguments.take(kernel.__name__, self._named)
         self._kernel, self._args = kernel, args
         self._pack = KernelPack(kernel, args, state, links["spring_damper"], links["contact"],
                                 extras, self._port)
@@ -253,22 +267,19 @@ class Line(Engine):
     def _init_audio(self, audio) -> None:
         """Arguments of :func:`hapsim.kernels.audio.run_periods` (every link kind given,
         empty when unused) and the one-period buffers :meth:`port_step` reuses."""
-        e = np.empty(0, dtype=np.float64)
-        ei = np.empty(0, dtype=np.int64)
-        pack = self._pack
-        sd = pack.sd if pack.sd is not None else (ei, ei, e, e)
-        ct = pack.contact if pack.contact is not None else (ei, ei, e, e, e)
         ls = audio.listen
         self.channels = tuple(f"{x.mass}.{x.quantity}" for x in ls)
         self._l_idx = np.array([self.scene.index(x.mass) for x in ls], dtype=np.int64)
         self._l_code = np.array([audio_kernel.LISTEN_CODES[x.quantity] for x in ls],
                                 dtype=np.int64)
         self._l_gain = np.array([x.gain for x in ls], dtype=np.float64)
+        self._named.update(nsub=self.substeps, linear=audio.port_position == "linear",
+                           last=audio.port_force == "last", port=self._port,
+                           l_idx=self._l_idx, l_code=self._l_code, l_gain=self._l_gain,
+                           inv_ta=1.0 / self.sim_period)
         self._multi = MultiRatePack(
-            (self.substeps, audio.port_position == "linear", audio.port_force == "last",
-             self._port),
-            pack.state + tuple(sd) + tuple(ct)
-            + (self._l_idx, self._l_code, self._l_gain, 1.0 / self.sim_period))
+            arguments.take(_PERIODS, self._named, (arguments.HEAD,)),
+            arguments.take(_PERIODS, self._named))
         self._pos1 = np.zeros(1)
         self._force1 = np.zeros(1)
         #: Audio frames of the last :meth:`port_step`, shape (N, C) (reused buffer).
@@ -278,27 +289,31 @@ class Line(Engine):
         """The one-argument step (:mod:`hapsim.kernels.step1d`): the kernel's arguments
         packed once, so that :meth:`step` and :meth:`port_step` allocate nothing per call.
         The arrays named are the engine's own, updated in place and never rebound."""
+        arrays = (arguments.STATE, arguments.CALL)
         if self._multi is None:
-            self._step_ctx, self._step_keep = step1d.context(
-                self._args + (_EMPTY_REC, _EMPTY_OUT))
+            self._step_ctx, self._step_keep = step1d.context(arguments.take(
+                self._kernel.__name__, dict(self._named, rec=_EMPTY_REC, out=_EMPTY_OUT),
+                arrays))
             self._step_run = step1d.RUNNERS[self._kernel]
             return
-        head, state = self._multi
+        head = self._multi.head
         # step: the port held, one period at a time on scratch position and frames
         # (dropped), its force kept as port_step's; port_step: the position given, frames
         # and force kept (self.frames, self._force1: port_force)
         self._step_scratch = pos, frames = (np.zeros(1), np.zeros_like(self.frames))
-        self._step_ctx, self._step_keep = step1d.context(
-            (pos,) + state + (frames, self._force1, _EMPTY_REC, _EMPTY_OUT), head + (0,))
-        self._port_ctx, self._port_keep = step1d.context(
-            (self._pos1,) + state + (self.frames, self._force1, _EMPTY_REC, _EMPTY_OUT),
-            head + (1,))
+        self._step_ctx, self._step_keep = step1d.context(arguments.take(_PERIODS, dict(
+            self._named, pos=pos, audio=frames, force=self._force1, rec=_EMPTY_REC,
+            out=_EMPTY_OUT), arrays), head + (0,))
+        self._port_ctx, self._port_keep = step1d.context(arguments.take(_PERIODS, dict(
+            self._named, pos=self._pos1, audio=self.frames, force=self._force1,
+            rec=_EMPTY_REC, out=_EMPTY_OUT), arrays), head + (1,))
         self._step_run = step1d.RUNNERS[audio_kernel.run_periods]
 
     def _periods(self, n, pos, audio, arow0, force, rec, out, row0) -> None:
         """``n`` device periods of the multi-rate kernel (:mod:`hapsim.kernels.audio`)."""
-        head, state = self._multi
-        audio_kernel.run_periods(n, *head, pos, *state, audio, arow0, force, rec, out, row0)
+        audio_kernel.run_periods(*arguments.take(_PERIODS, dict(
+            self._named, n=n, pos=pos, audio=audio, arow0=arow0, force=force, rec=rec,
+            out=out, row0=row0), arguments.ROLES))
 
     # ------------------------------------------------------------------ stepping
     def step(self, n: int = 1) -> None:

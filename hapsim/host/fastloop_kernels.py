@@ -32,7 +32,7 @@ from hapsim.kernels.compiled_io import (
     force_frame as _force_frame, le as _le, next_frame as _next_frame, now_ns as _now_ns)
 from hapsim.kernels.sources import LOOP_SOURCES, source_paths, sources_digest
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
-from hapsim.kernels import cordis, schemes
+from hapsim.kernels import arguments, cordis, schemes
 from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
 from hapsim.kernels.ticks import tick_late as _tick_late
 
@@ -44,7 +44,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "10778ba3146bc51a80c1a684fac9d55f11eb83b179a96151eab4447306b1c573"
+COMPILED_SOURCES_SHA256 = "ba0840bdf3ede7056fb7b20d40fc4825c6af38483b80b32056755e828e89ce56"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -87,27 +87,24 @@ _MAX_FRAME = fp.MAX_FRAME
 
 # ----------------------------------------------------------------------------- port step
 # The engine's kernel is named by a tag among the module-level kernels of hapsim.kernels,
-# with its arrays in one tuple of fixed types (unused slots empty): numba loads a function
-# from its on-disk cache only when no argument is a dispatcher (a first-class function
-# argument made the loop compile again at every start, ~8 s). The tag is a tuple whose
-# length is the kernel's number + 1, so its numba *type* names the kernel: the loop is
+# with its arrays in one tuple (its state arguments, KernelPack.args): numba loads a
+# function from its on-disk cache only when no argument is a dispatcher (a first-class
+# function argument made the loop compile again at every start, ~8 s). The tag is a tuple
+# whose length is the kernel's number + 1, so its numba *type* names the kernel: the loop is
 # compiled (and cached) per kernel, with only that kernel in it, instead of all six behind
 # a run-time branch (the first run of a spring wall compiled the contact, symplectic and
-# exact kernels too).
-K_MASSES, K_SD, K_CONTACT, K_SD_CONTACT, K_SYMPLECTIC, K_EXACT = range(6)
-_KINDS = {cordis.run_masses: K_MASSES, cordis.run_sd: K_SD, cordis.run_contact: K_CONTACT,
-          cordis.run_sd_contact: K_SD_CONTACT, schemes.run_symplectic_euler: K_SYMPLECTIC,
-          schemes.run_exact: K_EXACT}
+# exact kernels too). The kernels and their arguments are those of
+# hapsim.kernels.arguments.KERNELS (the multi-rate run_periods aside: the compiled loop
+# does not run a scene with audio), numbered in its order.
+_KERNELS = tuple(name for name, k in arguments.KERNELS.items() if k.module != "audio")
+K_MASSES, K_SD, K_CONTACT, K_SD_CONTACT, K_SYMPLECTIC, K_EXACT = (
+    _KERNELS.index(name) for name in ("run_masses", "run_sd", "run_contact", "run_sd_contact",
+                                      "run_symplectic_euler", "run_exact"))
+_MODULES = {"cordis": cordis, "schemes": schemes}
+_KINDS = {getattr(_MODULES[arguments.KERNELS[name].module], name): kind
+          for kind, name in enumerate(_KERNELS)}
 #: The kernels' function names, by kind (the compiled-loop stamps are named after them).
-KERNEL_NAMES = {k: f.__name__ for f, k in _KINDS.items()}
-#: The leading slots of the pack each kernel reads: only those are passed, so that the
-#: loop's functions take (and numba types, lowers and unboxes at every call) 6 to 15
-#: arrays instead of 24 for a scene without an implicit scheme.
-_PACK_LEN = {K_MASSES: 6, K_SD: 10, K_CONTACT: 15, K_SD_CONTACT: 15, K_SYMPLECTIC: 18,
-             K_EXACT: 24}
-_EI = np.empty(0, dtype=np.int64)
-_EF = np.empty(0, dtype=np.float64)
-_EF2 = np.empty((0, 0), dtype=np.float64)
+KERNEL_NAMES = dict(enumerate(_KERNELS))
 
 
 def kernel_pack(engine) -> tuple[tuple, tuple]:
@@ -125,11 +122,10 @@ def kernel_pack(engine) -> tuple[tuple, tuple]:
         :func:`kernel_tag` of the kernel (``K_MASSES`` .. ``K_EXACT``): the compiled loop
         is compiled for that kernel alone.
     pack : tuple
-        The leading slots of ``(x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
-        c_i1, c_i2, c_k, c_z, c_thr, v, c, T, phi, gam, psi, snew, sold, uold)`` that the
-        kernel reads (6 for ``K_MASSES``, 10 ``K_SD``, 15 ``K_CONTACT`` and
-        ``K_SD_CONTACT``, 18 ``K_SYMPLECTIC``, 24 ``K_EXACT``); the slots among them the
-        kernel does not take are empty arrays (``T`` 0.0).
+        The kernel's state arguments (:attr:`hapsim.engine.KernelPack.args`: the arrays
+        and the period ``T`` [s] of :data:`hapsim.kernels.arguments.KERNELS`, in the
+        kernel's order): 6 for ``K_MASSES``, 10 ``K_SD``, 11 ``K_CONTACT``, 15
+        ``K_SD_CONTACT``, 18 ``K_SYMPLECTIC``, 18 ``K_EXACT``.
 
     Raises
     ------
@@ -137,15 +133,7 @@ def kernel_pack(engine) -> tuple[tuple, tuple]:
         A kernel outside :mod:`hapsim.kernels.cordis` / :mod:`hapsim.kernels.schemes`.
     """
     kp = engine.kernel_pack
-    kind = _KINDS[kp.kernel]
-    sd = kp.sd if kp.sd is not None else (_EI, _EI, _EF, _EF)
-    ct = kp.contact if kp.contact is not None else (_EI, _EI, _EF, _EF, _EF)
-    sc = kp.scheme
-    extras = tuple(sc.get(name, _EF) for name in ("v", "c")) + (float(sc.get("T", 0.0)),) \
-        + tuple(sc.get(name, _EF2) for name in ("phi", "gam", "psi")) \
-        + tuple(sc.get(name, _EF) for name in ("snew", "sold", "uold"))
-    pack = tuple(kp.state) + tuple(sd) + tuple(ct) + extras
-    return kernel_tag(kind), pack[:_PACK_LEN[kind]]
+    return kernel_tag(_KINDS[kp.kernel]), tuple(kp.args)
 
 
 def port_arrays(engine, at_least: int = -1) -> tuple:
@@ -174,11 +162,27 @@ def _kernel_step(kind, ka, rec, out):
     raise NotImplementedError("_kernel_step exists in compiled code only")
 
 
+def _pack_expression(arg, i, j) -> str:
+    """The source of argument ``arg`` of a kernel called on a pack ``ka``
+    (:func:`hapsim.kernels.arguments.call_function`): one sample, state argument ``j`` as
+    ``ka[j]`` (a constant index), ``rec`` and ``out`` the loop's, the first row 0."""
+    if arg.role == arguments.COUNT:
+        return "np.int64(1)"
+    if arg.role == arguments.ROW:
+        return "np.int64(0)"
+    if arg.role == arguments.STATE:
+        return f"ka[{j}]"
+    if arg.role == arguments.CALL and arg.name in ("rec", "out"):
+        return arg.name
+    raise ValueError(f"the compiled loop has no argument {arg.name!r} ({arg.role})")
+
+
 @overload(_kernel_step)
 def _kernel_step_for(kind, ka, rec, out):
     """The implementation of :func:`_kernel_step` for the kernel tag's type: only that
     kernel is typed and compiled into the loop (a scene pays only for its element kinds,
-    the first run included).
+    the first run included). Its call, every argument written out, is generated from the
+    kernel's entry in :data:`hapsim.kernels.arguments.KERNELS` when numba types the loop.
 
     The sample count and the first row are passed as ``int64`` values (``np.int64``), not
     as the literals ``1`` and ``0``: numba types a literal argument of a call between
@@ -186,49 +190,12 @@ def _kernel_step_for(kind, ka, rec, out):
     signature (~5 CPU-s a kernel into an empty cache), where ``int64`` is the signature
     :meth:`hapsim.engine.Engine.run` and :mod:`hapsim.kernels.step1d` already compile."""
     which = len(kind.types) - 1          # kernel_tag: K + 1 zeros
-    if which == K_MASSES:
-        def step(kind, ka, rec, out):
-            n, row0 = np.int64(1), np.int64(0)
-            x, xp, f, mobile, t2m, fixed = ka[:6]
-            cordis.run_masses(n, x, xp, f, mobile, t2m, fixed, rec, out, row0)
-    elif which == K_SD:
-        def step(kind, ka, rec, out):
-            n, row0 = np.int64(1), np.int64(0)
-            x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z = ka[:10]
-            cordis.run_sd(n, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, rec,
-                          out, row0)
-    elif which == K_CONTACT:
-        def step(kind, ka, rec, out):
-            n, row0 = np.int64(1), np.int64(0)
-            x, xp, f, mobile, t2m, fixed = ka[:6]
-            c_i1, c_i2, c_k, c_z, c_thr = ka[10:15]
-            cordis.run_contact(n, x, xp, f, mobile, t2m, fixed, c_i1, c_i2, c_k, c_z, c_thr,
-                               rec, out, row0)
-    elif which == K_SD_CONTACT:
-        def step(kind, ka, rec, out):
-            n, row0 = np.int64(1), np.int64(0)
-            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
-             c_thr) = ka[:15]
-            cordis.run_sd_contact(n, x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z,
-                                  c_i1, c_i2, c_k, c_z, c_thr, rec, out, row0)
-    elif which == K_SYMPLECTIC:
-        def step(kind, ka, rec, out):
-            n, row0 = np.int64(1), np.int64(0)
-            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
-             c_thr, v, c, T) = ka[:18]
-            schemes.run_symplectic_euler(n, x, xp, f, mobile, t2m, fixed, v, c, T, sd_i1,
-                                         sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z, c_thr, rec,
-                                         out, row0)
-    elif which == K_EXACT:
-        def step(kind, ka, rec, out):
-            n, row0 = np.int64(1), np.int64(0)
-            (x, xp, f, mobile, t2m, fixed, sd_i1, sd_i2, sd_k, sd_z, c_i1, c_i2, c_k, c_z,
-             c_thr, v, c, T, phi, gam, psi, snew, sold, uold) = ka
-            schemes.run_exact(n, x, xp, f, mobile, t2m, fixed, v, T, phi, gam, psi, snew,
-                              sold, uold, sd_i1, sd_i2, sd_k, sd_z, rec, out, row0)
-    else:
+    if not 0 <= which < len(_KERNELS):
         return None
-    return step
+    name = _KERNELS[which]
+    fn = getattr(_MODULES[arguments.KERNELS[name].module], name)
+    return arguments.call_function(name, fn, "kind, ka, rec, out", _pack_expression,
+                                   {"__name__": __name__, "np": np})
 
 
 @_jit

@@ -11,8 +11,11 @@ same kernel on the same arrays, so the results are bit for bit those of the dire
 
 Context layout: ``ctx[0]`` the samples (device periods) to advance, set before each call;
 ``ctx[1:HEAD]`` the kernel's integer parameters (the multi-rate head ``nsub, linear, last,
-port``; unused slots 0); then ``(address, rows, columns)`` per argument, in the kernel's
-order. A float argument (``T``, ``1 / Ta``) is a 1-element float64 array.
+port``; unused slots 0); then ``(address, rows, columns)`` per array, in the kernel's
+order: its state and call arguments as :data:`hapsim.kernels.arguments.KERNELS` declares
+them (``rec`` and ``out`` last). A float argument (``T``, ``1 / Ta``) is a 1-element
+float64 array. The runners' kernel calls are generated from that table (:func:`_call`), so
+the order is written once.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import numba as nb
 import numpy as np
 from numba.extending import register_jitable
 
-from hapsim.kernels import audio, cordis, schemes
+from hapsim.kernels import arguments, audio, cordis, schemes
 from hapsim.kernels.pointers import address, voidptr
 from hapsim.kernels.sources import cache_ok
 
@@ -29,10 +32,11 @@ __all__ = ["HEAD", "context", "RUNNERS"]
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
-                    "hapsim/kernels/schemes.py", "hapsim/kernels/pointers.py")
+                    "hapsim/kernels/schemes.py", "hapsim/kernels/pointers.py",
+                    "hapsim/kernels/arguments.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "fe6e341892785be0ceedc9d70253f1776c495b1e22a5e61f2a8991b49c737589"
+COMPILED_SOURCES_SHA256 = "489b15b996a8d86547e08fb934fbd296ec935d1e09b1181ded67e4e663883659"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -111,80 +115,132 @@ def _i(c, i):
     return nb.carray(voidptr(c[k]), (c[k + 1],), np.int64)
 
 
-# The runners: ctx[0] samples of one kernel, its arguments in the context in its order,
-# then rec (int64), out (2-D); row0 is 0 (a step records nothing). Each is documented by
-# its kernel's docstring. The zeros are passed as np.int64(0), not the literal 0: numba
-# would type a literal as Literal[int](0) and compile the kernel once more for it (~5 CPU-s
-# a kernel into an empty cache) besides the int64 signature Engine.run compiles.
+def _context_expression(arg, i, j) -> str:
+    """The source of argument ``arg`` of a kernel called from a context ``c``
+    (:func:`hapsim.kernels.arguments.call_function`): the count ``n``; a head integer
+    ``c[1 + i]`` (a flag ``!= 0``); array ``i`` rebuilt by its type's accessor (a float as
+    its 1-element array's ``[0]``); a first row ``np.int64(0)`` (a step records nothing).
+
+    The zeros are ``np.int64(0)``, not the literal 0: numba would type a literal as
+    ``Literal[int](0)`` and compile the kernel once more for it (~5 CPU-s a kernel into an
+    empty cache) besides the ``int64`` signature :meth:`hapsim.engine.Engine.run` compiles.
+    """
+    role, typ = arg.role, arg.type
+    if role == arguments.COUNT:
+        return "n"
+    if role == arguments.HEAD:
+        return f"c[{1 + i}] != 0" if typ == arguments.BOOL else f"c[{1 + i}]"
+    if role == arguments.ROW:
+        return "np.int64(0)"
+    return {arguments.F: f"_f(c, {i})", arguments.I: f"_i(c, {i})",
+            arguments.F2: f"_f2(c, {i})", arguments.FLOAT: f"_f(c, {i})[0]"}[typ]
+
+
+#: The calls' decorator: numba inlines each into its runner's IR before typing, so the
+#: runner is the call written out by hand (same typing, one LLVM module: a called layer,
+#: a function or an ``@overload``, cost ~0.4-1 CPU-s a runner into an empty cache, measured
+#: with tools/numba_compiles.py), and the runner, in this file, is what numba caches.
+_inline = nb.njit(inline="always", nogil=True, boundscheck=False)
+
+
+def _call(kernel: str):
+    """``call(c, n)``: ``n`` samples of the kernel named ``kernel`` on the arrays of the
+    context ``c``, its arguments written out from its entry in
+    :data:`hapsim.kernels.arguments.KERNELS` (a numba function inlined where it is called).
+
+    Parameters
+    ----------
+    kernel : str
+        A key of :data:`hapsim.kernels.arguments.KERNELS`.
+
+    Returns
+    -------
+    numba dispatcher
+    """
+    fn = getattr(_MODULES[arguments.KERNELS[kernel].module], kernel)
+    return _inline(arguments.call_function(
+        kernel, fn, "c, n", _context_expression,
+        {"__name__": __name__, "np": np, "_f": _f, "_f2": _f2, "_i": _i}))
+
+
+def _slot(kernel: str, name: str) -> int:
+    """The context slot of argument ``name`` of ``kernel``: ``1 + i`` for head integer
+    ``i``, else its index among the context's arrays (its state and call arguments)."""
+    args = arguments.KERNELS[kernel].args
+    heads = [a.name for a in args if a.role == arguments.HEAD]
+    if name in heads:
+        return 1 + heads.index(name)
+    return [a.name for a in args if a.role in (arguments.STATE, arguments.CALL)].index(name)
+
+
+_MODULES = {"cordis": cordis, "schemes": schemes, "audio": audio}
+_run_masses, _run_sd, _run_contact, _run_sd_contact = (
+    _call(k) for k in ("run_masses", "run_sd", "run_contact", "run_sd_contact"))
+_run_symplectic_euler, _run_exact, _run_periods = (
+    _call(k) for k in ("run_symplectic_euler", "run_exact", "run_periods"))
+
+
+# The runners: ctx[0] samples of one kernel, its arguments in the context in its order
+# (hapsim.kernels.arguments.KERNELS: the head integers, then its state and call arrays,
+# rec and out last); its first rows are 0. Each is documented by its kernel's docstring.
 
 @_jit
 def step_masses(c):
-    cordis.run_masses(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
-                      _i(c, 6), _f2(c, 7), np.int64(0))
+    _run_masses(c, c[0])
 
 
 @_jit
 def step_sd(c):
-    cordis.run_sd(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
-                  _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _i(c, 10), _f2(c, 11), np.int64(0))
+    _run_sd(c, c[0])
 
 
 @_jit
 def step_contact(c):
-    cordis.run_contact(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
-                       _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _f(c, 10), _i(c, 11),
-                       _f2(c, 12), np.int64(0))
+    _run_contact(c, c[0])
 
 
 @_jit
 def step_sd_contact(c):
-    cordis.run_sd_contact(c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5),
-                          _i(c, 6), _i(c, 7), _f(c, 8), _f(c, 9), _i(c, 10), _i(c, 11),
-                          _f(c, 12), _f(c, 13), _f(c, 14), _i(c, 15), _f2(c, 16), np.int64(0))
+    _run_sd_contact(c, c[0])
 
 
 @_jit
 def step_symplectic_euler(c):
-    schemes.run_symplectic_euler(
-        c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5), _f(c, 6),
-        _f(c, 7), _f(c, 8)[0], _i(c, 9), _i(c, 10), _f(c, 11), _f(c, 12), _i(c, 13),
-        _i(c, 14), _f(c, 15), _f(c, 16), _f(c, 17), _i(c, 18), _f2(c, 19), np.int64(0))
+    _run_symplectic_euler(c, c[0])
 
 
 @_jit
 def step_exact(c):
-    schemes.run_exact(
-        c[0], _f(c, 0), _f(c, 1), _f(c, 2), _i(c, 3), _f(c, 4), _i(c, 5), _f(c, 6),
-        _f(c, 7)[0], _f2(c, 8), _f2(c, 9), _f2(c, 10), _f(c, 11), _f(c, 12), _f(c, 13),
-        _i(c, 14), _i(c, 15), _f(c, 16), _f(c, 17), _i(c, 18), _f2(c, 19), np.int64(0))
+    _run_exact(c, c[0])
+
+
+#: :func:`step_periods`' slots: the port positions and the positions (arrays), the port's
+#: index (a head integer) and the runner's own mode, after the kernel's head integers.
+_P_POS, _P_X = _slot("run_periods", "pos"), _slot("run_periods", "x")
+_P_PORT = _slot("run_periods", "port")
+_P_MODE = 1 + sum(a.role == arguments.HEAD for a in arguments.KERNELS["run_periods"].args)
 
 
 @_jit
 def step_periods(c):
     """``ctx[0]`` device periods of :func:`hapsim.kernels.audio.run_periods` (head ``nsub,
     linear, last, port, mode``). Mode 0 (``Engine.step``): the port held where it is, one
-    period per call on its own position (argument 0 is a 1-element scratch), frames and
-    forces dropped into scratch; mode 1 (``Engine.port_step``): the periods on the positions
-    of argument 0, frames and forces kept in arguments 20 and 21.
+    period per call on its own position (the ``pos`` array is a 1-element scratch), frames
+    and forces dropped into scratch; mode 1 (``Engine.port_step``): the periods on the
+    positions of ``pos``, frames and forces kept in the ``audio`` and ``force`` arrays.
     """
-    pos, x, frames, force = _f(c, 0), _f(c, 1), _f2(c, 20), _f(c, 21)
-    nsub, linear, last, port = c[1], c[2] != 0, c[3] != 0, c[4]
-    held = c[5] == 0
+    pos, x = _f(c, _P_POS), _f(c, _P_X)
+    port = c[_P_PORT]
+    held = c[_P_MODE] == 0
     calls, periods = (c[0], 1) if held else (1, c[0])
     for _ in range(calls):
         if held:
             pos[0] = x[port] if port >= 0 else 0.0
-        audio.run_periods(periods, nsub, linear, last, port, pos, x, _f(c, 2),
-                          _f(c, 3), _i(c, 4), _f(c, 5), _i(c, 6), _i(c, 7), _i(c, 8),
-                          _f(c, 9), _f(c, 10), _i(c, 11), _i(c, 12), _f(c, 13), _f(c, 14),
-                          _f(c, 15), _i(c, 16), _i(c, 17), _f(c, 18), _f(c, 19)[0], frames,
-                          np.int64(0), force, _i(c, 22), _f2(c, 23), np.int64(0))
+        _run_periods(c, periods)
 
 
 #: The runner of each kernel (called as ``runner(ctx)``), by the kernel function; kernel
 #: ``run_X`` has the runner ``step_X`` (:func:`hapsim.pipeline.startup.part_is_fresh` finds
 #: a runner in numba's cache by that name, without importing numba).
-RUNNERS = {cordis.run_masses: step_masses, cordis.run_sd: step_sd,
-           cordis.run_contact: step_contact, cordis.run_sd_contact: step_sd_contact,
-           schemes.run_symplectic_euler: step_symplectic_euler, schemes.run_exact: step_exact,
-           audio.run_periods: step_periods}
+RUNNERS = {getattr(_MODULES[k.module], name): globals()["step_" + name[len("run_"):]]
+           for name, k in arguments.KERNELS.items()}
