@@ -175,7 +175,8 @@ def test_grid_pieces_and_families_equal_the_plain_reference(seed, block, dims, o
                                                             families):
     """Property: a grid mesh whose links share (K, B, L) runs, with ``families``, its +x,
     +y and +z links as dense families whose forces each mass pulls (padding slots where
-    a family has no link, per-link parameters); without, its pieces on the shared
+    a family has no link, their forces dropped; one (K, B, L) per family, per-link
+    parameters in the odd link's); without, its pieces on the shared
     parameters (their padding links' forces dropped), and, with one link different, the
     piece holding it on per-link ones; 80 samples agree with the plain reference to
     round-off (KERNEL_VS_REFERENCE)."""
@@ -185,6 +186,9 @@ def test_grid_pieces_and_families_equal_the_plain_reference(seed, block, dims, o
     eng = Engine(scene, block=block, families=families)
     if families:        # every link in a family: no piece left
         assert eng.dn_fam.shape == (3, 4) and eng.eu_pieces.shape[0] == 0
+        # each family on one (K, B, L) but the odd link's, on per-link values
+        fam_shared = eng.eu_shared[0][eng.eu_pieces.shape[0]:]
+        assert fam_shared.sum() == fam_shared.size - odd
     else:
         shared = eng.eu_shared[0]
         assert shared.any() and (not odd or not shared.all())

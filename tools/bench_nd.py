@@ -79,6 +79,7 @@ sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "tools"))
 
 import hapsim.kernels.nd as nd_kernels  # noqa: E402
+from hapsim.kernels.layout import family_offsets, placed  # noqa: E402
 from hapsim.kernels.nd import (BLOCK, context, euclid_layout,  # noqa: E402
                                link_lengths, run_context, run_context32, run_nd,
                                shared_params)
@@ -142,6 +143,12 @@ def mesh(nx, ny, nz, seed=0):
     return X0, i1, i2, t2m
 
 
+#: The arguments of ``run_nd`` after ``n`` that Engine places in their pages
+#: (:func:`hapsim.kernels.layout.family_offsets`), by index in ``Case.hap``.
+PLACED_ARGS = {2: "x", 3: "xp", 5: "t2m", 12: "k", 13: "z", 14: "rest", 15: "lprev",
+               35: "G"}
+
+
 class Case:
     """Both engines' arrays for one mesh; hapsim's in ``dtype`` (float64, or float32:
     the single-precision engine, the same kernels compiled for float32)."""
@@ -176,7 +183,8 @@ class Case:
         self.hap = (3, BLOCK, np.ascontiguousarray(X0.T), np.ascontiguousarray(X0.T),
                     np.zeros((3, self.N)), t2m, empty_t, empty_p, e, e, pieces, ptr,
                     slot(k), slot(z), slot(rest), lprev,
-                    *shared_params(pieces, order, slot(k), slot(z), slot(rest)),
+                    *shared_params(np.concatenate([pieces, fam]), order, slot(k), slot(z),
+                                   slot(rest)),
                     np.zeros((3, BLOCK)),
                     np.zeros(0, np.int64), np.zeros(0, np.int64), e, e, e, e,
                     np.zeros(0, np.int64), np.zeros((3, 0)), e, e, e, dn_fam, dn_G, -1,
@@ -185,6 +193,13 @@ class Case:
             self.hap = self.hap[:3] + (np.zeros((3, self.N)),) + self.hap[4:]
         self.hap = tuple(a.astype(dtype) if isinstance(a, np.ndarray) and
                          a.dtype == np.float64 else a for a in self.hap)
+        if len(fam):      # the streamed arrays placed in their pages as Engine does
+            h = list(self.hap)
+            off = family_offsets(self.N, fam, dn_G.shape[1] - self.N, h[2].itemsize,
+                                 bool(h[16][pieces.shape[0]:].all()))
+            for i, key in PLACED_ARGS.items():
+                h[i] = placed(h[i], off[key])
+            self.hap = tuple(h)
         self.families, self.pieces = fam.shape[0], pieces.shape[0]
         self.ctx = context(*self.hap, dtype=dtype)   # ctx[0] = 1: one sample per call
         self._run_ctx = run_context if dtype is np.float64 else run_context32

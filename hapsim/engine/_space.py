@@ -16,6 +16,7 @@ import numpy as np
 
 from hapsim.engine._api import PRECISIONS, Engine
 from hapsim.errors import ConfigError
+from hapsim.kernels.layout import family_offsets, placed
 from hapsim.kernels.nd import (BLOCK, ROWS, context, euclid_layout, link_lengths,
                                run_context, run_context32, run_nd_listen, schedule,
                                shared_params, stripes)
@@ -25,6 +26,12 @@ __all__ = ["Space"]
 _FLOAT_ARRAYS = ("_X", "_XP", "f", "port_f", "t2m", "lin_k", "lin_z", "eu_k", "eu_z",
                  "eu_rest", "eu_lprev", "W", "c_k", "c_z", "c_thr", "c_lprev", "p_normal",
                  "p_offset", "p_k", "p_z", "dn_G")
+
+#: The arrays a mesh's dense families stream, by their names in
+#: :func:`hapsim.kernels.layout.family_offsets`: placed in their pages where few of the
+#: loops' loads alias a store.
+_PLACED = {"_X": "x", "_XP": "xp", "t2m": "t2m", "dn_G": "G", "eu_lprev": "lprev",
+           "eu_k": "k", "eu_z": "z", "eu_rest": "rest"}
 
 
 class Space(Engine):
@@ -171,8 +178,10 @@ class Space(Engine):
         self.eu_rest = slot(eo, [lk.length for lk in eu])
         self.eu_lprev = link_lengths(self._XP, np.concatenate([self.eu_pieces, fam]),
                                      eo.size)
-        self.eu_shared = shared_params(self.eu_pieces, eo, self.eu_k, self.eu_z,
-                                       self.eu_rest)
+        # per piece, then per family (the kernels read a family's entry after the
+        # pieces': one K, B / T and rest length for all its links when they share them)
+        self.eu_shared = shared_params(np.concatenate([self.eu_pieces, fam]), eo,
+                                       self.eu_k, self.eu_z, self.eu_rest)
         self.W = np.zeros((ROWS, block))
         if self.dtype is not np.float64:      # the values above, rounded once
             # the velocity form: the second row array holds x[n] - x[n-1] (kernels)
@@ -181,6 +190,13 @@ class Space(Engine):
                 setattr(self, name, getattr(self, name).astype(self.dtype))
             self.eu_shared = tuple(a.astype(self.dtype) if a.dtype == np.float64 else a
                                    for a in self.eu_shared)
+        if len(fam):
+            # the arrays the families' loops stream, each started where in its page few
+            # of their loads alias a store in flight (kernels.layout.family_offsets)
+            shared = bool(self.eu_shared[0][len(self.eu_pieces):].all())
+            off = family_offsets(n, fam, self.dn_G.shape[1] - n, self._X.itemsize, shared)
+            for name, key in _PLACED.items():
+                setattr(self, name, placed(getattr(self, name), off[key]))
         # the port's coordinates in the state (a view made once: set_port_position
         # writes through it, no allocation per sample)
         self._port_x = None if self.port_index < 0 else self._X[:dim, self.port_index]
@@ -257,8 +273,9 @@ class Space(Engine):
             if kind == "contact":
                 return {"stiffness": [(self.c_k, j)], "damping": [(self.c_z, j)]}
             if kind == "euclid":
-                sh = self.eu_shared[0]
-                for r, (_, _, c, j0) in enumerate(self.eu_pieces):
+                sh = self.eu_shared[0]      # the pieces' entries, then the families'
+                for r, (_, _, c, j0) in enumerate(np.concatenate([self.eu_pieces,
+                                                                   self.dn_fam])):
                     if j0 <= j < j0 + c:
                         sh[r] = False
                 return {"stiffness": [(self.eu_k, j)], "damping": [(self.eu_z, j)]}

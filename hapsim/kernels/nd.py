@@ -118,7 +118,7 @@ __all__ = ["stripes", "schedule", "shared_params", "link_lengths", "families",
 COMPILED_SOURCES = ("hapsim/kernels/pointers.py", "hapsim/kernels/layout.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "e06b5375373b0dfab4372876f392b40ddc28ccb681201dddc213d1ea1c0671ab"
+COMPILED_SOURCES_SHA256 = "3435790be65a25a406582536897ba487fbb87fa469851f31f020dd86a81e64a0"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -306,6 +306,41 @@ def _family(x, G, r, a, s, c, j0, m0, m1, k, z, rest, lprev):
 
 
 @_inline
+def _family_shared(x, G, r, a, s, c, j0, m0, m1, k, z, rest, lprev, pad, p0, p1):
+    """:func:`_family` with one ``k``, ``z`` and rest length for the family (three loads
+    fewer per link), then its padding slots' forces (``a + pad[p]``, ``p0 <= p < p1``,
+    ascending) in ``[m0, m1)`` zeroed: they were computed with the shared values."""
+    P = _U(G.shape[1] - x.shape[1])
+    lo = max(m0, a)
+    hi = min(m1, a + c)
+    for i in range(lo, hi):
+        j = j0 - a + i
+        dx = x[0, i] - x[0, i + s]
+        dy = x[1, i] - x[1, i + s]
+        dz = x[2, i] - x[2, i + s]
+        g = _euclid_law(dx, dy, dz, k, z, rest, lprev, j)
+        G[r, P + i] = g * dx
+        G[r + 1, P + i] = g * dy
+        G[r + 2, P + i] = g * dz
+    # the first padding slot at or after lo (bisection: the chunks run in order, one or
+    # two a sample at the sizes families serve, so no pointer is kept between calls)
+    end = p1
+    while p0 < p1:
+        mid = (p0 + p1) // 2
+        if _U(pad[mid]) + a < lo:
+            p0 = mid + 1
+        else:
+            p1 = mid
+    for p in range(p0, end):
+        i = _U(pad[p]) + a
+        if i >= hi:
+            break
+        G[r, P + i] = _zero(k)
+        G[r + 1, P + i] = _zero(k)
+        G[r + 2, P + i] = _zero(k)
+
+
+@_inline
 def _pulled(G, d, i, P, o0, o1, o2):
     """The force of three families on mass ``i`` along axis ``d`` [N]: ``G[i - s] -
     G[i]`` per family (``o = P - s``; a missing family's rows are zero)."""
@@ -457,8 +492,16 @@ def step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pie
             _advance(x, xp, f, t2m, dim, m0, m1, port, port_f)
             continue
         for r in range(dn_fam.shape[0]):
-            _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]), _U(dn_fam[r, 2]),
-                    _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest, eu_lprev)
+            e = eu_pieces.shape[0] + r      # the family's entry in the shared arrays
+            if e < eu_sh.size and eu_sh[e]:
+                _family_shared(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]),
+                               _U(dn_fam[r, 2]), _U(dn_fam[r, 3]), m0, m1, eu_sk[e],
+                               eu_sz[e], eu_srest[e], eu_lprev, eu_pad, eu_pad_ptr[e],
+                               eu_pad_ptr[e + 1])
+            else:
+                _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]),
+                        _U(dn_fam[r, 2]), _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest,
+                        eu_lprev)
         _advance_pulled(x, xp, f, t2m, dim, m0, m1, port, port_f, dn_G, dn_fam, use_f)
 
 

@@ -44,7 +44,7 @@ COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
                     "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py",
                     "hapsim/kernels/layout.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "a8d19e3a0cb1a041b53ec476393a51be70490e02674079861021cd8cacb9cb90"
+COMPILED_SOURCES_SHA256 = "1af051b18bd8285d9a104bc970853ac70371dd5d3a0345bb794410edb8b55779"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
