@@ -40,10 +40,10 @@ It prints, for growing meshes:
 * the largest mesh each runs within the 44.1 kHz deadline (22.68 us per sample) and
   within 1 ms (1 kHz), by bisection on the mesh size measured at each step (the
   cube-ish meshes, then the rows of the next one: near 5,000 masses they step 264, not
-  957, and 5,016 is tried), for hapsim in double and in single precision (``hapsim_single``) and the reference; at 44.1 kHz
-  also hapsim stepped one compiled call per sample from Python (``hapsim_per_call``,
-  ``hapsim_single_per_call``: a real-time loop's way; the others run blocks of samples
-  per call, an audio buffer's).
+  957, and 5,016 is tried), for hapsim in double and in single precision
+  (``hapsim_single``) and the reference; at 44.1 kHz also hapsim stepped one compiled
+  call per sample from Python (``hapsim_per_call``, ``hapsim_single_per_call``: a
+  real-time loop's way; the others run blocks of samples per call, an audio buffer's).
 
 With ``--faust`` it also runs a 1-D projection against Faust ``mi.lib``: a string of
 ``FAUST_BEADS`` beads (the string of ``tools/bench_engine.py``, without its port) as a 1-D
