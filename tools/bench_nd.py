@@ -301,21 +301,21 @@ def largest(kind, deadline, quick):
     return N, t
 
 
+#: The families' link forces taken out (both the shared parameters' loop and the per-link
+#: one): the rows keep the forces of the samples before.
+_NO_LINKS = [("            if e < eu_sh.size and eu_sh[e]:\n", "            if e < 0:\n"), (
+    """                _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]),
+                        _U(dn_fam[r, 2]), _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest,
+                        eu_lprev)""", "                pass")]
 #: Where the time goes: the kernel's own source with one part taken out (each
 #: replacement must match the kernel's text: the profile fails rather than measure
 #: something else after the kernel changes). Name -> [(old, new), ...].
 ABLATIONS = {
-    "no link forces (stale forces pulled, advance)": [(
-        """            _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]), _U(dn_fam[r, 2]),
-                    _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest, eu_lprev)""",
-        "            pass")],
+    "no link forces (stale forces pulled, advance)": _NO_LINKS,
     "no pulled forces (link forces, advance)": [(
         "                F = _pulled(G, d, i, P, o0, o1, o2)\n",
         "                F = G[d, P + i]\n")],
-    "advance only": [(
-        """            _family(x, dn_G, 3 * r, _U(dn_fam[r, 0]), _U(dn_fam[r, 1]), _U(dn_fam[r, 2]),
-                    _U(dn_fam[r, 3]), m0, m1, eu_k, eu_z, eu_rest, eu_lprev)""",
-        "            pass"), (
+    "advance only": _NO_LINKS + [(
         "                F = _pulled(G, d, i, P, o0, o1, o2)\n",
         "                F = G[d, P + i]\n")],
     "no square root or division (a multiplication each)": [(
