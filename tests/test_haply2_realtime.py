@@ -171,8 +171,14 @@ def test_every_estimate_within_its_bound_lockstep(lag, p, seed):
             np.spacing(np.float32(np.degrees(ang))).astype(float))
         eps = np.abs(J) @ delta
         b = estimate_bounds(rec, sc, J, delta)
-        est = rec["estimated"]
+        est = rec["estimated"].copy()
         holds += int(np.sum(rec["lag"][est] == np.flatnonzero(est)))
+        # (not the rows whose estimate runs across a realigning probe: its zero write is
+        # a hold the estimate does not know of, and usable_rows cuts them)
+        pr = np.flatnonzero(rec["probed"])
+        for k in np.flatnonzero(est):
+            if np.any((pr >= k - rec["lag"][k] - 1) & (pr <= k)):
+                est[k] = False
         err = np.abs(rec["position"] - rec["readings"])[est]
         assert np.all(err <= b[est] + eps), (err / (b[est] + eps)).max()
     assert holds == 5 * lag

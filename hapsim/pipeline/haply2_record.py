@@ -75,6 +75,7 @@ wrong torque for one period).
 from __future__ import annotations
 
 import math
+import struct
 import time
 
 import numpy as np
@@ -160,6 +161,9 @@ REARM_SENDS = 20
 #: measured in the time the host was polling, so a host stall (the host descheduled, not
 #: reading) is never taken for a board's silence.
 AWAKE_GAP_S = 2e-3
+#: A torque [N m] that is zero to the board and whose float32 bytes are no command
+#: (0x03030303: no 0 reset, 1 set-up or 2 write; the realigning probe's, module notes).
+NIL_TORQUE = struct.unpack("<f", bytes([3]) * 4)[0]
 #: Unanswered writes that may be late replies whatever their age (a board's pass and a USB
 #: frame hold a few).
 SILENT_COUNT = 4
@@ -335,6 +339,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
+    # the realigning probe's write: zero torque in floats with no command byte (0x03030303,
+    # 3.9e-37 N m): short of a byte, what the board parses of it and of the next write is
+    # no command (a 0.0's bytes are resets: the board would forget its set-up)
+    nil = driver.write_bytes((NIL_TORQUE, NIL_TORQUE))
     # perf_counter() of the write whose reply is each tick's sample (the arming's zero
     # write for tick 0)
     t_wrote = np.full(C + 2, np.nan)
@@ -468,7 +476,64 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             if awake >= limit:
                 return
             time.sleep(2e-4)
+
+    def _realign(k):
+        """Ticks up to ``k`` ended behind :data:`SILENT_COUNT` times in a row, a reply
+        read at ``k``: a board late, or a write it swallowed (a host byte lost in write
+        ``j``: firmware V1.5 completes it with ``j + 1``'s first byte and parses the rest
+        of ``j + 1`` as no command; lost in its first byte, ``j`` is not answered), after
+        which each reply answers a write one newer than the count says. Told apart by a
+        zero-torque write (:data:`NIL_TORQUE`: no watchdog, the board holds it, not the
+        torque a shifted write set) and :data:`SILENT_S` / 2 of the host's awake time
+        listening (once more with a second such write when nothing came: the first short
+        of a byte): a late board answers each write owed and the zero write, one that
+        swallowed a write fewer, the last the zero write's. Returns ``"late"`` (the owed
+        replies filed, the zero write's dropped), ``"swallowed"`` (the zero write's reply
+        is row ``k``'s sample; the readings of the run of estimated rows before it
+        dropped, which write went unanswered not being known: the run is cut,
+        :func:`hapsim.pipeline.haply2_host.usable_rows`) or ``"lost"`` (no reply, or too
+        many: re-synchronised by the caller); ``probed[k]`` the outcome (1, 2, 3: cut)."""
+        nonlocal got, seen, realigned
+        g = got
+        m = k + 1 - g                               # writes owed a reply
+
+        def take_now(data):
+            dec.elapsed(time.perf_counter() - t_wrote[seen])
+            take(data)
+        probed[k] = 3
+        for _ in range(2):
+            _write(ser, nil)
+            _awake_wait(lambda: got >= g + m + 1, SILENT_S / 2, take_now)
+            if got > g:
+                break
+            # (none: the zero write itself short of a byte, which the board completes
+            # with the next one's first byte, its rest parsed as no command: once more)
+        n = got - g
+        if n == m + 1:                              # late: the owed ones, the zero write's
+            qr[k + 1] = xr[k + 1] = np.nan
+            got, seen = k + 1, k
+            probed[k] = 1
+            return "late"
+        if not 1 <= n <= m:
+            return "lost"
+        # fewer: a write swallowed; the last reply is the zero write's, the joints now
+        j = g + n - 1
+        qr[k], xr[k] = qr[j].copy(), xr[j].copy()
+        a = k - 1
+        while a > 0 and est[a - 1]:
+            a -= 1
+        qr[a:k] = np.nan
+        xr[a:k] = np.nan
+        qr[k + 1:j + 1] = np.nan
+        xr[k + 1:j + 1] = np.nan
+        got, seen = k + 1, k
+        realigned += 1
+        probed[k] = 2
+        return "swallowed"
+
     rearm_sends = 0
+    realigned = 0
+    behind = 0
     arm(q0deg, 0)
     pos = np.zeros((C, 2))
     joints = np.full((C, 2), np.nan)
@@ -477,6 +542,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     lag = np.zeros(C, np.int64)
     resynced = np.zeros(C, bool)
     stalled = np.zeros(C, bool)
+    # ticks a realigning probe was sent at: 1 the replies late, 2 a write swallowed, 3 no
+    # answer (re-synchronised)
+    probed = np.zeros(C, np.int8)
     # the braking after the joints left the envelope (hapsim.braking, the joints'
     # velocities from the readings, the joint-space inertia's B): None until then, and
     # its end ("rest", "time") once done
@@ -526,7 +594,16 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         while time.perf_counter() < deadline:
             pass
         dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
+        g0 = got
         take(_read(ser))
+        # behind for SILENT_COUNT ticks, though replies come: a board late (it catches up
+        # within a few: the backlog comes in one read), or a write it swallowed (a host
+        # byte lost: firmware V1.5 completes the write with the next one's first byte and
+        # parses the rest of that one as no command, so one write is never answered and
+        # every reply after it answers a write one newer than the count says). Told apart
+        # by a probe (_realign)
+        probe = (_realign(k) if got <= k and got > g0 and behind >= SILENT_COUNT
+                 else None)
         unanswered = k + 1 - got                    # (damaged: answered)
         if unanswered > SILENT_COUNT:
             # writes unanswered for SILENT_S are a board that stopped answering (a board
@@ -538,6 +615,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             unanswered = SILENT_WRITES + 1 if age >= SILENT_S else 0
         else:
             unanswered = 0
+        if probe == "lost":
+            unanswered = SILENT_WRITES + 1          # (the zero write unanswered too)
         if rule.due(unanswered):
             # the board lost its place (module notes): zero torque first, the set-up;
             # its reply is this tick's sample, and the clock starts again from it (the
@@ -547,7 +626,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             resynced[k] = True
             t0 += time.perf_counter() - t_r
             resync_s += time.perf_counter() - t_r
-        if got > k:                                 # reply k read: a fresh sample
+        # ticks in a row ended behind (the re-arming re-anchors the count)
+        behind = behind + 1 if got <= k and not resynced[k] else 0
+        if got > k and xr[k, 0] == xr[k, 0]:        # reply k read: a fresh sample
             i = k
             x[0] = xr[k, 0]
             x[1] = xr[k, 1]
@@ -571,7 +652,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                     (k - obs) * T if lockstep_board else t_wrote[k] - t_wrote[obs]))
                 obs = k
         else:                                       # missing: an estimated sample
-            i = seen
+            # from the last reading before it (reply k damaged on the way back, the
+            # replies after it read; a probe dropped readings, or filed a damaged one)
+            i = min(seen, k - 1)
+            while i > 0 and xr[i, 0] != xr[i, 0]:
+                i -= 1
             r = k - i
             if i >= 1 and not resynced[i] and qr[i - 1, 0] == qr[i - 1, 0]:
                 # extrapolated from the last two (read, on one set-up)
@@ -669,7 +754,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
             "stall_s": stall_s, "held_zero": held_zero, "bad_setups": bad_setups,
             "left": left, "brake": brake_out,
-            "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats),
+            "rearmed_at_end": rearmed_at_end, "realigned": realigned,
+            "probed": probed[:N],
+            "decoder": dict(dec.stats),
             "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0]}
 
 
