@@ -173,8 +173,9 @@ def test_every_estimate_within_its_bound_lockstep(lag, p, seed):
         b = estimate_bounds(rec, sc, J, delta)
         est = rec["estimated"].copy()
         holds += int(np.sum(rec["lag"][est] == np.flatnonzero(est)))
-        # (not the rows whose estimate runs across a realigning probe: its zero write is
-        # a hold the estimate does not know of, and usable_rows cuts them)
+        # (not the rows whose estimate runs across a realigning marker: the torques held
+        # over its tick are a hold the estimate does not know of, and usable_rows cuts
+        # them)
         pr = np.flatnonzero(rec["probed"])
         for k in np.flatnonzero(est):
             if np.any((pr >= k - rec["lag"][k] - 1) & (pr <= k)):

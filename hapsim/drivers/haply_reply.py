@@ -329,6 +329,12 @@ class ReplyDecoder(AlignedDecoder):
         self._prev2, self._prev = self._prev, a
         return a[0] if self.angles == 1 else a
 
+    def starts_frame(self, byte: int) -> bool:
+        """Whether a reply can start with ``byte``: the id (the byte after a one-byte
+        answer the host asked for, :meth:`hapsim.drivers.base.AlignedDecoder.mark_at`;
+        :attr:`confirm_next` is off)."""
+        return byte == self.id
+
     def accept(self, value) -> bool:
         """A reply taken: the run of dropped bytes before it ends; the replies it held
         are counted in ``damaged`` (a run of ``s`` bytes held ``ceil(s / length)``: a

@@ -146,9 +146,9 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False,
       answered each of those writes in order, so it parsed them in step (a lost host
       byte makes it complete a write with the next one's first byte and parse the rest
       of that one out of step, whose reply never comes), and the rows are measured with
-      their estimates' bounds (:func:`estimate_bounds`), unless a realigning probe
-      (``probed``) is among them or the two rows their estimates start from (its zero
-      write is a hold the estimates do not know of);
+      their estimates' bounds (:func:`estimate_bounds`), unless a realigning marker
+      (``probed``) is among them or the two rows their estimates start from (the
+      torques held over its tick are a hold the estimates do not know of);
     * a re-synchronisation at tick ``s`` (the board out of step since the run of missing
       or damaged replies before it, then zero torque and the set-up; the emulated board's
       hand restarts the handle there): from that run's first row - 1 to ``s + d + 1``;
@@ -157,9 +157,9 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False,
       began that far from one period after write ``k - 1``; a host late, not yet a
       stall): rows ``k - 1 .. k + d + 1`` (the smaller ones are corrected,
       :func:`hold_corrections`);
-    * a realigning probe at tick ``k`` (``probed``: a zero-torque write the board held
-      while the host listened, :func:`hapsim.pipeline.haply2_record.record_realtime`):
-      rows ``k - 1 .. k + d + 1``;
+    * a realigning marker at tick ``k`` (``probed``: the tick's command a write to no
+      port, the torques of the write before held over it,
+      :mod:`hapsim.pipeline.haply2_realign`): rows ``k - 1 .. k + d + 1``;
     * a torque written at the board's clamp at tick ``k`` (the loop not the linear one
       there): rows ``k - 1 .. k + d + 1``;
     * the last ``d + 2`` rows when the closing zero write's reply did not come in step
@@ -212,7 +212,7 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False,
         for s_ in np.flatnonzero(np.asarray(rec.get("stalled", np.zeros(N, bool)), bool)):
             cut(s_ - 1, s_ + d + 1)
     for s_ in np.flatnonzero(np.asarray(rec.get("probed", np.zeros(N, bool)), bool)):
-        cut(s_ - 1, s_ + d + 1)                     # a realigning probe's zero torque
+        cut(s_ - 1, s_ + d + 1)                     # a realigning marker's held torque
     for s_ in np.flatnonzero(resynced):
         a = s_
         while a > 0 and est[a - 1]:
@@ -289,7 +289,9 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         :func:`record_realtime`'s, or None), ``resyncs`` and ``skipped`` (bytes
         that made no reply) per record, ``stalls`` (host stalls per record),
         ``held_zero`` (ticks written at zero torque for want of a fresh sample,
-        :data:`hapsim.pipeline.haply2_record.HOLD_BOUND_S`) and ``usable`` (rows per
+        :data:`hapsim.pipeline.haply2_record.HOLD_BOUND_S`), ``probes`` and
+        ``realigned`` per record (markers sent, and their answers that moved the count of
+        replies: :mod:`hapsim.pipeline.haply2_realign`) and ``usable`` (rows per
         record left after the cuts at those disturbances, :func:`usable_rows`; the
         stretches are fitted jointly, ``fitted_rows``): "not measurable" with the reason
         when the stretches hold too few equations for the fit. On a board on its own
@@ -449,6 +451,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs],
                realigned=[int(r.get("realigned", 0)) for r in runs],
+               probes=[int(r.get("probes", 0)) for r in runs],
                left=left, brake=[r.get("brake") for r in runs])
     return out
 

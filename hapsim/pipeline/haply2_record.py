@@ -75,15 +75,16 @@ wrong torque for one period).
 from __future__ import annotations
 
 import math
-import struct
 import time
 
 import numpy as np
 
 from hapsim.braking import BRAKE_MAX_S, Brake, brake_damping, brake_rest
+from hapsim.drivers.base import MARK
 from hapsim.drivers.haply import LONGEST_COMMAND, MAX_TORQUE, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import DeviceError
+from hapsim.pipeline.haply2_realign import SILENT_COUNT, Realigner
 
 __all__ = ["record_realtime", "PortLink", "ENVELOPE_RAD", "WORKSPACE_RAD"]
 
@@ -161,12 +162,6 @@ REARM_SENDS = 20
 #: measured in the time the host was polling, so a host stall (the host descheduled, not
 #: reading) is never taken for a board's silence.
 AWAKE_GAP_S = 2e-3
-#: A torque [N m] that is zero to the board and whose float32 bytes are no command
-#: (0x03030303: no 0 reset, 1 set-up or 2 write; the realigning probe's, module notes).
-NIL_TORQUE = struct.unpack("<f", bytes([3]) * 4)[0]
-#: Unanswered writes that may be late replies whatever their age (a board's pass and a USB
-#: frame hold a few).
-SILENT_COUNT = 4
 
 
 def _read(ser) -> bytes:
@@ -244,7 +239,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         ``damaged``), ``write_s`` (N, 2) [s]: when the host's write whose reply is row
         ``k``'s sample began and ended (``perf_counter``, from the first one's start;
         the board took it in between, or a latency after: the holds' lengths,
-        :func:`hapsim.pipeline.haply2_host.hold_bounds`), ``left`` (the tick a reading
+        :func:`hapsim.pipeline.haply2_host.hold_bounds`), ``write_t0`` (that first
+        start, ``perf_counter`` [s]), ``probed`` (N,) bool (ticks whose command was a
+        marker, :mod:`hapsim.pipeline.haply2_realign`), ``probes`` (markers sent),
+        ``realigned`` (their answers that moved the count of replies: writes the board
+        swallowed), ``probes_late`` (those that left it: a late board), ``left`` (the tick a reading
         left :data:`ENVELOPE_RAD`, -1 if none), ``brake`` (None, or after ``left`` with
         ``brake``: :meth:`hapsim.braking.Brake.report`'s dict: ``damping`` [N m s/rad],
         ``periods`` (ticks braked), ``seconds``, ``v_start``/``v_end`` (the joints'
@@ -328,6 +327,16 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         j = 0
         while j < m:                                # (no iterator: no allocation)
             rep = frames[j]
+            if rep is MARK:
+                # a marker's answer (hapsim.pipeline.haply2_realign): the count set at
+                # its place, the readings in doubt dropped
+                got = realign.marked(got)
+                replies += 1
+                seen = min(seen, got - 1)
+                while seen > 0 and xr[seen, 0] != xr[seen, 0]:
+                    seen -= 1
+                j += 1
+                continue
             if got < nr:
                 q1, q2 = joints_of(rep)
                 qr[got, 0] = q1
@@ -339,10 +348,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
-    # the realigning probe's write: zero torque in floats with no command byte (0x03030303,
-    # 3.9e-37 N m): short of a byte, what the board parses of it and of the next write is
-    # no command (a 0.0's bytes are resets: the board would forget its set-up)
-    nil = driver.write_bytes((NIL_TORQUE, NIL_TORQUE))
+    # the count of replies checked by a marker write when the loop ends ticks behind
+    # though replies come (a write swallowed, or a late board: never a wait)
+    realign = Realigner(dec, xr, qr)
     # perf_counter() of the write whose reply is each tick's sample (the arming's zero
     # write for tick 0)
     t_wrote = np.full(C + 2, np.nan)
@@ -477,63 +485,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                 return
             time.sleep(2e-4)
 
-    def _realign(k):
-        """Ticks up to ``k`` ended behind :data:`SILENT_COUNT` times in a row, a reply
-        read at ``k``: a board late, or a write it swallowed (a host byte lost in write
-        ``j``: firmware V1.5 completes it with ``j + 1``'s first byte and parses the rest
-        of ``j + 1`` as no command; lost in its first byte, ``j`` is not answered), after
-        which each reply answers a write one newer than the count says. Told apart by a
-        zero-torque write (:data:`NIL_TORQUE`: no watchdog, the board holds it, not the
-        torque a shifted write set) and :data:`SILENT_S` / 2 of the host's awake time
-        listening (once more with a second such write when nothing came: the first short
-        of a byte): a late board answers each write owed and the zero write, one that
-        swallowed a write fewer, the last the zero write's. Returns ``"late"`` (the owed
-        replies filed, the zero write's dropped), ``"swallowed"`` (the zero write's reply
-        is row ``k``'s sample; the readings of the run of estimated rows before it
-        dropped, which write went unanswered not being known: the run is cut,
-        :func:`hapsim.pipeline.haply2_host.usable_rows`) or ``"lost"`` (no reply, or too
-        many: re-synchronised by the caller); ``probed[k]`` the outcome (1, 2, 3: cut)."""
-        nonlocal got, seen, realigned
-        g = got
-        m = k + 1 - g                               # writes owed a reply
-
-        def take_now(data):
-            dec.elapsed(time.perf_counter() - t_wrote[seen])
-            take(data)
-        probed[k] = 3
-        for _ in range(2):
-            _write(ser, nil)
-            _awake_wait(lambda: got >= g + m + 1, SILENT_S / 2, take_now)
-            if got > g:
-                break
-            # (none: the zero write itself short of a byte, which the board completes
-            # with the next one's first byte, its rest parsed as no command: once more)
-        n = got - g
-        if n == m + 1:                              # late: the owed ones, the zero write's
-            qr[k + 1] = xr[k + 1] = np.nan
-            got, seen = k + 1, k
-            probed[k] = 1
-            return "late"
-        if not 1 <= n <= m:
-            return "lost"
-        # fewer: a write swallowed; the last reply is the zero write's, the joints now
-        j = g + n - 1
-        qr[k], xr[k] = qr[j].copy(), xr[j].copy()
-        a = k - 1
-        while a > 0 and est[a - 1]:
-            a -= 1
-        qr[a:k] = np.nan
-        xr[a:k] = np.nan
-        qr[k + 1:j + 1] = np.nan
-        xr[k + 1:j + 1] = np.nan
-        got, seen = k + 1, k
-        realigned += 1
-        probed[k] = 2
-        return "swallowed"
-
     rearm_sends = 0
-    realigned = 0
-    behind = 0
     arm(q0deg, 0)
     pos = np.zeros((C, 2))
     joints = np.full((C, 2), np.nan)
@@ -542,9 +494,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     lag = np.zeros(C, np.int64)
     resynced = np.zeros(C, bool)
     stalled = np.zeros(C, bool)
-    # ticks a realigning probe was sent at: 1 the replies late, 2 a write swallowed, 3 no
-    # answer (re-synchronised)
-    probed = np.zeros(C, np.int8)
+    # ticks whose command was a marker (hapsim.pipeline.haply2_realign: the torques of
+    # the write before held over it)
+    probed = np.zeros(C, bool)
     # the braking after the joints left the envelope (hapsim.braking, the joints'
     # velocities from the readings, the joint-space inertia's B): None until then, and
     # its end ("rest", "time") once done
@@ -601,9 +553,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         # byte lost: firmware V1.5 completes the write with the next one's first byte and
         # parses the rest of that one as no command, so one write is never answered and
         # every reply after it answers a write one newer than the count says). Told apart
-        # by a probe (_realign)
-        probe = (_realign(k) if got <= k and got > g0 and behind >= SILENT_COUNT
-                 else None)
+        # by the board's answer to a marker, this tick's command (haply2_realign)
+        mark = realign.due(k, got, g0)
         unanswered = k + 1 - got                    # (damaged: answered)
         if unanswered > SILENT_COUNT:
             # writes unanswered for SILENT_S are a board that stopped answering (a board
@@ -615,8 +566,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             unanswered = SILENT_WRITES + 1 if age >= SILENT_S else 0
         else:
             unanswered = 0
-        if probe == "lost":
-            unanswered = SILENT_WRITES + 1          # (the zero write unanswered too)
+        if realign.lost:
+            unanswered = SILENT_WRITES + 1          # (markers unanswered, or answers too many)
+            mark = False
         if rule.due(unanswered):
             # the board lost its place (module notes): zero torque first, the set-up;
             # its reply is this tick's sample, and the clock starts again from it (the
@@ -626,8 +578,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             resynced[k] = True
             t0 += time.perf_counter() - t_r
             resync_s += time.perf_counter() - t_r
+            mark = False
         # ticks in a row ended behind (the re-arming re-anchors the count)
-        behind = behind + 1 if got <= k and not resynced[k] else 0
+        realign.tick_end(k, got, resynced[k])
         if got > k and xr[k, 0] == xr[k, 0]:        # reply k read: a fresh sample
             i = k
             x[0] = xr[k, 0]
@@ -699,13 +652,18 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             # joints were, not where they are; the board (no watchdog) would hold it
             tau1 = tau2 = 0.0
             held_zero += 1
+        if mark:
+            # the marker instead of the torques: the board holds the write before's
+            realign.sent(k)
+            probed[k] = True
+            tau1, tau2 = (torque[k - 1, 0], torque[k - 1, 1]) if k else (0.0, 0.0)
         torque[k, 0] = clamp1(tau1)
         torque[k, 1] = clamp1(tau2)
         pos[k, 0] = x[0]
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         t_began[k + 1] = time.perf_counter()
-        _write(ser, wbuf)
+        _write(ser, realign.marker if mark else wbuf)
         t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
     # read in step, says the board took it as a write (only a flipped top exponent bit
@@ -747,6 +705,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                 break
     rearmed_at_end = seen < K + 1
     if rearmed_at_end:
+        # (a write swallowed at the end leaves the count short: the rows in doubt)
+        realign.drop_open(K + 1)
         arm(q0deg, K + 1)
     return {"position": pos[:N], "joints": joints[:N], "torque": torque[:N],
             "estimated": est[:N], "lag": lag[:N], "late_ticks": late, "replies": replies,
@@ -754,10 +714,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
             "stall_s": stall_s, "held_zero": held_zero, "bad_setups": bad_setups,
             "left": left, "brake": brake_out,
-            "rearmed_at_end": rearmed_at_end, "realigned": realigned,
-            "probed": probed[:N],
+            "rearmed_at_end": rearmed_at_end, "realigned": realign.realigned,
+            "probes": realign.probes, "probes_late": realign.late, "probed": probed[:N],
             "decoder": dict(dec.stats),
-            "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0]}
+            "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0],
+            "write_t0": float(t_began[0])}
 
 
 class PortLink:
