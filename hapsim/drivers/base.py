@@ -87,7 +87,16 @@ class AlignedDecoder:
     def mark_at(self, buf) -> bool:
         """Whether ``buf`` (at least one byte, where a frame would start) begins with a
         one-byte answer of :attr:`marks` (by default: its first byte is one, and the
-        byte after it, when one has come, starts a frame or another such answer)."""
+        byte after it, when one has come, starts a frame or another such answer).
+
+        Parameters
+        ----------
+        buf : bytearray
+
+        Returns
+        -------
+        bool
+        """
         return buf[0] in self.marks and (
             len(buf) == 1 or buf[1] in self.marks or self.starts_frame(buf[1]))
 

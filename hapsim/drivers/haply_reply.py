@@ -332,7 +332,16 @@ class ReplyDecoder(AlignedDecoder):
     def starts_frame(self, byte: int) -> bool:
         """Whether a reply can start with ``byte``: the id (the byte after a one-byte
         answer the host asked for, :meth:`hapsim.drivers.base.AlignedDecoder.mark_at`;
-        :attr:`confirm_next` is off)."""
+        :attr:`confirm_next` is off).
+
+        Parameters
+        ----------
+        byte : int
+
+        Returns
+        -------
+        bool
+        """
         return byte == self.id
 
     def accept(self, value) -> bool:

@@ -126,7 +126,20 @@ class Realigner:
         A count ahead of the writes sent (``got > k + 1``) drops the readings filed from
         row ``k`` on at once (row ``k``'s would be taken as fresh). With a marker
         outstanding for :data:`PROBE_TICKS` ticks, another, up to :data:`PROBE_TRIES`
-        (then ``lost``)."""
+        (then ``lost``).
+
+        Parameters
+        ----------
+        k : int
+            The tick.
+        got, g0 : int
+            The write the next reply answers, by the count, after and before the tick's
+            read.
+
+        Returns
+        -------
+        bool
+        """
         if got > k + 1:
             self._drop(k, got)
             if self.first < 0 or self.first > k:
@@ -141,7 +154,13 @@ class Realigner:
         return got > k + 1 or (self.behind >= SILENT_COUNT and got > g0)
 
     def sent(self, k: int) -> None:
-        """The marker was tick ``k``'s command (write ``k + 1``)."""
+        """The marker was tick ``k``'s command (write ``k + 1``): its answer is looked
+        for (the decoder's ``marks``).
+
+        Parameters
+        ----------
+        k : int
+        """
         if self.first < 0:
             self.first = self.run0 if self.run0 >= 0 else k
         self.kp = k
@@ -181,7 +200,13 @@ class Realigner:
     def tick_end(self, k: int, got: int, resynced: bool) -> None:
         """Tick ``k`` ended with the count at ``got`` (``resynced``: re-armed at it, the
         readings of the rows in doubt before it dropped: a write swallowed before the
-        board lost its place left them filed a write off)."""
+        board lost its place left them filed a write off).
+
+        Parameters
+        ----------
+        k, got : int
+        resynced : bool
+        """
         if resynced:
             self.drop_open(k)
             self.reset()
@@ -196,7 +221,12 @@ class Realigner:
     def drop_open(self, end: int) -> None:
         """The count not confirmed (a re-synchronisation; the record's closing zero
         write's reply not in step): the readings of the rows in doubt, from the open run
-        behind or marker on, up to ``end`` (not included), dropped."""
+        behind or marker on, up to ``end`` (not included), dropped.
+
+        Parameters
+        ----------
+        end : int
+        """
         starts = [s for s in (self.first, self.run0) if s >= 0]
         if starts:
             self._drop(min(starts), end)

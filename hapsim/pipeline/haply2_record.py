@@ -41,6 +41,10 @@ another free response, :func:`hapsim.pipeline.haply2_host.usable_rows`). A reply
 on the way back (bytes lost or corrupted, fewer than a desync) was still its write's
 answer: the replies after it answer the writes after (the decoder's ``damaged``; when
 one read holds several replies and a damaged one, all of them are taken as after it).
+A host byte lost in a write makes the board skip one write without losing its place
+(the address 3): the loop, behind though replies come, sends a marker as a tick's command
+and sets its count where the board's answer to it stands
+(:mod:`hapsim.pipeline.haply2_realign`), never waiting for it.
 A host stall (a tick begun more than a period late: a descheduled process) is a stall,
 never a burst of catch-up writes: the clock goes on from where the host woke, the stall
 is counted (``stalled``), and the board, which held the last torque meanwhile on its own
