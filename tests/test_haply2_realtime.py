@@ -79,7 +79,9 @@ def test_scripted_missing_replies_are_estimated_and_bounded_lockstep():
     r = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4, resolution=2.0 ** 22,
                                  samples=N, plan=plan, probe_wiring=False,
                                  lockstep_board=True)
-    assert sum(r["estimated"]) == link.late > 0
+    # (and a marker's row where four ticks in a row ended behind: a late board is told
+    # from one that swallowed a write by its answer, hapsim.pipeline.haply2_realign)
+    assert link.late <= sum(r["estimated"]) <= link.late + sum(r["probes"]) and link.late
     assert r["replies"] == r["writes"] == [N + 2] * 5
     assert "hold_s" not in r["wire"]                # a lockstep board's holds: periods
     assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
@@ -171,8 +173,17 @@ def test_every_estimate_within_its_bound_lockstep(lag, p, seed):
             np.spacing(np.float32(np.degrees(ang))).astype(float))
         eps = np.abs(J) @ delta
         b = estimate_bounds(rec, sc, J, delta)
-        est = rec["estimated"]
+        est = rec["estimated"].copy()
         holds += int(np.sum(rec["lag"][est] == np.flatnonzero(est)))
+        # (not the rows whose estimate runs across a realigning marker: the torques held
+        # over its tick are a hold the estimate does not know of, and usable_rows cuts
+        # them)
+        pr = np.flatnonzero(rec["probed"])
+        for k in np.flatnonzero(est):
+            if np.any((pr >= k - rec["lag"][k] - 1) & (pr <= k)):
+                est[k] = False
+        # (nor those whose reading the marker's answer dropped: no truth to compare)
+        est &= np.isfinite(rec["readings"][:, 0])
         err = np.abs(rec["position"] - rec["readings"])[est]
         assert np.all(err <= b[est] + eps), (err / (b[est] + eps)).max()
     assert holds == 5 * lag

@@ -144,7 +144,9 @@ def test_lossy_hidden_friction_never_within_lockstep(monkeypatch, seed):
     "within", and a damping it states is "differs" (the stiffness barely moves: a
     "partly within" names the damping as not stated)."""
     r = _measure(monkeypatch, seed, loss=1 / 200, clock="lockstep", friction=30.0)
-    assert sum(r["resyncs"]) > 0
+    # (the loss reached the loop: the board re-synchronised, or the count of replies
+    # realigned after a write it swallowed)
+    assert sum(r["resyncs"]) + sum(r["realigned"]) > 0
     assert r["verdict"] != "within", (r["reason"], r["deviation"])
     assert r["deviation"]["felt_damping"] > 1.0
     for s in r["statements"]:

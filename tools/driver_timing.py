@@ -246,6 +246,12 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
             "exit_code": 0 if r["verdict"] != "differs" else 1,
             "reason": r.get("reason"), "estimated": int(sum(r["estimated"])),
             "held_zero": int(sum(r["held_zero"])), "left": r.get("left"),
+            # per record: markers sent (hapsim.pipeline.haply2_realign), their answers
+            # that moved the count (writes the board swallowed: no re-synchronisation),
+            # re-synchronisations, rows left to the fit (of N)
+            "probes": r.get("probes"),
+            "realigned": r.get("realigned"), "resyncs_per_record": r.get("resyncs"),
+            "usable": r.get("usable"),
             "held_at_end": board.settles_on(), "error": None,
             # the figures beside the verdict (issue 29): each felt matrix's deviation, its
             # stated uncertainty, the wire's term in it, the largest hold off a period

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 __all__ = ["Driver", "MappedDecoder", "AlignedDecoder", "FLAG_ESTIMATED", "LATE_WINDOW",
-           "LATE_STOP"]
+           "LATE_STOP", "MARK"]
 
 #: The telemetry ``flags`` bit of an estimated sample
 #: (:data:`hapsim.host.telemetry.FLAG_ESTIMATED`, repeated so that the drivers import
@@ -18,6 +18,10 @@ FLAG_ESTIMATED = 32
 #: (:func:`hapsim.emulated.falcon_device.drive_falcon`), here where both sides read it.
 LATE_WINDOW = 100
 LATE_STOP = 0.5
+#: What :meth:`AlignedDecoder.feed_into` gives for a one-byte answer its :attr:`marks`
+#: name, found where a frame would start (a host's marker write's answer: the 2DIY's
+#: realigning probe, :mod:`hapsim.pipeline.haply2_realign`).
+MARK = "mark"
 
 
 class AlignedDecoder:
@@ -41,12 +45,19 @@ class AlignedDecoder:
     (``unconfirmed``). A lost byte then costs the frames around it (one held until the
     next comes), never a false one.
 
+    A host may also ask for one-byte answers (:attr:`marks`, empty by default): where a
+    frame would start (no byte dropped since the last frame) and :meth:`mark_at` says so,
+    the byte is given as :data:`MARK`, in its place among the frames, and not counted as
+    dropped.
+
     Attributes
     ----------
     stats : dict
-        ``frames`` (taken), ``skipped`` (bytes dropped realigning); with
-        :attr:`confirm_next`, ``unconfirmed`` (windows that parsed but the byte after them
-        starts no frame: dropped).
+        ``frames`` (taken), ``skipped`` (bytes dropped realigning), ``marks`` (one-byte
+        answers given as :data:`MARK`, once there is one); with :attr:`confirm_next`, ``unconfirmed``
+        (windows that parsed but the byte after them starts no frame: dropped).
+    marks : tuple of int
+        The one-byte answers looked for (empty: none).
     """
 
     length = 1
@@ -57,6 +68,7 @@ class AlignedDecoder:
     def __init__(self) -> None:
         self._buf = bytearray()
         self.stats = {"frames": 0, "skipped": 0}
+        self.marks = ()
         if self.confirm_next:
             self.stats["unconfirmed"] = 0
         self._realigning = False        # bytes dropped since the last frame taken
@@ -71,6 +83,22 @@ class AlignedDecoder:
 
     def on_skip(self) -> None:
         """Called after each byte dropped realigning (``stats["skipped"]`` counted)."""
+
+    def mark_at(self, buf) -> bool:
+        """Whether ``buf`` (at least one byte, where a frame would start) begins with a
+        one-byte answer of :attr:`marks` (by default: its first byte is one, and the
+        byte after it, when one has come, starts a frame or another such answer).
+
+        Parameters
+        ----------
+        buf : bytearray
+
+        Returns
+        -------
+        bool
+        """
+        return buf[0] in self.marks and (
+            len(buf) == 1 or buf[1] in self.marks or self.starts_frame(buf[1]))
 
     def accept(self, value) -> bool:
         """Whether a parsed frame (its ``length`` bytes consumed) is taken; only taken
@@ -123,7 +151,19 @@ class AlignedDecoder:
         cap = len(out)
         i = 0
         confirm = self.confirm_next
-        while len(buf) >= n:
+        marks = self.marks
+        while len(buf) >= n or (marks and buf):
+            if marks and not self._realigning and self.mark_at(buf):
+                del buf[:1]                 # a one-byte answer asked for (class notes)
+                if i < cap:
+                    out[i] = MARK
+                else:
+                    out.append(MARK)
+                i += 1
+                st["marks"] = st.get("marks", 0) + 1
+                continue
+            if len(buf) < n:
+                break
             v = self.parse(buf)
             if v is not None and confirm:
                 # a frame only where the stream goes on in its framing (class notes)

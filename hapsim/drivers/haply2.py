@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, LONGEST_WAIT, MAX_TORQUE,
+from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, DEFAULT_ID, LONGEST_WAIT, MAX_TORQUE,
                                   ReplyDecoder, resync_bytes)
 from hapsim.errors import ConfigError
 
@@ -98,7 +98,7 @@ class Reply2Decoder(ReplyDecoder):
     :class:`hapsim.drivers.haply.ReplyDecoder` with two encoders (each angle finite,
     within ``max_angle_deg``, a whole number of counts of its port's resolution, within
     ``max_step_deg`` of the linear prediction of the last two replies taken; otherwise one
-    byte is dropped; :data:`~hapsim.drivers.haply.DESYNC_BYTES` bytes dropped in a row
+    byte is dropped; its ``desync_bytes``, 19 (two replies and one byte), dropped in a row
     count one ``desync``, again every 100 bytes).
 
     Parameters
@@ -154,7 +154,7 @@ class Haply2DIY:
     force_limit = MAX_TORQUE
     limits = LIMITS
 
-    def __init__(self, generation: str = "gen3", device_id: int = 1,
+    def __init__(self, generation: str = "gen3", device_id: int = DEFAULT_ID,
                  resolution: float | None = None, motor_direction=None,
                  encoder_direction=None) -> None:
         if generation not in GENERATIONS:

@@ -21,7 +21,8 @@ __all__ = ["ReplyDecoder", "DESYNC_BYTES"]
 #: Bytes skipped since the last good reply that mean the board lost its place: more than
 #: two replies' worth of single faults on the way back (a lost byte skips at most 4 bytes,
 #: a corrupted one 5); a board that lost its set-up answers 1 byte per write, so this is
-#: about 11 writes.
+#: about 11 writes. That of the M3's 5-byte reply: a decoder of ``L``-byte replies counts
+#: ``2 L + 1`` (:attr:`ReplyDecoder.desync_bytes`; the 2DIY's 9-byte replies, 19).
 DESYNC_BYTES = 11
 
 
@@ -34,7 +35,8 @@ class ReplyDecoder(AlignedDecoder):
     is going, and a whole number of encoder counts (the firmware sends
     ``360 * count / resolution``: the window ``01 01 01 3f c5``, -3056.06 deg, is 41426.4
     counts at 4880 per revolution, no reply); otherwise one byte is dropped and the next
-    position tried. :data:`DESYNC_BYTES` or more bytes dropped since the last reply mean the
+    position tried. :attr:`desync_bytes` (:data:`DESYNC_BYTES` for 5-byte replies, ``2 L +
+    1`` for ``L``-byte ones) or more bytes dropped since the last reply mean the
     stream lost its format: the board answers something else than the replies it was set
     up for (counted in ``desync``, once per run of bad bytes, again every 100 bytes).
 
@@ -77,7 +79,9 @@ class ReplyDecoder(AlignedDecoder):
         (well-formed replies out of the reach of :meth:`reach_deg`: a frame another
         set-up made, or a misaligned window that looked like a reply), ``lone`` (desyncs
         counted at once on three writes answered by the id alone: a board that lost its
-        set-up; before, after :data:`DESYNC_BYTES` of them).
+        set-up; before, after :attr:`desync_bytes` of them).
+    desync_bytes : int
+        Bytes dropped in a row that are a desync: more than two replies' worth.
     """
 
     length = 5
@@ -97,6 +101,11 @@ class ReplyDecoder(AlignedDecoder):
         self.arm_deg = arm_deg
         self.angles = int(angles)
         self.length = 1 + 4 * self.angles
+        # more than two replies' worth of single faults on the way back (DESYNC_BYTES for
+        # 5 bytes). With 11 for the 2DIY's 9-byte replies two replies in a row that each
+        # lost a byte (8 + 8 bytes skipped, about 1 in 500 pairs at 1 byte in 200 lost)
+        # were a desync: the board, in step, re-synchronised (2-3 a run, issue 29)
+        self.desync_bytes = 2 * self.length + 1
         self._fmt = struct.Struct("<" + "f" * self.angles)
         self.max_step = float(max_step_deg)
         self._prev = self._prev2 = None
@@ -320,32 +329,47 @@ class ReplyDecoder(AlignedDecoder):
         self._prev2, self._prev = self._prev, a
         return a[0] if self.angles == 1 else a
 
+    def starts_frame(self, byte: int) -> bool:
+        """Whether a reply can start with ``byte``: the id (the byte after a one-byte
+        answer the host asked for, :meth:`hapsim.drivers.base.AlignedDecoder.mark_at`;
+        :attr:`confirm_next` is off).
+
+        Parameters
+        ----------
+        byte : int
+
+        Returns
+        -------
+        bool
+        """
+        return byte == self.id
+
     def accept(self, value) -> bool:
         """A reply taken: the run of dropped bytes before it ends; the replies it held
         are counted in ``damaged`` (a run of ``s`` bytes held ``ceil(s / length)``: a
         byte lost leaves ``length - 1``, a corrupted reply ``length``; a run long enough
         to be a desync is the re-synchronisation's, not counted)."""
         if self._bad:
-            if self._bad < DESYNC_BYTES:
+            if self._bad < self.desync_bytes:
                 self.stats["damaged"] += -(-self._bad // self.length)
             self._bad = 0
         return True
 
     def on_skip(self) -> None:
-        """A byte dropped: after :data:`DESYNC_BYTES` in a row (and every 100 more while
+        """A byte dropped: after :attr:`desync_bytes` in a row (and every 100 more while
         it lasts) a ``desync`` is counted. The prediction is kept: the re-synchronisation
         sets the encoder to the host's estimate of where the joint is, so the replies after
         it are still within reach of the last one taken (before, the next reply was taken
         unchecked: a garbage one, whole counts of 7.4 rad, was believed and stopped the
         run)."""
         self._bad += 1
-        if self._lone and self._bad < DESYNC_BYTES:
+        if self._lone and self._bad < self.desync_bytes:
             # the board answers the id alone (parse): it lost its set-up; a desync now,
-            # not after DESYNC_BYTES of them (the run counts as that long)
+            # not after desync_bytes of them (the run counts as that long)
             self._lone = False
-            self._bad = DESYNC_BYTES
+            self._bad = self.desync_bytes
             self.stats["desync"] += 1
             self.stats["lone"] += 1
             return
-        if self._bad % 100 == DESYNC_BYTES:
+        if self._bad % 100 == self.desync_bytes:
             self.stats["desync"] += 1

@@ -146,7 +146,9 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False,
       answered each of those writes in order, so it parsed them in step (a lost host
       byte makes it complete a write with the next one's first byte and parse the rest
       of that one out of step, whose reply never comes), and the rows are measured with
-      their estimates' bounds (:func:`estimate_bounds`);
+      their estimates' bounds (:func:`estimate_bounds`), unless a realigning marker
+      (``probed``) is among them or the two rows their estimates start from (the
+      torques held over its tick are a hold the estimates do not know of);
     * a re-synchronisation at tick ``s`` (the board out of step since the run of missing
       or damaged replies before it, then zero torque and the set-up; the emulated board's
       hand restarts the handle there): from that run's first row - 1 to ``s + d + 1``;
@@ -155,6 +157,9 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False,
       began that far from one period after write ``k - 1``; a host late, not yet a
       stall): rows ``k - 1 .. k + d + 1`` (the smaller ones are corrected,
       :func:`hold_corrections`);
+    * a realigning marker at tick ``k`` (``probed``: the tick's command a write to no
+      port, the torques of the write before held over it,
+      :mod:`hapsim.pipeline.haply2_realign`): rows ``k - 1 .. k + d + 1``;
     * a torque written at the board's clamp at tick ``k`` (the loop not the linear one
       there): rows ``k - 1 .. k + d + 1``;
     * the last ``d + 2`` rows when the closing zero write's reply did not come in step
@@ -194,16 +199,20 @@ def usable_rows(rec: dict, delay: int, *, lockstep_board: bool = False,
     read = np.isfinite(np.asarray(rec.get("readings", np.full((N, 2), np.nan)),
                                   float)).all(axis=1)
     resynced = np.asarray(rec.get("resynced", np.zeros(N, bool)), bool)
+    probed = np.asarray(rec.get("probed", np.zeros(N, bool))).astype(bool)
     edge = np.diff(np.concatenate(([0], est.astype(np.int8), [0])))
     r0s, r1s = np.flatnonzero(edge == 1), np.flatnonzero(edge == -1) - 1
     for r0, r1 in zip(r0s, r1s):
         span = slice(r0, min(r1 + d + 2, N))
-        if read[span].all() and not resynced[span].any():
+        if (read[span].all() and not resynced[span].any()
+                and not probed[max(r0 - 2, 0):span.stop].any()):
             continue                                # late replies, in step
         cut(r0 - 1, r1 + d + 1)
     if not lockstep_board:
         for s_ in np.flatnonzero(np.asarray(rec.get("stalled", np.zeros(N, bool)), bool)):
             cut(s_ - 1, s_ + d + 1)
+    for s_ in np.flatnonzero(np.asarray(rec.get("probed", np.zeros(N, bool)), bool)):
+        cut(s_ - 1, s_ + d + 1)                     # a realigning marker's held torque
     for s_ in np.flatnonzero(resynced):
         a = s_
         while a > 0 and est[a - 1]:
@@ -280,7 +289,9 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         :func:`record_realtime`'s, or None), ``resyncs`` and ``skipped`` (bytes
         that made no reply) per record, ``stalls`` (host stalls per record),
         ``held_zero`` (ticks written at zero torque for want of a fresh sample,
-        :data:`hapsim.pipeline.haply2_record.HOLD_BOUND_S`) and ``usable`` (rows per
+        :data:`hapsim.pipeline.haply2_record.HOLD_BOUND_S`), ``probes`` and
+        ``realigned`` per record (markers sent, and their answers that moved the count of
+        replies: :mod:`hapsim.pipeline.haply2_realign`) and ``usable`` (rows per
         record left after the cuts at those disturbances, :func:`usable_rows`; the
         stretches are fitted jointly, ``fitted_rows``): "not measurable" with the reason
         when the stretches hold too few equations for the fit. On a board on its own
@@ -439,6 +450,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                late_ticks=[r["late_ticks"] for r in runs],
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs],
+               realigned=[int(r.get("realigned", 0)) for r in runs],
+               probes=[int(r.get("probes", 0)) for r in runs],
                left=left, brake=[r.get("brake") for r in runs])
     return out
 

@@ -41,6 +41,10 @@ another free response, :func:`hapsim.pipeline.haply2_host.usable_rows`). A reply
 on the way back (bytes lost or corrupted, fewer than a desync) was still its write's
 answer: the replies after it answer the writes after (the decoder's ``damaged``; when
 one read holds several replies and a damaged one, all of them are taken as after it).
+A host byte lost in a write makes the board skip one write without losing its place
+(the address 3): the loop, behind though replies come, sends a marker as a tick's command
+and sets its count where the board's answer to it stands
+(:mod:`hapsim.pipeline.haply2_realign`), never waiting for it.
 A host stall (a tick begun more than a period late: a descheduled process) is a stall,
 never a burst of catch-up writes: the clock goes on from where the host woke, the stall
 is counted (``stalled``), and the board, which held the last torque meanwhile on its own
@@ -80,9 +84,11 @@ import time
 import numpy as np
 
 from hapsim.braking import BRAKE_MAX_S, Brake, brake_damping, brake_rest
+from hapsim.drivers.base import MARK
 from hapsim.drivers.haply import LONGEST_COMMAND, MAX_TORQUE, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import DeviceError
+from hapsim.pipeline.haply2_realign import SILENT_COUNT, Realigner
 
 __all__ = ["record_realtime", "PortLink", "ENVELOPE_RAD", "WORKSPACE_RAD"]
 
@@ -160,9 +166,6 @@ REARM_SENDS = 20
 #: measured in the time the host was polling, so a host stall (the host descheduled, not
 #: reading) is never taken for a board's silence.
 AWAKE_GAP_S = 2e-3
-#: Unanswered writes that may be late replies whatever their age (a board's pass and a USB
-#: frame hold a few).
-SILENT_COUNT = 4
 
 
 def _read(ser) -> bytes:
@@ -240,7 +243,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         ``damaged``), ``write_s`` (N, 2) [s]: when the host's write whose reply is row
         ``k``'s sample began and ended (``perf_counter``, from the first one's start;
         the board took it in between, or a latency after: the holds' lengths,
-        :func:`hapsim.pipeline.haply2_host.hold_bounds`), ``left`` (the tick a reading
+        :func:`hapsim.pipeline.haply2_host.hold_bounds`), ``write_t0`` (that first
+        start, ``perf_counter`` [s]), ``probed`` (N,) bool (ticks whose command was a
+        marker, :mod:`hapsim.pipeline.haply2_realign`), ``probes`` (markers sent),
+        ``realigned`` (their answers that moved the count of replies: writes the board
+        swallowed), ``probes_late`` (those that left it: a late board), ``left`` (the tick a reading
         left :data:`ENVELOPE_RAD`, -1 if none), ``brake`` (None, or after ``left`` with
         ``brake``: :meth:`hapsim.braking.Brake.report`'s dict: ``damping`` [N m s/rad],
         ``periods`` (ticks braked), ``seconds``, ``v_start``/``v_end`` (the joints'
@@ -324,6 +331,16 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         j = 0
         while j < m:                                # (no iterator: no allocation)
             rep = frames[j]
+            if rep is MARK:
+                # a marker's answer (hapsim.pipeline.haply2_realign): the count set at
+                # its place, the readings in doubt dropped
+                got = realign.marked(got)
+                replies += 1
+                seen = min(seen, got - 1)
+                while seen > 0 and xr[seen, 0] != xr[seen, 0]:
+                    seen -= 1
+                j += 1
+                continue
             if got < nr:
                 q1, q2 = joints_of(rep)
                 qr[got, 0] = q1
@@ -335,6 +352,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
+    # the count of replies checked by a marker write when the loop ends ticks behind
+    # though replies come (a write swallowed, or a late board: never a wait)
+    realign = Realigner(dec, xr, qr)
     # perf_counter() of the write whose reply is each tick's sample (the arming's zero
     # write for tick 0)
     t_wrote = np.full(C + 2, np.nan)
@@ -468,6 +488,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             if awake >= limit:
                 return
             time.sleep(2e-4)
+
     rearm_sends = 0
     arm(q0deg, 0)
     pos = np.zeros((C, 2))
@@ -477,6 +498,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     lag = np.zeros(C, np.int64)
     resynced = np.zeros(C, bool)
     stalled = np.zeros(C, bool)
+    # ticks whose command was a marker (hapsim.pipeline.haply2_realign: the torques of
+    # the write before held over it)
+    probed = np.zeros(C, bool)
     # the braking after the joints left the envelope (hapsim.braking, the joints'
     # velocities from the readings, the joint-space inertia's B): None until then, and
     # its end ("rest", "time") once done
@@ -526,7 +550,15 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         while time.perf_counter() < deadline:
             pass
         dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
+        g0 = got
         take(_read(ser))
+        # behind for SILENT_COUNT ticks, though replies come: a board late (it catches up
+        # within a few: the backlog comes in one read), or a write it swallowed (a host
+        # byte lost: firmware V1.5 completes the write with the next one's first byte and
+        # parses the rest of that one as no command, so one write is never answered and
+        # every reply after it answers a write one newer than the count says). Told apart
+        # by the board's answer to a marker, this tick's command (haply2_realign)
+        mark = realign.due(k, got, g0)
         unanswered = k + 1 - got                    # (damaged: answered)
         if unanswered > SILENT_COUNT:
             # writes unanswered for SILENT_S are a board that stopped answering (a board
@@ -538,6 +570,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             unanswered = SILENT_WRITES + 1 if age >= SILENT_S else 0
         else:
             unanswered = 0
+        if realign.lost:
+            unanswered = SILENT_WRITES + 1          # (markers unanswered, or answers too many)
+            mark = False
         if rule.due(unanswered):
             # the board lost its place (module notes): zero torque first, the set-up;
             # its reply is this tick's sample, and the clock starts again from it (the
@@ -547,7 +582,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             resynced[k] = True
             t0 += time.perf_counter() - t_r
             resync_s += time.perf_counter() - t_r
-        if got > k:                                 # reply k read: a fresh sample
+            mark = False
+        # ticks in a row ended behind (the re-arming re-anchors the count)
+        realign.tick_end(k, got, resynced[k])
+        if got > k and xr[k, 0] == xr[k, 0]:        # reply k read: a fresh sample
             i = k
             x[0] = xr[k, 0]
             x[1] = xr[k, 1]
@@ -571,7 +609,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                     (k - obs) * T if lockstep_board else t_wrote[k] - t_wrote[obs]))
                 obs = k
         else:                                       # missing: an estimated sample
-            i = seen
+            # from the last reading before it (reply k damaged on the way back, the
+            # replies after it read; a probe dropped readings, or filed a damaged one)
+            i = min(seen, k - 1)
+            while i > 0 and xr[i, 0] != xr[i, 0]:
+                i -= 1
             r = k - i
             if i >= 1 and not resynced[i] and qr[i - 1, 0] == qr[i - 1, 0]:
                 # extrapolated from the last two (read, on one set-up)
@@ -614,13 +656,18 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             # joints were, not where they are; the board (no watchdog) would hold it
             tau1 = tau2 = 0.0
             held_zero += 1
+        if mark:
+            # the marker instead of the torques: the board holds the write before's
+            realign.sent(k)
+            probed[k] = True
+            tau1, tau2 = (torque[k - 1, 0], torque[k - 1, 1]) if k else (0.0, 0.0)
         torque[k, 0] = clamp1(tau1)
         torque[k, 1] = clamp1(tau2)
         pos[k, 0] = x[0]
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         t_began[k + 1] = time.perf_counter()
-        _write(ser, wbuf)
+        _write(ser, realign.marker if mark else wbuf)
         t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
     # read in step, says the board took it as a write (only a flipped top exponent bit
@@ -662,6 +709,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                 break
     rearmed_at_end = seen < K + 1
     if rearmed_at_end:
+        # (a write swallowed at the end leaves the count short: the rows in doubt)
+        realign.drop_open(K + 1)
         arm(q0deg, K + 1)
     return {"position": pos[:N], "joints": joints[:N], "torque": torque[:N],
             "estimated": est[:N], "lag": lag[:N], "late_ticks": late, "replies": replies,
@@ -669,8 +718,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
             "stall_s": stall_s, "held_zero": held_zero, "bad_setups": bad_setups,
             "left": left, "brake": brake_out,
-            "rearmed_at_end": rearmed_at_end, "decoder": dict(dec.stats),
-            "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0]}
+            "rearmed_at_end": rearmed_at_end, "realigned": realign.realigned,
+            "probes": realign.probes, "probes_late": realign.late, "probed": probed[:N],
+            "decoder": dict(dec.stats),
+            "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0],
+            "write_t0": float(t_began[0])}
 
 
 class PortLink:
