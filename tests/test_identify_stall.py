@@ -114,3 +114,22 @@ def test_an_engine_blind_to_the_stalls_takes_these_devices_out(seed):
     m, b0, d, st = _case(seed)
     xs = run_stalled(m, b0, d, st, seed, clocked=False)
     assert np.max(np.abs(xs)) > ENVELOPE
+
+
+def test_an_engine_rebuilt_after_a_loss_keeps_the_longest_stall():
+    """The loop rebuilds its engine after a loss as ``type(engine)(engine.scene)``
+    (:mod:`hapsim.host.recovery`), often right after a long stall: the new engine counts
+    the stall the old one saw, not the prior."""
+    plan = excitation_plan(N, 1.0 / T, FORCE_LIMIT, ENVELOPE, max_delay=20, seed=1)
+    now = [0.0]
+    plan.clock = lambda: now[0]
+    eng = ExcitationEngine(plan)
+    eng.set_port_position(0.0)
+    for k in range(50):
+        now[0] = k * T + (0.04 if k >= 30 else 0.0)      # a 40 ms stall before tick 30
+        eng.port_step(0.0)
+    # the engine's own arithmetic (the clock between two answers, less a period)
+    assert eng.host_stall == (30 * T + 0.04) - 29 * T - T
+    assert eng.host_stall > HOST_STALL_PRIOR_S
+    again = type(eng)(eng.scene)
+    assert again.host_stall == eng.host_stall

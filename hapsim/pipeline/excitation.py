@@ -224,12 +224,19 @@ class ExcitationPlan:
         The host's clock [s] (``time.monotonic``) on a real-time port, where the device
         keeps its own time and a stalled host leaves it its force; None in lockstep (the
         device waits for the host, and the excitation reads no clock).
+
+    Attributes
+    ----------
+    host_stall : float
+        The longest host stall [s] an engine of this plan saw (0 before any): an engine
+        rebuilt after a loss starts from it (:class:`ExcitationEngine`).
     """
 
     def __init__(self, r: np.ndarray, kc: float, bc: float, rate_hz: float,
                  envelope: float, max_delay: int = 0, square=None,
                  level_max: float = math.inf, clock=None) -> None:
         self.clock = clock
+        self.host_stall = 0.0
         self.r = np.asarray(r, float)
         self.square = (np.zeros_like(self.r) if square is None
                        else np.asarray(square, float))
@@ -404,7 +411,10 @@ class ExcitationEngine:
         self._half = max(int(0.25 * scene.rate_hz), 1)
         self._clock = getattr(scene, "clock", None)
         self._t_last = math.inf
-        self._stall = HOST_STALL_PRIOR_S if self._clock is not None else 0.0
+        # the longest stall any engine of this plan saw: the loop rebuilds its engine
+        # after a loss (type(engine)(engine.scene)), often right after a long stall
+        self._stall = (max(HOST_STALL_PRIOR_S, getattr(scene, "host_stall", 0.0))
+                       if self._clock is not None else 0.0)
 
     @property
     def host_stall(self) -> float:
@@ -463,7 +473,7 @@ class ExcitationEngine:
             gap = now - self._t_last - T
             self._t_last = now
             if gap > self._stall:
-                self._stall = gap
+                self._stall = self.scene.host_stall = gap
             ts = self._stall
             s += v * ts
             # the push held through it: the acceleration of the last two windows, when it
