@@ -588,6 +588,16 @@ def _pty_device(dev):
     return path, slave, master, flag, th
 
 
+def _stop_board(flag, th, slave, master) -> None:
+    """Stop a board served in a thread on a pty (its ``flag["stop"]``), join it, close
+    both ends."""
+    import os
+    flag["stop"] = True
+    th.join(2.0)
+    os.close(slave)
+    os.close(master)
+
+
 def _arm_and_wait(drv, path, timeout=3.0):
     """Open the driver's transport on ``path``, arm it, return (transport, first STATEs)."""
     import firmware_protocol as fp
@@ -613,7 +623,6 @@ def test_firefader_bootloader_and_firmware_detection():
     """The Nano drops what arrives while its bootloader runs: the transport repeats its
     arming packet until the first record comes (counted), and says the .ino answered; a
     .pde board streams records unprompted, and the transport says so."""
-    import os
     import time as _t
 
     from hapsim.emulated.driver_mock import FireFaderDevice
@@ -634,10 +643,7 @@ def test_firefader_bootloader_and_firmware_detection():
             rep = tr.report()
             tr.close()
         finally:
-            flag["stop"] = True
-            th.join(2.0)
-            os.close(slave)
-            os.close(master)
+            _stop_board(flag, th, slave, master)
         assert got, firmware
         if firmware == "ino":
             assert rep["rearms"] >= 2 and rep["firmware"].startswith("haptics_firmware.ino")
@@ -651,7 +657,6 @@ def test_firefader_answers_read_after_a_stop_are_no_streaming_firmware():
     for. Counted as unprompted before (beside two CPU-bound processes the run's report
     named the streaming .pde in 2 of 4 runs); the .pde is still heard at the arming
     (test_firefader_bootloader_and_firmware_detection)."""
-    import os
     import time as _t
 
     import firmware_protocol as fp
@@ -676,10 +681,7 @@ def test_firefader_answers_read_after_a_stop_are_no_streaming_firmware():
         rep = tr.report()
         tr.close()
     finally:
-        flag["stop"] = True
-        th.join(2.0)
-        os.close(slave)
-        os.close(master)
+        _stop_board(flag, th, slave, master)
     assert got and again and not [m for m in late if type(m) is fp.State]
     assert before["decoder"]["frames"] >= read + 5      # the late answers were read
     assert rep["unprompted_before_arming"] == 0
@@ -746,10 +748,7 @@ def test_firefader_answers_read_late_at_a_rearming_are_no_streaming_firmware(hol
         rep = tr.report()
         tr.close()
     finally:
-        board["stop"] = True
-        th.join(2.0)
-        os.close(slave)
-        os.close(master)
+        _stop_board(board, th, slave, master)
     assert board["held"] == 6, board                      # 5 FORCEs and the STOP
     assert again and rep["unprompted_before_arming"] == 0, rep
     assert rep["firmware"].startswith("haptics_firmware.ino"), rep
@@ -924,7 +923,6 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
     """A STOP sends the Haply board its whole re-synchronisation (replies come back); the
     arming that follows (a recovery) lets them come first: the firmware is still the one
     that answers each write, the board holds zero torque, and the first sample comes."""
-    import os
     import time as _t
 
     import firmware_protocol as fp
@@ -946,10 +944,7 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
         rep = tr.report()
         tr.close()
     finally:
-        flag["stop"] = True
-        th.join(2.0)
-        os.close(slave)
-        os.close(master)
+        _stop_board(flag, th, slave, master)
     assert again and rep["unprompted_before_arming"] == 0
     assert rep["firmware"].startswith("Haply M3") and board.held == 0.0
 
