@@ -124,6 +124,8 @@ def run_haply2_command(args) -> int:
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
                 "replies": res["replies"], "writes": res["writes"],
                 "resyncs": res["resyncs"], "skipped": res["skipped"],
+                # the host's watchdog (the board has none): hapsim.drivers.host_watchdog
+                "watchdog": res.get("watchdog"),
                 "scheduling": res.get("scheduling"),
                 # per record: the tick the joints left the envelope (-1: none) and the
                 # braking after it (hapsim.braking; None: none)

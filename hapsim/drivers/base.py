@@ -310,6 +310,13 @@ class Driver:
     #: record for the host's write times (:func:`hapsim.analysis.write_holds.
     #: write_time_terms`) when the run's board keeps its own clock (:attr:`own_clock`).
     holds_from_write = False
+    #: The longest a board holds a force with no write before it zeroes it itself [s]:
+    #: its watchdog or silence rule (the FireFader's ``.ino``: 0.1 s); ``inf`` for none
+    #: (the Haply M3, firmware V1.5; the Hapkit serial sketch), and for a driver that
+    #: does not say. Beyond :data:`hapsim.drivers.resync.HOLD_BOUND_S`, on a board on its
+    #: own clock, the transport runs the host's watchdog beside it
+    #: (:mod:`hapsim.drivers.host_watchdog`).
+    holds_force_s = math.inf
     #: The run's board keeps its own clock (set by the run's transport; a lockstep mock,
     #: stepped one period per command, does not).
     own_clock = False

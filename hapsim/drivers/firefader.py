@@ -404,6 +404,10 @@ class FireFader(Driver):
         A bad axis, full scale or position scale.
     """
 
+    #: The ``.ino``'s silence rule zeroes the forces after :data:`SILENCE_S`: longer
+    #: than the host's hold bound, so the host's watchdog runs beside it too
+    #: (:attr:`hapsim.drivers.base.Driver.holds_force_s`).
+    holds_force_s = SILENCE_S
     name = "firefader"
     travel_sweep = True
     #: Both faders in every packet and record (:mod:`hapsim.pipeline.faders_run`).

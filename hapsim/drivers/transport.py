@@ -16,6 +16,9 @@
 - STOP -> zero force (:meth:`~hapsim.drivers.base.Driver.stop_bytes`: for the Haply board,
   which has no watchdog, its whole re-synchronisation, so that zero torque is taken
   whatever its parser is doing); closing the port sends the same first.
+- A board that holds a force longer than the hold bound by itself, on its own clock, has
+  the host's watchdog beside it (:mod:`hapsim.drivers.host_watchdog`): a zero write when
+  the host does not run, a command of its own.
 
 Host-clocked only (the loop must run with ``host_clocked``): the device answers packets.
 
@@ -84,6 +87,8 @@ import time
 from collections import deque
 
 import firmware_protocol as fp
+from hapsim.drivers.handled_account import HandledAccount
+from hapsim.drivers.host_watchdog import Watched
 from hapsim.drivers.late_replies import LateReplies
 from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, SILENCE_LOST_S, Resynchronising
 from hapsim.drivers.tick_align import PROBE_TRIES, REARM_INTERVAL, TickAligned
@@ -93,9 +98,6 @@ __all__ = ["DriverTransport", "DriverStats", "REARM_INTERVAL"]
 
 #: Listening before arming, for records nobody asked for (a streaming firmware) [s].
 LISTEN_S = 0.03
-#: A lockstep mock's account standing still this long [s] when the transport takes the
-#: port (an earlier user's bytes handled and landed: :meth:`DriverTransport._claim`).
-CLAIM_QUIET_S = 0.03
 #: The shortest time between two replies' samples [s] (by the host's times) that bound
 #: the joint's speed (:meth:`DriverTransport._speed_bound`): over 5 ms the readings'
 #: rounding and the sample times' uncertainty (a period each) cost little.
@@ -139,7 +141,7 @@ class _Dec:
         self.stats = stats
 
 
-class DriverTransport(TickAligned, Resynchronising, LateReplies):
+class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, HandledAccount):
     """A driver's device on a serial port, as the host loop's transport.
 
     Parameters
@@ -287,8 +289,10 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
         self._lone = 0                      # the decoder's 'lone' seen
         self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
                       "rearms": 0, "unprompted_before_arming": 0,
-                      "held_zero": 0, "host_stalls": 0}
+                      "held_zero": 0, "host_stalls": 0, "watchdog_zeroed": 0,
+                      "watchdog_replies": 0}
         self._init_resync()                 # resyncs and their reasons (Resynchronising)
+        self._init_watchdog(driver, port, driver.own_clock)   # (host_watchdog)
         self.info = {"kind": f"driver {driver.name}", "port": port, "baud": driver.baud,
                      "low_latency": False, "driver": driver.name,
                      "low_latency_note": "driver protocol"}
@@ -301,28 +305,6 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
     def _now_us(self) -> int:
         return (time.monotonic_ns() - self._t0) // 1000
 
-    def _claim(self) -> None:
-        """A lockstep mock's account counts every byte since it started, an earlier
-        user's of the port too (identify's direction probe and travel sweep): wait until
-        it has stood still for :data:`CLAIM_QUIET_S` (at most 1 s), drop what is left on
-        the line (answers to that user), and count from there."""
-        ser = self._ser
-        last = None
-        t_still = time.monotonic()
-        end = t_still + 1.0
-        while True:
-            now = time.monotonic()
-            tot = self._handled()
-            left = ser.in_waiting
-            if left:
-                ser.read(left)
-            if tot != last or left:
-                last, t_still = tot, now
-            elif now - t_still >= CLAIM_QUIET_S or now > end:
-                break
-            time.sleep(1e-3)
-        self._n_written, self._n_read = last
-
     def _clock(self) -> float:
         """The device's time [s]: a lockstep mock's (given ``handled``) is the commands'
         (commands sent times its period), whatever the host's wall clock did; otherwise
@@ -331,17 +313,18 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
             return (self._cmd + 1) * self._board_T
         return time.monotonic()
 
-    def _quiet(self) -> bool:
-        """A lockstep mock (``handled``) has answered everything it will: it has read
-        every byte written to it and its every byte has been read here."""
-        r, w = self._handled()
-        return r == self._n_written and w == self._n_read
-
-    def _write(self, data: bytes) -> None:
+    def _write(self, data: bytes, number=None) -> None:
+        """Write ``data``; a command is numbered by ``number`` (after the host watchdog's
+        writes made since, when there is one: host_watchdog)."""
         self._t_write = time.monotonic()
         self._n_written += len(data)
         try:
-            self._ser.write(data)
+            if self.watchdog is not None:
+                self.watchdog.write(self._ser, data, number or self._wd_take)
+            else:
+                if number is not None:
+                    number(())
+                self._ser.write(data)
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to {self.info['port']} failed: {exc}") from None
 
@@ -349,13 +332,17 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
         """Send one command (one host tick): number it and stamp it; to a board that takes
         commands on its own tick, once the write falls in the tick's middle
         (:meth:`tick_phase`)."""
+        self._wd_settle()                   # (the host watchdog's writes: host_watchdog)
         if self._write_at is not None:
             self._wait_for_band()
+        self._write(data, self._number)
+
+    def _number(self, watchdog_writes) -> None:
+        self._wd_take(watchdog_writes)      # (the host watchdog's, before this one)
         self._cmd += 1
         self._sent_us[self._cmd % _RING] = self._now_us()
         self._stray = False                 # bytes read from now on are its answer
         self.stats["commands"] += 1
-        self._write(data)
 
     def send(self, msg) -> None:
         """Translate one framed-protocol message into the driver's bytes (module notes)."""
@@ -378,6 +365,9 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
         elif t is fp.Ping:
             self._q.append(fp.Pong(msg.nonce, msg.host_time_us, self._now_us()))
         elif t is fp.Config:
+            self._wd_beat()
+            if self.watchdog is not None:
+                self.watchdog.arm(False)    # (the listening waits on purpose)
             st = self._dec.stats
             seen = st.get("frames", 0) + st.get("unreachable", 0)
             owed = (max(0, self._cmd - self._answered) + self._stop_owed
@@ -422,7 +412,11 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
                     if self.tick_phase() is not None:
                         break
             self._command(arming)
+            if self.watchdog is not None:
+                self.watchdog.arm()
         elif t is fp.Stop:
+            if self.watchdog is not None:
+                self.watchdog.arm(False)
             self._armed = False
             self._force = 0.0
             self._stop_owed = 2             # (its zero writes before and after its set-up)
@@ -598,6 +592,10 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
             if s <= self._answered:
                 st["unprompted"] += 1          # nothing left for it to answer
                 continue
+            if self._wd_answer(s):             # the host watchdog's zero write's
+                st["missing"] += s - self._answered - 1
+                self._answered = s
+                continue
             st["missing"] += s - self._answered - 1
             st["records"] += 1
             self._answered = s
@@ -633,6 +631,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
         out = list(self._q)
         self._q.clear()
         ser = self._ser
+        self._wd_beat()
         end = time.monotonic() + timeout
         lockstep = self._handled is not None
         try:
@@ -645,6 +644,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
                         data = ser.read(waiting)
                     elif timeout > 0 and not out:
                         data = ser.read(1)
+                        self._wd_beat()     # (its writes before the bytes are decoded)
                     else:
                         data = b""
                 if data:
@@ -667,20 +667,6 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
                     time.sleep(2e-4)
         except Exception as exc:  # serial.SerialException, OSError
             raise DeviceError(f"read from {self.info['port']} failed: {exc}") from None
-
-    def _read_handled(self) -> bytes:
-        """A lockstep mock's whole answer: nothing while it has not handled every byte
-        written to it; then every byte it wrote that was not read yet (they are on their
-        way through the pty: waited for, up to a second)."""
-        r, w = self._handled()
-        if r != self._n_written or w <= self._n_read:
-            return b""
-        need = w - self._n_read
-        buf = bytearray()
-        end = time.monotonic() + 1.0
-        while len(buf) < need and time.monotonic() < end:
-            buf += self._ser.read(need - len(buf))
-        return bytes(buf)
 
     def _feed(self, data: bytes, out: list) -> None:
         """Bytes read: decoded, their records taken, a desync or an unreachable reading
@@ -780,10 +766,13 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies):
         st["decoder"] = dict(self._dec.stats)
         st["firmware"] = (self.driver.streaming_firmware if st["unprompted_before_arming"]
                           else self.driver.answering_firmware if st["records"] else None)
+        st["watchdog"] = self._watchdog_report()
         return st
 
     def close(self) -> None:
         """Close the port (idempotent): zero force first (a device may hold it)."""
+        if self.watchdog is not None:
+            self.watchdog.close()
         try:
             if self._ser.is_open:
                 self._ser.write(self.driver.stop_bytes(self._x_last))

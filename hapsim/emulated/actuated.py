@@ -188,6 +188,10 @@ class WallClock:
         #: The largest |position| the physics reached [m] (or [rad]): the true excursion,
         #: whatever the host believes.
         self.excursion = abs(physics.x)
+        #: The longest time a non-zero force was held with no command taking effect
+        #: [s] (a board without a watchdog, its host silent), up to the last event.
+        self.longest_hold = 0.0
+        self._since = 0.0                # when the force in effect took effect [s]
         self._due: deque = deque()       # (time [s], force [N]) not yet in effect
 
     def schedule(self, at: float, force: float) -> None:
@@ -201,7 +205,13 @@ class WallClock:
         """The device sets its force itself, at once (a firmware's silence rule); what was
         due is dropped."""
         self._due.clear()
-        self.held = float(force)
+        self._take(float(force))
+
+    def _take(self, force: float) -> None:
+        """A force takes effect now (:attr:`t`): the hold it ends counted."""
+        if self.held != 0.0:
+            self.longest_hold = max(self.longest_hold, self.t - self._since)
+        self.held, self._since = force, self.t
 
     def settles_on(self) -> float:
         """The force in effect once everything due has taken effect [N]."""
@@ -232,9 +242,9 @@ class WallClock:
             if nxt >= boundary:
                 ph.end_period()
             while due and due[0][0] <= self.t:
-                self.held = due.popleft()[1]
+                self._take(due.popleft()[1])
         while due and due[0][0] <= self.t:
-            self.held = due.popleft()[1]
+            self._take(due.popleft()[1])
 
 
 def offline_record(scene, driver, command, n: int, time_of) -> dict:

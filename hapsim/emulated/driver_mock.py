@@ -148,8 +148,14 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     n_read = n_written = 0
     t0 = last = t_idle = time.monotonic()
     streams = getattr(dev, "firmware", "") == "pde"
+    gap = 0.0                                   # the longest time this loop did not run
+    t_loop = time.monotonic()
     while not (stop and stop()):
         r, _, _ = select.select([fd], [], [], poll)
+        t_sel = time.monotonic()
+        # (beyond select's own wait: an emulator starved by the machine takes its bytes
+        # that much late, which a board on its own processor never does)
+        gap = max(gap, t_sel - t_loop - (0.0 if r else poll))
         out = b""
         if streams and time.monotonic() - t_idle >= poll:
             t_idle = time.monotonic()           # a streaming firmware's pass, asked or not
@@ -218,6 +224,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             break
         if handled is not None:
             handled.publish(n_read, n_written)
+        t_loop = time.monotonic()
     n = dev.commands()
     extra = {}
     for k in ("merged", "passes", "firmware", "host_ticks", "frame_walk", "tick_arrivals",
@@ -232,6 +239,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             "clock": getattr(dev, "clock", "lockstep"),
             "true_excursion": (dev.wall.excursion if getattr(dev, "wall", None) is not None
                                else None),
+            # the longest time the serving loop did not run beyond its poll [s]: what the
+            # emulator itself was late by (the machine's load), not the board
+            "longest_gap_s": gap,
+            # the longest non-zero force held with no command taking effect [s]
+            "longest_hold_s": (getattr(dev.wall, "longest_hold", None)
+                               if getattr(dev, "wall", None) is not None else None),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
             "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0),
             **({"starved": starved} if slow_p > 0 else {}), **extra}

@@ -127,6 +127,10 @@ class Haply2DIYBoard:
         self.wall = self if clock == "wall" else None
         self.ready_at = 0.0
         self.excursion = 0.0
+        #: The longest a non-zero torque was held with no write taking effect [s] (no
+        #: watchdog: a silent host's), on the wall clock, up to the last write.
+        self.longest_hold = 0.0
+        self._since = 0.0                     # when the torques in effect took effect [s]
         self._t = 0.0                         # the board's time the plant has reached [s]
         self._busy_until = 0.0                # the firmware's next pass, not before [s]
         self._due: deque = deque()            # (time [s], torques) not yet in effect
@@ -307,12 +311,19 @@ class Haply2DIYBoard:
             self.plant.advance_torque(self._joint_torques(), nxt - self._t)
             self._t = nxt
             while self._due and self._due[0][0] <= self._t:
-                self.torque.update(self._due.popleft()[1])
+                self._take(self._due.popleft()[1])
         while self._due and self._due[0][0] <= self._t:
-            self.torque.update(self._due.popleft()[1])
+            self._take(self._due.popleft()[1])
         self.held = max(abs(v) for v in self.torque.values())
         self.excursion = max(self.excursion,
                              float(np.abs(self.plant.joints() - self.plant.q0).max()))
+
+    def _take(self, torques: dict) -> None:
+        """A write's torques take effect now: the hold they end counted."""
+        if any(v != 0.0 for v in self.torque.values()):
+            self.longest_hold = max(self.longest_hold, self._t - self._since)
+        self.torque.update(torques)
+        self._since = self._t
 
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
         """Host bytes in, the board's replies out (one per write).

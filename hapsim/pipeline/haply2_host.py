@@ -329,6 +329,13 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     Engine(scene).step()               # the compiled kernels loaded before the clock
     runs = []
     probe = None
+    wd, wd_why = None, "a lockstep board: its time is the writes'"
+    if not lockstep_board:
+        # the board has no watchdog: the host's beside it (hapsim.drivers.host_watchdog)
+        from hapsim.drivers.resync import HOLD_BOUND_S
+        from hapsim.drivers.torque_watchdog import start_watchdog
+        wd, wd_why = (start_watchdog(port, drv.write_bytes((0.0, 0.0)), HOLD_BOUND_S)
+                      if own else (None, "a port object, not a device file"))
     try:
         if probe_wiring:
             # each joint's wiring before any torque loop runs (paced on the host's clock:
@@ -344,10 +351,14 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                                     first_timeout=ARM_TIMEOUT)
         for j in range(5):
             runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board,
-                                        running=j > 0 or probe is not None))
+                                        running=j > 0 or probe is not None, watchdog=wd))
             if progress is not None:
                 progress(j + 1, 5)
     finally:
+        wd_report = ({"running": False, "why": wd_why} if wd is None
+                     else {"running": True, **wd.report()})
+        if wd is not None:
+            wd.close()
         if own:
             try:
                 ser.write(drv.write_bytes((0.0, 0.0)))
@@ -452,7 +463,9 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs],
                realigned=[int(r.get("realigned", 0)) for r in runs],
                probes=[int(r.get("probes", 0)) for r in runs],
-               left=left, brake=[r.get("brake") for r in runs])
+               left=left, brake=[r.get("brake") for r in runs],
+               watchdog=dict(wd_report, zeroed=[r.get("watchdog_zeroed", 0) for r in runs],
+                             replies=[r.get("watchdog_replies", 0) for r in runs]))
     return out
 
 

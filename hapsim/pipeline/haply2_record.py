@@ -52,7 +52,10 @@ clock, is not re-synchronised for it: a late reply is a late sample (the decoder
 check widens with the ticks since the last reply read, by the motion the board's torque
 clamp and the joint inertia allow), and only writes unanswered for :data:`SILENT_S` and more than :data:`SILENT_COUNT` are
 taken for a board out of step. An estimated tick whose newest reading is older than
-:data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise).
+:data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise);
+a host that does not run at all cannot, and the host's watchdog beside it does
+(``watchdog``, :mod:`hapsim.drivers.host_watchdog`: its zero write after
+:data:`HOLD_BOUND_S` of the host's silence is a write of its own, its reply dropped).
 The loop is linear and time-invariant between disturbances, so a record is cut at each
 (a stall, a run of missing replies, a zeroed tick, a re-synchronisation, a torque at the
 clamp: :func:`hapsim.pipeline.haply2_host.usable_rows`) and its undisturbed stretches
@@ -80,6 +83,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 
 import numpy as np
 
@@ -88,6 +92,7 @@ from hapsim.drivers.base import MARK
 from hapsim.drivers.haply import LONGEST_COMMAND, MAX_TORQUE, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import DeviceError
+from hapsim.pipeline.haply2_port import PortLink, read_waiting as _read, write_all as _write
 from hapsim.pipeline.haply2_realign import SILENT_COUNT, Realigner
 
 __all__ = ["record_realtime", "PortLink", "ENVELOPE_RAD", "WORKSPACE_RAD"]
@@ -168,24 +173,9 @@ REARM_SENDS = 20
 AWAKE_GAP_S = 2e-3
 
 
-def _read(ser) -> bytes:
-    try:
-        n = ser.in_waiting
-        return ser.read(n) if n else b""
-    except Exception as exc:  # serial.SerialException, OSError
-        raise DeviceError(f"read from the 2DIY's port failed: {exc}") from None
-
-
-def _write(ser, data: bytes) -> None:
-    try:
-        ser.write(data)
-    except Exception as exc:  # serial.SerialException, OSError, timeouts
-        raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
-
-
 def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                     lockstep_board: bool = False, running: bool = False,
-                    brake: bool | None = None) -> dict:
+                    brake: bool | None = None, watchdog=None) -> dict:
     """One record in real time: arm (the set-up, whose hand starts the record), then one
     write per tick of the host's clock (module notes).
 
@@ -220,6 +210,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         :data:`hapsim.braking.BRAKE_MAX_S`, on past the record's last tick if it needs
         to) before the zero torque; False (the scene's ``safety: {brake: false}``): zero
         torque at once.
+    watchdog : hapsim.drivers.torque_watchdog.TorqueWatchdog, optional
+        The host's watchdog on this port (a board on its own clock: no watchdog of its
+        own): armed from the arming's reply to the record's closing zero write; each of
+        its zero writes is a write of its own, whose reply is dropped (counted
+        ``watchdog_zeroed``, ``watchdog_replies``; :mod:`hapsim.drivers.host_watchdog`).
 
     Returns
     -------
@@ -341,6 +336,14 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                     seen -= 1
                 j += 1
                 continue
+            if wd_before and wd_before[0] <= got:
+                # the host watchdog's zero write went out before write `got`, after the
+                # one before: this reply is its answer (dropped, counted)
+                wd_before.popleft()
+                wd_count[1] += 1
+                replies += 1
+                j += 1
+                continue
             if got < nr:
                 q1, q2 = joints_of(rep)
                 qr[got, 0] = q1
@@ -352,6 +355,27 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             j += 1
 
     zero = driver.write_bytes((0.0, 0.0))
+    # the host watchdog's zero writes not answered yet: the host write each went out
+    # before (its reply comes after that write's predecessor's); zero writes, replies
+    wd_before: deque = deque()
+    wd_count = [0, 0]
+
+    def wd_took(before: int):
+        def took(times):
+            if times:
+                wd_before.extend([before] * len(times))
+                wd_count[0] += len(times)
+        return took
+
+    def send(data, before: int):
+        """Write ``data``, host write ``before``: under the watchdog's lock with it."""
+        if watchdog is None:
+            _write(ser, data)
+            return
+        try:
+            watchdog.write(ser, data, wd_took(before))
+        except Exception as exc:  # serial.SerialException, OSError, timeouts
+            raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
     # the count of replies checked by a marker write when the loop ends ticks behind
     # though replies come (a write swallowed, or a late board: never a wait)
     realign = Realigner(dec, xr, qr)
@@ -368,6 +392,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         first reply that does not read the offsets sent is a set-up the stream corrupted
         (counted in ``bad_setups``): armed again, at most :data:`ARM_TRIES` times."""
         nonlocal got, seen, bad_setups, rearm_sends
+        if watchdog is not None:
+            watchdog.arm(False)                 # (its waits are on purpose)
+            wd_took(k)(watchdog.beat())         # (drained below with the rest)
+            wd_before.clear()
         data = driver.arm_bytes(at_deg)
         # the first set-up waits for a board process that loads its plant first; the
         # others for a board already running
@@ -427,6 +455,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                 got, seen = k + 1, k
             if got == k + 1 and np.max(np.abs(np.degrees(qr[k]) - at_deg)) <= dec.max_step:
                 rearm_sends = 0
+                if watchdog is not None:
+                    watchdog.arm()
                 return
             if bounded and got == k:
                 # no answer within the bound (not a set-up the stream corrupted): sent
@@ -551,6 +581,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             pass
         dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
         g0 = got
+        if watchdog is not None:
+            wd_took(k + 1)(watchdog.beat())     # (its writes since write k)
         take(_read(ser))
         # behind for SILENT_COUNT ticks, though replies come: a board late (it catches up
         # within a few: the backlog comes in one read), or a write it swallowed (a host
@@ -667,7 +699,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         t_began[k + 1] = time.perf_counter()
-        _write(ser, realign.marker if mark else wbuf)
+        send(realign.marker if mark else wbuf, k + 1)
         t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
     # read in step, says the board took it as a write (only a flipped top exponent bit
@@ -682,8 +714,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         # late: the braking's ticks the host began a period or more late (stalls)
         brake_out = law.report(brake_end[0], brake_end[1], braked,
                                int(stalled[brake_k:K].sum()))
-    _write(ser, zero)
+    send(zero, K + 1)
     t_wrote[K + 1] = time.perf_counter()
+    if watchdog is not None:
+        watchdog.arm(False)                     # (zero torque held: the record's end)
     if lockstep_board:
         end = time.monotonic() + END_WAIT_S
         while seen < K + 1 and time.monotonic() < end:
@@ -714,7 +748,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         arm(q0deg, K + 1)
     return {"position": pos[:N], "joints": joints[:N], "torque": torque[:N],
             "estimated": est[:N], "lag": lag[:N], "late_ticks": late, "replies": replies,
-            "writes": K + 2, "readings": xr[:N].copy(), "resyncs": rule.count,
+            "writes": K + 2 + wd_count[0], "readings": xr[:N].copy(), "resyncs": rule.count,
+            "watchdog_zeroed": wd_count[0], "watchdog_replies": wd_count[1],
             "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
             "stall_s": stall_s, "held_zero": held_zero, "bad_setups": bad_setups,
             "left": left, "brake": brake_out,
@@ -723,43 +758,3 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "decoder": dict(dec.stats),
             "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0],
             "write_t0": float(t_began[0])}
-
-
-class PortLink:
-    """``write``/``read(timeout)`` (the wiring probe's link,
-    :func:`hapsim.drivers.haply2_probe.find_directions`) on an open serial-like port.
-
-    Parameters
-    ----------
-    ser : serial.Serial or serial-like
-        An open port with ``in_waiting``, ``read`` and ``write`` (non-blocking reads);
-        left open.
-    """
-
-    def __init__(self, ser) -> None:
-        self.ser = ser
-
-    def write(self, data: bytes) -> None:
-        """Write ``data`` (host -> board bytes) to the port.
-
-        Raises
-        ------
-        DeviceError
-            The port's write failed.
-        """
-        _write(self.ser, data)
-
-    def read(self, timeout: float) -> bytes:
-        """The bytes waiting, or the first to come within ``timeout`` [s] (polled).
-
-        Raises
-        ------
-        DeviceError
-            The port's read failed.
-        """
-        end = time.monotonic() + timeout
-        while True:
-            data = _read(self.ser)
-            if data or time.monotonic() >= end:
-                return data
-            time.sleep(1e-4)

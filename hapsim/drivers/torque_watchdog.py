@@ -1,0 +1,242 @@
+"""The host's watchdog for a board that has none: zero force after a silence of the host.
+
+A board whose firmware holds its last force until a write changes it (the Haply M3,
+firmware V1.5: no watchdog; the Hapkit serial sketch: no silence rule) holds whatever the
+host last wrote while the host does not run: a descheduled process, a page fault, a
+garbage collection, a ``SIGSTOP``. The host loop cannot act while it does not run, so
+:class:`TorqueWatchdog` runs beside it as its own small process (standard library only,
+started in ~30 ms, asleep between checks, at a real-time priority above the loop's where
+the OS permits it): when the host has not touched the port for ``bound_s`` while armed,
+it writes the driver's zero-force command to the port itself, once per silence.
+
+No lock: the host, before each of its own writes and reads, stamps its beat on the shared
+page and then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.beat`); the
+watchdog checks the beat again just before it writes and counts a write after making it.
+A write counted when the host takes the count went out before the host's next write; one
+counted later is taken as after it. The only order that can be wrong is a write the
+watchdog made in the microsecond between its last check and its syscall while the host
+woke from a silence of the whole bound exactly then: its answer and the host's then read
+the board within microseconds of each other, so the swap costs nothing. (A lock around
+the host's write, tried first, would let a host descheduled inside it hold the watchdog
+off for as long.) The host accounts the board's answers to the zero writes
+(:class:`hapsim.drivers.transport.DriverTransport`: each is a command of its own, answered
+and dropped, a gap in ``seq``).
+
+The stated bound: a board is left holding a force without a write for at most ``bound_s``
+plus the watchdog's check interval (``bound_s / 4``) plus its own wake-up latency, which
+it measures (``longest_s``: the longest silence it saw before writing). The watchdog
+quits when its parent does.
+
+Layout of the shared page: little-endian int64 fields, see ``_F``.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+
+__all__ = ["TorqueWatchdog", "start_watchdog"]
+
+#: Fields of the shared page (int64 each): the host's last beat (monotonic ns), armed,
+#: zero writes made, the time of the last (monotonic ns), the beat it answered, quit, the
+#: longest silence seen before a write [ns], ready (1: running, < 0: -errno at start),
+#: real-time priority granted (0: none).
+_F = {k: i for i, k in enumerate(("beat", "armed", "fired", "fired_ns", "fired_for", "quit",
+                                  "longest_ns", "ready", "rt"))}
+_SIZE = 8 * len(_F)
+#: How long the host waits for the watchdog process to start [s].
+START_TIMEOUT_S = 3.0
+
+
+class _Page:
+    """The shared page: int64 fields by name."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.mm = mmap.mmap(fd, _SIZE)
+
+    def get(self, k: str) -> int:
+        return struct.unpack_from("<q", self.mm, 8 * _F[k])[0]
+
+    def set(self, k: str, v: int) -> None:
+        struct.pack_into("<q", self.mm, 8 * _F[k], int(v))
+
+
+class TorqueWatchdog:
+    """The host's side of the watchdog process (module notes).
+
+    Parameters
+    ----------
+    port : str
+        The port's path (a device file: ``/dev/ttyACM0``, a pseudo-terminal).
+    zero : bytes
+        The driver's zero-force command (one write, answered by one record).
+    bound_s : float
+        Host silence after which the watchdog writes ``zero`` [s], > 0.
+    rt_priority : int
+        ``SCHED_FIFO`` priority the watchdog asks for (0: none); refused quietly where
+        the OS does not permit it (:attr:`rt` says what it got).
+
+    Attributes
+    ----------
+    bound_s : float
+    check_s : float
+        The watchdog's check interval [s] (``bound_s / 4``).
+
+    Raises
+    ------
+    OSError
+        The watchdog process did not start (its reason: it could not open ``port``, or
+        did not answer within :data:`START_TIMEOUT_S`); nothing is left running.
+    """
+
+    def __init__(self, port: str, zero: bytes, bound_s: float, rt_priority: int = 11) -> None:
+        if not bound_s > 0:
+            raise ValueError(f"bound_s must be > 0, got {bound_s!r}")
+        self.bound_s = float(bound_s)
+        self.check_s = self.bound_s / 4
+        self._taken = 0
+        base = "/dev/shm" if os.path.isdir("/dev/shm") else None
+        fd, path = tempfile.mkstemp(prefix="hapsim-watchdog-", dir=base)
+        try:
+            os.write(fd, b"\0" * _SIZE)
+            self._page = _Page(fd)
+            self._proc = subprocess.Popen(
+                [sys.executable, "-I", "-S", os.path.abspath(__file__), path, port, zero.hex(),
+                 str(int(self.bound_s * 1e9)), str(os.getpid()), str(int(rt_priority))],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL, close_fds=True)
+            end = time.monotonic() + START_TIMEOUT_S
+            while self._page.get("ready") == 0 and time.monotonic() < end:
+                if self._proc.poll() is not None:
+                    break
+                time.sleep(1e-3)
+            ready = self._page.get("ready")
+            if ready != 1:
+                self._kill()
+                why = (os.strerror(-ready) if ready < 0 else
+                       "it did not start in time" if self._proc.returncode is None else
+                       f"it exited with {self._proc.returncode}")
+                raise OSError(f"the host watchdog could not take {port}: {why}")
+        finally:
+            os.unlink(path)                 # both ends hold it open: gone with them
+        #: The ``SCHED_FIFO`` priority the watchdog runs at (0: normal scheduling).
+        self.rt = self._page.get("rt")
+
+    def arm(self, on: bool = True) -> None:
+        """Arm (a force may be held: the run's CONFIG) or disarm (STOP, close, a
+        re-arming's listening, where the host waits on purpose)."""
+        p = self._page
+        p.set("beat", time.monotonic_ns())
+        p.set("armed", 1 if on else 0)
+
+    def beat(self) -> list:
+        """The host is here: refresh the beat, and take the zero writes made since the
+        last call.
+
+        Returns
+        -------
+        list of int
+            The monotonic times [ns] of the watchdog's writes not taken before (in
+            practice at most one: a write per silence); the last one's time for each
+            when several were made in one silence of the host.
+        """
+        p = self._page
+        p.set("beat", time.monotonic_ns())
+        n = p.get("fired") - self._taken     # (read before its time: written after it)
+        if not n:
+            return []
+        self._taken += n
+        return [p.get("fired_ns")] * n
+
+    def write(self, ser, data: bytes, take) -> None:
+        """Write ``data`` with ``ser.write`` after handing the watchdog's writes made since
+        the last call to ``take`` (a list of their monotonic times [ns], as :meth:`beat`
+        returns them: they went out before ``data``; the host numbers its command there)."""
+        take(self.beat())
+        ser.write(data)
+
+    def report(self) -> dict:
+        """``fired`` (zero writes made), ``longest_s`` (the longest host silence the
+        watchdog saw before a write [s], 0 without one), ``bound_s``, ``check_s``,
+        ``rt_priority`` (granted; 0: none)."""
+        p = self._page
+        return {"fired": p.get("fired"), "longest_s": p.get("longest_ns") * 1e-9,
+                "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
+
+    def _kill(self) -> None:
+        self._page.set("quit", 1)
+        self._proc.terminate()              # (it holds nothing: a write is one syscall)
+        try:
+            self._proc.wait(timeout=0.5)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+
+    def close(self) -> None:
+        """Stop the watchdog process (idempotent)."""
+        if self._proc.returncode is None:
+            self._page.set("armed", 0)
+            self._kill()
+
+
+def start_watchdog(port: str, zero: bytes, bound_s: float):
+    """A :class:`TorqueWatchdog` on ``port``, or the reason it could not start.
+
+    Returns
+    -------
+    (TorqueWatchdog or None, str or None)
+        The watchdog, or None and why not (a port that is no device file: a URL, a
+        socket; a process that could not start).
+    """
+    if not os.path.exists(port):
+        return None, f"{port} is not a device file"
+    try:
+        return TorqueWatchdog(port, zero, bound_s), None
+    except OSError as exc:
+        return None, str(exc)
+
+
+def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: int) -> None:
+    """The watchdog process (module notes)."""
+    page = _Page(os.open(path, os.O_RDWR))
+    try:
+        fd = os.open(port, os.O_WRONLY | os.O_NOCTTY)
+    except OSError as exc:
+        page.set("ready", -(exc.errno or 5))
+        return
+    got = 0
+    if rt > 0 and hasattr(os, "sched_setscheduler"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt))
+            got = rt
+        except (OSError, PermissionError):
+            pass
+    page.set("rt", got)
+    page.set("ready", 1)
+    check = bound_ns / 4e9
+    while not page.get("quit") and os.getppid() == parent:
+        time.sleep(check)
+        if not page.get("armed"):
+            continue
+        beat = page.get("beat")
+        now = time.monotonic_ns()
+        if now - beat <= bound_ns or page.get("fired_for") == beat:
+            continue
+        if page.get("beat") != beat or not page.get("armed"):
+            continue                        # (the host woke meanwhile)
+        os.write(fd, zero)
+        page.set("fired_ns", time.monotonic_ns())
+        page.set("fired_for", beat)
+        page.set("longest_ns", max(page.get("longest_ns"), now - beat))
+        page.set("fired", page.get("fired") + 1)    # (last: the host reads it first)
+
+
+if __name__ == "__main__":
+    a = sys.argv[1:]
+    _serve(a[0], a[1], bytes.fromhex(a[2]), int(a[3]), int(a[4]), int(a[5]))

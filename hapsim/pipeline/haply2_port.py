@@ -1,0 +1,69 @@
+"""The 2DIY's port as the record loop and the wiring probe use it: non-blocking reads,
+writes whose failure is a :class:`~hapsim.errors.DeviceError`, and :class:`PortLink`
+(:mod:`hapsim.pipeline.haply2_record`)."""
+
+from __future__ import annotations
+
+import time
+
+from hapsim.errors import DeviceError
+
+__all__ = ["PortLink", "read_waiting", "write_all"]
+
+
+def read_waiting(ser) -> bytes:
+    """The bytes waiting on ``ser`` (none: ``b""``); :class:`DeviceError` when the read
+    fails."""
+    try:
+        n = ser.in_waiting
+        return ser.read(n) if n else b""
+    except Exception as exc:  # serial.SerialException, OSError
+        raise DeviceError(f"read from the 2DIY's port failed: {exc}") from None
+
+
+def write_all(ser, data: bytes) -> None:
+    """``ser.write(data)``; :class:`DeviceError` when the write fails."""
+    try:
+        ser.write(data)
+    except Exception as exc:  # serial.SerialException, OSError, timeouts
+        raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
+
+
+class PortLink:
+    """``write``/``read(timeout)`` (the wiring probe's link,
+    :func:`hapsim.drivers.haply2_probe.find_directions`) on an open serial-like port.
+
+    Parameters
+    ----------
+    ser : serial.Serial or serial-like
+        An open port with ``in_waiting``, ``read`` and ``write`` (non-blocking reads);
+        left open.
+    """
+
+    def __init__(self, ser) -> None:
+        self.ser = ser
+
+    def write(self, data: bytes) -> None:
+        """Write ``data`` (host -> board bytes) to the port.
+
+        Raises
+        ------
+        DeviceError
+            The port's write failed.
+        """
+        write_all(self.ser, data)
+
+    def read(self, timeout: float) -> bytes:
+        """The bytes waiting, or the first to come within ``timeout`` [s] (polled).
+
+        Raises
+        ------
+        DeviceError
+            The port's read failed.
+        """
+        end = time.monotonic() + timeout
+        while True:
+            data = read_waiting(self.ser)
+            if data or time.monotonic() >= end:
+                return data
+            time.sleep(1e-4)
