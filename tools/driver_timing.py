@@ -38,6 +38,9 @@ after the run starts: the host loop, its reader and everything else here stop to
 as a descheduled or swapped host does; the board's process runs on, holding the last
 force as its firmware does (a watchdog or none), and the run shows what the host meets
 when it wakes.
+The host's watchdog (:mod:`hapsim.drivers.host_watchdog`), its own process, is not
+stopped: ``longest_hold_s`` is the board's longest non-zero force held with no write,
+``watchdog`` what the watchdog did; ``--no-host-watchdog`` is the A/B's baseline.
 
 Each row: safety stop, re-synchronisations (and why, ``resync_reasons``; the silences the
 host waited for instead, ``silences``; the host's ``frame_bound``: how far their estimates
@@ -146,6 +149,9 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "resyncs": dl.get("resyncs"), "stalls": dl.get("host_stalls", lp.get("overruns")),
             "excursion_true": mk.get("true_excursion"), "excursion_host": x_host,
             "frame_walk": mk.get("frame_walk"), "frame_bound": dl.get("frame_bound"),
+            # the board's longest non-zero hold without a write [s], and the host's
+            # watchdog (hapsim.drivers.host_watchdog): the bound on it
+            "longest_hold_s": mk.get("longest_hold_s"), "watchdog": dl.get("watchdog"),
             "resync_reasons": {k: v for k, v in (dl.get("resync_reasons") or {}).items() if v},
             "silences": dl.get("silences"), "silence_max_s": dl.get("silence_max_s"),
             "board_silences": mk.get("starved"),
@@ -354,8 +360,14 @@ def main(argv=None) -> int:
     p.add_argument("--host-stall", type=float, default=None, metavar="MS",
                    help="the 1-D runs: stop the host's process once for MS ms at a seeded "
                         "moment of its loop (SIGSTOP/SIGCONT; module notes)")
+    p.add_argument("--no-host-watchdog", action="store_true",
+                   help="the baseline of an A/B: the 1-D transports start no host "
+                        "watchdog (hapsim.drivers.host_watchdog)")
     p.add_argument("--json", default=None, metavar="PATH")
     a = p.parse_args(argv)
+    if a.no_host_watchdog:
+        import hapsim.drivers.torque_watchdog as tw
+        tw.start_watchdog = lambda *_a, **_k: (None, "off: --no-host-watchdog")
     from hapsim.host.realtime import RealtimePriority
     import signal
     # a SIGTERM ends the runs through the finally below (the CPU-bound processes too)
@@ -399,6 +411,7 @@ def main(argv=None) -> int:
             h.wait()
     out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
            "starve": a.starve, "host_stall_ms": a.host_stall,
+           "host_watchdog": not a.no_host_watchdog,
            "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),
            "runs": normalize(rows), "summary": summarize(rows)}
     text = json.dumps(out, indent=1, default=str)
@@ -450,13 +463,14 @@ def summarize(rows):
     for r in rows:
         s = out.setdefault(f"{r['driver']} {r['loss']:g}", {
             "runs": 0, "safety_stops": 0, "runs_resynced": 0, "resyncs_max": 0,
-            "excursion_true_max": None, "excursion_host_max": None, "verdicts": {},
+            "excursion_true_max": None, "excursion_host_max": None,
+            "longest_hold_s_max": None, "verdicts": {},
             "errors": 0, "clock": r.get("clock")})
         s["runs"] += 1
         s["safety_stops"] += bool(r.get("safety_stop"))
         s["runs_resynced"] += bool(r.get("resyncs"))
         s["resyncs_max"] = max(s["resyncs_max"], r.get("resyncs") or 0)
-        for k in ("excursion_true", "excursion_host"):
+        for k in ("excursion_true", "excursion_host", "longest_hold_s"):
             v = r.get(k)
             if v is not None:
                 s[k + "_max"] = v if s[k + "_max"] is None else max(s[k + "_max"], v)
