@@ -75,45 +75,54 @@ def _read_all(fd: int, wait_s: float = 0.05) -> bytes:
 
 
 def test_watchdog_writes_zero_once_per_silence_and_hands_its_writes_to_the_host():
-    """On a bare pty: armed and silent for five bounds, the watchdog writes the zero
-    command exactly once; the host's next beat takes exactly that write, with a time
-    after the bound; a host that beats within the bound gets no write; disarmed, none;
-    a write made under the lock hands the writes before it to the host first, and they
-    are on the wire before its bytes."""
+    """On a bare pty: a host whose last write left a force and who writes nothing for five
+    bounds gets exactly one zero write, taken by the host with a time after the bound; a
+    host that writes within the bound gets none; a last write of zero force is no hold
+    (none); disarmed, none; and the next host write hands the watchdog's writes to the
+    host first, which are on the wire before its own bytes."""
     master, slave = pty.openpty()
     tty.setraw(slave)
     wd = tw.TorqueWatchdog(os.ttyname(slave), b"\x02\x01ZERO", HOLD_BOUND_S)
+    taken = []
+
+    class Port:
+        def write(self, data):
+            os.write(slave, data)
+    port = Port()
     try:
         wd.arm()
         t0 = time.monotonic_ns()
+        wd.write(port, b"HOST", taken.extend, True)
         time.sleep(SILENCE_S)
-        assert _read_all(master) == b"\x02\x01ZERO"
-        got = wd.beat()
+        assert _read_all(master) == b"HOST" + b"\x02\x01ZERO"
+        got = wd.take()
         assert len(got) == 1 and got[0] - t0 >= HOLD_BOUND_S * 1e9
+        assert taken == [] and wd.take() == []
         gaps, t = [], time.monotonic()
         for _ in range(int(SILENCE_S / (HOLD_BOUND_S / 4))):    # a host in time
+            wd.write(port, b"H", taken.extend, True)
             time.sleep(HOLD_BOUND_S / 4)
             gaps.append(time.monotonic() - t)
             t = time.monotonic()
-            assert wd.beat() == [] or max(gaps) > HOLD_BOUND_S, gaps
-        # (none: unless a loaded machine let this thread sleep beyond the bound)
-        assert _read_all(master, 0.01) == b"" or max(gaps) > HOLD_BOUND_S, gaps
+        wd.write(port, b"Z", taken.extend, False)               # zero force: no hold
+        time.sleep(SILENCE_S)
+        wire = _read_all(master, 0.01)
+        # (no zero write: unless a loaded machine let this thread sleep beyond the bound)
+        assert wire == b"H" * len(gaps) + b"Z" or max(gaps) > HOLD_BOUND_S, (wire, gaps)
+        extra = len(wd.take()) + len(taken)
+        taken.clear()
+        wd.write(port, b"HOST", taken.extend, True)
         wd.arm(False)
         time.sleep(SILENCE_S)
-        assert _read_all(master, 0.01) == b"" and wd.beat() == []
+        assert _read_all(master, 0.01) == b"HOST" and wd.take() == [] and taken == []
         wd.arm()
+        wd.write(port, b"HOST", taken.extend, True)
         time.sleep(SILENCE_S)
-        taken = []
-
-        class Port:
-            def write(self, data):
-                os.write(slave, data)
-        wd.write(Port(), b"HOST", taken.extend)
-        wd.arm(False)                       # (the test reads for 50 ms: not a silence)
+        wd.write(port, b"NEXT", taken.extend, False)
         assert len(taken) == 1
-        assert _read_all(master) == b"\x02\x01ZERO" + b"HOST"
+        assert _read_all(master) == b"HOST" + b"\x02\x01ZERO" + b"NEXT"
         rep = wd.report()
-        assert rep["fired"] == 2 + (max(gaps) > HOLD_BOUND_S) and HOLD_BOUND_S <= rep["longest_s"] <= (
+        assert rep["fired"] == 2 + extra and HOLD_BOUND_S <= rep["longest_s"] <= (
             HOLD_BOUND_S + wd.check_s + LATENCY_S)
     finally:
         wd.close()

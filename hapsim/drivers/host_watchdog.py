@@ -6,9 +6,9 @@ A driver whose board holds its force longer than the hold bound with no write
 watchdog; the Hapkit serial sketch, no silence rule; the FireFader's ``.ino``, whose
 silence rule acts after 0.1 s), on a board that keeps its own clock, runs with a
 :class:`hapsim.drivers.torque_watchdog.TorqueWatchdog` beside the host: when the host does
-not touch the port for :data:`hapsim.drivers.resync.HOLD_BOUND_S` while armed, the
-watchdog writes the driver's zero-force command itself (the host stalled: descheduled,
-stopped, paging). Every write of the host and every read takes the watchdog's writes made
+not write for :data:`hapsim.drivers.resync.HOLD_BOUND_S` while armed and its last write
+left a non-zero force, the watchdog writes the driver's zero-force command itself (the
+host stalled: descheduled, stopped, paging; or it ran without writing). Every write of the host and every read takes the watchdog's writes made
 since (the order on the wire: :mod:`hapsim.drivers.torque_watchdog`, module notes): each
 is a command of its own, numbered after the host's last, stamped with the watchdog's
 time; the board answers it in order, and its answer is dropped (counted
@@ -60,9 +60,9 @@ class Watched:
             self._force = 0.0
 
     def _wd_beat(self) -> None:
-        """The host is here (a read): take the watchdog's writes made since."""
+        """Before a read: take the watchdog's writes made since."""
         if self.watchdog is not None:
-            times = self.watchdog.beat()
+            times = self.watchdog.take()
             if times:
                 self._wd_take(times)
 
@@ -74,7 +74,7 @@ class Watched:
         was read)."""
         if self.watchdog is None:
             return
-        times = self.watchdog.beat()
+        times = self.watchdog.take()
         if times:
             self._wd_take(times)
             waiting = self._ser.in_waiting

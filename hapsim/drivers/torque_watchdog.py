@@ -5,13 +5,15 @@ firmware V1.5: no watchdog; the Hapkit serial sketch: no silence rule) holds wha
 host last wrote while the host does not run: a descheduled process, a page fault, a
 garbage collection, a ``SIGSTOP``. The host loop cannot act while it does not run, so
 :class:`TorqueWatchdog` runs beside it as its own small process (standard library only,
-started in ~30 ms, asleep between checks, at a real-time priority above the loop's where
-the OS permits it): when the host has not touched the port for ``bound_s`` while armed,
-it writes the driver's zero-force command to the port itself, once per silence.
+started in ~25 ms, asleep between checks, at a real-time priority above the loop's where
+the OS permits it): when the host's last write left a non-zero force and the host has not
+written for ``bound_s`` while armed (stalled, or running without writing), it writes the
+driver's zero-force command to the port itself, once per silence.
 
-No lock: the host, before each of its own writes and reads, stamps its beat on the shared
-page and then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.beat`); the
-watchdog checks the beat again just before it writes and counts a write after making it.
+No lock: the host, before each of its own writes, stamps its time on the shared page and
+then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.write`; before its
+reads too, :meth:`TorqueWatchdog.take`); the watchdog checks that time again just before
+it writes and counts a write after making it.
 A write counted when the host takes the count went out before the host's next write; one
 counted later is taken as after it. The only order that can be wrong is a write the
 watchdog made in the microsecond between its last check and its syscall while the host
@@ -42,12 +44,13 @@ import time
 
 __all__ = ["TorqueWatchdog", "start_watchdog"]
 
-#: Fields of the shared page (int64 each): the host's last beat (monotonic ns), armed,
-#: zero writes made, the time of the last (monotonic ns), the beat it answered, quit, the
-#: longest silence seen before a write [ns], ready (1: running, < 0: -errno at start),
-#: real-time priority granted (0: none).
+#: Fields of the shared page (int64 each): the host's last write (monotonic ns), armed,
+#: zero writes made, the time of the last (monotonic ns), the host write it answered,
+#: quit, the longest silence seen before a write [ns], ready (1: running, < 0: -errno at
+#: start), real-time priority granted (0: none), holding (the host's last write left a
+#: non-zero force).
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired", "fired_ns", "fired_for", "quit",
-                                  "longest_ns", "ready", "rt"))}
+                                  "longest_ns", "ready", "rt", "holding"))}
 _SIZE = 8 * len(_F)
 #: How long the host waits for the watchdog process to start [s].
 START_TIMEOUT_S = 3.0
@@ -129,37 +132,40 @@ class TorqueWatchdog:
         self.rt = self._page.get("rt")
 
     def arm(self, on: bool = True) -> None:
-        """Arm (a force may be held: the run's CONFIG) or disarm (STOP, close, a
+        """Arm (the run's CONFIG: a force may be held from now) or disarm (STOP, close, a
         re-arming's listening, where the host waits on purpose)."""
         p = self._page
         p.set("beat", time.monotonic_ns())
         p.set("armed", 1 if on else 0)
 
-    def beat(self) -> list:
-        """The host is here: refresh the beat, and take the zero writes made since the
-        last call.
+    def take(self) -> list:
+        """The zero writes the watchdog made since the last call (the host reads).
 
         Returns
         -------
         list of int
-            The monotonic times [ns] of the watchdog's writes not taken before (in
-            practice at most one: a write per silence); the last one's time for each
-            when several were made in one silence of the host.
+            Their monotonic times [ns] (in practice at most one: one write per silence;
+            the last one's time for each when several came in one silence of the host).
         """
         p = self._page
-        p.set("beat", time.monotonic_ns())
-        n = p.get("fired") - self._taken     # (read before its time: written after it)
+        n = p.get("fired") - self._taken
         if not n:
             return []
         self._taken += n
         return [p.get("fired_ns")] * n
 
-    def write(self, ser, data: bytes, take) -> None:
-        """Write ``data`` with ``ser.write`` after handing the watchdog's writes made since
-        the last call to ``take`` (a list of their monotonic times [ns], as :meth:`beat`
-        returns them: they went out before ``data``; the host numbers its command there)."""
-        take(self.beat())
+    def write(self, ser, data: bytes, take, holding: bool) -> None:
+        """The host writes ``data`` with ``ser.write``: its time stamped first (the
+        silence the watchdog counts is between the host's writes: a host that runs but
+        does not write leaves the board holding too), then the watchdog's writes made
+        since handed to ``take`` (a list of their monotonic times [ns], as :meth:`take`
+        returns them: they went out before ``data``; the host numbers its command there);
+        ``holding``: ``data`` leaves a non-zero force (a zero force is no hold)."""
+        p = self._page
+        p.set("beat", time.monotonic_ns())
+        take(self.take())
         ser.write(data)
+        p.set("holding", 1 if holding else 0)
 
     def report(self) -> dict:
         """``fired`` (zero writes made), ``longest_s`` (the longest host silence the
@@ -222,15 +228,16 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
     check = bound_ns / 4e9
     while not page.get("quit") and os.getppid() == parent:
         time.sleep(check)
-        if not page.get("armed"):
+        if not (page.get("armed") and page.get("holding")):
             continue
         beat = page.get("beat")
         now = time.monotonic_ns()
         if now - beat <= bound_ns or page.get("fired_for") == beat:
             continue
-        if page.get("beat") != beat or not page.get("armed"):
-            continue                        # (the host woke meanwhile)
+        if page.get("beat") != beat or not page.get("armed") or not page.get("holding"):
+            continue                        # (the host wrote meanwhile, or holds nothing)
         os.write(fd, zero)
+        page.set("holding", 0)
         page.set("fired_ns", time.monotonic_ns())
         page.set("fired_for", beat)
         page.set("longest_ns", max(page.get("longest_ns"), now - beat))

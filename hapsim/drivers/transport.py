@@ -320,7 +320,8 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         self._n_written += len(data)
         try:
             if self.watchdog is not None:
-                self.watchdog.write(self._ser, data, number or self._wd_take)
+                self.watchdog.write(self._ser, data, number or self._wd_take,
+                                    self._force != 0.0)
             else:
                 if number is not None:
                     number(())

@@ -367,13 +367,14 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                 wd_count[0] += len(times)
         return took
 
-    def send(data, before: int):
-        """Write ``data``, host write ``before``: under the watchdog's lock with it."""
+    def send(data, before: int, holding: bool):
+        """Write ``data``, host write ``before`` (``holding``: it leaves a torque), the
+        watchdog's writes since taken first."""
         if watchdog is None:
             _write(ser, data)
             return
         try:
-            watchdog.write(ser, data, wd_took(before))
+            watchdog.write(ser, data, wd_took(before), holding)
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
     # the count of replies checked by a marker write when the loop ends ticks behind
@@ -394,7 +395,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         nonlocal got, seen, bad_setups, rearm_sends
         if watchdog is not None:
             watchdog.arm(False)                 # (its waits are on purpose)
-            wd_took(k)(watchdog.beat())         # (drained below with the rest)
+            wd_took(k)(watchdog.take())         # (drained below with the rest)
             wd_before.clear()
         data = driver.arm_bytes(at_deg)
         # the first set-up waits for a board process that loads its plant first; the
@@ -582,7 +583,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
         g0 = got
         if watchdog is not None:
-            wd_took(k + 1)(watchdog.beat())     # (its writes since write k)
+            wd_took(k + 1)(watchdog.take())     # (its writes since write k)
         take(_read(ser))
         # behind for SILENT_COUNT ticks, though replies come: a board late (it catches up
         # within a few: the backlog comes in one read), or a write it swallowed (a host
@@ -699,7 +700,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         t_began[k + 1] = time.perf_counter()
-        send(realign.marker if mark else wbuf, k + 1)
+        send(realign.marker if mark else wbuf, k + 1, tau1 != 0.0 or tau2 != 0.0)
         t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
     # read in step, says the board took it as a write (only a flipped top exponent bit
@@ -714,7 +715,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         # late: the braking's ticks the host began a period or more late (stalls)
         brake_out = law.report(brake_end[0], brake_end[1], braked,
                                int(stalled[brake_k:K].sum()))
-    send(zero, K + 1)
+    send(zero, K + 1, False)
     t_wrote[K + 1] = time.perf_counter()
     if watchdog is not None:
         watchdog.arm(False)                     # (zero torque held: the record's end)

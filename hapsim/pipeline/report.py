@@ -380,6 +380,14 @@ def format_report(rep: dict) -> str:
                      f"missing {dl['missing']} (stepped through estimated: "
                      f"{lp.get('estimated', 0)}), re-synchronised {dl['resyncs']}, arming "
                      f"repeated {dl['rearms']}; firmware: {dl['firmware'] or 'not seen'}")
+        wd = dl.get("watchdog")
+        if wd:
+            # the host's watchdog beside a board that holds its force (host_watchdog)
+            lines.append(
+                f"host watchdog: zero force written {wd['fired']} times, the longest host "
+                f"silence before one {wd['longest_s'] * 1e3:.1f} ms (bound "
+                f"{wd['bound_s'] * 1e3:g} ms + {wd['check_s'] * 1e3:g} ms checks)"
+                if wd.get("running") else f"host watchdog: none ({wd.get('why')})")
     mk = lp.get("mock")
     if mk:
         lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "
