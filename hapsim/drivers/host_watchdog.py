@@ -59,7 +59,7 @@ class Watched:
             self.stats["watchdog_zeroed"] += 1
             self._force = 0.0
 
-    def _wd_beat(self) -> None:
+    def _wd_poll(self) -> None:
         """Before a read: take the watchdog's writes made since."""
         if self.watchdog is not None:
             times = self.watchdog.take()

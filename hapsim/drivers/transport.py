@@ -366,7 +366,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         elif t is fp.Ping:
             self._q.append(fp.Pong(msg.nonce, msg.host_time_us, self._now_us()))
         elif t is fp.Config:
-            self._wd_beat()
+            self._wd_poll()
             if self.watchdog is not None:
                 self.watchdog.arm(False)    # (the listening waits on purpose)
             st = self._dec.stats
@@ -632,7 +632,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         out = list(self._q)
         self._q.clear()
         ser = self._ser
-        self._wd_beat()
+        self._wd_poll()
         end = time.monotonic() + timeout
         lockstep = self._handled is not None
         try:
@@ -645,7 +645,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                         data = ser.read(waiting)
                     elif timeout > 0 and not out:
                         data = ser.read(1)
-                        self._wd_beat()     # (its writes before the bytes are decoded)
+                        self._wd_poll()     # (its writes before the bytes are decoded)
                     else:
                         data = b""
                 if data:
