@@ -279,6 +279,10 @@ def test_two_faders_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs):  
     took = time.monotonic() - t
     rt = rep.extra["realtime"]
     assert rt["held_at_end"] == [0.0, 0.0], rt
+    # the host's watchdog beside the board (hapsim.drivers.host_watchdog): each zero write
+    # it made (a host silence of its bound) was answered and its record dropped
+    wd = rt["watchdog"]
+    assert wd["running"] and wd["zeroed"] == wd["fired"], wd
     assert rt["stop"] == "end" or rt["stop"].startswith(("host late", "safety:")), rt
     if rt["stop"].startswith("host late"):
         assert rt["latest"] > LATE_STOP_S

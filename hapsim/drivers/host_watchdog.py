@@ -13,7 +13,9 @@ since (the order on the wire: :mod:`hapsim.drivers.torque_watchdog`, module note
 is a command of its own, numbered after the host's last, stamped with the watchdog's
 time; the board answers it in order, and its answer is dropped (counted
 ``watchdog_replies``): a gap in ``seq``, as a re-synchronisation's, so no measurement
-runs across it. A lockstep mock (its time is the commands') has none; nor has a port that
+runs across it (the 2DIY's record loop and the FireFader's two-fader loop account them
+their own way: :mod:`hapsim.pipeline.haply2_record`, :mod:`hapsim.pipeline.faders_run`).
+A lockstep mock (its time is the commands') has none; nor has a port that
 is no device file (the report says why).
 """
 

@@ -180,7 +180,8 @@ def _zero(ser, dec) -> bool:
 
 
 def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
-                  arming: int = 72, progress=None, pace: bool = True) -> dict:
+                  arming: int = 72, progress=None, pace: bool = True,
+                  watchdog=None) -> dict:
     """The host's real-time loop over one FireFader's two faders (module notes).
 
     Parameters
@@ -205,6 +206,11 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
         lockstep, asked for by name, on an in-process link): no wait, every write on
         time, and each silence between records told to the link (``ser.idle(s)``: the
         board's time is the host's writes, not the wall clock).
+    watchdog : hapsim.drivers.torque_watchdog.TorqueWatchdog, optional
+        The host's watchdog on this port (the ``.ino`` zeroes its forces only after
+        0.1 s): armed over the records; the record of each of its zero writes is read
+        and dropped before the host's next write (counted, ``watchdog_zeroed``;
+        :mod:`hapsim.drivers.host_watchdog`).
 
     Returns
     -------
@@ -227,6 +233,18 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     from hapsim.lockstep_ports import LockstepPorts
     T = scene.period
     Tns = int(round(T * 1e9))
+    zeroed = [0]
+
+    def drain(times):
+        # the watchdog's zero writes went out before this write: their records first
+        for _ in times:
+            _read_record(ser, dec, REPLY_TIMEOUT_S)
+            zeroed[0] += 1
+
+    def put(pk):                            # (a zero packet holds no force)
+        if watchdog is None:
+            return ser.write(pk)
+        watchdog.write(ser, pk, drain, pk != zero)
     P = 2
     lim = np.array([float(d.force_limit) for _, d in scene.devices])
     fs = force_scale * 127.0
@@ -249,8 +267,10 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     stop = "end"
     latest = 0.0
     H = HAND_PASSES
+    if watchdog is not None:
+        watchdog.arm()
     for j in range(starts):
-        ser.write(zero)
+        put(zero)
         if pace:
             time.sleep(PAUSE_S)              # the silence rule: forces off, the hand
         else:
@@ -271,7 +291,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
             wait(due)
             pk = (zero if k <= 0 else
                   encode_packet(*(max(force_counts(v, fs), -FORCE_MAX) for v in f)))
-            ser.write(pk)
+            put(pk)
             lag = (time.monotonic_ns() - due) * 1e-9 if pace else 0.0
             latest = max(latest, lag)
             if lag > LATE_STOP_S:
@@ -306,13 +326,16 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
                 frc[k, i] = c * force_scale
                 hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
             clamped[k] = hit
-        _zero(ser, dec)                       # both faders at zero force
+        put(zero)                             # both faders at zero force, its record
+        _read_record(ser, dec, REPLY_TIMEOUT_S)
         out.append({"position": pos, "force": frc, "late": late, "clamped": clamped})
         if progress is not None:
             progress(j + 1, starts)
         if stop != "end":
             break
-    return {"records": out, "stop": stop, "latest": latest,
+    if watchdog is not None:
+        watchdog.arm(False)
+    return {"records": out, "stop": stop, "latest": latest, "watchdog_zeroed": zeroed[0],
             "late_ticks": [int(np.sum(departures(r) > CUT_PERIODS * T)) for r in out]}
 
 
@@ -679,7 +702,7 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     import serial
 
     from hapsim.analysis.ports import stable_ports_check
-    from hapsim.drivers.firefader import FireFader
+    from hapsim.drivers.firefader import FireFader, encode_packet
     from hapsim.host.realtime import RealtimePriority
     from hapsim.lockstep import default_samples, excitation_starts
     from hapsim.pipeline.felt_run import refuse_options
@@ -728,12 +751,21 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         if mock is not None:
             mock.release_slave()
+        wd, wd_why = None, "a board in lockstep: its time is the writes'"
+        if (board or {}).get("clock", "wall") == "wall":
+            from hapsim.drivers.resync import HOLD_BOUND_S
+            from hapsim.drivers.torque_watchdog import start_watchdog
+            wd, wd_why = start_watchdog(port, encode_packet(0, 0), HOLD_BOUND_S)
         try:
             with RealtimePriority(options.rt_priority or 0):
                 run = record_faders(ser, scene, N, len(starts),
                                     force_scale=drv.force_scale,
-                                    arming=drv.arming_records)
+                                    arming=drv.arming_records, watchdog=wd)
         finally:
+            wd_report = ({"running": False, "why": wd_why} if wd is None
+                         else {"running": True, **wd.report()})
+            if wd is not None:
+                wd.close()
             try:
                 from hapsim.drivers.firefader import RecordDecoder
                 _zero(ser, RecordDecoder())    # both faders at zero force, its pass run
@@ -757,6 +789,10 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     res["realtime"] = {"stop": run["stop"], "late_ticks": run["late_ticks"],
                        "latest": run["latest"], "usable": res["usable"],
                        "held_at_end": held,
+                       # the host's watchdog; the emulated board's longest hold [s]
+                       "watchdog": dict(wd_report, zeroed=run.get("watchdog_zeroed", 0)),
+                       "board_longest_hold_s": (None if report is None
+                                                else report.get("longest_hold_s")),
                        "port": options.port or "embedded emulated FireFader (wall clock)"}
     res["amplitude"] = a
     if pre["statement"] is not None:
