@@ -138,8 +138,14 @@ class TorqueWatchdog:
         self.rt = self._page.get("rt")
 
     def arm(self, on: bool = True) -> None:
-        """Arm (the run's CONFIG: a force may be held from now) or disarm (STOP, close, a
-        re-arming's listening, where the host waits on purpose)."""
+        """Arm or disarm the watchdog.
+
+        Parameters
+        ----------
+        on : bool
+            True: the run's CONFIG (a force may be held from now); False: STOP, close, a
+            re-arming's listening (where the host waits on purpose).
+        """
         p = self._page
         p.set("beat", time.monotonic_ns())
         p.set("armed", 1 if on else 0)
@@ -161,12 +167,23 @@ class TorqueWatchdog:
         return [p.get("fired_ns")] * n
 
     def write(self, ser, data: bytes, take, holding: bool) -> None:
-        """The host writes ``data`` with ``ser.write``: its time stamped first (the
-        silence the watchdog counts is between the host's writes: a host that runs but
-        does not write leaves the board holding too), then the watchdog's writes made
-        since handed to ``take`` (a list of their monotonic times [ns], as :meth:`take`
-        returns them: they went out before ``data``; the host numbers its command there);
-        ``holding``: ``data`` leaves a non-zero force (a zero force is no hold)."""
+        """The host writes ``data``: its time stamped first (the silence the watchdog
+        counts is between the host's writes: a host that runs but does not write leaves
+        the board holding too), then the watchdog's writes made since handed to ``take``
+        (they went out before ``data``; the host numbers its command there).
+
+        Parameters
+        ----------
+        ser : serial.Serial or serial-like
+            The port (``write``); its exceptions pass through.
+        data : bytes
+        take : callable
+            ``take(times)``, ``times`` a list of int: the watchdog's writes made since
+            the last :meth:`take` or write, their monotonic times [ns].
+        holding : bool
+            ``data`` leaves a non-zero force (a zero force is no hold: no zero write
+            follows it).
+        """
         p = self._page
         p.set("beat", time.monotonic_ns())
         take(self.take())
@@ -174,9 +191,15 @@ class TorqueWatchdog:
         p.set("holding", 1 if holding else 0)
 
     def report(self) -> dict:
-        """``fired`` (zero writes made), ``longest_s`` (the longest host silence the
-        watchdog saw before a write [s], 0 without one), ``bound_s``, ``check_s``,
-        ``rt_priority`` (granted; 0: none)."""
+        """What the watchdog did.
+
+        Returns
+        -------
+        dict
+            ``fired`` (zero writes made), ``longest_s`` (the longest host silence the
+            watchdog saw before a write [s], 0 without one: the stated bound's measured
+            part), ``bound_s``, ``check_s``, ``rt_priority`` (granted; 0: none).
+        """
         p = self._page
         return {"fired": p.get("fired"), "longest_s": p.get("longest_ns") * 1e-9,
                 "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
@@ -191,7 +214,7 @@ class TorqueWatchdog:
             self._proc.wait()
 
     def close(self) -> None:
-        """Stop the watchdog process (idempotent)."""
+        """Stop the watchdog process (disarmed first; idempotent)."""
         if self._proc.returncode is None:
             self._page.set("armed", 0)
             self._kill()
@@ -199,6 +222,16 @@ class TorqueWatchdog:
 
 def start_watchdog(port: str, zero: bytes, bound_s: float):
     """A :class:`TorqueWatchdog` on ``port``, or the reason it could not start.
+
+    Parameters
+    ----------
+    port : str
+        The port's path.
+    zero : bytes
+        The driver's zero-force command.
+    bound_s : float
+        The host's silence after which the watchdog writes ``zero`` [s]
+        (:data:`hapsim.drivers.resync.HOLD_BOUND_S`).
 
     Returns
     -------

@@ -12,8 +12,23 @@ __all__ = ["PortLink", "read_waiting", "write_all"]
 
 
 def read_waiting(ser) -> bytes:
-    """The bytes waiting on ``ser`` (none: ``b""``); :class:`DeviceError` when the read
-    fails."""
+    """The bytes waiting on the port, without waiting.
+
+    Parameters
+    ----------
+    ser : serial.Serial or serial-like
+        An open port (``in_waiting``, ``read``).
+
+    Returns
+    -------
+    bytes
+        What was waiting (``b""``: nothing).
+
+    Raises
+    ------
+    DeviceError
+        The read failed.
+    """
     try:
         n = ser.in_waiting
         return ser.read(n) if n else b""
@@ -22,7 +37,19 @@ def read_waiting(ser) -> bytes:
 
 
 def write_all(ser, data: bytes) -> None:
-    """``ser.write(data)``; :class:`DeviceError` when the write fails."""
+    """Write ``data`` (host -> board bytes) to the port.
+
+    Parameters
+    ----------
+    ser : serial.Serial or serial-like
+        An open port (``write``).
+    data : bytes
+
+    Raises
+    ------
+    DeviceError
+        The write failed.
+    """
     try:
         ser.write(data)
     except Exception as exc:  # serial.SerialException, OSError, timeouts
