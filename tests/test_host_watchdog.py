@@ -100,33 +100,33 @@ def test_watchdog_writes_zero_once_per_silence_and_hands_its_writes_to_the_host(
     try:
         wd.arm()
         t0 = time.monotonic_ns()
-        wd.write(port, b"HOST", taken.extend, True)
+        taken.extend(wd.write(port, b"HOST", True))
         time.sleep(SILENCE_S)
         assert _read_all(master) == b"HOST" + b"\x02\x01ZERO"
         got = wd.take()
         assert len(got) == 1 and got[0] - t0 >= HOLD_BOUND_S * 1e9
-        assert taken == [] and wd.take() == []
+        assert taken == [] and wd.take() == ()
         gaps, t = [], time.monotonic()
         for _ in range(int(SILENCE_S / (HOLD_BOUND_S / 4))):    # a host in time
-            wd.write(port, b"H", taken.extend, True)
+            taken.extend(wd.write(port, b"H", True))
             time.sleep(HOLD_BOUND_S / 4)
             gaps.append(time.monotonic() - t)
             t = time.monotonic()
-        wd.write(port, b"Z", taken.extend, False)               # zero force: no hold
+        taken.extend(wd.write(port, b"Z", False))               # zero force: no hold
         time.sleep(SILENCE_S)
         wire = _read_all(master, 0.01)
         # (no zero write: unless a loaded machine let this thread sleep beyond the bound)
         assert wire == b"H" * len(gaps) + b"Z" or max(gaps) > HOLD_BOUND_S, (wire, gaps)
         extra = len(wd.take()) + len(taken)
         taken.clear()
-        wd.write(port, b"HOST", taken.extend, True)
+        taken.extend(wd.write(port, b"HOST", True))
         wd.arm(False)
         time.sleep(SILENCE_S)
-        assert _read_all(master, 0.01) == b"HOST" and wd.take() == [] and taken == []
+        assert _read_all(master, 0.01) == b"HOST" and wd.take() == () and taken == []
         wd.arm()
-        wd.write(port, b"HOST", taken.extend, True)
+        taken.extend(wd.write(port, b"HOST", True))
         time.sleep(SILENCE_S)
-        wd.write(port, b"NEXT", taken.extend, False)
+        taken.extend(wd.write(port, b"NEXT", False))
         assert len(taken) == 1
         assert _read_all(master) == b"HOST" + b"\x02\x01ZERO" + b"NEXT"
         rep = wd.report()

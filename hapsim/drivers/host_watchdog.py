@@ -94,6 +94,5 @@ class Watched:
     def _watchdog_report(self) -> dict:
         """``watchdog``: the watchdog's report (:meth:`hapsim.drivers.torque_watchdog.
         TorqueWatchdog.report`), or ``{"running": False, "why": ...}``."""
-        if self.watchdog is None:
-            return {"running": False, "why": self._wd_why}
-        return {"running": True, **self.watchdog.report()}
+        from hapsim.drivers.torque_watchdog import watchdog_report
+        return watchdog_report(self.watchdog, self._wd_why)

@@ -11,7 +11,8 @@ written for ``bound_s`` while armed (stalled, or running without writing), it wr
 driver's zero-force command to the port itself, once per silence.
 
 No lock: the host, before each of its own writes, stamps its time on the shared page and
-then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.write`; before its
+then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.write` returns them;
+before its
 reads too, :meth:`TorqueWatchdog.take`); the watchdog checks that time again just before
 it writes and counts a write after making it.
 A write counted when the host takes the count went out before the host's next write; one
@@ -41,7 +42,7 @@ import sys
 import tempfile
 import time
 
-__all__ = ["TorqueWatchdog", "start_watchdog"]
+__all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report"]
 
 #: Fields of the shared page (int64 each): the host's last write (monotonic ns), armed,
 #: zero writes made, the time of the last (monotonic ns), the host write it answered,
@@ -155,40 +156,43 @@ class TorqueWatchdog:
 
         Returns
         -------
-        list of int
+        tuple of int
             Their monotonic times [ns] (in practice at most one: one write per silence;
-            the last one's time for each when several came in one silence of the host).
+            the last one's time for each when several came in one silence of the host);
+            ``()`` when none (nothing allocated: it runs each tick of a real-time loop).
         """
         p = self._page
         n = p.get("fired") - self._taken
         if not n:
-            return []
+            return ()
         self._taken += n
-        return [p.get("fired_ns")] * n
+        return (p.get("fired_ns"),) * n
 
-    def write(self, ser, data: bytes, take, holding: bool) -> None:
+    def write(self, ser, data: bytes, holding: bool) -> tuple:
         """The host writes ``data``: its time stamped first (the silence the watchdog
         counts is between the host's writes: a host that runs but does not write leaves
-        the board holding too), then the watchdog's writes made since handed to ``take``
-        (they went out before ``data``; the host numbers its command there).
+        the board holding too), the watchdog's writes made since taken just before it.
 
         Parameters
         ----------
         ser : serial.Serial or serial-like
             The port (``write``); its exceptions pass through.
         data : bytes
-        take : callable
-            ``take(times)``, ``times`` a list of int: the watchdog's writes made since
-            the last :meth:`take` or write, their monotonic times [ns].
         holding : bool
             ``data`` leaves a non-zero force (a zero force is no hold: no zero write
             follows it).
+
+        Returns
+        -------
+        tuple of int
+            As :meth:`take`: the watchdog's writes that went out before ``data``.
         """
         p = self._page
         p.set("beat", time.monotonic_ns())
-        take(self.take())
+        times = self.take()
         ser.write(data)
         p.set("holding", 1 if holding else 0)
+        return times
 
     def report(self) -> dict:
         """What the watchdog did.
@@ -245,6 +249,25 @@ def start_watchdog(port: str, zero: bytes, bound_s: float):
         return TorqueWatchdog(port, zero, bound_s), None
     except OSError as exc:
         return None, str(exc)
+
+
+def watchdog_report(watchdog, why) -> dict:
+    """What a run reports of its watchdog.
+
+    Parameters
+    ----------
+    watchdog : TorqueWatchdog or None
+    why : str or None
+        Why there is none (:func:`start_watchdog`'s reason).
+
+    Returns
+    -------
+    dict
+        ``{"running": True, **watchdog.report()}``, or ``{"running": False, "why": why}``.
+    """
+    if watchdog is None:
+        return {"running": False, "why": why}
+    return {"running": True, **watchdog.report()}
 
 
 def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: int) -> None:

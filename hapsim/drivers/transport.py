@@ -313,19 +313,16 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
             return (self._cmd + 1) * self._board_T
         return time.monotonic()
 
-    def _write(self, data: bytes, number=None) -> None:
-        """Write ``data``; a command is numbered by ``number`` (after the host watchdog's
-        writes made since, when there is one: host_watchdog)."""
+    def _write(self, data: bytes) -> None:
+        """Write ``data``; the host watchdog's writes made before it, when there is one,
+        are commands of their own (host_watchdog), numbered before anything after it."""
         self._t_write = time.monotonic()
         self._n_written += len(data)
         try:
-            if self.watchdog is not None:
-                self.watchdog.write(self._ser, data, number or self._wd_take,
-                                    self._force != 0.0)
-            else:
-                if number is not None:
-                    number(())
+            if self.watchdog is None:
                 self._ser.write(data)
+            else:
+                self._wd_take(self.watchdog.write(self._ser, data, self._force != 0.0))
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to {self.info['port']} failed: {exc}") from None
 
@@ -336,12 +333,10 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         self._wd_settle()                   # (the host watchdog's writes: host_watchdog)
         if self._write_at is not None:
             self._wait_for_band()
-        self._write(data, self._number)
-
-    def _number(self, watchdog_writes) -> None:
-        self._wd_take(watchdog_writes)      # (the host watchdog's, before this one)
+        sent = self._now_us()
+        self._write(data)                   # (numbers the watchdog's writes before it)
         self._cmd += 1
-        self._sent_us[self._cmd % _RING] = self._now_us()
+        self._sent_us[self._cmd % _RING] = sent
         self._stray = False                 # bytes read from now on are its answer
         self.stats["commands"] += 1
 

@@ -244,7 +244,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     def put(pk):                            # (a zero packet holds no force)
         if watchdog is None:
             return ser.write(pk)
-        watchdog.write(ser, pk, drain, pk != zero)
+        drain(watchdog.write(ser, pk, pk != zero))
     P = 2
     lim = np.array([float(d.force_limit) for _, d in scene.devices])
     fs = force_scale * 127.0
@@ -762,8 +762,8 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
                                     force_scale=drv.force_scale,
                                     arming=drv.arming_records, watchdog=wd)
         finally:
-            wd_report = ({"running": False, "why": wd_why} if wd is None
-                         else {"running": True, **wd.report()})
+            from hapsim.drivers.torque_watchdog import watchdog_report
+            wd_report = watchdog_report(wd, wd_why)
             if wd is not None:
                 wd.close()
             try:

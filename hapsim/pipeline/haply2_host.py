@@ -355,8 +355,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
             if progress is not None:
                 progress(j + 1, 5)
     finally:
-        wd_report = ({"running": False, "why": wd_why} if wd is None
-                     else {"running": True, **wd.report()})
+        from hapsim.drivers.torque_watchdog import watchdog_report
+        wd_report = watchdog_report(wd, wd_why)
         if wd is not None:
             wd.close()
         if own:

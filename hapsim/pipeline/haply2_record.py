@@ -360,12 +360,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     wd_before: deque = deque()
     wd_count = [0, 0]
 
-    def wd_took(before: int):
-        def took(times):
-            if times:
-                wd_before.extend([before] * len(times))
-                wd_count[0] += len(times)
-        return took
+    def wd_note(before: int, times) -> None:
+        """The watchdog's writes ``times``, made before host write ``before``."""
+        if times:
+            wd_before.extend([before] * len(times))
+            wd_count[0] += len(times)
 
     def send(data, before: int, holding: bool):
         """Write ``data``, host write ``before`` (``holding``: it leaves a torque), the
@@ -374,7 +373,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             _write(ser, data)
             return
         try:
-            watchdog.write(ser, data, wd_took(before), holding)
+            wd_note(before, watchdog.write(ser, data, holding))
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
     # the count of replies checked by a marker write when the loop ends ticks behind
@@ -395,7 +394,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         nonlocal got, seen, bad_setups, rearm_sends
         if watchdog is not None:
             watchdog.arm(False)                 # (its waits are on purpose)
-            wd_took(k)(watchdog.take())         # (drained below with the rest)
+            wd_note(k, watchdog.take())         # (drained below with the rest)
             wd_before.clear()
         data = driver.arm_bytes(at_deg)
         # the first set-up waits for a board process that loads its plant first; the
@@ -583,7 +582,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
         g0 = got
         if watchdog is not None:
-            wd_took(k + 1)(watchdog.take())     # (its writes since write k)
+            wd_note(k + 1, watchdog.take())     # (its writes since write k)
         take(_read(ser))
         # behind for SILENT_COUNT ticks, though replies come: a board late (it catches up
         # within a few: the backlog comes in one read), or a write it swallowed (a host
