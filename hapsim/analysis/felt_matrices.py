@@ -262,6 +262,11 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     if deviation is None:
         return no("the records give no felt matrices (fewer than n rendered pairs)")
     if lin["felt_stiffness"] is None:
+        if not math.isnan(getattr(bound, "opening", math.nan)):
+            return no(f"the records' motion toward opening {bound.opening_name!r} reaches "
+                      f"{bound.opening:.3g} times its depth at rest (the motion "
+                      f"{bound.amplitude:g} m from rest): the contact opens, no linear "
+                      "estimate holds")
         return no(f"the motion ({bound.amplitude:g} m from rest) reaches the depth of "
                   f"{bound.depth_name!r} ({bound.depth:.3g} m): the contact opens, no "
                   "linear estimate holds")

@@ -53,6 +53,7 @@ out, and the felt matrices' sensitivity is taken from the principal directions')
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -60,7 +61,8 @@ import numpy as np
 
 from hapsim.outputs import finite_or_none
 
-__all__ = ["LinearisationBound", "linearisation_bound", "kinematic_coefficient"]
+__all__ = ["LinearisationBound", "linearisation_bound", "kinematic_coefficient",
+           "records_excursion", "bound_at_records"]
 
 
 def kinematic_coefficient(kind: str, geometry: str, joints, joint_inertia,
@@ -151,6 +153,13 @@ class LinearisationBound:
     position_scale : float
         The largest coordinate of the scene's rest positions [m] (the masses' ``x0`` and
         the handle's), for :attr:`roundoff` (0 when unknown).
+    opening : float
+        The records' largest motion toward opening a contact or plane over that one's
+        depth at rest [-] (:func:`bound_at_records`: a plane on the handle opens only
+        along its normal); nan when no records were looked at: then ``a`` is taken
+        against :attr:`depth` in every direction.
+    opening_name : str or None
+        The contact or plane of :attr:`opening`.
     """
 
     amplitude: float
@@ -161,6 +170,17 @@ class LinearisationBound:
     depth_name: str | None
     damping_factor: float = math.nan
     position_scale: float = 0.0
+    opening: float = math.nan
+    opening_name: str | None = None
+
+    @property
+    def opens(self) -> bool:
+        """Whether the motion reaches a contact's or a plane's depth (the law is not
+        smooth there): :attr:`opening` at least 1 when measured, else ``a`` at least
+        :attr:`depth`."""
+        if not math.isnan(self.opening):
+            return self.opening >= 1.0
+        return self.amplitude >= self.depth
 
     @property
     def roundoff(self) -> float:
@@ -184,9 +204,9 @@ class LinearisationBound:
     @property
     def stiffness(self) -> float:
         """``eps_k(a) = (c_kin + c_link) a`` [-]: the stated relative departure of the felt
-        stiffness matrix (module docstring); inf when ``a`` reaches a contact's or a
-        plane's depth (the law is not smooth there)."""
-        if self.amplitude >= self.depth:
+        stiffness matrix (module docstring); inf when the motion reaches a contact's or
+        a plane's depth (:attr:`opens`: the law is not smooth there)."""
+        if self.opens:
             return math.inf
         return (self.kinematic + self.link) * self.amplitude
 
@@ -200,14 +220,47 @@ class LinearisationBound:
         ``link``, ``contact_depth`` [m] (None when none), ``contact``,
         ``damping_factor``, ``felt_stiffness`` and ``felt_damping`` (the relative bounds;
         None when a contact or plane opens, or without rendered poles), ``roundoff``
-        (:attr:`roundoff`, relative)."""
+        (:attr:`roundoff`, relative), ``opening`` and ``opening_contact``
+        (:attr:`opening`, None when not measured)."""
         num = finite_or_none
         return {"amplitude": self.amplitude, "kinematic_per_m": self.kinematic,
                 "link_per_m": self.link, "link": self.link_name,
                 "contact_depth": num(self.depth), "contact": self.depth_name,
                 "damping_factor": num(self.damping_factor),
                 "felt_stiffness": num(self.stiffness), "felt_damping": num(self.damping),
-                "roundoff": num(self.roundoff)}
+                "roundoff": num(self.roundoff), "opening": num(self.opening),
+                "opening_contact": self.opening_name}
+
+
+def _engaged(scene):
+    """The contacts and planes of a scene with their depth at rest [m] (0: open at rest,
+    taken engaged) and, where the handle's motion alone sets it, the motion toward opening
+    that one: a callable taking the handle's displacements from rest ``D`` (shape
+    (N, n) [m]) to how far each row went toward opening [m] (a plane on the handle:
+    ``D . normal``, the penetration ``offset - normal . x`` falling as it grows; a
+    contact between the handle and a ground mass: the distance's growth
+    ``|x0 + D - c| - l0``, exact); None where other masses move too."""
+    pos = {m.name: m.x0 for m in scene.masses}
+    kind = {m.name: m.kind for m in scene.masses}
+    port = getattr(scene.port, "name", None)
+    for lk in scene.links:
+        if lk.kind == "contact":
+            l0 = float(np.linalg.norm(pos[lk.m1] - pos[lk.m2]))
+            toward = None
+            ends = {lk.m1, lk.m2}
+            if port in ends and len(ends) == 2:
+                other = (ends - {port}).pop()
+                if kind[other] == "ground":
+                    x0, c = np.asarray(pos[port], float), np.asarray(pos[other], float)
+                    toward = (lambda D, x0=x0, c=c, l0=l0:
+                              np.linalg.norm(x0 + D - c, axis=1) - l0)
+            yield lk.name, max(lk.threshold - l0, 0.0), toward
+    for pl in scene.planes:
+        for m in pl.masses:
+            normal = np.asarray(pl.normal, float)
+            yield (pl.name, max(pl.offset - float(normal @ pos[m]), 0.0),
+                   (lambda D, normal=normal: D @ normal)
+                   if m == port and len(pl.masses) == 1 else None)
 
 
 def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> LinearisationBound:
@@ -244,7 +297,6 @@ def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> Lineari
                                       dev.joint_inertia, dev.hand_mass)
     pos = {m.name: m.x0 for m in scene.masses}
     c_link, link_name = 0.0, None
-    depth, depth_name = math.inf, None
     for lk in scene.links:
         L = lk.threshold if lk.kind == "contact" else lk.length
         if L == 0:
@@ -253,13 +305,10 @@ def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> Lineari
         c = L / (math.sqrt(3.0) * l0 * l0)
         if c > c_link:
             c_link, link_name = c, lk.name
-        if lk.kind == "contact" and max(L - l0, 0.0) < depth:
-            depth, depth_name = max(L - l0, 0.0), lk.name     # 0: open at rest
-    for pl in scene.planes:
-        for m in pl.masses:
-            p = pl.offset - float(pl.normal @ pos[m])
-            if max(p, 0.0) < depth:
-                depth, depth_name = max(p, 0.0), pl.name     # 0: open at rest
+    depth, depth_name = math.inf, None
+    for name, dep, _ in _engaged(scene):
+        if dep < depth:
+            depth, depth_name = dep, name
     factor = math.nan
     if rendered_poles is not None and len(rendered_poles):
         sp = np.log(np.asarray(rendered_poles, complex)) * scene.rate_hz
@@ -269,3 +318,99 @@ def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> Lineari
     return LinearisationBound(amplitude=a, kinematic=c_kin, link=c_link,
                               link_name=link_name, depth=depth, depth_name=depth_name,
                               damping_factor=factor, position_scale=scale)
+
+
+def records_excursion(records, origin=None, usable=None) -> float:
+    """The largest distance from the operating point that the fitted rows of some records
+    reach.
+
+    Parameters
+    ----------
+    records : list of ndarray, each shape (N, n)
+        Handle positions [m] (absolute, with ``origin``; or already about the operating
+        point). NaN rows (a sample that never came) are skipped.
+    origin : array_like, shape (n,), optional
+        The operating point [m] (default the origin).
+    usable : list of ndarray of bool, each shape (N,), optional
+        The rows each record's fit used (default all).
+
+    Returns
+    -------
+    float
+        ``max |x_k - origin|`` over the records' usable, finite rows [m]; 0 when there
+        are none.
+    """
+    top = 0.0
+    for j, r in enumerate(records):
+        d = np.linalg.norm(np.asarray(r, float)
+                           - (0.0 if origin is None else np.asarray(origin, float)), axis=1)
+        keep = _rows(r, usable, j)
+        if keep.any():
+            top = max(top, float(d[keep].max()))
+    return top
+
+
+def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
+                     origin=None, usable=None) -> tuple:
+    """The linearisation bound at the largest excursion the records reached, never below
+    the hand's ``amplitude``.
+
+    The bound (module docstring) is a statement about motion within ``a`` of the
+    operating point, and a contact's law is smooth only while that motion stays within
+    its depth. The hand's starts do not bound the motion: a start moving at
+    ``a / (10 T)`` carries the handle past ``a`` (2.2 ``a`` in lockstep on
+    ``configs/pantograph_wall.yaml``), and a board on its own clock coasts under no
+    torque through its set-up (the 2DIY's two encoders' 2 ms each) before the host's
+    first write: 3.6 ``a`` measured there, out of the wall (depth 0.5 mm) at
+    ``a`` = 0.3 mm, where a bound stated at ``a`` let the felt stiffness fitted on a
+    contact that opened, 5 % off the prediction, pass as "within". Every measurement
+    therefore states its bound here, at what its records did.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+    amplitude : float
+        The hand's ``a`` [m] (> 0).
+    records : list of ndarray, each shape (N, n)
+        As :func:`records_excursion`.
+    rendered_poles : array_like of complex, optional
+        As :func:`linearisation_bound`.
+    origin, usable : optional
+        As :func:`records_excursion`.
+
+    Returns
+    -------
+    (LinearisationBound, float)
+        The bound at ``max(amplitude, excursion)`` and the excursion [m].
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        As :func:`linearisation_bound`.
+    """
+    ex = records_excursion(records, origin, usable)
+    bound = linearisation_bound(scene, max(float(amplitude), ex), rendered_poles)
+    # toward opening (_engaged): a plane on the handle along its normal, a contact with a
+    # ground mass by the distance's growth, every other one by the motion's norm (the
+    # port's records do not say how the masses it touches move)
+    worst, name = 0.0, None
+    D = [np.asarray(r, float) - (0.0 if origin is None else np.asarray(origin, float))
+         for r in records]
+    for nm, dep, motion in _engaged(scene):
+        toward = ex if motion is None else max(
+            [0.0] + [float(np.max(motion(d)[_rows(d, usable, j)], initial=0.0))
+                     for j, d in enumerate(D)])
+        ratio = toward / dep if dep > 0 else math.inf
+        if ratio > worst or name is None:
+            worst, name = ratio, nm
+    if name is None:
+        return bound, ex
+    return dataclasses.replace(bound, opening=worst, opening_name=name), ex
+
+
+def _rows(r, usable, j) -> np.ndarray:
+    """The rows of record ``j`` to look at: finite, and usable when said."""
+    keep = np.isfinite(np.asarray(r, float)).all(axis=1)
+    if usable is not None and usable[j] is not None:
+        keep &= np.asarray(usable[j], bool)[:keep.size]
+    return keep

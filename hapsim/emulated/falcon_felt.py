@@ -135,7 +135,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         ``fitted_rows`` (records cut at missing replies: per record, the one from rest
         first, the equations its own stretches gave the fit; None for whole records),
         ``quantum`` (one count at the handle over ``a``, ``|J(q0)| q / a`` [-]),
-        ``excursion`` (the largest distance of a record from the rest record [m]).
+        ``excursion`` (the largest distance of a record's fitted rows from the rest
+        record [m]: the linearisation bound's amplitude when above ``amplitude``).
 
     Raises
     ------
@@ -145,7 +146,7 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
     from hapsim.analysis.felt_matrices import (MEASURABLE_WIRE, felt_deviation,
                                                felt_directions, felt_verdict)
     from hapsim.analysis.felt_records import window_rows, wire_terms_records, within_excursion
-    from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.analysis.linearisation import bound_at_records
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.drivers.falcon import DEG_PER_TICK, TORQUE_PER_COUNT
     from hapsim.kinematics import device
@@ -187,8 +188,11 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         usable, own, fit = None, None, None
     delta = math.radians(DEG_PER_TICK) / 2.0
     tq = TORQUE_PER_COUNT / 2.0
-    excursion = float(max(np.nanmax(np.linalg.norm(d_, axis=1)) for d_ in diffs))
-    bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
+    # the bound at the motion the fitted rows reached from the record from rest (it was
+    # computed here and left unused: the bound stated at the hand's a)
+    bound, excursion = bound_at_records(scene, amplitude, [p - rest for p in pos[1:]],
+                                        chk.render.rendered_poles,
+                                        usable=own[1:] if own is not None else None)
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta, "torque_bound_nm": tq}
     cmds = [np.asarray(r["commands"])[:N] for r in runs]

@@ -76,7 +76,7 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     """
     from hapsim.analysis.pencil import MODE_FLOOR, fit_felt_nd
     from hapsim.analysis.felt_records import window_rows, wire_terms_records, within_excursion
-    from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.analysis.linearisation import bound_at_records
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
@@ -136,7 +136,10 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         floor = MODE_FLOOR * float(np.linalg.norm(np.abs(J) @ delta)) * 2
         fit = fit_felt_nd(diffs, mass, T, order, floor=floor)
     dev = felt_deviation(fit, chk)
-    bound = linearisation_bound(scene, amplitude, chk.render.rendered_poles)
+    # the bound at the motion the fitted rows reached from the record from rest (a board
+    # on its own clock coasts through its set-up past the hand's a)
+    bound, _ = bound_at_records(scene, amplitude, diffs, chk.render.rendered_poles,
+                                usable=own[1:] if own is not None else usable)
     # the wire's term (docstring)
     torque_rel = 2.0 ** -24
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
