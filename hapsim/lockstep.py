@@ -201,24 +201,23 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
         ``amplitude`` not positive; ``samples`` too short for the order.
     """
     from hapsim.analysis.pencil import fit_felt_nd
-    from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.analysis.linearisation import bound_at_records, linearisation_bound
     chk, order, N = identification_plan(scene, samples)
     a = linearisation_bound(scene, amplitude, chk.render.rendered_poles).amplitude
     n = scene.dimension
     T = scene.period
     starts = excitation_starts(n, a, T)[1:]
     rest = LockstepND(scene, joint_space=joint_space).step(N, record=True)
-    excursion = float(np.max(np.linalg.norm(rest, axis=1)))
-    recs = []
+    raw, recs = [rest], []
     for j, (x0, v0) in enumerate(starts):
         r = LockstepND(scene, x0=x0, v0=v0, joint_space=joint_space).step(N, record=True)
-        excursion = max(excursion, float(np.max(np.linalg.norm(r, axis=1))))
+        raw.append(r)
         recs.append(r - rest)
         if progress is not None:
             progress(j + 1, len(starts))
     # the bound at the largest excursion the records reached (as over a port): a start
     # moving at a / (10 T) carries the handle past a, and the departure grows with it
-    bound = linearisation_bound(scene, max(a, excursion), chk.render.rendered_poles)
+    bound, excursion = bound_at_records(scene, a, raw, chk.render.rendered_poles)
     fit = fit_felt_nd(recs, scene.device.mass, T, order)
     dev = felt_deviation(fit, chk)
     return {"measured": fit, "predicted": chk, "deviation": dev, "bound": bound,

@@ -494,7 +494,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         start, the record from rest first), ``late`` (late rows over the records used),
         ``excursion`` (the largest distance [m] of the handle from rest over them, the
         amplitude the linearisation bound must be taken at: late ticks can drive the
-        handle past the nominal excitation), ``watchdog`` (rows whose force the watchdog
+        handle past the nominal excitation), ``moved`` (each record's rows used, the
+        handle from rest [m], shape (rows, n): what
+        :func:`hapsim.analysis.linearisation.bound_at_records` takes; absent when
+        incomplete), ``watchdog`` (rows whose force the watchdog
         zeroed), ``delay`` (the delay the device showed, per record used; -1 for a record
         in which no FORCE arrived in time: the device held zero throughout, and the whole
         force sent is the known disturbance; more than ``device.delay`` for a record in
@@ -671,13 +674,13 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         late += acc.n_late
         delays.append(shown)
         recs.append(pos - rest_pos - disturbance_response_nd(scene, W, A=A))
-    excursion = max(float(np.max(np.linalg.norm(r.position[:min(r.rows, L)] - rest_pos,
-                                                axis=1))) for r in best)
+    moved = [r.position[:min(r.rows, L)] - rest_pos for r in best]
+    excursion = max(float(np.max(np.linalg.norm(m, axis=1))) for m in moved)
     rest = recs[0]
     fit = fit_felt_nd([r - rest[:r.shape[0]] for r in recs[1:]], scene.device.mass,
                       scene.period, order)
     out.update(measured=fit, deviation=felt_deviation(fit, chk), late=late,
-               excursion=excursion, watchdog=wdog, delay=delays,
+               excursion=excursion, moved=moved, watchdog=wdog, delay=delays,
                rows=[min(r.rows, L) for r in best], responses=recs)
     return out
 

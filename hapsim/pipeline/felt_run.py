@@ -159,13 +159,15 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
     if opts.lockstep and not opts.port:
         from hapsim.lockstep import measure_felt_lockstep
         return measure_felt_lockstep(scene, amplitude, progress=progress), None
-    from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.analysis.linearisation import bound_at_records, linearisation_bound
     res, info = _over_port(scene, opts, amplitude, progress)
     # the bound at the largest excursion the records reached: a late tick's held force
     # moves the handle past the nominal amplitude, and the departure from the linear
     # loop grows with the motion (hapsim.analysis.linearisation)
-    res["bound"] = linearisation_bound(scene, max(amplitude, res["excursion"]),
-                                       res["predicted"].render.rendered_poles)
+    poles = res["predicted"].render.rendered_poles
+    res["bound"] = (bound_at_records(scene, amplitude, res["moved"], poles)[0]
+                    if res.get("moved") else
+                    linearisation_bound(scene, max(amplitude, res["excursion"]), poles))
     return res, info
 
 
