@@ -16,7 +16,9 @@ here, ended here by their pids):
   ``hapkit-serial`` (``configs/hapkit_serial.yaml``): the driver's scene through
   :func:`hapsim.pipeline.runner.run_scene` and its driver's byte-exact mock on a pty, the
   mock's own clock (``clock``: the wall clock where the mock keeps it, else lockstep);
-- ``haply2`` (2DIY, ``configs/pantograph_wall.yaml``): the real-time host loop
+- ``haply2`` (2DIY, ``configs/pantograph_wall.yaml`` at the hand's ``a`` = 0.1 mm;
+  ``--haply2-scene`` and ``--haply2-amplitude`` another, e.g.
+  ``docs/pantograph_deep_wall.yaml`` at 3e-4): the real-time host loop
   (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`) against the emulated board
   in process behind a link that loses bytes (seeded; the board on its own clock, the
   wall clock: each write fed at its time, its replies readable when the board made them);
@@ -169,7 +171,8 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             "unseen_holds": m.get("unseen_holds")}
 
 
-def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
+def run_haply2(seed: int, loss: float, clock: str = "wall",
+               scene: str = "configs/pantograph_wall.yaml", amplitude: float = 1e-4) -> dict:
     """One 2DIY measurement against the in-process emulated board behind a lossy link.
 
     On the wall clock (the board's default, firmware V1.5's own time: its joints move
@@ -178,14 +181,15 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
     (named) each write is one period and its reply there at once. ``excursion_true`` is
     the joints' largest departure from the operating point [rad] (the board's truth);
     ``workspace`` the bound it is held to
-    (:data:`hapsim.pipeline.haply2_host.WORKSPACE_RAD`)."""
+    (:data:`hapsim.pipeline.haply2_host.WORKSPACE_RAD`). ``scene`` and ``amplitude``
+    (the hand's ``a`` [m]): ``--haply2-scene``, ``--haply2-amplitude``."""
     from hapsim.emulated.haply2_board import Haply2DIYBoard
     from hapsim.pipeline.haply2_host import WORKSPACE_RAD, measure_felt_haply2_port
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.lockstep import identification_plan
     from hapsim.scene import load_scene_nd
     from hapsim.errors import DeviceError
-    sc = load_scene_nd("configs/pantograph_wall.yaml")
+    sc = load_scene_nd(scene)
     if clock == "wall":
         # the board's compiled plant loaded before the clock (in process its first call
         # would be the host's stall and the held torque's time: a first run's 2.2 rad)
@@ -193,7 +197,7 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
         warm, drv = Haply2DIYBoard(sc, "gen3", clock="wall"), Haply2DIY("gen3")
         warm.feed(drv.arm_bytes([float(np.degrees(v)) for v in sc.device.joints]), 0.0)
         warm.feed(drv.write_bytes((0.0, 0.0)), 0.01)
-    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock=clock)
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=amplitude, clock=clock)
     f = ByteFaults({"drop_rx": loss, "drop_tx": loss, "seed": seed})
     q0 = np.asarray(sc.device.joints, float)
     exc_max = [0.0]
@@ -237,7 +241,7 @@ def run_haply2(seed: int, loss: float, clock: str = "wall") -> dict:
         # which no hand damps in the model (up to 0.3 rad measured while the fit ran)
         return max(exc_max[0], board.excursion)
     try:
-        r = measure_felt_haply2_port(Link(), sc, "gen3", amplitude=1e-4,
+        r = measure_felt_haply2_port(Link(), sc, "gen3", amplitude=amplitude,
                                      resolution=2.0 ** 22, samples=N,
                                      plan=identification_plan(sc, N), probe_wiring=False,
                                      lockstep_board=clock == "lockstep")
@@ -349,6 +353,12 @@ def main(argv=None) -> int:
                    help="SCHED_FIFO priority of the host loops (and the boards' processes) "
                         "where the OS permits it: 10, as 'hapsim run' takes by default; 0 "
                         "for normal scheduling")
+    p.add_argument("--haply2-scene", default="configs/pantograph_wall.yaml",
+                   metavar="PATH", help="the 2DIY's scene (default "
+                   "configs/pantograph_wall.yaml; docs/pantograph_deep_wall.yaml: the same "
+                   "loop with the wall 2 mm deep)")
+    p.add_argument("--haply2-amplitude", type=float, default=1e-4, metavar="M",
+                   help="the 2DIY hand's start a [m] (default 1e-4, run's default)")
     p.add_argument("--falcon-scene", default="configs/falcon_spring.yaml", metavar="PATH",
                    help="the Falcon's scene (configs/falcon_spring.yaml: its felt "
                         "matrices measurable; configs/delta_sphere.yaml: the contact's "
@@ -386,7 +396,9 @@ def main(argv=None) -> int:
                         # priority, as 'hapsim run --driver haply/falcon' runs it
                         rt = RealtimePriority(a.rt_priority)
                         with rt:
-                            row = (run_haply2(seed, loss) if drv == "haply2"  # else falcon
+                            row = (run_haply2(seed, loss, scene=a.haply2_scene,
+                                              amplitude=a.haply2_amplitude)
+                                   if drv == "haply2"  # else falcon
                                    else run_falcon_once(seed, loss,
                                                         scene=a.falcon_scene))
                         sched = rt.note
@@ -412,6 +424,7 @@ def main(argv=None) -> int:
     out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
            "starve": a.starve, "host_stall_ms": a.host_stall,
            "host_watchdog": not a.no_host_watchdog,
+           "haply2_scene": a.haply2_scene, "haply2_amplitude": a.haply2_amplitude,
            "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),
            "runs": normalize(rows), "summary": summarize(rows)}
     text = json.dumps(out, indent=1, default=str)
