@@ -187,7 +187,10 @@ def run_haply2_command(args) -> int:
         print(f"  measured - predicted (largest entry over the largest predicted): "
               f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
     if bd["felt_stiffness"] is not None:
-        print(f"  linearisation bound at a: k {bd['felt_stiffness']:.2e}, "
+        print(f"  linearisation bound at the records' largest excursion "
+              f"{bound.amplitude:.3g} m (never below a: the hand's moving starts, and a "
+              f"board on its own clock coasting through its set-up, go past it): k "
+              f"{bd['felt_stiffness']:.2e}, "
               f"b {bd['felt_damping']:.2e}", file=o)
     if math.isfinite(wire["felt_stiffness"]):
         dq = wire["reading_bound_rad"]
