@@ -259,8 +259,7 @@ def _engaged(scene):
         for m in pl.masses:
             normal = np.asarray(pl.normal, float)
             yield (pl.name, max(pl.offset - float(normal @ pos[m]), 0.0),
-                   (lambda D, normal=normal: D @ normal)
-                   if m == port and len(pl.masses) == 1 else None)
+                   (lambda D, normal=normal: D @ normal) if m == port else None)
 
 
 def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> LinearisationBound:
