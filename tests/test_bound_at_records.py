@@ -101,3 +101,42 @@ def test_without_records_the_amplitude_is_taken_in_every_direction():
     b = linearisation_bound(sc, 0.999 * depth)
     assert math.isnan(b.opening) and not b.opens
     assert linearisation_bound(sc, b.depth).opens
+
+
+def test_the_falcon_verdict_states_its_bound_at_its_fitted_rows():
+    """The Falcon's verdict (it computed its records' excursion and stated the bound at the
+    hand's ``a``): on ``configs/delta_sphere.yaml``'s exact lockstep records at
+    ``a`` = 0.1 mm the bound is at their largest distance from the record from rest (the
+    velocity starts go past ``a``), the sphere named and not reached along its radius; a
+    record pushed 8 times out over 20 rows reaches the sphere's depth and the verdict
+    says the contact opens; the same rows missing (their replies lost: cut from the fit)
+    leave the bound where the clean records put it."""
+    from hapsim.emulated.falcon_felt import falcon_felt_verdict
+    from hapsim.lockstep import LockstepND, excitation_starts, identification_plan
+    from hapsim.scene import load_scene_nd
+    sc = load_scene_nd("configs/delta_sphere.yaml")
+    N, a = 100, 1e-4
+    plan = identification_plan(sc, N)
+    X = [LockstepND(sc).step(N, record=True)] + [
+        LockstepND(sc, x0=x0, v0=v0).step(N, record=True)
+        for x0, v0 in excitation_starts(3, a, sc.period)[1:]]
+
+    def verdict(X, joints=None):
+        runs = [{"position": x, "commands": np.zeros((N, 3)),
+                 "joints": np.zeros((N, 3)) if joints is None else joints[j]}
+                for j, x in enumerate(X)]
+        return falcon_felt_verdict(sc, runs, plan, a, settle=True)
+    clean = verdict(X)["bound"]
+    reach = max(float(np.max(np.linalg.norm(x - X[0], axis=1))) for x in X[1:])
+    assert clean.amplitude == reach and reach > 1.5 * a
+    assert clean.opening_name == "sphere" and 0.0 < clean.opening < 1.0
+    pushed = [x.copy() for x in X]
+    pushed[3][40:60] *= 8.0
+    r = verdict(pushed)
+    assert r["bound"].opens and r["verdict"] == "not measurable"
+    assert "'sphere'" in r["reason"] and "opens" in r["reason"], r["reason"]
+    lost = [x.copy() for x in pushed]
+    joints = [np.zeros((N, 3)) for _ in X]
+    lost[3][38:62] = joints[3][38:62] = np.nan
+    b = verdict(lost, joints)["bound"]
+    assert b.amplitude == clean.amplitude and b.opening == clean.opening
