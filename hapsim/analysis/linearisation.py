@@ -387,14 +387,14 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
     hapsim.errors.ConfigError
         As :func:`linearisation_bound`.
     """
-    ex = records_excursion(records, origin, usable)
+    D = [np.asarray(r, float) - (0.0 if origin is None else np.asarray(origin, float))
+         for r in records]
+    ex = records_excursion(D, None, usable)
     bound = linearisation_bound(scene, max(float(amplitude), ex), rendered_poles)
     # toward opening (_engaged): a plane on the handle along its normal, a contact with a
     # ground mass by the distance's growth, every other one by the motion's norm (the
     # port's records do not say how the masses it touches move)
     worst, name = 0.0, None
-    D = [np.asarray(r, float) - (0.0 if origin is None else np.asarray(origin, float))
-         for r in records]
     for nm, dep, motion in _engaged(scene):
         toward = ex if motion is None else max(
             [0.0] + [float(np.max(motion(d)[_rows(d, usable, j)], initial=0.0))

@@ -51,7 +51,7 @@ class Watched:
         self.watchdog, self._wd_why = start_watchdog(port, driver.encode_force(0.0),
                                                      HOLD_BOUND_S)
 
-    def _wd_take(self, times: list) -> None:
+    def _wd_take(self, times: tuple) -> None:
         """The watchdog's zero writes ``times`` (monotonic ns), made after the host's last
         command: commands of their own (module notes)."""
         for t_ns in times:

@@ -48,7 +48,9 @@ __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report"]
 #: zero writes made, the time of the last (monotonic ns), the host write it answered,
 #: quit, the longest silence seen before a write [ns], ready (1: running, < 0: -errno at
 #: start), real-time priority granted (0: none), holding (the host's last write left a
-#: non-zero force).
+#: non-zero force; written by the host alone: the watchdog marks a silence it answered
+#: by ``fired_for``, the host write it followed, so that it never clears a hold the
+#: host set just after its check).
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired", "fired_ns", "fired_for", "quit",
                                   "longest_ns", "ready", "rt", "holding"))}
 _SIZE = 8 * len(_F)
@@ -100,6 +102,8 @@ class TorqueWatchdog:
 
     Raises
     ------
+    ValueError
+        ``bound_s`` not positive.
     OSError
         The watchdog process did not start (its reason: it could not open ``port``, or
         did not answer within :data:`START_TIMEOUT_S`); nothing is left running.
@@ -151,7 +155,7 @@ class TorqueWatchdog:
         p.set("beat", time.monotonic_ns())
         p.set("armed", 1 if on else 0)
 
-    def take(self) -> list:
+    def take(self) -> tuple:
         """The zero writes the watchdog made since the last call (the host reads).
 
         Returns
@@ -299,7 +303,6 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
         if page.get("beat") != beat or not page.get("armed") or not page.get("holding"):
             continue                        # (the host wrote meanwhile, or holds nothing)
         os.write(fd, zero)
-        page.set("holding", 0)
         page.set("fired_ns", time.monotonic_ns())
         page.set("fired_for", beat)
         page.set("longest_ns", max(page.get("longest_ns"), now - beat))

@@ -366,16 +366,15 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             wd_before.extend([before] * len(times))
             wd_count[0] += len(times)
 
+    link = PortLink(ser)                    # (its write: write_all's DeviceError)
+
     def send(data, before: int, holding: bool):
         """Write ``data``, host write ``before`` (``holding``: it leaves a torque), the
         watchdog's writes since taken first."""
         if watchdog is None:
             _write(ser, data)
-            return
-        try:
-            wd_note(before, watchdog.write(ser, data, holding))
-        except Exception as exc:  # serial.SerialException, OSError, timeouts
-            raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
+        else:
+            wd_note(before, watchdog.write(link, data, holding))
     # the count of replies checked by a marker write when the loop ends ticks behind
     # though replies come (a write swallowed, or a late board: never a wait)
     realign = Realigner(dec, xr, qr)
