@@ -224,24 +224,26 @@ def test_resynchronised_records_are_cut_and_a_hidden_difference_still_differs_lo
 
 
 def test_a_record_that_leaves_the_wall_is_not_measured_simulated_time(monkeypatch):
-    """The board on its own clock coasts under no torque through each set-up (its two
-    encoders' 2 ms, before the host's first write) with the hand's start: the records go
-    past the hand's ``a`` (3.6 ``a`` measured), and at ``a`` = 0.3 mm the start along the
-    wall's normal takes the handle out of the wall (0.98 mm of its 0.5 mm depth). The
-    bound was stated at ``a`` and the run said "partly within" on a fit across the
-    contact's opening, its felt stiffness 5 % off the prediction; now the bound is at
-    the records' own motion (:func:`hapsim.analysis.linearisation.bound_at_records`):
-    "not measurable", the wall named. In lockstep (no coast) the same ``a`` stays in
-    the wall and every quantity is stated; at ``a`` = 0.1 mm on the wall clock the
-    bound's amplitude is the records' excursion, never the hand's ``a`` alone."""
-    far = _measure(monkeypatch, 1, amplitude=3e-4)
-    b = far["bound"]
-    assert far["verdict"] == "not measurable" and far["within"] is None, far["reason"]
-    assert b.opens and b.opening_name == "wall" and b.opening >= 1.0
-    assert "opens" in far["reason"] and "'wall'" in far["reason"]
-    near = _measure(monkeypatch, 1, amplitude=3e-4, clock="lockstep")
-    assert not near["bound"].opens and near["bound"].opening < 1.0
-    assert near["verdict"] == "within", near["reason"]
-    small = _measure(monkeypatch, 1)
-    assert small["bound"].amplitude > 3.0 * 1e-4            # the coast: 3.6 a measured
-    assert not small["bound"].opens and small["within"] is True, small["reason"]
+    """A velocity start carries the handle past the hand's ``a`` (2.19 ``a`` in
+    lockstep): at ``a`` = 0.5 mm the start along the wall's normal takes it out of the
+    wall (1.08 times its 0.5 mm depth). The bound is at the records' own motion
+    (:func:`hapsim.analysis.linearisation.bound_at_records`): "not measurable", the wall
+    named, on the board's own clock as in lockstep. At 0.3 mm (0.65 of the depth) every
+    quantity is stated and within on both clocks, and the wall-clock records' excursion
+    is the lockstep one's to 2 %: the hand lets go at the record's first write, so the
+    host's 30 ms drain before it (QUIET_S) is no coast (before, the hand let go at the
+    set-up and the records reached 3.3-3.6 ``a``: "not measurable" at 0.2 mm already)."""
+    for clock in ("wall", "lockstep"):
+        far = _measure(monkeypatch, 1, amplitude=5e-4, clock=clock)
+        b = far["bound"]
+        assert far["verdict"] == "not measurable" and far["within"] is None, far["reason"]
+        assert b.opens and b.opening_name == "wall" and b.opening >= 1.0
+        assert "opens" in far["reason"] and "'wall'" in far["reason"]
+    near = {c: _measure(monkeypatch, 1, amplitude=3e-4, clock=c) for c in ("wall", "lockstep")}
+    for c, r in near.items():
+        assert not r["bound"].opens and r["bound"].opening < 1.0, c
+        assert r["verdict"] == "within", (c, r["reason"])
+    # measured 2.18 a against 2.19 a: the margin is the first write's pass (50 us) and
+    # the wall clock's write timing
+    ratio = near["wall"]["bound"].amplitude / near["lockstep"]["bound"].amplitude
+    assert abs(ratio - 1.0) < 0.02 and near["wall"]["bound"].amplitude < 2.5 * 3e-4

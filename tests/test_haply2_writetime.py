@@ -31,6 +31,11 @@ from hapsim.scene import load_scene_nd
 from test_haply2_stalls import WALL, SimLink
 from tolerance import measured
 
+#: The hand's start [m]: the records move 2.18 a (0.44 mm, inside the wall's 0.5 mm),
+#: about what the board's coast through its set-up gave 1e-4 m before the hand let go at
+#: the record's first write (3.3 a); 1e-4 m now leaves the felt damping unstated
+A = 2e-4
+
 
 def _hold_map(M, B, h):
     """The device's exact map over a hold of ``h`` [s]: ``[x, v]`` and a force held ->
@@ -266,7 +271,7 @@ class _JitterClock:
 
 
 def _measure(monkeypatch, *, inertia=1.0, unseen=0.0, seed=1, N=200, spread=3e-6,
-             late=(0.0, 0.0)):
+             late=(0.0, 0.0), amplitude=A):
     """The whole measurement on the emulated board on its own clock (simulated time), the
     host's clock jittered (:class:`_JitterClock`, 0-``spread`` [s] a reading, 3 us unless
     told, and with probability ``late[0]`` a reading ``late[1]`` later), each write taken by
@@ -278,7 +283,7 @@ def _measure(monkeypatch, *, inertia=1.0, unseen=0.0, seed=1, N=200, spread=3e-6
     sc = load_scene_nd(WALL)
     plant = dataclasses.replace(sc, device=dataclasses.replace(
         sc.device, joint_inertia=sc.device.joint_inertia * inertia))
-    board = Haply2DIYBoard(plant, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="wall")
+    board = Haply2DIYBoard(plant, "gen3", cpr=2.0 ** 22, amplitude=amplitude, clock="wall")
     link = SimLink(board, clk)
     rng = np.random.default_rng(seed + 1)
     write = link.write
@@ -288,7 +293,7 @@ def _measure(monkeypatch, *, inertia=1.0, unseen=0.0, seed=1, N=200, spread=3e-6
             clk.t += rng.uniform(0.0, unseen)
         return write(data)
     link.write = late
-    return host.measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4,
+    return host.measure_felt_haply2_port(link, sc, "gen3", amplitude=amplitude,
                                          resolution=2.0 ** 22, samples=N,
                                          plan=identification_plan(sc, N),
                                          probe_wiring=False)
@@ -320,7 +325,8 @@ def test_a_board_with_30_percent_more_inertia_differs_on_its_own_clock_simulated
     measurable" with the departure named (so since the wire's term is taken over the
     error box: with that allowance it is beyond the measurable limit)."""
     h = _measure(monkeypatch, inertia=1.3)
-    # measured over seeds 1-3: 0.175 off against 0.130-0.131 with the pass's allowance;
+    # measured over seeds 1-3 (a = 1e-4 m): 0.175 off against 0.130-0.131 with the pass's
+    # allowance (0.174 at a = 2e-4 m);
     # with the holds corrected against 0.095-0.098. Since the wire's term is taken over
     # the error box (hapsim.analysis.wire_box, its margin 2) the stiffness's term with the
     # pass's allowance is 0.28 (0.095 at first order at the records), beyond the
@@ -330,7 +336,8 @@ def test_a_board_with_30_percent_more_inertia_differs_on_its_own_clock_simulated
     if h["verdict"] == "differs":
         assert h["deviation"]["felt_stiffness"] > h["link_uncertainty"]["felt_stiffness"]
     else:
-        assert "link's latency" in h["reason"] and "0.175" in h["reason"], h["reason"]
+        dk = f"felt_stiffness {h['deviation']['felt_stiffness']:.3g}"
+        assert "link's latency" in h["reason"] and dk in h["reason"], h["reason"]
 
 
 def test_late_writes_corrected_within_and_30_percent_inertia_differs_simulated_time(

@@ -357,13 +357,14 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
     The bound (module docstring) is a statement about motion within ``a`` of the
     operating point, and a contact's law is smooth only while that motion stays within
     its depth. The hand's starts do not bound the motion: a start moving at
-    ``a / (10 T)`` carries the handle past ``a`` (2.2 ``a`` in lockstep on
-    ``configs/pantograph_wall.yaml``), and a board on its own clock coasts under no
-    torque through its set-up (the 2DIY's two encoders' 2 ms each) before the host's
-    first write: 3.6 ``a`` measured there, out of the wall (depth 0.5 mm) at
-    ``a`` = 0.3 mm, where a bound stated at ``a`` let the felt stiffness fitted on a
-    contact that opened, 5 % off the prediction, pass as "within". Every measurement
-    therefore states its bound here, at what its records did.
+    ``a / (10 T)`` carries the handle past ``a`` (2.2 ``a`` on
+    ``configs/pantograph_wall.yaml``), and so do a torque held through a host stall and
+    a lost byte's garbage torque. The emulated 2DIY's hand once let go at the set-up, and
+    its board coasted under no torque through the host's drain before the record's
+    first write: 3.6 ``a``, out of the wall (depth 0.5 mm) at ``a`` = 0.3 mm, where a
+    bound stated at ``a`` let the felt stiffness fitted on a contact that opened, 5 %
+    off the prediction, pass as "within". Every measurement therefore states its bound
+    here, at what its records did.
 
     Parameters
     ----------

@@ -18,7 +18,16 @@ other byte counts down; the same for the motors' torque sign).
 The hand: at each set-up the board's plant is at the scene's operating point (where the
 host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`` of
 :func:`hapsim.lockstep.excitation_starts` (``k`` the set-ups so far), as the n-D mock
-does at each CONFIG (:class:`hapsim.emulated.mock.MockDeviceND`).
+does at each CONFIG (:class:`hapsim.emulated.mock.MockDeviceND`). On the wall clock the
+hand holds the handle at the operating point through the set-up's waits (each encoder's
+count is written there, after its wait) and whatever the host does before its next
+write (the host drains the link for 30 ms before a record,
+:data:`hapsim.pipeline.haply2_record.QUIET_S`), and lets it go at that write's pass: the
+record's first sample, as in lockstep and as the Falcon's hand
+(:mod:`hapsim.emulated.falcon_device`). Before, it let go at the set-up and the handle
+coasted under no torque through the drain: the records reached 3.3-3.6 ``a`` against
+2.19 ``a`` in lockstep, and a start the lockstep prediction found inside a contact left
+it in real time.
 
 Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
 (``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read line
@@ -134,6 +143,7 @@ class Haply2DIYBoard:
         self._t = 0.0                         # the board's time the plant has reached [s]
         self._busy_until = 0.0                # the firmware's next pass, not before [s]
         self._due: deque = deque()            # (time [s], torques) not yet in effect
+        self._hand = None                     # the plant at the hand's start, not let go
         dev = scene.device
         if scene.dimension != 2 or dev is None or dev.kind != "pantograph":
             raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
@@ -308,7 +318,8 @@ class Haply2DIYBoard:
             nxt = t
             if self._due and self._due[0][0] < nxt:
                 nxt = max(self._due[0][0], self._t)
-            self.plant.advance_torque(self._joint_torques(), nxt - self._t)
+            if self._hand is None:                # (else the hand holds the handle)
+                self.plant.advance_torque(self._joint_torques(), nxt - self._t)
             self._t = nxt
             while self._due and self._due[0][0] <= self._t:
                 self._take(self._due.popleft()[1])
@@ -367,6 +378,11 @@ class Haply2DIYBoard:
                     # each active encoder's constructor waits; the joint does not
                     n = sum(1 for a in p.encoder_addr if a)
                     self._busy_until = t + max(n * SETUP_S, PASS_S)
+                    # the hand holds the handle at the operating point through the waits
+                    # (each count is written there) and whatever the host does before
+                    # its next write, and lets it go from its start at that write
+                    self._hand = self.plant
+                    self.plant = copy.deepcopy(self._rest)
                 continue
             if cmd[0] != "write":
                 continue
@@ -378,6 +394,9 @@ class Haply2DIYBoard:
                 new[port0 + 1] = max(-0.123, min(0.123, tv))
             self.clamped += sum(abs(tv) >= 0.123 for tv in new.values())
             self.last_command = max((abs(tv) for tv in new.values()), default=0.0)
+            if self.wall is not None and self._hand is not None:
+                self.run_to(t)
+                self.plant, self._hand = self._hand, None      # the hand lets go
             if self.wall is not None:
                 # write_states, then read_states in the same pass: the angles below are
                 # read at t, the torques act from t (plus the scene's extra delay)

@@ -136,8 +136,8 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         floor = MODE_FLOOR * float(np.linalg.norm(np.abs(J) @ delta)) * 2
         fit = fit_felt_nd(diffs, mass, T, order, floor=floor)
     dev = felt_deviation(fit, chk)
-    # the bound at the motion the fitted rows reached from the record from rest (a board
-    # on its own clock coasts through its set-up past the hand's a)
+    # the bound at the motion the fitted rows reached from the record from rest (a moving
+    # start, a held torque or a lost byte's carries the handle past the hand's a)
     bound, _ = bound_at_records(scene, amplitude, diffs, chk.render.rendered_poles,
                                 usable=own[1:] if own is not None else usable)
     # the wire's term (docstring)
