@@ -30,7 +30,7 @@ from hapsim.joint_device import JointDeviceND
 
 __all__ = ["LockstepND", "measure_felt_lockstep", "excitation_starts", "default_samples",
            "identification_plan", "error_responses", "state_responses", "wire_terms_nd",
-           "relative_terms", "beyond"]
+           "relative_terms", "beyond", "largest_start", "START_MARGIN"]
 
 
 class LockstepND:
@@ -255,6 +255,74 @@ def excitation_starts(n: int, amplitude: float, period: float) -> list:
     e = np.eye(n)
     return ([(z, z)] + [(amplitude * e[i], z) for i in range(n)]
             + [(z, amplitude / (10.0 * period) * e[i]) for i in range(n)])
+
+
+#: The fraction of the start at which the exact records reach a contact's depth or the
+#: joints' envelope that a designed start takes (the records' excursion is linear in
+#: ``a``; the margin leaves the second-order terms and a real-time run's write timing
+#: 10 %: the 2DIY's wall-clock records reach 0.99 of the lockstep ones' excursion,
+#: tests/test_haply2_cuts.py).
+START_MARGIN = 0.9
+
+
+def largest_start(scene, samples: int, envelope_rad: float, *,
+                  reference: float = 1e-4) -> tuple:
+    """The largest hand start ``a`` whose records stay in the scene's linear range: no
+    engaged contact opens and no joint leaves ``envelope_rad`` of its rest, with
+    :data:`START_MARGIN`.
+
+    The exact records (:class:`LockstepND`, no rounding, the device's own joint-space
+    loop) from the :func:`excitation_starts` at ``reference`` give the motion toward each
+    contact's opening (:func:`hapsim.analysis.linearisation.bound_at_records`: a plane
+    along its normal, a contact with a ground mass by its distance) and the largest
+    excursion; both are linear in ``a`` to first order (the loop linearised at rest), so
+    the start at which the first of them reaches its limit is ``reference`` over that
+    ratio. The joints' envelope at the handle is ``envelope_rad`` times the smallest
+    singular value of the device's Jacobian ``J(q0)`` at rest (``|dq| <= |dx| / s_min``).
+    A start moving at ``a / (10 T)`` carries the handle past ``a`` (2.19 ``a`` on
+    configs/pantograph_wall.yaml), so the start is about half the depth, not the depth.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 2-D or 3-D scene with a port and a linkage device (``kind``, ``geometry``,
+        ``joints`` at rest [rad]).
+    samples : int
+        Samples per record (:func:`identification_plan`'s ``N``).
+    envelope_rad : float
+        The largest joint departure from rest the records may make [rad] (> 0).
+    reference : float, optional
+        The start the exact records are taken at [m] (> 0; any small one: first order).
+
+    Returns
+    -------
+    (float, str)
+        ``a`` [m] (0 when a contact is open at rest) and what limits it: ``"contact
+        NAME"`` or ``"envelope"``.
+
+    Raises
+    ------
+    ConfigError
+        A non-positive ``envelope_rad`` or ``reference``; as :class:`LockstepND`.
+    """
+    from hapsim.analysis.linearisation import bound_at_records
+    from hapsim.kinematics import device
+    if not (envelope_rad > 0 and reference > 0):
+        raise ConfigError(f"the envelope ({envelope_rad!r} rad) and the reference start "
+                          f"({reference!r} m) must be positive", key="envelope_rad")
+    recs = [LockstepND(scene, x0=x0, v0=v0).step(int(samples), record=True)
+            for x0, v0 in excitation_starts(scene.dimension, reference, scene.period)]
+    diffs = [r - recs[0] for r in recs[1:]]
+    bound, excursion = bound_at_records(scene, reference, diffs)
+    dev = scene.device
+    J = device(dev.kind, dev.geometry).jacobian(np.asarray(dev.joints, float))
+    env = float(envelope_rad) * float(np.linalg.svd(J, compute_uv=False)[-1])
+    if bound.depth <= 0.0:
+        return 0.0, f"contact {bound.depth_name}"
+    a_env = START_MARGIN * env * reference / excursion
+    if bound.opening > 0.0 and START_MARGIN * reference / bound.opening < a_env:
+        return START_MARGIN * reference / bound.opening, f"contact {bound.opening_name}"
+    return a_env, "envelope"
 
 
 def identification_plan(scene, samples: int | None = None) -> tuple:

@@ -16,9 +16,9 @@ here, ended here by their pids):
   ``hapkit-serial`` (``configs/hapkit_serial.yaml``): the driver's scene through
   :func:`hapsim.pipeline.runner.run_scene` and its driver's byte-exact mock on a pty, the
   mock's own clock (``clock``: the wall clock where the mock keeps it, else lockstep);
-- ``haply2`` (2DIY, ``configs/pantograph_wall.yaml`` at the hand's ``a`` = 0.1 mm;
-  ``--haply2-scene`` and ``--haply2-amplitude`` another, e.g.
-  ``docs/pantograph_deep_wall.yaml`` at 3e-4): the real-time host loop
+- ``haply2`` (2DIY, ``configs/pantograph_wall.yaml`` at the run's default start, the
+  largest the wall allows, 0.42 mm; ``--haply2-scene`` and ``--haply2-amplitude``
+  another, e.g. ``docs/pantograph_deep_wall.yaml`` at 3e-4): the real-time host loop
   (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`) against the emulated board
   in process behind a link that loses bytes (seeded; the board on its own clock, the
   wall clock: each write fed at its time, its replies readable when the board made them);
@@ -172,7 +172,8 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
 
 
 def run_haply2(seed: int, loss: float, clock: str = "wall",
-               scene: str = "configs/pantograph_wall.yaml", amplitude: float = 1e-4) -> dict:
+               scene: str = "configs/pantograph_wall.yaml",
+               amplitude: float | None = None) -> dict:
     """One 2DIY measurement against the in-process emulated board behind a lossy link.
 
     On the wall clock (the board's default, firmware V1.5's own time: its joints move
@@ -182,7 +183,9 @@ def run_haply2(seed: int, loss: float, clock: str = "wall",
     the joints' largest departure from the operating point [rad] (the board's truth);
     ``workspace`` the bound it is held to
     (:data:`hapsim.pipeline.haply2_host.WORKSPACE_RAD`). ``scene`` and ``amplitude``
-    (the hand's ``a`` [m]): ``--haply2-scene``, ``--haply2-amplitude``."""
+    (the hand's ``a`` [m]; None: the run's default,
+    :func:`hapsim.commands.run_haply2.designed_start`): ``--haply2-scene``,
+    ``--haply2-amplitude``."""
     from hapsim.emulated.haply2_board import Haply2DIYBoard
     from hapsim.pipeline.haply2_host import WORKSPACE_RAD, measure_felt_haply2_port
     from hapsim.emulated.driver_mock import ByteFaults
@@ -190,6 +193,9 @@ def run_haply2(seed: int, loss: float, clock: str = "wall",
     from hapsim.scene import load_scene_nd
     from hapsim.errors import DeviceError
     sc = load_scene_nd(scene)
+    if amplitude is None:
+        from hapsim.commands.run_haply2 import designed_start
+        amplitude = designed_start(sc)[0]
     if clock == "wall":
         # the board's compiled plant loaded before the clock (in process its first call
         # would be the host's stall and the held torque's time: a first run's 2.2 rad)
@@ -255,6 +261,7 @@ def run_haply2(seed: int, loss: float, clock: str = "wall",
             "verdict": r["verdict"], "within": r["within"],
             "exit_code": 0 if r["verdict"] != "differs" else 1,
             "reason": r.get("reason"), "estimated": int(sum(r["estimated"])),
+            "amplitude_m": amplitude, "not_stated": r.get("not_stated"),
             "held_zero": int(sum(r["held_zero"])), "left": r.get("left"),
             # per record: markers sent (hapsim.pipeline.haply2_realign), their answers
             # that moved the count (writes the board swallowed: no re-synchronisation),
@@ -357,8 +364,9 @@ def main(argv=None) -> int:
                    metavar="PATH", help="the 2DIY's scene (default "
                    "configs/pantograph_wall.yaml; docs/pantograph_deep_wall.yaml: the same "
                    "loop with the wall 2 mm deep)")
-    p.add_argument("--haply2-amplitude", type=float, default=1e-4, metavar="M",
-                   help="the 2DIY hand's start a [m] (default 1e-4, run's default)")
+    p.add_argument("--haply2-amplitude", type=float, default=None, metavar="M",
+                   help="the 2DIY hand's start a [m] (default the run's: the largest the "
+                        "scene's linear range allows, 0.42 mm on the shallow wall)")
     p.add_argument("--falcon-scene", default="configs/falcon_spring.yaml", metavar="PATH",
                    help="the Falcon's scene (configs/falcon_spring.yaml: its felt "
                         "matrices measurable; configs/delta_sphere.yaml: the contact's "

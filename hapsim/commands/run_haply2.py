@@ -12,11 +12,14 @@ from hapsim.braking import brake_text
 from hapsim.pipeline.felt_run import print_statements, scene_for_run
 from hapsim.errors import ConfigError
 
-__all__ = ["run_haply2_command", "prediction_haply2", "HAPLY_AMPLITUDE", "HAPLY_CPR"]
+__all__ = ["run_haply2_command", "prediction_haply2", "designed_start", "HAPLY_AMPLITUDE",
+           "HAPLY_CPR"]
 
 
-#: ``--driver haply``'s default amplitude [m]: the binary32 angles on the wire resolve
-#: ~1e-7 m at the handle, so 1e-4 m keeps them below 1e-3 of it.
+#: The smallest amplitude ``--driver haply`` takes by default [m]: the binary32 angles
+#: on the wire resolve ~1e-7 m at the handle, so 1e-4 m keeps them below 1e-3 of it. The
+#: default is the largest start the scene's linear range allows
+#: (:func:`hapsim.lockstep.largest_start`), never below this.
 HAPLY_AMPLITUDE = 1e-4
 #: The emulated encoders' counts per revolution under ``--driver haply --lockstep``: a
 #: fine encoder, so that the run checks the wire and the loop (a real 2DIY's 10752 or 4880
@@ -56,6 +59,9 @@ def run_haply2_command(args) -> int:
     gen = getattr(args, "generation", None) or "gen3"
     a, scene = scene_for_run(args.scene, getattr(args, "amplitude", None),
                              getattr(args, "rate_hz", None), HAPLY_AMPLITUDE)
+    designed = None
+    if getattr(args, "amplitude", None) is None:
+        a, designed = designed_start(scene)
     excluded = said = None
     if realtime:
         # before the loop: what the emulated board's counts and binary32 let this run
@@ -120,6 +126,7 @@ def run_haply2_command(args) -> int:
         print(json.dumps({
             "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
             "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,
+            "amplitude_limited_by": designed,
             "emulated_cpr": HAPLY_CPR,
             **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
                 "replies": res["replies"], "writes": res["writes"],
@@ -174,7 +181,9 @@ def run_haply2_command(args) -> int:
                 print(f"  record {j + 1}, the joints out of the envelope at tick "
                       f"{res['left'][j]}: " + brake_text(bk, "N m s/rad", "rad/s"), file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
-          f"a = {a:g} m (minus the response from rest)", file=o)
+          f"a = {a:.3g} m (minus the response from rest"
+          + ("" if designed is None else f"; the largest start the scene's linear range "
+             f"allows, limited by {designed}") + ")", file=o)
     for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),
                     ("measured felt stiffness k [N/m]", fit["felt_stiffness"]),
                     ("predicted felt damping b [N s/m]", chk.render.felt_damping),
@@ -188,8 +197,8 @@ def run_haply2_command(args) -> int:
               f"k {dev['felt_stiffness']:.2e}, b {dev['felt_damping']:.2e}", file=o)
     if bd["felt_stiffness"] is not None:
         print(f"  linearisation bound at the records' largest excursion "
-              f"{bound.amplitude:.3g} m (never below a: the hand's moving starts, and a "
-              f"board on its own clock coasting through its set-up, go past it): k "
+              f"{bound.amplitude:.3g} m (never below a: the hand's moving starts go past "
+              f"it): k "
               f"{bd['felt_stiffness']:.2e}, "
               f"b {bd['felt_damping']:.2e}", file=o)
     if math.isfinite(wire["felt_stiffness"]):
@@ -214,6 +223,39 @@ def run_haply2_command(args) -> int:
           f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "
           f"{real['gen2']:.2e}, gen3 {real['gen3']:.2e} of a", file=o)
     return 0
+
+
+def designed_start(scene) -> tuple:
+    """The hand's start a run takes when none is given: the largest the scene's linear
+    range allows (:func:`hapsim.lockstep.largest_start`: every engaged contact closed, the
+    joints within :data:`hapsim.pipeline.haply2_record.ENVELOPE_RAD`), never below
+    :data:`HAPLY_AMPLITUDE`. A larger start moves the records over more of the wire's
+    resolution: on configs/pantograph_wall.yaml 0.42 mm (limited by the wall's 0.5 mm)
+    states the felt damping that 0.1 mm left unstated, in lockstep and in real time
+    (docs/drivers.md).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 2-D pantograph scene with a port.
+
+    Returns
+    -------
+    (float, str)
+        ``a`` [m] and what limits it (``"contact NAME"``, ``"envelope"`` or ``"the
+        smallest start"``).
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.lockstep.identification_plan`.
+    """
+    from hapsim.lockstep import identification_plan, largest_start
+    from hapsim.pipeline.haply2_record import ENVELOPE_RAD
+    a, by = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
+    if a < HAPLY_AMPLITUDE:
+        return HAPLY_AMPLITUDE, "the smallest start"
+    return a, by
 
 
 def prediction_haply2(pre: dict, amplitude: float):

@@ -1,0 +1,115 @@
+"""The largest hand start a scene's linear range allows (:func:`hapsim.lockstep.largest_start`)
+and the 2DIY run's default start built on it (:func:`hapsim.commands.run_haply2.designed_start`).
+
+Checked against the records themselves: at the start it returns, the exact records' motion
+toward the limiting contact's opening (:func:`hapsim.analysis.linearisation.bound_at_records`,
+itself checked against the contact laws in tests/test_bound_at_records.py) is
+:data:`~hapsim.lockstep.START_MARGIN` of the depth, or their excursion that of the joints'
+envelope at the handle; over random wall depths the start follows the depth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hapsim.analysis.linearisation import bound_at_records
+from hapsim.kinematics import device
+from hapsim.lockstep import (START_MARGIN, LockstepND, excitation_starts,
+                             identification_plan, largest_start)
+from hapsim.scene import load_scene_nd
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def _records(scene, a, N):
+    recs = [LockstepND(scene, x0=x0, v0=v0).step(N, record=True)
+            for x0, v0 in excitation_starts(scene.dimension, a, scene.period)]
+    return [r - recs[0] for r in recs[1:]]
+
+
+@pytest.mark.parametrize("name, env", [("pantograph_wall", 0.03), ("pantograph_circle", 0.03),
+                                       ("pantograph_spring", 0.03), ("delta_sphere", 0.1),
+                                       ("falcon_spring", 0.1)])
+def test_the_start_puts_the_records_at_the_margin_of_what_limits_it(name, env):
+    """At the returned start the exact records reach 0.9 of the limiting contact's depth
+    (toward its opening) or of the joints' envelope at the handle: the records are linear
+    in ``a`` (measured: within 1.5e-3 of 0.9 on these five scenes, the loops' second-order
+    terms; asserted within 2e-2). The Falcon's spring field is limited by its legs'
+    envelope at 3.77 mm, the figure its feasibility states (docs/devices.md)."""
+    sc = load_scene_nd(CONFIGS / f"{name}.yaml")
+    N = identification_plan(sc)[2]
+    a, by = largest_start(sc, N, env)
+    bound, ex = bound_at_records(sc, a, _records(sc, a, N))
+    if by.startswith("contact"):
+        assert by == f"contact {bound.opening_name}" and bound.opening_name is not None
+        assert abs(bound.opening - START_MARGIN) < 2e-2, (name, bound.opening)
+    else:
+        J = device(sc.device.kind, sc.device.geometry).jacobian(np.asarray(sc.device.joints))
+        reach = env * np.linalg.svd(J, compute_uv=False)[-1]
+        assert abs(ex / reach - START_MARGIN) < 2e-2, (name, ex / reach)
+        assert not bound.opening >= START_MARGIN      # (nan: no contact engaged)
+    if name == "falcon_spring":
+        assert by == "envelope" and abs(a - 3.77e-3) < 5e-6
+
+
+def _deeper(sc, shift):
+    """configs/pantograph_wall.yaml's handle ``shift`` [m] deeper into its wall at the same
+    rest: the wall moved out by ``shift`` and the press point back by the stiffnesses'
+    ratio times it (the wall's force ``K_w d`` balanced by the press spring's ``K_s L``),
+    as docs/pantograph_deep_wall.yaml is built."""
+    ratio = sc.planes[0].stiffness / sc.links[0].stiffness
+    return dataclasses.replace(
+        sc, planes=[dataclasses.replace(p, offset=p.offset + shift) for p in sc.planes],
+        masses=[dataclasses.replace(m, x0=np.asarray(m.x0) - [0.0, ratio * shift])
+                if m.kind == "ground" else m for m in sc.masses])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_start_follows_the_walls_depth_at_random_depths(seed):
+    """configs/pantograph_wall.yaml with the handle resting 0.15-2 mm into the wall (the
+    press point moved with it, so the loop is the same): the start is proportional to the
+    depth while the wall limits it (the records' motion toward the wall is the same loop's
+    at every depth), and the joints' envelope takes over past it (0.54 mm of start at
+    0.03 rad, about 0.6 mm of depth)."""
+    rng = np.random.default_rng(seed)
+    sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
+    N = identification_plan(sc)[2]
+    a0, by0 = largest_start(sc, N, 0.03)
+    d0 = 5e-4                                 # the shipped wall's depth at rest [m]
+    depth = float(np.exp(rng.uniform(np.log(1.5e-4), np.log(2e-3))))   # log-uniform
+    shift = depth - d0
+    a, by = largest_start(_deeper(sc, shift), N, 0.03)
+    # the same loop 20 mm into the wall: the joints' envelope alone limits it
+    a_env, by_env = largest_start(_deeper(sc, 0.02), N, 0.03)
+    assert by0 == "contact wall" and by_env == "envelope"
+    want = a0 * depth / d0
+    # measured: within 4e-3 of proportional, and of the envelope's start, over these depths
+    if want < 0.98 * a_env:
+        assert by == "contact wall" and abs(a / want - 1.0) < 2e-2, (depth, a, want)
+    elif want > 1.02 * a_env:
+        assert by == "envelope" and abs(a / a_env - 1.0) < 2e-2, (depth, a, a_env)
+    assert a <= min(want, a_env) * 1.02
+
+
+def test_the_2diy_run_takes_the_designed_start_and_states_everything(capsys):
+    """``hapsim run configs/pantograph_wall.yaml --driver haply --lockstep`` without
+    ``--amplitude`` takes the largest start the wall allows (0.42 mm), names what limits
+    it, and states the felt damping that the old default of 0.1 mm left unstated: every
+    quantity within (its own JSON)."""
+    from hapsim.cli import main
+    assert main(["run", str(CONFIGS / "pantograph_wall.yaml"), "--driver", "haply",
+                 "--lockstep", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["amplitude_limited_by"] == "contact wall"
+    assert 4.0e-4 < out["amplitude"] < 4.4e-4
+    assert out["verdict"] == "within" and not out["not_stated"], out["reason"]
+    assert main(["run", str(CONFIGS / "pantograph_wall.yaml"), "--driver", "haply",
+                 "--lockstep", "--amplitude", "1e-4", "--json"]) == 0
+    small = json.loads(capsys.readouterr().out)
+    assert small["amplitude_limited_by"] is None and small["amplitude"] == 1e-4
+    assert small["verdict"] == "partly within" and small["not_stated"]
