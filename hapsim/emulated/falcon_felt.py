@@ -188,11 +188,17 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         usable, own, fit = None, None, None
     delta = math.radians(DEG_PER_TICK) / 2.0
     tq = TORQUE_PER_COUNT / 2.0
-    # the bound at the motion the fitted rows reached from the record from rest (it was
-    # computed here and left unused: the bound stated at the hand's a)
-    bound, excursion = bound_at_records(scene, amplitude, [p - rest for p in pos[1:]],
-                                        chk.render.rendered_poles,
-                                        usable=own[1:] if own is not None else None)
+    # the bound at the motion the fitted rows reached: the differences' from the record
+    # from rest, or, each record fitted on its own stretches, each record's own about the
+    # operating point, the one from rest too (as the 2DIY's: a difference would cancel
+    # or miss the record from rest's own motion)
+    if own is not None:
+        bound, excursion = bound_at_records(scene, amplitude, held,
+                                            chk.render.rendered_poles, origin=x_eq,
+                                            usable=own)
+    else:
+        bound, excursion = bound_at_records(scene, amplitude, [p - rest for p in pos[1:]],
+                                            chk.render.rendered_poles)
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta, "torque_bound_nm": tq}
     cmds = [np.asarray(r["commands"])[:N] for r in runs]

@@ -136,10 +136,17 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         floor = MODE_FLOOR * float(np.linalg.norm(np.abs(J) @ delta)) * 2
         fit = fit_felt_nd(diffs, mass, T, order, floor=floor)
     dev = felt_deviation(fit, chk)
-    # the bound at the motion the fitted rows reached from the record from rest (a moving
-    # start, a held torque or a lost byte's carries the handle past the hand's a)
-    bound, _ = bound_at_records(scene, amplitude, diffs, chk.render.rendered_poles,
-                                usable=own[1:] if own is not None else usable)
+    # the bound at the motion the fitted rows reached (a moving start, a held torque or a
+    # lost byte's carries the handle past the hand's a): the differences' from the record
+    # from rest, or, each record fitted on its own stretches, each record's own about the
+    # operating point, the one from rest too (after a re-synchronisation it moves from
+    # the hand's next start; a difference would cancel or miss that motion)
+    if own is not None:
+        bound, _ = bound_at_records(scene, amplitude, [r["position"] for r in runs],
+                                    chk.render.rendered_poles, origin=x_eq, usable=own)
+    else:
+        bound, _ = bound_at_records(scene, amplitude, diffs, chk.render.rendered_poles,
+                                    usable=usable)
     # the wire's term (docstring)
     torque_rel = 2.0 ** -24
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
