@@ -216,9 +216,8 @@ def register(sub) -> None:
     add_run_arguments(p, after={"seed": auto, "driver": device})
     p.add_argument("--amplitude", type=declared("run_nd", "amplitude"), metavar="M",
                    help="2-D or 3-D scene: the free responses' amplitude [m] (default "
-                        "1e-8; --driver haply: the largest start the scene's linear range "
-                        "allows, every contact closed, the joints within 0.03 rad; the "
-                        "report states the linearisation bound at the records' motion)")
+                        "1e-8; --driver haply: the largest the scene's linear range "
+                        "allows; the linearisation bound at the records' motion)")
     p.add_argument("--firmware", metavar="FILE",
                    help="--driver falcon: the Novint firmware image the Falcon loads at "
                         "each power-up (yours: hapsim does not ship it)")
