@@ -59,16 +59,11 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["measure_felt_falcon", "falcon_felt_verdict", "falcon_usable_rows",
-           "quantiser_terms", "felt_feasibility", "COMMAND_CLAMP", "EXCURSION_MARGIN"]
+           "quantiser_terms", "felt_feasibility", "COMMAND_CLAMP"]
 
 #: The largest motor command a packet carries (int16; :func:`hapsim.drivers.falcon.
 #: torque_command` clamps there).
 COMMAND_CLAMP = 32767
-#: The largest excitation :func:`felt_feasibility` takes is this fraction of the one whose
-#: exact records reach the shallowest contact's depth or the legs' envelope (the records'
-#: excursion is linear in ``a``; the margin leaves the velocity starts' overshoot and the
-#: second-order terms 10 %).
-EXCURSION_MARGIN = 0.9
 
 
 def falcon_usable_rows(joints, delay: int) -> np.ndarray:
@@ -415,13 +410,15 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     (named: the counts' and the commands' rounding alone, no host timing) at the largest
     excitation the scene's linear range allows, the start the run takes.
 
-    The largest excitation ``a_max`` is :data:`EXCURSION_MARGIN` times the one whose exact
-    records reach the shallowest contact's depth at rest
-    (:func:`hapsim.analysis.linearisation.linearisation_bound`: beyond it the contact
-    opens, no linear estimate holds) or carry a leg beyond
+    The largest excitation ``a_max`` is :func:`hapsim.lockstep.largest_start`'s, the
+    2DIY run's: :data:`hapsim.lockstep.START_MARGIN` of the start whose exact records'
+    motion toward a contact's opening reaches its depth at rest (beyond it the contact
+    opens, no linear estimate holds) or carries a leg beyond
     :data:`hapsim.drivers.falcon.ENVELOPE_RAD` (through ``J(q0)``'s smallest singular
-    value), whichever is smaller; the records' excursion is linear in ``a`` to first
-    order (8e-4 off from 0.1 to 0.2 mm on configs/delta_sphere.yaml).
+    value), whichever is smaller; the records' motion is linear in ``a`` to first order
+    (8e-4 off from 0.1 to 0.2 mm on configs/delta_sphere.yaml). Before, the motion's
+    norm against the shallowest depth: on configs/delta_sphere.yaml 0.24 mm where the
+    motion toward the sphere's opening allows 0.55 mm.
 
     **Why the lockstep records, over the box.** Before, the prediction was the
     first-order term about the exact records (:func:`quantiser_terms`) against the limit
@@ -484,11 +481,11 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
         The emulated Falcon did not home (:func:`measure_felt_falcon`).
     """
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
-    from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.analysis.linearisation import _engaged, linearisation_bound
     from hapsim.analysis.wire_box import BOX_MARGIN
     from hapsim.drivers.falcon import DEG_PER_TICK, ENVELOPE_RAD
     from hapsim.kinematics import device
-    from hapsim.lockstep import identification_plan
+    from hapsim.lockstep import START_MARGIN, identification_plan, largest_start
     if plan is None:
         plan = identification_plan(scene)
     chk = plan[0]
@@ -500,23 +497,25 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     unit = max(float(np.max(np.linalg.norm(d_, axis=1)))
                for d_ in _exact_differences(scene, a_ref, plan[2])) / a_ref
     bound = linearisation_bound(scene, 1e-9, chk.render.rendered_poles)
-    depth = float(bound.depth)
-    env = ENVELOPE_RAD * float(np.linalg.svd(J, compute_uv=False)[-1])
     col = np.linalg.svd(J, compute_uv=False)[::-1] * q      # a count along the axes of J
     every = ["felt stiffness", "felt damping"]
-    if depth <= 0.0:
+    if float(bound.depth) <= 0.0:
         why = (f"the contact {bound.depth_name!r} is open at rest: no hand start keeps the "
                "loop linear")
         return {"verdict": "not measurable", "stated": [], "not_stated": every,
                 "statement": _before_run(0.0, [], every, why), "amplitude_m": 0.0,
                 "limited_by": f"contact {bound.depth_name!r}",
                 "count_at_handle_m": [float(col.min()), float(col.max())], "reason": why}
-    if depth < env:
-        a_max = EXCURSION_MARGIN * depth / unit
-        by = f"the depth {depth * 1e3:.2f} mm of the contact {bound.depth_name!r}"
-    else:
-        a_max = EXCURSION_MARGIN * env / unit
+    # the largest start, the 2DIY run's rule (the motion toward each contact's opening,
+    # the legs' envelope through J(q0)): before, the motion's norm against the shallowest
+    # depth, conservative along a contact's tangent
+    a_max, lim = largest_start(scene, plan[2], ENVELOPE_RAD, reference=a_ref)
+    if lim == "envelope":
         by = f"the legs' envelope of {ENVELOPE_RAD:g} rad"
+    else:
+        name = lim.split(" ", 1)[1]
+        depth = next(d for nm, d, _ in _engaged(scene) if nm == name)
+        by = f"the depth {depth * 1e3:.2f} mm of the contact {name!r} toward its opening"
     t = quantiser_terms(scene, a_max, plan)
     keys = ("felt_stiffness", "felt_damping")
     need_a = {k: a_max * t["worst"][k] / MEASURABLE_WIRE for k in keys}
@@ -543,8 +542,8 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     reason = (f"one encoder count is {col.min() * 1e6:.0f}-{col.max() * 1e6:.0f} um at the "
               f"handle; the largest hand start the scene's linear range allows is "
               f"{a_max * 1e3:.2f} mm, about {a_max / col.mean():.0f} counts (the records "
-              f"reach {unit:.2f} a: {EXCURSION_MARGIN:g} of the start at which they reach "
-              f"{by}); {said}, against the limit {MEASURABLE_WIRE:g} of a statement: "
+              f"reach {unit:.2f} a; the start is {START_MARGIN:g} of the one at which they "
+              f"reach {by}); {said}, against the limit {MEASURABLE_WIRE:g} of a statement: "
               + (("stated: " + ", ".join(stated)
                   + ("; not stated: " + ", ".join(not_stated) if not_stated else ""))
                  if stated else "nothing stated")
