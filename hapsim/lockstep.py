@@ -296,16 +296,17 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
 
     Returns
     -------
-    (float, str)
-        ``a`` [m] (0 when a contact is open at rest) and what limits it: ``"contact
-        NAME"`` or ``"envelope"``.
+    (float, str, float)
+        ``a`` [m] (0 when a contact is open at rest), what limits it (``"contact
+        NAME"`` or ``"envelope"``) and that limit [m]: the contact's depth at rest or the
+        envelope at the handle.
 
     Raises
     ------
     ConfigError
         A non-positive ``envelope_rad`` or ``reference``; as :class:`LockstepND`.
     """
-    from hapsim.analysis.linearisation import bound_at_records
+    from hapsim.analysis.linearisation import bound_at_records, engaged_contacts
     from hapsim.kinematics import device
     if not (envelope_rad > 0 and reference > 0):
         raise ConfigError(f"the envelope ({envelope_rad!r} rad) and the reference start "
@@ -318,11 +319,13 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     J = device(dev.kind, dev.geometry).jacobian(np.asarray(dev.joints, float))
     env = float(envelope_rad) * float(np.linalg.svd(J, compute_uv=False)[-1])
     if bound.depth <= 0.0:
-        return 0.0, f"contact {bound.depth_name}"
+        return 0.0, f"contact {bound.depth_name}", float(bound.depth)
     a_env = START_MARGIN * env * reference / excursion
     if bound.opening > 0.0 and START_MARGIN * reference / bound.opening < a_env:
-        return START_MARGIN * reference / bound.opening, f"contact {bound.opening_name}"
-    return a_env, "envelope"
+        depth = next(d for nm, d, _ in engaged_contacts(scene) if nm == bound.opening_name)
+        return (START_MARGIN * reference / bound.opening, f"contact {bound.opening_name}",
+                depth)
+    return a_env, "envelope", env
 
 
 def identification_plan(scene, samples: int | None = None) -> tuple:

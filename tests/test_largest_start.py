@@ -43,14 +43,16 @@ def test_the_start_puts_the_records_at_the_margin_of_what_limits_it(name, env):
     envelope at 3.77 mm, the figure its feasibility states (docs/devices.md)."""
     sc = load_scene_nd(CONFIGS / f"{name}.yaml")
     N = identification_plan(sc)[2]
-    a, by = largest_start(sc, N, env)
+    a, by, limit = largest_start(sc, N, env)
     bound, ex = bound_at_records(sc, a, _records(sc, a, N))
     if by.startswith("contact"):
         assert by == f"contact {bound.opening_name}" and bound.opening_name is not None
+        assert limit == bound.depth                   # one contact in each of these
         assert abs(bound.opening - START_MARGIN) < 2e-2, (name, bound.opening)
     else:
         J = device(sc.device.kind, sc.device.geometry).jacobian(np.asarray(sc.device.joints))
         reach = env * np.linalg.svd(J, compute_uv=False)[-1]
+        assert abs(limit - reach) <= 1e-12 * reach
         assert abs(ex / reach - START_MARGIN) < 2e-2, (name, ex / reach)
         assert not bound.opening >= START_MARGIN      # (nan: no contact engaged)
     if name == "falcon_spring":
@@ -79,18 +81,19 @@ def test_the_start_follows_the_walls_depth_at_random_depths(seed):
     rng = np.random.default_rng(seed)
     sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
     N = identification_plan(sc)[2]
-    a0, by0 = largest_start(sc, N, 0.03)
-    d0 = 5e-4                                 # the shipped wall's depth at rest [m]
+    a0, by0, d0 = largest_start(sc, N, 0.03)
+    assert abs(d0 - 5e-4) < 1e-9              # the shipped wall's depth at rest [m]
     depth = float(np.exp(rng.uniform(np.log(1.5e-4), np.log(2e-3))))   # log-uniform
     shift = depth - d0
-    a, by = largest_start(_deeper(sc, shift), N, 0.03)
+    a, by, limit = largest_start(_deeper(sc, shift), N, 0.03)
     # the same loop 20 mm into the wall: the joints' envelope alone limits it
-    a_env, by_env = largest_start(_deeper(sc, 0.02), N, 0.03)
+    a_env, by_env, _ = largest_start(_deeper(sc, 0.02), N, 0.03)
     assert by0 == "contact wall" and by_env == "envelope"
     want = a0 * depth / d0
     # measured: within 4e-3 of proportional, and of the envelope's start, over these depths
     if want < 0.98 * a_env:
         assert by == "contact wall" and abs(a / want - 1.0) < 2e-2, (depth, a, want)
+        assert abs(limit - depth) < 1e-9           # the scene's ten digits
     elif want > 1.02 * a_env:
         assert by == "envelope" and abs(a / a_env - 1.0) < 2e-2, (depth, a, a_env)
     assert a <= min(want, a_env) * 1.02

@@ -62,7 +62,7 @@ import numpy as np
 from hapsim.outputs import finite_or_none
 
 __all__ = ["LinearisationBound", "linearisation_bound", "kinematic_coefficient",
-           "records_excursion", "bound_at_records"]
+           "records_excursion", "bound_at_records", "engaged_contacts"]
 
 
 def kinematic_coefficient(kind: str, geometry: str, joints, joint_inertia,
@@ -232,14 +232,24 @@ class LinearisationBound:
                 "opening_contact": self.opening_name}
 
 
-def _engaged(scene):
+def engaged_contacts(scene):
     """The contacts and planes of a scene with their depth at rest [m] (0: open at rest,
     taken engaged) and, where the handle's motion alone sets it, the motion toward opening
     that one: a callable taking the handle's displacements from rest ``D`` (shape
     (N, n) [m]) to how far each row went toward opening [m] (a plane on the handle:
     ``D . normal``, the penetration ``offset - normal . x`` falling as it grows; a
     contact between the handle and a ground mass: the distance's growth
-    ``|x0 + D - c| - l0``, exact); None where other masses move too."""
+    ``|x0 + D - c| - l0``, exact); None where other masses move too.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+
+    Yields
+    ------
+    (str, float, callable or None)
+        The contact's or plane's name, its depth at rest [m], the motion toward opening.
+    """
     pos = {m.name: m.x0 for m in scene.masses}
     kind = {m.name: m.kind for m in scene.masses}
     port = getattr(scene.port, "name", None)
@@ -305,7 +315,7 @@ def linearisation_bound(scene, amplitude: float, rendered_poles=None) -> Lineari
         if c > c_link:
             c_link, link_name = c, lk.name
     depth, depth_name = math.inf, None
-    for name, dep, _ in _engaged(scene):
+    for name, dep, _ in engaged_contacts(scene):
         if dep < depth:
             depth, depth_name = dep, name
     factor = math.nan
@@ -392,11 +402,11 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
          for r in records]
     ex = records_excursion(D, None, usable)
     bound = linearisation_bound(scene, max(float(amplitude), ex), rendered_poles)
-    # toward opening (_engaged): a plane on the handle along its normal, a contact with a
+    # toward opening (engaged_contacts): a plane on the handle along its normal, a contact with a
     # ground mass by the distance's growth, every other one by the motion's norm (the
     # port's records do not say how the masses it touches move)
     worst, name = 0.0, None
-    for nm, dep, motion in _engaged(scene):
+    for nm, dep, motion in engaged_contacts(scene):
         toward = ex if motion is None else max(
             [0.0] + [float(np.max(motion(d)[_rows(d, usable, j)], initial=0.0))
                      for j, d in enumerate(D)])

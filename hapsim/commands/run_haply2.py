@@ -252,7 +252,7 @@ def designed_start(scene) -> tuple:
     """
     from hapsim.lockstep import identification_plan, largest_start
     from hapsim.pipeline.haply2_record import ENVELOPE_RAD
-    a, by = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
+    a, by, _ = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
     if a < HAPLY_AMPLITUDE:
         return HAPLY_AMPLITUDE, "the smallest start"
     return a, by

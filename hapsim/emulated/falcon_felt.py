@@ -481,7 +481,7 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
         The emulated Falcon did not home (:func:`measure_felt_falcon`).
     """
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
-    from hapsim.analysis.linearisation import _engaged, linearisation_bound
+    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.wire_box import BOX_MARGIN
     from hapsim.drivers.falcon import DEG_PER_TICK, ENVELOPE_RAD
     from hapsim.kinematics import device
@@ -509,13 +509,10 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     # the largest start, the 2DIY run's rule (the motion toward each contact's opening,
     # the legs' envelope through J(q0)): before, the motion's norm against the shallowest
     # depth, conservative along a contact's tangent
-    a_max, lim = largest_start(scene, plan[2], ENVELOPE_RAD, reference=a_ref)
-    if lim == "envelope":
-        by = f"the legs' envelope of {ENVELOPE_RAD:g} rad"
-    else:
-        name = lim.split(" ", 1)[1]
-        depth = next(d for nm, d, _ in _engaged(scene) if nm == name)
-        by = f"the depth {depth * 1e3:.2f} mm of the contact {name!r} toward its opening"
+    a_max, lim, depth = largest_start(scene, plan[2], ENVELOPE_RAD, reference=a_ref)
+    by = (f"the legs' envelope of {ENVELOPE_RAD:g} rad" if lim == "envelope" else
+          f"the depth {depth * 1e3:.2f} mm of the contact {lim.split(' ', 1)[1]!r} toward "
+          "its opening")
     t = quantiser_terms(scene, a_max, plan)
     keys = ("felt_stiffness", "felt_damping")
     need_a = {k: a_max * t["worst"][k] / MEASURABLE_WIRE for k in keys}
