@@ -279,8 +279,10 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     the start at which the first of them reaches its limit is ``reference`` over that
     ratio. The joints' envelope at the handle is ``envelope_rad`` times the smallest
     singular value of the device's Jacobian ``J(q0)`` at rest (``|dq| <= |dx| / s_min``).
-    A start moving at ``a / (10 T)`` carries the handle past ``a`` (2.19 ``a`` on
-    configs/pantograph_wall.yaml), so the start is about half the depth, not the depth.
+    A start moving at ``a / (10 T)`` carries the handle past ``a``: on
+    configs/pantograph_wall.yaml 2.19 ``a`` in all (along the wall's tangent) and 1.07
+    ``a`` toward the wall's opening, so the start there is 0.84 of the depth (0.42 mm of
+    0.5 mm), not 0.9.
 
     Parameters
     ----------
@@ -306,7 +308,7 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     ConfigError
         A non-positive ``envelope_rad`` or ``reference``; as :class:`LockstepND`.
     """
-    from hapsim.analysis.linearisation import bound_at_records, engaged_contacts
+    from hapsim.analysis.linearisation import bound_at_records
     from hapsim.kinematics import device
     if not (envelope_rad > 0 and reference > 0):
         raise ConfigError(f"the envelope ({envelope_rad!r} rad) and the reference start "
@@ -322,9 +324,8 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
         return 0.0, f"contact {bound.depth_name}", float(bound.depth)
     a_env = START_MARGIN * env * reference / excursion
     if bound.opening > 0.0 and START_MARGIN * reference / bound.opening < a_env:
-        depth = next(d for nm, d, _ in engaged_contacts(scene) if nm == bound.opening_name)
         return (START_MARGIN * reference / bound.opening, f"contact {bound.opening_name}",
-                depth)
+                float(bound.opening_depth))
     return a_env, "envelope", env
 
 

@@ -158,8 +158,10 @@ def test_widrow_kollar_is_below_the_worst_case_and_the_start_keeps_to_the_contac
     # first-order bound: the motion toward the sphere's opening departs from linear in
     # ``a`` by no more than the linearisation bound at the start
     opening = bound_at_records(sc, a, _exact_differences(sc, a, plan[2]))[0].opening
-    assert opening <= START_MARGIN * (1 + b.stiffness)
-    assert opening >= START_MARGIN * (1 - b.stiffness)
+    # measured 0.8959 (4.1e-3 off 0.9, the loop's second-order terms); asserted within
+    # 1e-2, a margin of 2.4 (the bound at the start, ``b.stiffness``, is no help here:
+    # infinite once ``a`` passes the depth, as 0.55 mm does the sphere's 0.5 mm)
+    assert abs(opening - START_MARGIN) < 1e-2, (opening, b.stiffness)
 
 
 def test_missing_rows_are_cut_with_the_rows_their_stale_force_acted_on():

@@ -153,15 +153,24 @@ def within_excursion(scene, diffs, usable, amplitude: float) -> list:
     Parameters
     ----------
     scene : hapsim.scene.SceneND
+        A 2-D or 3-D scene with a port and a device (its undisturbed records are taken in
+        lockstep).
     diffs : list of ndarray, each shape (N, n)
         The records minus the record from rest [m] (or minus the operating point).
     usable : list of ndarray of bool, each shape (N,)
+        Each record's undisturbed rows (False at its cuts).
     amplitude : float
         The hand's ``a`` [m].
 
     Returns
     -------
     list of ndarray of bool, each shape (N,)
+        ``usable`` less the rows left out.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        As :class:`hapsim.lockstep.LockstepND` (a scene it cannot close).
     """
     from hapsim.analysis.linearisation import engaged_contacts
     from hapsim.lockstep import LockstepND, excitation_starts

@@ -160,6 +160,9 @@ class LinearisationBound:
         against :attr:`depth` in every direction.
     opening_name : str or None
         The contact or plane of :attr:`opening`.
+    opening_depth : float
+        That one's depth at rest [m] (nan with :attr:`opening`; a plane on several
+        masses has a depth for each).
     """
 
     amplitude: float
@@ -172,6 +175,7 @@ class LinearisationBound:
     position_scale: float = 0.0
     opening: float = math.nan
     opening_name: str | None = None
+    opening_depth: float = math.nan
 
     @property
     def opens(self) -> bool:
@@ -244,6 +248,7 @@ def engaged_contacts(scene):
     Parameters
     ----------
     scene : hapsim.scene.SceneND
+        The scene (its contacts, planes, masses' rest positions and port).
 
     Yields
     ------
@@ -402,20 +407,21 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
          for r in records]
     ex = records_excursion(D, None, usable)
     bound = linearisation_bound(scene, max(float(amplitude), ex), rendered_poles)
-    # toward opening (engaged_contacts): a plane on the handle along its normal, a contact with a
-    # ground mass by the distance's growth, every other one by the motion's norm (the
+    # toward opening (engaged_contacts): a plane on the handle along its normal, a
+    # contact with a ground mass by the distance's growth, every other one by the motion's norm (the
     # port's records do not say how the masses it touches move)
-    worst, name = 0.0, None
+    worst, name, depth = 0.0, None, math.nan
     for nm, dep, motion in engaged_contacts(scene):
         toward = ex if motion is None else max(
             [0.0] + [float(np.max(motion(d)[_rows(d, usable, j)], initial=0.0))
                      for j, d in enumerate(D)])
         ratio = toward / dep if dep > 0 else math.inf
         if ratio > worst or name is None:
-            worst, name = ratio, nm
+            worst, name, depth = ratio, nm, dep
     if name is None:
         return bound, ex
-    return dataclasses.replace(bound, opening=worst, opening_name=name), ex
+    return dataclasses.replace(bound, opening=worst, opening_name=name,
+                               opening_depth=depth), ex
 
 
 def _rows(r, usable, j) -> np.ndarray:

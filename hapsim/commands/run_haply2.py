@@ -242,8 +242,8 @@ def designed_start(scene) -> tuple:
     Returns
     -------
     (float, str)
-        ``a`` [m] and what limits it (``"contact NAME"``, ``"envelope"`` or ``"the
-        smallest start"``).
+        ``a`` [m] and what limits it (``"contact NAME"``, ``"envelope"``, or ``"the
+        smallest start (...)"`` saying what the scene allowed).
 
     Raises
     ------
@@ -252,9 +252,12 @@ def designed_start(scene) -> tuple:
     """
     from hapsim.lockstep import identification_plan, largest_start
     from hapsim.pipeline.haply2_record import ENVELOPE_RAD
-    a, by, _ = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
+    a, by, limit = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
+    if a <= 0.0:
+        # the verdict then says the contact opens, by name
+        return HAPLY_AMPLITUDE, f"the smallest start ({by} is open at rest)"
     if a < HAPLY_AMPLITUDE:
-        return HAPLY_AMPLITUDE, "the smallest start"
+        return HAPLY_AMPLITUDE, f"the smallest start ({by} allows {a:.2g} m)"
     return a, by
 
 

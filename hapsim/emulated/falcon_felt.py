@@ -131,7 +131,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         first, the equations its own stretches gave the fit; None for whole records),
         ``quantum`` (one count at the handle over ``a``, ``|J(q0)| q / a`` [-]),
         ``excursion`` (the largest distance of a record's fitted rows from the rest
-        record [m]: the linearisation bound's amplitude when above ``amplitude``).
+        record, or, records cut at missing replies, from the operating point [m]: the
+        linearisation bound's amplitude when above ``amplitude``).
 
     Raises
     ------

@@ -20,11 +20,13 @@ host's offsets say it is); the hand then lets it go from start ``k mod (2n + 1)`
 :func:`hapsim.lockstep.excitation_starts` (``k`` the set-ups so far), as the n-D mock
 does at each CONFIG (:class:`hapsim.emulated.mock.MockDeviceND`). On the wall clock the
 hand holds the handle at the operating point through the set-up's waits (each encoder's
-count is written there, after its wait) and whatever the host does before its next
-write (the host drains the link for 30 ms before a record,
-:data:`hapsim.pipeline.haply2_record.QUIET_S`), and lets it go at that write's pass: the
-record's first sample, as in lockstep and as the Falcon's hand
-(:mod:`hapsim.emulated.falcon_device`). Before, it let go at the set-up and the handle
+count is written there, after its wait) and whatever the host does before the record's
+first write (the host drains the link for 30 ms before a record,
+:data:`hapsim.pipeline.haply2_record.QUIET_S`, and awaits a re-arming's answer up to
+``REARM_REPLY_S`` plus its quiet), and lets it go at that write's pass: the record's first
+sample, as in lockstep and as the Falcon's hand (:mod:`hapsim.emulated.falcon_device`). A
+write that came in the same bytes as the set-up (a re-arming's closing zero write) is not
+that write. Before, it let go at the set-up and the handle
 coasted under no torque through the drain: the records reached 3.3-3.6 ``a`` against
 2.19 ``a`` in lockstep, and a start the lockstep prediction found inside a contact left
 it in real time.
@@ -144,6 +146,8 @@ class Haply2DIYBoard:
         self._busy_until = 0.0                # the firmware's next pass, not before [s]
         self._due: deque = deque()            # (time [s], torques) not yet in effect
         self._hand = None                     # the plant at the hand's start, not let go
+        self._feeds = 0                       # the host's writes fed so far (wall clock)
+        self._hand_feed = -1                  # the one the set-up the hand holds came in
         dev = scene.device
         if scene.dimension != 2 or dev is None or dev.kind != "pantograph":
             raise ConfigError("the Haply 2DIY drives a 2-D scene with a pantograph device",
@@ -304,7 +308,8 @@ class Haply2DIYBoard:
 
     def run_to(self, t: float) -> None:
         """Wall clock: the pantograph integrated to the board's time ``t`` [s], the torques
-        in effect held, each write's taking effect at its time.
+        in effect held, each write's taking effect at its time (the plant not moving while
+        the hand holds it after a set-up: module notes).
 
         Raises
         ------
@@ -357,6 +362,9 @@ class Haply2DIYBoard:
             self.run_to(now)                      # (raises: the time is needed)
         early = self._flush(now)                  # passes before these bytes came
         self._seen = self._last_now = now
+        # (the commands parsed from here on came in this write, those held before it in
+        # an earlier one: what tells a set-up's own closing write from the next)
+        self._feeds += 1
         return early + self._run(data, now)
 
     _last_now = 0.0
@@ -380,8 +388,11 @@ class Haply2DIYBoard:
                     self._busy_until = t + max(n * SETUP_S, PASS_S)
                     # the hand holds the handle at the operating point through the waits
                     # (each count is written there) and whatever the host does before
-                    # its next write, and lets it go from its start at that write
-                    self._hand = self.plant
+                    # the record's first write, and lets it go from its start there: a
+                    # write that came in the set-up's own host write (a re-arming's
+                    # closing zero write, taken after the set-up's waits and answered
+                    # while the host waits up to ~25 ms) does not let it go
+                    self._hand, self._hand_feed = self.plant, self._feeds
                     self.plant = copy.deepcopy(self._rest)
                 continue
             if cmd[0] != "write":
@@ -394,9 +405,11 @@ class Haply2DIYBoard:
                 new[port0 + 1] = max(-0.123, min(0.123, tv))
             self.clamped += sum(abs(tv) >= 0.123 for tv in new.values())
             self.last_command = max((abs(tv) for tv in new.values()), default=0.0)
-            if self.wall is not None and self._hand is not None:
+            if (self.wall is not None and self._hand is not None
+                    and self._feeds != self._hand_feed):
                 self.run_to(t)
                 self.plant, self._hand = self._hand, None      # the hand lets go
+                self._since = t                   # (no torque acted while it held)
             if self.wall is not None:
                 # write_states, then read_states in the same pass: the angles below are
                 # read at t, the torques act from t (plus the scene's extra delay)
