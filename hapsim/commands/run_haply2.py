@@ -183,7 +183,7 @@ def run_haply2_command(args) -> int:
     print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
           f"a = {a:.3g} m (minus the response from rest"
           + ("" if designed is None else f"; the largest start the scene's linear range "
-             f"allows, limited by {designed}") + ")", file=o)
+             f"allows, limited by {_limit_text(designed)}") + ")", file=o)
     for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),
                     ("measured felt stiffness k [N/m]", fit["felt_stiffness"]),
                     ("predicted felt damping b [N s/m]", chk.render.felt_damping),
@@ -223,6 +223,16 @@ def run_haply2_command(args) -> int:
           f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "
           f"{real['gen2']:.2e}, gen3 {real['gen3']:.2e} of a", file=o)
     return 0
+
+
+def _limit_text(designed: str) -> str:
+    """:func:`designed_start`'s limit in words: "contact wall" -> "the contact 'wall'"."""
+    if designed.startswith("contact "):
+        return f"the contact {designed.split(' ', 1)[1]!r}"
+    if designed == "envelope":
+        from hapsim.pipeline.haply2_record import ENVELOPE_RAD
+        return f"the joints' envelope of {ENVELOPE_RAD:g} rad"
+    return designed
 
 
 def designed_start(scene) -> tuple:
