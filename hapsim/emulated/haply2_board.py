@@ -26,10 +26,9 @@ first write (the host drains the link for 30 ms before a record,
 ``REARM_REPLY_S`` plus its quiet), and lets it go at that write's pass: the record's first
 sample, as in lockstep and as the Falcon's hand (:mod:`hapsim.emulated.falcon_device`). A
 write that came in the same bytes as the set-up (a re-arming's closing zero write) is not
-that write. Before, it let go at the set-up and the handle
-coasted under no torque through the drain: the records reached 3.3-3.6 ``a`` against
-2.19 ``a`` in lockstep, and a start the lockstep prediction found inside a contact left
-it in real time.
+that write. Before, it let go at the set-up and the handle coasted under no torque
+through the drain: the records reached 3.3-3.6 ``a`` against 2.19 ``a`` in lockstep,
+and a start the lockstep prediction found inside a contact left it in real time.
 
 Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
 (``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read line
