@@ -7,6 +7,7 @@ Usage::
                                        [--seeds 1 2 ... 10] [--loss 0 0.005] [--hogs 2]
                                        [--duration 1.5] [--falcon-scene PATH]
                                        [--starve P LO_MS HI_MS] [--json PATH]
+    python tools/driver_timing.py --resummarize PATH    # the summary again from the runs
 
 For each driver, each loss (the probability that a byte is lost, each way: 0 and 1 in
 200 by default) and each seed, one run beside ``--hogs`` CPU-bound processes (started
@@ -382,7 +383,13 @@ def main(argv=None) -> int:
                    help="the baseline of an A/B: the 1-D transports start no host "
                         "watchdog (hapsim.drivers.host_watchdog)")
     p.add_argument("--json", default=None, metavar="PATH")
+    p.add_argument("--resummarize", default=None, metavar="PATH",
+                   help="recompute the summary of a JSON this tool wrote from its runs "
+                        "(no run is taken) and write it back")
     a = p.parse_args(argv)
+    if a.resummarize:
+        print(json.dumps(resummarize(a.resummarize), indent=1))
+        return 0
     if a.no_host_watchdog:
         import hapsim.drivers.torque_watchdog as tw
         tw.start_watchdog = lambda *_a, **_k: (None, "off: --no-host-watchdog")
@@ -498,7 +505,66 @@ def summarize(rows):
         v = str(r.get("verdict")).split(":")[0]
         s["verdicts"][v] = s["verdicts"].get(v, 0) + 1
         s["errors"] += bool(r.get("error")) and r.get("verdict") is None
+        _felt_ranges(s, r)
     return out
+
+
+#: The felt statements the 2DIY's and the Falcon's rows carry (``deviation``,
+#: ``uncertainty``, ``wire_term``: relative, per matrix), summarised by :func:`summarize`.
+FELT = ("felt_stiffness", "felt_damping")
+
+
+def _felt_ranges(s: dict, r: dict) -> None:
+    """Into a summary entry ``s``: per felt matrix, the runs that stated it
+    (``stated_k``/``stated_b``), the range of their deviation and of the uncertainty
+    stated (``dev_k`` = [min, max], ``unc_k``, ...) and of the wire's term over every run
+    (``wire_k``, ...), and of the estimated samples (``estimated``, the 2DIY's); the rows
+    without felt figures (the 1-D drivers') add nothing."""
+    dev, unc, wire = r.get("deviation"), r.get("uncertainty"), r.get("wire_term")
+    if not isinstance(dev, dict) or not isinstance(unc, dict):
+        return
+    for q, t in zip(FELT, "kb"):
+        s.setdefault(f"stated_{t}", 0)
+        if unc.get(q) is not None and dev.get(q) is not None:
+            s[f"stated_{t}"] += 1
+            for key, v in ((f"dev_{t}", dev[q]), (f"unc_{t}", unc[q])):
+                lo, hi = s.get(key) or (v, v)
+                s[key] = [min(lo, v), max(hi, v)]
+        w = (wire or {}).get(q)
+        if w is not None and w == w and w != float("inf"):
+            lo, hi = s.get(f"wire_{t}") or (w, w)
+            s[f"wire_{t}"] = [min(lo, w), max(hi, w)]
+    e = r.get("estimated")
+    if isinstance(e, int):
+        lo, hi = s.get("estimated") or (e, e)
+        s["estimated"] = [min(lo, e), max(hi, e)]
+
+
+def resummarize(path: str) -> dict:
+    """A JSON this tool wrote, its ``summary`` recomputed from its ``runs`` and written
+    back (the summary is a function of the runs alone: no run is taken again).
+
+    Parameters
+    ----------
+    path : str
+        The ``--json`` file.
+
+    Returns
+    -------
+    dict
+        The new summary.
+
+    Raises
+    ------
+    OSError, ValueError, KeyError
+        The file unreadable, not JSON, or without ``runs``.
+    """
+    with open(path) as f:
+        out = json.load(f)
+    out["summary"] = summarize(out["runs"])
+    with open(path, "w") as f:
+        f.write(json.dumps(out, indent=1, default=str) + "\n")
+    return out["summary"]
 
 
 if __name__ == "__main__":
