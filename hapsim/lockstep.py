@@ -30,7 +30,8 @@ from hapsim.joint_device import JointDeviceND
 
 __all__ = ["LockstepND", "measure_felt_lockstep", "excitation_starts", "default_samples",
            "identification_plan", "error_responses", "state_responses", "wire_terms_nd",
-           "relative_terms", "beyond", "largest_start", "START_MARGIN"]
+           "relative_terms", "beyond", "largest_start", "START_MARGIN",
+           "exact_differences"]
 
 
 class LockstepND:
@@ -257,6 +258,34 @@ def excitation_starts(n: int, amplitude: float, period: float) -> list:
             + [(z, amplitude / (10.0 * period) * e[i]) for i in range(n)])
 
 
+def exact_differences(scene, amplitude: float, samples: int) -> list:
+    """The exact records from the hand's starts (:class:`LockstepND`, the device's own
+    loop, no rounding on any wire), each minus the record from rest.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 2-D or 3-D scene with a port and a device.
+    amplitude : float
+        The hand's ``a`` [m] (:func:`excitation_starts`).
+    samples : int
+        Samples per record.
+
+    Returns
+    -------
+    list of ndarray
+        ``2 n`` arrays of shape (samples, n) [m], the displacement starts first.
+
+    Raises
+    ------
+    ConfigError
+        As :class:`LockstepND`.
+    """
+    recs = [LockstepND(scene, x0=x0, v0=v0).step(int(samples), record=True)
+            for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)]
+    return [r - recs[0] for r in recs[1:]]
+
+
 #: The fraction of the start at which the exact records reach a contact's depth or the
 #: joints' envelope that a designed start takes (the records' excursion is linear in
 #: ``a``; the margin leaves the second-order terms and a real-time run's write timing
@@ -313,10 +342,8 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     if not (envelope_rad > 0 and reference > 0):
         raise ConfigError(f"the envelope ({envelope_rad!r} rad) and the reference start "
                           f"({reference!r} m) must be positive", key="envelope_rad")
-    recs = [LockstepND(scene, x0=x0, v0=v0).step(int(samples), record=True)
-            for x0, v0 in excitation_starts(scene.dimension, reference, scene.period)]
-    diffs = [r - recs[0] for r in recs[1:]]
-    bound, excursion = bound_at_records(scene, reference, diffs)
+    bound, excursion = bound_at_records(scene, reference,
+                                        exact_differences(scene, reference, samples))
     dev = scene.device
     J = device(dev.kind, dev.geometry).jacobian(np.asarray(dev.joints, float))
     env = float(envelope_rad) * float(np.linalg.svd(J, compute_uv=False)[-1])

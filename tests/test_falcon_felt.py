@@ -144,8 +144,8 @@ def test_widrow_kollar_is_below_the_worst_case_and_the_start_keeps_to_the_contac
     start to first order: its departure from linear is within the linearisation bound at
     the start)."""
     from hapsim.analysis.linearisation import bound_at_records, linearisation_bound
-    from hapsim.emulated.falcon_felt import _exact_differences, quantiser_terms
-    from hapsim.lockstep import START_MARGIN
+    from hapsim.emulated.falcon_felt import quantiser_terms
+    from hapsim.lockstep import START_MARGIN, exact_differences
     sc, plan, f = sphere
     a = f["amplitude_m"]
     t = quantiser_terms(sc, a, plan)
@@ -157,7 +157,7 @@ def test_widrow_kollar_is_below_the_worst_case_and_the_start_keeps_to_the_contac
     b = linearisation_bound(sc, a, plan[0].render.rendered_poles)
     # first-order bound: the motion toward the sphere's opening departs from linear in
     # ``a`` by no more than the linearisation bound at the start
-    opening = bound_at_records(sc, a, _exact_differences(sc, a, plan[2]))[0].opening
+    opening = bound_at_records(sc, a, exact_differences(sc, a, plan[2]))[0].opening
     # measured 0.8959 (4.1e-3 off 0.9, the loop's second-order terms); asserted within
     # 1e-2, a margin of 2.4 (the bound at the start, ``b.stiffness``, is no help here:
     # infinite once ``a`` passes the depth, as 0.55 mm does the sphere's 0.5 mm)

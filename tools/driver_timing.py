@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -523,21 +524,21 @@ def _felt_ranges(s: dict, r: dict) -> None:
     dev, unc, wire = r.get("deviation"), r.get("uncertainty"), r.get("wire_term")
     if not isinstance(dev, dict) or not isinstance(unc, dict):
         return
+
+    def widen(key, v):
+        lo, hi = s.get(key) or (v, v)
+        s[key] = [min(lo, v), max(hi, v)]
     for q, t in zip(FELT, "kb"):
         s.setdefault(f"stated_{t}", 0)
         if unc.get(q) is not None and dev.get(q) is not None:
             s[f"stated_{t}"] += 1
-            for key, v in ((f"dev_{t}", dev[q]), (f"unc_{t}", unc[q])):
-                lo, hi = s.get(key) or (v, v)
-                s[key] = [min(lo, v), max(hi, v)]
+            widen(f"dev_{t}", dev[q])
+            widen(f"unc_{t}", unc[q])
         w = (wire or {}).get(q)
-        if w is not None and w == w and w != float("inf"):
-            lo, hi = s.get(f"wire_{t}") or (w, w)
-            s[f"wire_{t}"] = [min(lo, w), max(hi, w)]
-    e = r.get("estimated")
-    if isinstance(e, int):
-        lo, hi = s.get("estimated") or (e, e)
-        s["estimated"] = [min(lo, e), max(hi, e)]
+        if w is not None and math.isfinite(w):
+            widen(f"wire_{t}", w)
+    if isinstance(r.get("estimated"), int):
+        widen("estimated", r["estimated"])
 
 
 def resummarize(path: str) -> dict:

@@ -173,16 +173,13 @@ def within_excursion(scene, diffs, usable, amplitude: float) -> list:
         As :class:`hapsim.lockstep.LockstepND` (a scene it cannot close).
     """
     from hapsim.analysis.linearisation import engaged_contacts
-    from hapsim.lockstep import LockstepND, excitation_starts
+    from hapsim.lockstep import exact_differences
     N = diffs[0].shape[0]
-    rest = LockstepND(scene).step(N, record=True)
     toward = [motion for _, _, motion in engaged_contacts(scene) if motion is not None]
-    nominal = 0.0
-    opening = [0.0] * len(toward)              # the undisturbed motion toward each opening
-    for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)[1:]:
-        d_ = LockstepND(scene, x0=x0, v0=v0).step(N, record=True) - rest
-        nominal = max(nominal, float(np.max(np.linalg.norm(d_, axis=1))))
-        opening = [max(o, float(np.max(m(d_)))) for o, m in zip(opening, toward)]
+    clean = exact_differences(scene, amplitude, N)
+    nominal = max(float(np.max(np.linalg.norm(d_, axis=1))) for d_ in clean)
+    # the undisturbed motion toward each opening
+    opening = [max(float(np.max(m(d_))) for d_ in clean) for m in toward]
     out = []
     for d_, u in zip(diffs, usable):
         u = np.asarray(u, bool).copy()

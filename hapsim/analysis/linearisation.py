@@ -408,8 +408,8 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
     ex = records_excursion(D, None, usable)
     bound = linearisation_bound(scene, max(float(amplitude), ex), rendered_poles)
     # toward opening (engaged_contacts): a plane on the handle along its normal, a
-    # contact with a ground mass by the distance's growth, every other one by the motion's norm (the
-    # port's records do not say how the masses it touches move)
+    # contact with a ground mass by the distance's growth, every other one by the
+    # motion's norm (the port's records do not say how the masses it touches move)
     worst, name, depth = 0.0, None, math.nan
     for nm, dep, motion in engaged_contacts(scene):
         toward = ex if motion is None else max(

@@ -262,7 +262,7 @@ def designed_start(scene) -> tuple:
     """
     from hapsim.lockstep import identification_plan, largest_start
     from hapsim.pipeline.haply2_record import ENVELOPE_RAD
-    a, by, limit = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
+    a, by, _ = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
     if a <= 0.0:
         # the verdict then says the contact opens, by name
         return HAPLY_AMPLITUDE, f"the smallest start ({by} is open at rest)"

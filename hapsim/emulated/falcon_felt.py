@@ -312,15 +312,6 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
     return out
 
 
-def _exact_differences(scene, amplitude: float, N: int) -> list:
-    """The exact records (:class:`hapsim.lockstep.LockstepND`, no rounding) from the
-    hand's starts at ``amplitude``, minus the one from rest: 2n arrays (N, n) [m]."""
-    from hapsim.lockstep import LockstepND, excitation_starts
-    recs = [LockstepND(scene, x0=x0, v0=v0).step(N, record=True)
-            for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)]
-    return [r - recs[0] for r in recs[1:]]
-
-
 def quantiser_terms(scene, amplitude: float, plan) -> dict:
     """The Falcon's quantisers' effect on the felt matrices to first order, about the
     exact records (:class:`hapsim.lockstep.LockstepND` from the hand's starts at
@@ -360,9 +351,9 @@ def quantiser_terms(scene, amplitude: float, plan) -> dict:
     from hapsim.analysis.pencil import felt_sensitivity_nd, fit_felt_nd
     from hapsim.drivers.falcon import DEG_PER_TICK, TORQUE_PER_COUNT
     from hapsim.kinematics import device
-    from hapsim.lockstep import error_responses, wire_terms_nd
+    from hapsim.lockstep import error_responses, exact_differences, wire_terms_nd
     chk, order, N = plan
-    diffs = _exact_differences(scene, amplitude, N)
+    diffs = exact_differences(scene, amplitude, N)
     J = device("delta", scene.device.geometry).jacobian(np.asarray(scene.device.joints))
     G = [("reading", J, math.radians(DEG_PER_TICK)),
          ("force", np.linalg.inv(J).T, TORQUE_PER_COUNT)]
@@ -486,7 +477,8 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     from hapsim.analysis.wire_box import BOX_MARGIN
     from hapsim.drivers.falcon import DEG_PER_TICK, ENVELOPE_RAD
     from hapsim.kinematics import device
-    from hapsim.lockstep import START_MARGIN, identification_plan, largest_start
+    from hapsim.lockstep import (START_MARGIN, exact_differences, identification_plan,
+                                 largest_start)
     if plan is None:
         plan = identification_plan(scene)
     chk = plan[0]
@@ -496,7 +488,7 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     # rest; measured on configs/delta_sphere.yaml: 8e-4 relative from 0.1 to 0.2 mm)
     a_ref = 1e-4
     unit = max(float(np.max(np.linalg.norm(d_, axis=1)))
-               for d_ in _exact_differences(scene, a_ref, plan[2])) / a_ref
+               for d_ in exact_differences(scene, a_ref, plan[2])) / a_ref
     bound = linearisation_bound(scene, 1e-9, chk.render.rendered_poles)
     col = np.linalg.svd(J, compute_uv=False)[::-1] * q      # a count along the axes of J
     every = ["felt stiffness", "felt damping"]
