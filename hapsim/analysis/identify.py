@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from hapsim.analysis.cycles import more_cycles_hint, seconds_above
 from hapsim.analysis.modes import mode_from_pole, modes_from_poles, rendered_pair
 from hapsim.analysis.pencil import pencil_poles, thin_pencil
 from hapsim.errors import ConfigError
@@ -728,12 +729,8 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
     out["b_unc"] = COVERAGE * max(out["b_sd"], out["b_sd_sensor"])
     fl = max(step, rms) if method == "varpro" else 0.0
     if fl > 0:
-        t_above = 0.0
-        for a_j, n_j in zip(amps, ns):
-            t_j = math.log(a_j / (MIN_QUANTA * fl)) / sig if a_j > MIN_QUANTA * fl and sig > 0 \
-                else (math.inf if a_j > MIN_QUANTA * fl else 0.0)
-            t_above += min(t_j, n_j * period)
-        out["cycles"] = float(md.f0_hz * t_above * math.sqrt(max(1 - md.damping_ratio ** 2, 0)))
+        hz = md.f0_hz * math.sqrt(max(1 - md.damping_ratio ** 2, 0))
+        out["cycles"] = float(hz * sum(seconds_above(amps, ns, sig, MIN_QUANTA * fl, period)))
         # the floor is the sensor's (its quantum or noise) or, when the fit leaves more,
         # the fit's residual: said as what it is (a record with no sensor floor that the
         # model does not fit is not the predicted loop's response, not a short one)
@@ -750,7 +747,9 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
                             f"{what}: no measurement")
         elif out["cycles"] < MIN_CYCLES:
             out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above "
-                            f"{what}: too few for a measurement")
+                            f"{what}: too few for a measurement"
+                            + more_cycles_hint(amps, ns, sig, MIN_QUANTA * fl, period, hz,
+                                               MIN_CYCLES, rms <= step))
     else:
         out["cycles"] = float(md.f0_hz * y.size * period)
     return out

@@ -1,0 +1,112 @@
+"""A record with too few oscillation cycles above its floor says what would give enough
+(hapsim.analysis.cycles), and following what it says gives a measurement.
+
+The closed forms of hapsim.analysis.cycles are checked against an independent count: the
+decaying envelope sampled on a grid 50 times finer than the period, the time above the
+level counted sample by sample (no logarithm). Then measure_felt on quantised records of
+a damped oscillation: the record it refuses for too few cycles, changed as its error says
+(a start g times larger, or s more seconds), is measured.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from hapsim.analysis.cycles import more_cycles, seconds_above
+from hapsim.analysis.identify import MIN_CYCLES, measure_felt
+
+T = 1e-3
+#: The grid of the independent count: the period over this.
+FINE = 50
+
+
+def _counted(amps, lens, sigma, level, scale=1.0):
+    """Seconds above ``level``, summed over the stretches, by counting grid points."""
+    total = 0.0
+    dt = T / FINE
+    for a, n in zip(amps, lens):
+        t = np.arange(int(n) * FINE) * dt
+        total += dt * np.count_nonzero(scale * a * np.exp(-sigma * t) > level)
+    return total
+
+
+def _case(rng):
+    k = int(rng.integers(1, 6))
+    lens = rng.integers(50, 2000, size=k)
+    level = 1e-4
+    amps = level * np.exp(rng.uniform(-0.5, 3.0, size=k))
+    sigma = float(np.exp(rng.uniform(math.log(0.3), math.log(30.0))))
+    hz = float(rng.uniform(1.0, 20.0))
+    return amps, lens, sigma, level, hz
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_closed_forms_match_a_sampled_envelope_and_the_remedy_is_the_least(seed):
+    rng = np.random.default_rng(seed)
+    amps, lens, sigma, level, hz = _case(rng)
+    # the grid count is off by at most one grid step per stretch (derived)
+    tol = len(lens) * T / FINE
+    assert sum(seconds_above(amps, lens, sigma, level, T)) == pytest.approx(
+        _counted(amps, lens, sigma, level), abs=tol)
+    have = hz * sum(seconds_above(amps, lens, sigma, level, T))
+    need = have + float(rng.uniform(0.1, 2.0))
+    how, v = more_cycles(amps, lens, sigma, level, T, hz, need)
+    if how == "longer":
+        # the last stretch v seconds longer gives need, and no less than v does
+        grown = list(lens[:-1]) + [lens[-1] + v / T]
+        assert hz * sum(seconds_above(amps, grown, sigma, level, T)) == pytest.approx(
+            need, rel=1e-12)      # the same sums in another order (derived: a few ulps)
+    elif how == "larger":
+        # g times every amplitude gives need (by the independent count, to its grid), and
+        # a start 1 % smaller does not reach it
+        assert hz * _counted(amps, lens, sigma, level, v) >= need - hz * tol
+        assert hz * sum(seconds_above(amps, lens, sigma, level, T, v * 0.99)) < need
+    else:
+        assert how == "stretches"
+        # even every stretch above the level over its whole length falls short
+        assert hz * T * sum(int(n) for a, n in zip(amps, lens) if a > 0) < need
+
+
+def test_every_remedy_is_reached_over_the_cases():
+    """The cases above exercise both remedies and the refusal (a test of the test)."""
+    seen = set()
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        amps, lens, sigma, level, hz = _case(rng)
+        have = hz * sum(seconds_above(amps, lens, sigma, level, T))
+        seen.add(more_cycles(amps, lens, sigma, level, T, hz,
+                             have + float(rng.uniform(0.1, 2.0)))[0])
+    assert seen == {"longer", "larger", "stretches"}
+
+
+def _measure(A, n, sigma, f_hz, q=1e-4, mass=0.05):
+    """measure_felt of a quantised damped oscillation ``A exp(-sigma t) cos(2 pi f t)``."""
+    s = complex(-sigma, 2.0 * math.pi * f_hz)
+    z = complex(np.exp(s * T))
+    t = np.arange(n) * T
+    y = q * np.round(A * np.exp(-sigma * t) * np.cos(2.0 * math.pi * f_hz * t) / q)
+    return measure_felt(y, T, mass, [z, z.conjugate()], z, quantum=q)
+
+
+@pytest.mark.parametrize("sigma, f_hz, A, n, remedy", [
+    (6.0, 5.0, 1.2e-3, 3000, "larger"),    # decays below 5 steps within the record
+    (12.0, 8.0, 1.0e-3, 3000, "larger"),
+    (0.5, 5.0, 3.0e-3, 200, "longer"),     # light damping, a record cut short
+    (1.0, 3.0, 2.0e-3, 300, "longer"),
+])
+def test_a_record_changed_as_its_error_says_is_measured(sigma, f_hz, A, n, remedy):
+    r = _measure(A, n, sigma, f_hz)
+    assert r["cycles"] < MIN_CYCLES and "too few for a measurement" in r["error"]
+    if remedy == "larger":
+        g = float(re.search(r"a start about ([0-9.e+-]+) times larger", r["error"]).group(1))
+        # the printed factor has two digits: 10 % over it covers their rounding (5 % at most)
+        again = _measure(A * g * 1.1, n, sigma, f_hz)
+    else:
+        s = float(re.search(r"about ([0-9.e+-]+) s more", r["error"]).group(1))
+        again = _measure(A, n + int(math.ceil(1.1 * s / T)), sigma, f_hz)
+    assert "error" not in again, again.get("error")
+    assert again["cycles"] >= MIN_CYCLES
