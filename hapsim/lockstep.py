@@ -281,9 +281,38 @@ def exact_differences(scene, amplitude: float, samples: int) -> list:
     ConfigError
         As :class:`LockstepND`.
     """
-    recs = [LockstepND(scene, x0=x0, v0=v0).step(int(samples), record=True)
-            for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)]
+    recs = exact_records(scene, amplitude, samples)
     return [r - recs[0] for r in recs[1:]]
+
+
+def exact_records(scene, amplitude: float, samples: int) -> list:
+    """The exact records from rest and from the hand's starts (:class:`LockstepND`, the
+    device's own loop, no rounding on any wire): the handle's displacements from the
+    operating point.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+        A 2-D or 3-D scene with a port and a device.
+    amplitude : float
+        The hand's ``a`` [m] (:func:`excitation_starts`).
+    samples : int
+        Samples per record.
+
+    Returns
+    -------
+    list of ndarray
+        ``2 n + 1`` arrays of shape (samples, n) [m], the one from rest first (it stays
+        at 0 when the scene is at rest at its joints, and drifts to the scene's
+        equilibrium when it is not).
+
+    Raises
+    ------
+    ConfigError
+        As :class:`LockstepND`.
+    """
+    return [LockstepND(scene, x0=x0, v0=v0).step(int(samples), record=True)
+            for x0, v0 in excitation_starts(scene.dimension, amplitude, scene.period)]
 
 
 #: The fraction of the start at which the exact records reach a contact's depth or the
@@ -308,6 +337,11 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     the start at which the first of them reaches its limit is ``reference`` over that
     ratio. The joints' envelope at the handle is ``envelope_rad`` times the smallest
     singular value of the device's Jacobian ``J(q0)`` at rest (``|dq| <= |dx| / s_min``).
+    The record from rest's own motion ``r`` counts first: a scene not at rest at its
+    joints (its links' and contacts' forces not balanced there) drifts toward its
+    equilibrium from every start, so a limit ``L`` allows the start's share
+    ``START_MARGIN L - r`` (0 when the drift alone reaches it); at rest ``r`` is the
+    round-off (7e-11 m on configs/pantograph_wall.yaml).
     A start moving at ``a / (10 T)`` carries the handle past ``a``: on
     configs/pantograph_wall.yaml 2.19 ``a`` in all (along the wall's tangent) and 1.07
     ``a`` toward the wall's opening, so the start there is 0.84 of the depth (0.42 mm of
@@ -337,23 +371,31 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     ConfigError
         A non-positive ``envelope_rad`` or ``reference``; as :class:`LockstepND`.
     """
-    from hapsim.analysis.linearisation import bound_at_records
+    from hapsim.analysis.linearisation import (bound_at_records, opening_motions,
+                                               records_excursion)
     from hapsim.kinematics import device
     if not (envelope_rad > 0 and reference > 0):
         raise ConfigError(f"the envelope ({envelope_rad!r} rad) and the reference start "
                           f"({reference!r} m) must be positive", key="envelope_rad")
-    bound, excursion = bound_at_records(scene, reference,
-                                        exact_differences(scene, reference, samples))
+    recs = exact_records(scene, reference, samples)
+    rest, diffs = recs[0], [r - recs[0] for r in recs[1:]]
+    bound, excursion = bound_at_records(scene, reference, diffs)
     dev = scene.device
     J = device(dev.kind, dev.geometry).jacobian(np.asarray(dev.joints, float))
     env = float(envelope_rad) * float(np.linalg.svd(J, compute_uv=False)[-1])
     if bound.depth <= 0.0:
         return 0.0, f"contact {bound.depth_name}", float(bound.depth)
-    a_env = START_MARGIN * env * reference / excursion
-    if bound.opening > 0.0 and START_MARGIN * reference / bound.opening < a_env:
-        return (START_MARGIN * reference / bound.opening, f"contact {bound.opening_name}",
-                float(bound.opening_depth))
-    return a_env, "envelope", env
+    # the record from rest's own motion (a scene not at rest at its joints drifts to its
+    # equilibrium, whatever the start) comes first; the start's share is linear in a
+    drift = records_excursion([rest])
+    rest_toward = {nm: t for nm, _, t in opening_motions(scene, [rest], drift)}
+    best = ((START_MARGIN * env - drift) * reference / excursion, "envelope", env)
+    for nm, dep, toward in opening_motions(scene, diffs, excursion):
+        if toward > 0.0:
+            a_c = (START_MARGIN * dep - rest_toward[nm]) * reference / toward
+            if a_c < best[0]:
+                best = (a_c, f"contact {nm}", dep)
+    return max(best[0], 0.0), best[1], float(best[2])
 
 
 def identification_plan(scene, samples: int | None = None) -> tuple:

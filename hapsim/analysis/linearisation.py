@@ -62,7 +62,7 @@ import numpy as np
 from hapsim.outputs import finite_or_none
 
 __all__ = ["LinearisationBound", "linearisation_bound", "kinematic_coefficient",
-           "records_excursion", "bound_at_records", "engaged_contacts"]
+           "records_excursion", "bound_at_records", "engaged_contacts", "opening_motions"]
 
 
 def kinematic_coefficient(kind: str, geometry: str, joints, joint_inertia,
@@ -407,14 +407,8 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
          for r in records]
     ex = records_excursion(D, None, usable)
     bound = linearisation_bound(scene, max(float(amplitude), ex), rendered_poles)
-    # toward opening (engaged_contacts): a plane on the handle along its normal, a
-    # contact with a ground mass by the distance's growth, every other one by the
-    # motion's norm (the port's records do not say how the masses it touches move)
     worst, name, depth = 0.0, None, math.nan
-    for nm, dep, motion in engaged_contacts(scene):
-        toward = ex if motion is None else max(
-            [0.0] + [float(np.max(motion(d)[_rows(d, usable, j)], initial=0.0))
-                     for j, d in enumerate(D)])
+    for nm, dep, toward in opening_motions(scene, D, ex, usable):
         ratio = toward / dep if dep > 0 else math.inf
         if ratio > worst or name is None:
             worst, name, depth = ratio, nm, dep
@@ -422,6 +416,38 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
         return bound, ex
     return dataclasses.replace(bound, opening=worst, opening_name=name,
                                opening_depth=depth), ex
+
+
+def opening_motions(scene, displacements, excursion: float, usable=None) -> list:
+    """How far records went toward each engaged contact's opening.
+
+    A plane on the handle along its normal, a contact with a ground mass by the
+    distance's growth, every other one by the motion's norm, ``excursion`` (the port's
+    records do not say how the masses it touches move): :func:`engaged_contacts`.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.SceneND
+    displacements : list of ndarray, each shape (N, n)
+        The handle's displacements from the operating point [m].
+    excursion : float
+        Their largest norm [m] (:func:`records_excursion`).
+    usable : optional
+        As :func:`records_excursion`.
+
+    Returns
+    -------
+    list of (str, float, float)
+        Per engaged contact or plane: its name, its depth at rest [m] and the records'
+        largest motion toward its opening [m] (>= 0).
+    """
+    out = []
+    for nm, dep, motion in engaged_contacts(scene):
+        toward = excursion if motion is None else max(
+            [0.0] + [float(np.max(motion(d)[_rows(d, usable, j)], initial=0.0))
+                     for j, d in enumerate(displacements)])
+        out.append((nm, float(dep), float(toward)))
+    return out
 
 
 def _rows(r, usable, j) -> np.ndarray:

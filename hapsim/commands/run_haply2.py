@@ -253,19 +253,26 @@ def designed_start(scene) -> tuple:
     -------
     (float, str)
         ``a`` [m] and what limits it (``"contact NAME"``, ``"envelope"``, or ``"the
-        smallest start (...)"`` saying what the scene allowed).
+        smallest start (...)"`` saying what the scene allowed: a contact open at rest, a
+        scene not at rest at its joints whose drift alone reaches the limit, or a start
+        below the smallest).
 
     Raises
     ------
     ConfigError
         As :func:`hapsim.lockstep.identification_plan`.
     """
-    from hapsim.lockstep import identification_plan, largest_start
+    from hapsim.lockstep import START_MARGIN, identification_plan, largest_start
     from hapsim.pipeline.haply2_record import ENVELOPE_RAD
-    a, by, _ = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
-    if a <= 0.0:
+    a, by, limit = largest_start(scene, identification_plan(scene)[2], ENVELOPE_RAD)
+    if a <= 0.0 and limit <= 0.0:
         # the verdict then says the contact opens, by name
         return HAPLY_AMPLITUDE, f"the smallest start ({by} is open at rest)"
+    if a <= 0.0:
+        what = "the joints' envelope" if by == "envelope" else f"the {by}'s depth"
+        return HAPLY_AMPLITUDE, (f"the smallest start (the scene is not at rest at its "
+                                 f"joints: left alone from rest, the handle reaches "
+                                 f"{START_MARGIN:g} of {what})")
     if a < HAPLY_AMPLITUDE:
         return HAPLY_AMPLITUDE, f"the smallest start ({by} allows {a:.2g} m)"
     return a, by
