@@ -180,8 +180,10 @@ def _falcon_wire(sc, X, plan, a):
     in: readings finite, commands 0, never at the clamp)."""
     from hapsim.emulated.falcon_felt import falcon_felt_verdict
     N = plan[2]
-    runs = [{"position": x, "joints": np.zeros((N, 3)), "commands": np.zeros((N, 3))}
-            for x in X]
+    # the readings' positions are the handle's: the operating point plus the motion
+    x_eq = device("delta", sc.device.geometry).forward(np.asarray(sc.device.joints, float))
+    runs = [{"position": x_eq + x, "joints": np.zeros((N, 3)),
+             "commands": np.zeros((N, 3))} for x in X]
     return falcon_felt_verdict(sc, runs, plan, a)
 
 

@@ -130,9 +130,9 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         ``fitted_rows`` (records cut at missing replies: per record, the one from rest
         first, the equations its own stretches gave the fit; None for whole records),
         ``quantum`` (one count at the handle over ``a``, ``|J(q0)| q / a`` [-]),
-        ``excursion`` (the largest distance of a record's fitted rows from the rest
-        record, or, records cut at missing replies, from the operating point [m]: the
-        linearisation bound's amplitude when above ``amplitude``).
+        ``excursion`` (the largest distance of a record's fitted rows from the operating
+        point, the record from rest's included [m]: the linearisation bound's amplitude
+        when above ``amplitude``).
 
     Raises
     ------
@@ -184,17 +184,13 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         usable, own, fit = None, None, None
     delta = math.radians(DEG_PER_TICK) / 2.0
     tq = TORQUE_PER_COUNT / 2.0
-    # the bound at the motion the fitted rows reached: the differences' from the record
-    # from rest, or, each record fitted on its own stretches, each record's own about the
+    # the bound at the motion the fitted rows reached: each record's own about the
     # operating point, the one from rest too (as the 2DIY's: a difference would cancel
-    # or miss the record from rest's own motion)
-    if own is not None:
-        bound, excursion = bound_at_records(scene, amplitude, held,
-                                            chk.render.rendered_poles, origin=x_eq,
-                                            usable=own)
-    else:
-        bound, excursion = bound_at_records(scene, amplitude, [p - rest for p in pos[1:]],
-                                            chk.render.rendered_poles)
+    # or miss the record from rest's own motion, a scene not at rest at its joints
+    # drifting in every record)
+    bound, excursion = bound_at_records(scene, amplitude, held if own is not None else pos,
+                                        chk.render.rendered_poles, origin=x_eq,
+                                        usable=own)
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta, "torque_bound_nm": tq}
     cmds = [np.asarray(r["commands"])[:N] for r in runs]

@@ -137,16 +137,16 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         fit = fit_felt_nd(diffs, mass, T, order, floor=floor)
     dev = felt_deviation(fit, chk)
     # the bound at the motion the fitted rows reached (a moving start, a held torque or a
-    # lost byte's carries the handle past the hand's a): the differences' from the record
-    # from rest, or, each record fitted on its own stretches, each record's own about the
-    # operating point, the one from rest too (after a re-synchronisation it moves from
-    # the hand's next start; a difference would cancel or miss that motion)
-    if own is not None:
-        bound, _ = bound_at_records(scene, amplitude, [r["position"] for r in runs],
-                                    chk.render.rendered_poles, origin=x_eq, usable=own)
-    else:
-        bound, _ = bound_at_records(scene, amplitude, diffs, chk.render.rendered_poles,
-                                    usable=usable)
+    # lost byte's carries the handle past the hand's a): each record's own about the
+    # operating point, the one from rest too, never the differences (after a
+    # re-synchronisation the record from rest moves from the hand's next start, and a
+    # scene not at rest at its joints drifts in every record: a difference would cancel
+    # or miss that motion, and the loop the differences measure is linearised along it)
+    rows = (own if own is not None else None if usable is None else
+            [np.asarray(r.get("usable", np.ones(len(rest), bool)), bool) for r in runs])
+    bound, _ = bound_at_records(scene, amplitude, [r["position"] for r in runs],
+                                chk.render.rendered_poles, origin=kin.forward(q),
+                                usable=rows)
     # the wire's term (docstring)
     torque_rel = 2.0 ** -24
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
