@@ -259,17 +259,13 @@ def excitation_starts(n: int, amplitude: float, period: float) -> list:
 
 
 def exact_differences(scene, amplitude: float, samples: int) -> list:
-    """The exact records from the hand's starts (:class:`LockstepND`, the device's own
-    loop, no rounding on any wire), each minus the record from rest.
+    """The exact records from the hand's starts, each minus the record from rest
+    (:func:`exact_records`).
 
     Parameters
     ----------
-    scene : hapsim.scene.SceneND
-        A 2-D or 3-D scene with a port and a device.
-    amplitude : float
-        The hand's ``a`` [m] (:func:`excitation_starts`).
-    samples : int
-        Samples per record.
+    scene, amplitude, samples
+        As :func:`exact_records`.
 
     Returns
     -------
