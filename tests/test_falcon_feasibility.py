@@ -181,3 +181,32 @@ def test_a_run_never_makes_a_statement_its_prediction_excluded():
             assert got["verdict"] == "differs"
         else:
             assert got["verdict"] == ("partly within" if got["not_stated"] else "within")
+
+
+def test_a_spring_field_not_at_rest_says_so_and_leaves_no_start():
+    """configs/falcon_spring.yaml with its anchor moved 6 mm along z (the rest joints
+    kept): the field pulls the handle away from the joints the scene names, and the
+    record from rest alone drifts past 0.9 of the legs' envelope (3.8 mm at the handle).
+    The prediction says why before any run ("not at rest at its joints"), with no start
+    left; before, the start ignored the drift and, once it counted, a start of 0 divided
+    by zero in the verdict. At 2 mm a start is left for the drift."""
+    import dataclasses
+    from hapsim.drivers.falcon import ENVELOPE_RAD
+    from hapsim.emulated.falcon_felt import felt_feasibility
+    from hapsim.lockstep import largest_start
+    from hapsim.scene import load_scene_nd
+    sc = load_scene_nd(CONFIGS / "falcon_spring.yaml")
+
+    def moved(dz):
+        return dataclasses.replace(sc, masses=[
+            dataclasses.replace(m, x0=np.asarray(m.x0) + [0.0, 0.0, dz])
+            if m.kind == "ground" else m for m in sc.masses])
+    far = moved(6e-3)
+    f = felt_feasibility(far)
+    assert f["verdict"] == "not measurable" and f["amplitude_m"] == 0.0
+    assert "not at rest at its joints" in f["reason"], f["reason"]
+    assert "not at rest at its joints" in f["statement"]
+    near = moved(2e-3)
+    a, by, _ = largest_start(near, identification_plan(near)[2], ENVELOPE_RAD)
+    assert by == "envelope" and 0.0 < a < largest_start(sc, identification_plan(sc)[2],
+                                                          ENVELOPE_RAD)[0]

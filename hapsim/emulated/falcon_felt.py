@@ -459,9 +459,10 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
         ``worst_reading``, ``worst_command``, ``widrow_kollar`` (:func:`quantiser_terms`
         at ``a_max``), ``limit``, ``needed_amplitude_m`` and ``needed_count_rad`` (their
         first-order extrapolations to the limit, the least that could do). A contact
-        open at rest: ``verdict`` ("not measurable"), ``stated``, ``not_stated``,
-        ``statement``, ``reason``, ``amplitude_m`` (0), ``limited_by`` and
-        ``count_at_handle_m`` only.
+        open at rest, or a scene not at rest at its joints whose drift alone reaches the
+        margin (no start left): ``verdict`` ("not measurable"), ``stated``,
+        ``not_stated``, ``statement``, ``reason``, ``amplitude_m`` (0), ``limited_by``
+        and ``count_at_handle_m`` only.
 
     Raises
     ------
@@ -502,6 +503,14 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     by = (f"the legs' envelope of {ENVELOPE_RAD:g} rad" if lim == "envelope" else
           f"the depth {depth * 1e3:.2f} mm of the contact {lim.split(' ', 1)[1]!r} toward "
           "its opening")
+    if a_max <= 0.0:
+        # the record from rest's own drift reaches the margin (largest_start's notes)
+        why = (f"the scene is not at rest at its joints: left alone from rest, the handle "
+               f"reaches {START_MARGIN:g} of {by}, and no hand start is left")
+        return {"verdict": "not measurable", "stated": [], "not_stated": every,
+                "statement": _before_run(0.0, [], every, why), "amplitude_m": 0.0,
+                "limited_by": by,
+                "count_at_handle_m": [float(col.min()), float(col.max())], "reason": why}
     t = quantiser_terms(scene, a_max, plan)
     keys = ("felt_stiffness", "felt_damping")
     need_a = {k: a_max * t["worst"][k] / MEASURABLE_WIRE for k in keys}
