@@ -29,6 +29,19 @@ def _transient(f) -> int:
     return tracemalloc.get_traced_memory()[1] - c0
 
 
+def _no_array_per_tick(peaks, one_array) -> None:
+    """Every tick below one array's transient, but for a rare one: tracemalloc traces the
+    whole process, so a thread an earlier test left in the pytest worker (or the
+    interpreter growing a cache once) may allocate inside one tick's window; an array
+    made per sample shows in every tick, and the median catches it. Measured: one tick of
+    145 at 1,219 bytes in one CI run beside a CPU-bound process (the others 64); at most
+    2 % of the ticks (at least one) may exceed it."""
+    peaks = np.asarray(peaks)
+    over = int(np.count_nonzero(peaks >= one_array))
+    assert over <= max(1, peaks.size // 50), (over, peaks.max(), one_array)
+    assert np.median(peaks) < one_array, (np.median(peaks), one_array)
+
+
 @pytest.fixture
 def traced():
     tracemalloc.start()
@@ -87,7 +100,7 @@ def test_run_nd_record_makes_no_array_per_sample(name, traced):
     one_array = _transient(lambda: np.empty(sc.dimension))
     assert rec is not None and len(tr.peaks) == N
     np.testing.assert_array_equal(rec.position[-1], states[-1].position)
-    assert max(tr.peaks[5:]) < one_array, (max(tr.peaks[5:]), one_array)
+    _no_array_per_tick(tr.peaks[5:], one_array)
 
 
 def test_haply2_loop_makes_no_array_per_sample(traced):
@@ -134,7 +147,7 @@ def test_haply2_loop_makes_no_array_per_sample(traced):
     np.testing.assert_array_equal(est, np.arange(3, N))    # ticks 0..2 read
     # the arming's two writes come first: write j + 2 closes tick j's window
     ticks = np.asarray(link.peaks[1:N + 1])
-    assert ticks[est[3:]].max() < one_array, (ticks[est[3:]].max(), one_array)
+    _no_array_per_tick(ticks[est[3:]], one_array)
 
 
 def test_per_sample_helpers_make_no_array(traced):
