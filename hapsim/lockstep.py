@@ -358,7 +358,8 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     Returns
     -------
     (float, str, float)
-        ``a`` [m] (0 when a contact is open at rest), what limits it (``"contact
+        ``a`` [m] (0 when a contact is open at rest, the limit then <= 0, or when the
+        record from rest's drift alone reaches the margin), what limits it (``"contact
         NAME"`` or ``"envelope"``) and that limit [m]: the contact's depth at rest or the
         envelope at the handle.
 

@@ -30,16 +30,16 @@ def _transient(f) -> int:
 
 
 def _no_array_per_tick(peaks, one_array) -> None:
-    """Every tick below one array's transient, but for a rare one: tracemalloc traces the
+    """Every tick below one array's transient but at most one: tracemalloc traces the
     whole process, so a thread an earlier test left in the pytest worker (or the
-    interpreter growing a cache once) may allocate inside one tick's window; an array
-    made per sample shows in every tick, and the median catches it. Measured: one tick of
-    145 at 1,219 bytes in one CI run beside a CPU-bound process (the others 64); at most
-    2 % of the ticks (at least one) may exceed it."""
+    interpreter growing a cache once) may allocate inside one tick's window, while an
+    array made per sample shows in every tick. Measured: one tick of 145 at 1,219 bytes
+    in one CI run beside a CPU-bound process, the others at 64. (An allocation that
+    recurs less often than once in the ticks measured, 17 or 145, would pass: the rule is
+    about every sample.)"""
     peaks = np.asarray(peaks)
     over = int(np.count_nonzero(peaks >= one_array))
-    assert over <= max(1, peaks.size // 50), (over, peaks.max(), one_array)
-    assert np.median(peaks) < one_array, (np.median(peaks), one_array)
+    assert over <= 1, (over, peaks.max(), one_array)
 
 
 @pytest.fixture

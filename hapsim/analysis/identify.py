@@ -572,7 +572,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         fit.update(spec=[list(sp_) for sp_ in spec], kept=list(kept))
     return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor),
-                              lens=lens_w),
+                              lens=lens_w, ends=kept[-1][1] == bounds[-1][1]),
                       spec, fi, yw, offset, wire, mass, period, lens_w,
                       None if not bounded else [
                           (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
@@ -701,7 +701,7 @@ def pair_noise_sensitivity(y, period: float, mass: float, sigma: float,
 
 
 def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipped,
-            step=0.0, lens=None):
+            step=0.0, lens=None, ends=True):
     """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]`` (over the
     stretches ``lens`` of ``y``: the amplitude is the largest stretch's, the cycles above
     the floor are summed over the stretches)."""
@@ -749,7 +749,7 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
             out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above "
                             f"{what}: too few for a measurement"
                             + more_cycles_hint(amps, ns, sig, MIN_QUANTA * fl, period, hz,
-                                               MIN_CYCLES, rms <= step))
+                                               MIN_CYCLES, rms <= step, ends_record=ends))
     else:
         out["cycles"] = float(md.f0_hz * y.size * period)
     return out

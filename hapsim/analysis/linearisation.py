@@ -429,7 +429,8 @@ def opening_motions(scene, displacements, excursion: float, usable=None) -> list
     ----------
     scene : hapsim.scene.SceneND
     displacements : list of ndarray, each shape (N, n)
-        The handle's displacements from the operating point [m].
+        The handle's displacements from the operating point [m] (or records'
+        differences from the one from rest: the motion they add to it).
     excursion : float
         Their largest norm [m] (:func:`records_excursion`).
     usable : optional

@@ -269,7 +269,8 @@ def designed_start(scene) -> tuple:
         # the verdict then says the contact opens, by name
         return HAPLY_AMPLITUDE, f"the smallest start ({by} is open at rest)"
     if a <= 0.0:
-        what = "the joints' envelope" if by == "envelope" else f"the {by}'s depth"
+        what = ("the joints' envelope at the handle" if by == "envelope" else
+                f"the {by}'s depth")
         return HAPLY_AMPLITUDE, (f"the smallest start (the scene is not at rest at its "
                                  f"joints: left alone from rest, the handle reaches "
                                  f"{START_MARGIN:g} of {what})")

@@ -59,8 +59,12 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["measure_felt_falcon", "falcon_felt_verdict", "falcon_usable_rows",
-           "quantiser_terms", "felt_feasibility", "COMMAND_CLAMP"]
+           "quantiser_terms", "felt_feasibility", "COMMAND_CLAMP", "NOT_AT_REST_M"]
 
+#: The record from rest's own motion [m] beyond which :func:`felt_feasibility` says the
+#: scene is not at rest at its joints (a micrometre: a 25th of one of the Falcon's counts
+#: at the handle; the shipped scenes' ten-digit rest positions drift 1e-10 m).
+NOT_AT_REST_M = 1e-6
 #: The largest motor command a packet carries (int16; :func:`hapsim.drivers.falcon.
 #: torque_command` clamps there).
 COMMAND_CLAMP = 32767
@@ -403,7 +407,9 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     motion toward a contact's opening reaches its depth at rest (beyond it the contact
     opens, no linear estimate holds) or carries a leg beyond
     :data:`hapsim.drivers.falcon.ENVELOPE_RAD` (through ``J(q0)``'s smallest singular
-    value), whichever is smaller; the records' motion is linear in ``a`` to first order
+    value), whichever is smaller, less what the record from rest's own drift takes of it
+    (a scene not at rest at its joints; said in the reason beyond
+    :data:`NOT_AT_REST_M`); the records' motion is linear in ``a`` to first order
     (8e-4 off from 0.1 to 0.2 mm on configs/delta_sphere.yaml). Before, the motion's
     norm against the shallowest depth: on configs/delta_sphere.yaml 0.24 mm where the
     motion toward the sphere's opening allows 0.55 mm.
@@ -474,7 +480,7 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     from hapsim.analysis.wire_box import BOX_MARGIN
     from hapsim.drivers.falcon import DEG_PER_TICK, ENVELOPE_RAD
     from hapsim.kinematics import device
-    from hapsim.lockstep import (START_MARGIN, exact_differences, identification_plan,
+    from hapsim.lockstep import (START_MARGIN, exact_records, identification_plan,
                                  largest_start)
     if plan is None:
         plan = identification_plan(scene)
@@ -484,8 +490,12 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     # the records' excursion is linear in ``a`` to first order (the loop linearised at
     # rest; measured on configs/delta_sphere.yaml: 8e-4 relative from 0.1 to 0.2 mm)
     a_ref = 1e-4
-    unit = max(float(np.max(np.linalg.norm(d_, axis=1)))
-               for d_ in exact_differences(scene, a_ref, plan[2])) / a_ref
+    recs = exact_records(scene, a_ref, plan[2])
+    unit = max(float(np.max(np.linalg.norm(d_ - recs[0], axis=1)))
+               for d_ in recs[1:]) / a_ref
+    # the record from rest's own motion: a scene not at rest at its joints drifts in
+    # every record, and largest_start leaves the start only what the drift leaves
+    drift = float(np.max(np.linalg.norm(recs[0], axis=1)))
     bound = linearisation_bound(scene, 1e-9, chk.render.rendered_poles)
     col = np.linalg.svd(J, compute_uv=False)[::-1] * q      # a count along the axes of J
     every = ["felt stiffness", "felt damping"]
@@ -506,7 +516,9 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     if a_max <= 0.0:
         # the record from rest's own drift reaches the margin (largest_start's notes)
         why = (f"the scene is not at rest at its joints: left alone from rest, the handle "
-               f"reaches {START_MARGIN:g} of {by}, and no hand start is left")
+               f"reaches {START_MARGIN:g} of {by}" + (" at the handle" if lim == "envelope"
+                                                      else "")
+               + ", and no hand start is left")
         return {"verdict": "not measurable", "stated": [], "not_stated": every,
                 "statement": _before_run(0.0, [], every, why), "amplitude_m": 0.0,
                 "limited_by": by,
@@ -538,7 +550,10 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
               f"handle; the largest hand start the scene's linear range allows is "
               f"{a_max * 1e3:.2f} mm, about {a_max / col.mean():.0f} counts (the records "
               f"reach {unit:.2f} a; the start is {START_MARGIN:g} of the one at which they "
-              f"reach {by}); {said}, against the limit {MEASURABLE_WIRE:g} of a statement: "
+              f"reach {by}" + (f", less the record from rest's own drift of "
+                               f"{drift * 1e3:.2g} mm: the scene is not at rest at its "
+                               "joints" if drift > NOT_AT_REST_M else "")
+              + f"); {said}, against the limit {MEASURABLE_WIRE:g} of a statement: "
               + (("stated: " + ", ".join(stated)
                   + ("; not stated: " + ", ".join(not_stated) if not_stated else ""))
                  if stated else "nothing stated")
