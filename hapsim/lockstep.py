@@ -320,7 +320,7 @@ START_MARGIN = 0.9
 
 
 def largest_start(scene, samples: int, envelope_rad: float, *,
-                  reference: float = 1e-4) -> tuple:
+                  reference: float = 1e-4, records=None) -> tuple:
     """The largest hand start ``a`` whose records stay in the scene's linear range: no
     engaged contact opens and no joint leaves ``envelope_rad`` of its rest, with
     :data:`START_MARGIN`.
@@ -354,6 +354,9 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
         The largest joint departure from rest the records may make [rad] (> 0).
     reference : float, optional
         The start the exact records are taken at [m] (> 0; any small one: first order).
+    records : list of ndarray, optional
+        :func:`exact_records` at ``reference`` and ``samples``, when the caller has taken
+        them already (not taken again).
 
     Returns
     -------
@@ -368,26 +371,27 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     ConfigError
         A non-positive ``envelope_rad`` or ``reference``; as :class:`LockstepND`.
     """
-    from hapsim.analysis.linearisation import (bound_at_records, opening_motions,
-                                               records_excursion)
+    from hapsim.analysis.linearisation import opening_motions, records_excursion
     from hapsim.kinematics import device
     if not (envelope_rad > 0 and reference > 0):
         raise ConfigError(f"the envelope ({envelope_rad!r} rad) and the reference start "
                           f"({reference!r} m) must be positive", key="envelope_rad")
-    recs = exact_records(scene, reference, samples)
+    recs = records if records is not None else exact_records(scene, reference, samples)
     rest, diffs = recs[0], [r - recs[0] for r in recs[1:]]
-    bound, excursion = bound_at_records(scene, reference, diffs)
+    excursion = records_excursion(diffs)
+    opens = opening_motions(scene, diffs, excursion)
     dev = scene.device
     J = device(dev.kind, dev.geometry).jacobian(np.asarray(dev.joints, float))
     env = float(envelope_rad) * float(np.linalg.svd(J, compute_uv=False)[-1])
-    if bound.depth <= 0.0:
-        return 0.0, f"contact {bound.depth_name}", float(bound.depth)
+    shallow = min(opens, key=lambda o: o[1], default=None)    # the first shallowest
+    if shallow is not None and shallow[1] <= 0.0:
+        return 0.0, f"contact {shallow[0]}", shallow[1]
     # the record from rest's own motion (a scene not at rest at its joints drifts to its
     # equilibrium, whatever the start) comes first; the start's share is linear in a
     drift = records_excursion([rest])
     rest_toward = {nm: t for nm, _, t in opening_motions(scene, [rest], drift)}
     best = ((START_MARGIN * env - drift) * reference / excursion, "envelope", env)
-    for nm, dep, toward in opening_motions(scene, diffs, excursion):
+    for nm, dep, toward in opens:
         if toward > 0.0:
             a_c = (START_MARGIN * dep - rest_toward[nm]) * reference / toward
             if a_c < best[0]:

@@ -730,7 +730,8 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
     fl = max(step, rms) if method == "varpro" else 0.0
     if fl > 0:
         hz = md.f0_hz * math.sqrt(max(1 - md.damping_ratio ** 2, 0))
-        out["cycles"] = float(hz * sum(seconds_above(amps, ns, sig, MIN_QUANTA * fl, period)))
+        level = MIN_QUANTA * fl
+        out["cycles"] = float(hz * sum(seconds_above(amps, ns, sig, level, period)))
         # the floor is the sensor's (its quantum or noise) or, when the fit leaves more,
         # the fit's residual: said as what it is (a record with no sensor floor that the
         # model does not fit is not the predicted loop's response, not a short one)
@@ -748,8 +749,8 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
         elif out["cycles"] < MIN_CYCLES:
             out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above "
                             f"{what}: too few for a measurement"
-                            + more_cycles_hint(amps, ns, sig, MIN_QUANTA * fl, period, hz,
-                                               MIN_CYCLES, rms <= step, ends_record=ends))
+                            + more_cycles_hint(amps, ns, sig, level, period, hz, MIN_CYCLES,
+                                               rms <= step, ends_record=ends))
     else:
         out["cycles"] = float(md.f0_hz * y.size * period)
     return out

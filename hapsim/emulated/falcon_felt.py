@@ -476,7 +476,6 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
         The emulated Falcon did not home (:func:`measure_felt_falcon`).
     """
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
-    from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.analysis.wire_box import BOX_MARGIN
     from hapsim.drivers.falcon import DEG_PER_TICK, ENVELOPE_RAD
     from hapsim.kinematics import device
@@ -484,7 +483,6 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
                                  largest_start)
     if plan is None:
         plan = identification_plan(scene)
-    chk = plan[0]
     J = device("delta", scene.device.geometry).jacobian(np.asarray(scene.device.joints))
     q = math.radians(DEG_PER_TICK)
     # the records' excursion is linear in ``a`` to first order (the loop linearised at
@@ -496,33 +494,32 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     # the record from rest's own motion: a scene not at rest at its joints drifts in
     # every record, and largest_start leaves the start only what the drift leaves
     drift = float(np.max(np.linalg.norm(recs[0], axis=1)))
-    bound = linearisation_bound(scene, 1e-9, chk.render.rendered_poles)
     col = np.linalg.svd(J, compute_uv=False)[::-1] * q      # a count along the axes of J
     every = ["felt stiffness", "felt damping"]
-    if float(bound.depth) <= 0.0:
-        why = (f"the contact {bound.depth_name!r} is open at rest: no hand start keeps the "
-               "loop linear")
+
+    def no_start(why: str, limited_by: str) -> dict:
         return {"verdict": "not measurable", "stated": [], "not_stated": every,
                 "statement": _before_run(0.0, [], every, why), "amplitude_m": 0.0,
-                "limited_by": f"contact {bound.depth_name!r}",
+                "limited_by": limited_by,
                 "count_at_handle_m": [float(col.min()), float(col.max())], "reason": why}
     # the largest start, the 2DIY run's rule (the motion toward each contact's opening,
-    # the legs' envelope through J(q0)): before, the motion's norm against the shallowest
-    # depth, conservative along a contact's tangent
-    a_max, lim, depth = largest_start(scene, plan[2], ENVELOPE_RAD, reference=a_ref)
+    # the legs' envelope through J(q0)), on the records just taken: before, the motion's
+    # norm against the shallowest depth, conservative along a contact's tangent
+    a_max, lim, depth = largest_start(scene, plan[2], ENVELOPE_RAD, reference=a_ref,
+                                      records=recs)
+    if a_max <= 0.0 and depth <= 0.0:
+        name = lim.split(" ", 1)[1]
+        return no_start(f"the contact {name!r} is open at rest: no hand start keeps the "
+                        "loop linear", f"contact {name!r}")
     by = (f"the legs' envelope of {ENVELOPE_RAD:g} rad" if lim == "envelope" else
           f"the depth {depth * 1e3:.2f} mm of the contact {lim.split(' ', 1)[1]!r} toward "
           "its opening")
     if a_max <= 0.0:
         # the record from rest's own drift reaches the margin (largest_start's notes)
-        why = (f"the scene is not at rest at its joints: left alone from rest, the handle "
-               f"reaches {START_MARGIN:g} of {by}" + (" at the handle" if lim == "envelope"
-                                                      else "")
-               + ", and no hand start is left")
-        return {"verdict": "not measurable", "stated": [], "not_stated": every,
-                "statement": _before_run(0.0, [], every, why), "amplitude_m": 0.0,
-                "limited_by": by,
-                "count_at_handle_m": [float(col.min()), float(col.max())], "reason": why}
+        return no_start(f"the scene is not at rest at its joints: left alone from rest, "
+                        f"the handle reaches {START_MARGIN:g} of {by}"
+                        + (" at the handle" if lim == "envelope" else "")
+                        + ", and no hand start is left", by)
     t = quantiser_terms(scene, a_max, plan)
     keys = ("felt_stiffness", "felt_damping")
     need_a = {k: a_max * t["worst"][k] / MEASURABLE_WIRE for k in keys}

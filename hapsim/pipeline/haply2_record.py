@@ -138,23 +138,23 @@ SILENT_S = HOLD_BOUND_S
 #: that tick on, the record "left" and not measured). The hand moved the handle 1e-4 m
 #: (about 1e-3 rad): the records' largest joint motion measured, on the wall clock and
 #: unloaded, 0.0095 rad; three times that. The run's designed start
-#: (:func:`hapsim.commands.run_haply2.designed_start`) keeps the exact records within 0.9
-#: of it through ``J(q0)``'s smallest singular value, a bound: on
+#: (:func:`hapsim.commands.run_haply2.designed_start`) keeps the exact records within
+#: 0.9 of it through ``J(q0)``'s smallest singular value, a bound: on
 #: docs/pantograph_deep_wall.yaml, envelope-limited at 0.54 mm, the joints moved at most
-#: 0.0146 rad over the driver table's 20 runs, bytes lost included. Beside two CPU-bound processes a host on a
-#: third of its rate took a correct loop's record to 0.5 rad (no fault, the board on its
-#: own clock) before any bound, and with 0.1 rad the light joint (2e-4 kg m^2) coasted on
-#: to 0.69 and 0.86 rad after the zero torque.
+#: 0.0146 rad over the driver table's 20 runs, bytes lost included. Beside two CPU-bound
+#: processes a host on a third of its rate took a correct loop's record to 0.5 rad (no
+#: fault, the board on its own clock) before any bound, and with 0.1 rad the light joint
+#: (2e-4 kg m^2) coasted on to 0.69 and 0.86 rad after the zero torque.
 ENVELOPE_RAD = 0.03
 #: The joints' workspace in a measurement [rad]: the largest departure of either joint
 #: from the scene's operating point a run may reach (the emulated board's truth,
 #: ``excursion``, is held to it by the tests). The hand's records move the handle
-#: 0.1-1.2 mm (the designed start; about 1e-3 to 2e-2 rad); a 30 ms host stall at the board's clamp turns this 2e-4 kg m^2 joint
-#: 1/2 (0.123/2e-4) 0.03^2 = 0.28 rad; the five-bar of configs/pantograph_wall.yaml
-#: reaches its singular boundary 0.78 rad from rest (either joint): 0.5 rad is inside it
-#: with a margin of 1.5. The braking after the joints left :data:`ENVELOPE_RAD` ends when
-#: the coast friction alone would still give is 1 % of it
-#: (:func:`hapsim.braking.brake_rest`).
+#: 0.1-1.2 mm (the designed start; about 1e-3 to 2e-2 rad); a 30 ms host stall at the
+#: board's clamp turns this 2e-4 kg m^2 joint 1/2 (0.123/2e-4) 0.03^2 = 0.28 rad; the
+#: five-bar of configs/pantograph_wall.yaml reaches its singular boundary 0.78 rad from
+#: rest (either joint): 0.5 rad is inside it with a margin of 1.5. The braking after the
+#: joints left :data:`ENVELOPE_RAD` ends when the coast friction alone would still give
+#: is 1 % of it (:func:`hapsim.braking.brake_rest`).
 WORKSPACE_RAD = 0.5
 #: Longest wait [s] for a re-armed board's evidence that it took the re-arming (its
 #: answer to the closing zero write reading the set-up's offsets) before the re-arming is
