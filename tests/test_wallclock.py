@@ -386,6 +386,12 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
         return
     assert loop["stop_reason"] == "duration", loop["stop_reason"]
     m = rep["measured"]
+    if "within" not in m:
+        # not identified (once in a whole-suite run, FireFader: the loaded machine's
+        # late rows left too little to fit): said with its reason, never "within"
+        from hapsim.pipeline.report import verdict_summary
+        assert m.get("error") and verdict_summary(m)["verdict"] == "not measurable", m
+        return
     assert m["within"] in (True, False) and m["b"] > 0, m.get("verdict")
 
 
