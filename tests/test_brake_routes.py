@@ -152,6 +152,9 @@ def _falcon(monkeypatch, brake, push, at=200, samples=500):
     fake = types.SimpleNamespace(perf_counter=clk.now, monotonic=clk.now, sleep=clk.sleep)
     for mod in (fr, falcon_usb, falcon_device):
         monkeypatch.setattr(mod, "time", fake)
+    # the host's watchdog is a process on the wall clock: none in simulated time
+    monkeypatch.setattr(fr, "_start_watchdog",
+                        lambda link, paced: (None, "simulated time"))
     sc = _scene("delta_sphere.yaml", brake)
     link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="wall")
     plant = dev.plant

@@ -91,6 +91,9 @@ def _sim_run(monkeypatch, stall_at=(), stall_s=0.0, samples=600, faults=None,
         monkeypatch.setattr(mod, "time", fake)
     sc = load_scene_nd(CONFIGS / "delta_sphere.yaml")
     link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="wall", faults=faults)
+    # the host's watchdog is a process on the wall clock: none in simulated time
+    monkeypatch.setattr(fr, "_start_watchdog",
+                        lambda link, paced: (None, "simulated time"))
     assert dev.clock == "wall"
     chip.faults_on = False                       # the load and the homing whole
     calls = [0, False]

@@ -281,7 +281,8 @@ def run_haply2(seed: int, loss: float, clock: str = "wall",
 
 
 def run_falcon_once(seed: int, loss: float, clock: str = "wall",
-                    scene: str = "configs/falcon_spring.yaml") -> dict:
+                    scene: str = "configs/falcon_spring.yaml", stall_ms=None,
+                    start_mm: float = 0.0) -> dict:
     """One Falcon run over the emulated FT232R with seeded loss on its UART, as
     ``hapsim run SCENE --driver falcon`` runs it: the loop from rest (the link's verdict,
     ``link_verdict``), then the felt matrices' statement
@@ -296,7 +297,11 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall",
     truth) and the records (their readings; ``felt_excursion_true``: the emulator's,
     which adds the free coast after each record's zero commands, no hand holding the
     handle), ``workspace`` the bound it is held to
-    (:data:`hapsim.pipeline.falcon_run.WORKSPACE_RAD`)."""
+    (:data:`hapsim.pipeline.falcon_run.WORKSPACE_RAD`). ``stall_ms``: this process, the
+    host and the emulated Falcon in it, stopped once at a seeded moment of the loop
+    (``--host-stall``: the emulated chip takes the host watchdog's write at the time it
+    was made); ``start_mm``: the hand let go that far off rest along x as the loop
+    starts (``--falcon-start``: a loop from rest commands nothing to hold)."""
     from hapsim.pipeline.falcon_run import (WORKSPACE_RAD, emulated_falcon, felt_statement,
                                             run_falcon)
     from hapsim.emulated.driver_mock import ByteFaults
@@ -308,17 +313,26 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall",
     link, dev, chip = emulated_falcon(sc, image, faults=faults, clock=clock)
     chip.faults_on = False
 
+    staller = []
+
     def start():
         chip.faults_on = True
         dev.excursion = 0.0                    # the loop's, not the homing's
+        if stall_ms:
+            at_s = float(np.random.default_rng(seed).uniform(0.1, 0.6))
+            staller.append(_stall_this_process(float(stall_ms), at_s))
+    let_go = (None if not start_mm else
+              lambda: dev.let_go(np.array([start_mm * 1e-3, 0.0, 0.0]), np.zeros(3)))
     try:
         res = run_falcon(sc, link, image, 1000, truth=dev.counts, timeout=0.002,
-                         before_loop=start, paced=clock == "wall")
+                         before_loop=start, paced=clock == "wall", start=let_go)
     except DeviceError as exc:
         return {"clock": clock, "error": f"DeviceError: {exc}",
                 "excursion_true": dev.excursion, "workspace": WORKSPACE_RAD}
     finally:
         link.close()
+        for c in staller:
+            c.wait()
     try:
         felt = felt_statement(sc, image, clock=clock, faults=lambda i: ByteFaults(
             {"drop_rx": loss, "drop_tx": loss, "seed": 100 * seed + i}) if loss else None)
@@ -338,6 +352,8 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall",
                                        default=None),
             "excursion_host": float(np.nanmax(np.abs(pos - pos[0]))) if pos.size else None,
             "workspace": WORKSPACE_RAD, "beyond_workspace": exc_true > WORKSPACE_RAD,
+            "longest_hold_s": dev.longest_hold_s, "watchdog": res.get("watchdog"),
+            "link_stopped": stopped[1] if stopped else None,
             "verdict": felt["verdict"], "within": felt.get("within"),
             "felt_reason": felt["reason"],
             "deviation": felt.get("deviation"), "uncertainty": felt.get("uncertainty"),
@@ -378,11 +394,14 @@ def main(argv=None) -> int:
                    help="starve the 1-D boards' processes: after an answer, with "
                         "probability P, a silence of LO_MS..HI_MS ms (module notes)")
     p.add_argument("--host-stall", type=float, default=None, metavar="MS",
-                   help="the 1-D runs: stop the host's process once for MS ms at a seeded "
-                        "moment of its loop (SIGSTOP/SIGCONT; module notes)")
+                   help="the 1-D and Falcon runs: stop the host's process once for MS ms at "
+                        "a seeded moment of its loop (SIGSTOP/SIGCONT; module notes)")
+    p.add_argument("--falcon-start", type=float, default=0.0, metavar="MM",
+                   help="the Falcon's loop: the hand let go MM mm off rest along x as it "
+                        "starts (default 0: from rest)")
     p.add_argument("--no-host-watchdog", action="store_true",
-                   help="the baseline of an A/B: the 1-D transports start no host "
-                        "watchdog (hapsim.drivers.host_watchdog)")
+                   help="the baseline of an A/B: no host watchdog is started "
+                        "(hapsim.drivers.torque_watchdog.start_watchdog)")
     p.add_argument("--json", default=None, metavar="PATH")
     p.add_argument("--resummarize", default=None, metavar="PATH",
                    help="recompute the summary of a JSON this tool wrote from its runs "
@@ -416,7 +435,9 @@ def main(argv=None) -> int:
                                               amplitude=a.haply2_amplitude)
                                    if drv == "haply2"  # else falcon
                                    else run_falcon_once(seed, loss,
-                                                        scene=a.falcon_scene))
+                                                        scene=a.falcon_scene,
+                                                        stall_ms=a.host_stall,
+                                                        start_mm=a.falcon_start))
                         sched = rt.note
                     else:
                         row = run_1d(drv, seed, loss, a.duration, a.rt_priority,

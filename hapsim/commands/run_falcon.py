@@ -11,6 +11,7 @@ import sys
 import numpy as np
 
 from hapsim.braking import brake_text
+from hapsim.drivers.torque_watchdog import watchdog_text
 from hapsim.errors import ConfigError
 
 __all__ = ["run_falcon_command", "DEFAULT_PACKETS"]
@@ -168,6 +169,8 @@ def run_falcon_command(args) -> int:
            "felt_matrices": felt, "scheduling": res["scheduling"],
            # a stop on the motion and the braking after it (hapsim.braking; None: none)
            "stopped": res["stopped"], "brake": res["brake"],
+           # the host's watchdog over the loop (its firmware holds the last command)
+           "watchdog": res["watchdog"],
            "verdict": res["verdict"], "reason": res["reason"]}
     if args.json:
         print(json.dumps(out))
@@ -199,6 +202,7 @@ def run_falcon_command(args) -> int:
     if travel is not None:
         print(f"  handle travel {travel * 1e3:.3f} mm from its first reading; largest motor "
               f"command {out['max_command']} counts", file=o)
+    print("  " + watchdog_text(res["watchdog"], "the zero command"), file=o)
     if res["brake"]:
         print("  " + brake_text(res["brake"], "N m s/rad", "rad/s"), file=o)
     if "records" in felt:

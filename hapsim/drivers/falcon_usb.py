@@ -40,7 +40,10 @@ from hapsim.errors import ConfigError, DeviceError, FirmwareEchoError
 
 __all__ = ["FALCON_VID", "FALCON_PID", "DEFAULT_URL", "UDEV_RULE", "FT232R_CLOCK_HZ",
            "ft232r_baud", "BAUD_OF_DIVISOR", "parse_url", "FalconUSB", "load_firmware_link",
-           "explain_usb_error"]
+           "explain_usb_error", "usbfs_sink", "OUT_ENDPOINT"]
+
+#: The FT232R's bulk OUT endpoint (host -> UART).
+OUT_ENDPOINT = 0x02
 
 #: The Falcon's USB vendor and product ids (libnifalcon ``FalconComm.h``).
 FALCON_VID, FALCON_PID = 0x0403, 0xCB48
@@ -164,6 +167,50 @@ def explain_usb_error(exc, doing: str) -> DeviceError:
     return DeviceError(f"{doing}: USB error: {exc}")
 
 
+def usbfs_sink(bus: int, address: int, fd_dir: str = "/proc/self/fd") -> tuple:
+    """The host watchdog's sink on a real Falcon: libusb's own file of the device, found
+    among this process's open files (Linux: ``/dev/bus/usb/BBB/DDD``).
+
+    The Falcon's firmware holds its last command (no watchdog published) and pyftdi's
+    libusb owns the device in the host's process, so a watchdog in its own process writes
+    through that file, inherited: usbfs keeps the interface's claim per open file, so the
+    kernel takes the watchdog's transfer as the host's
+    (:func:`hapsim.drivers.torque_watchdog._usbfs_writer`).
+
+    Parameters
+    ----------
+    bus, address : int
+        The device's USB bus and address (pyusb's ``Device.bus``, ``Device.address``).
+    fd_dir : str
+        Where the process's open files are listed.
+
+    Returns
+    -------
+    (str, int, int)
+        ``("usbfs", fd, OUT_ENDPOINT)``.
+
+    Raises
+    ------
+    OSError
+        No such file open (not Linux, or libusb reaches the device another way), with
+        the path looked for.
+    """
+    import os
+    want = f"/dev/bus/usb/{int(bus):03d}/{int(address):03d}"
+    try:
+        names = os.listdir(fd_dir)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot list {fd_dir} to find {want}: {exc.strerror}") \
+            from None
+    for name in sorted(names, key=lambda n: int(n) if n.isdigit() else -1):
+        try:
+            if os.readlink(os.path.join(fd_dir, name)) == want:
+                return "usbfs", int(name), OUT_ENDPOINT
+        except (OSError, ValueError):
+            continue
+    raise OSError(_errno.ENOENT, f"libusb's file {want} is not open in this process")
+
+
 class FalconUSB:
     """The Falcon's FT232R opened with pyftdi (module notes).
 
@@ -212,6 +259,8 @@ class FalconUSB:
         self.read_timeout = float(read_timeout)
         self.written = self.read_bytes = 0
         self.ftdi = None
+        #: Where a host watchdog writes (:meth:`watchdog_sink`); None: libusb's file.
+        self.sink = None
         try:
             found = list(usb.core.find(find_all=True, idVendor=FALCON_VID,
                                        idProduct=FALCON_PID, backend=backend))
@@ -368,6 +417,25 @@ class FalconUSB:
             raise explain_usb_error(exc, "reading from the Falcon") from None
         self.read_bytes += len(out)
         return bytes(out)
+
+    def watchdog_sink(self) -> tuple:
+        """Where a host watchdog in its own process writes the zero command: the
+        emulated chip's side channel when one was given (:attr:`sink`), else libusb's
+        file of the device (:func:`usbfs_sink`).
+
+        Returns
+        -------
+        tuple
+            A :class:`hapsim.drivers.torque_watchdog.TorqueWatchdog` ``sink``.
+
+        Raises
+        ------
+        OSError
+            None found (the reason).
+        """
+        if self.sink is not None:
+            return self.sink()
+        return usbfs_sink(self.device.bus, self.device.address)
 
     def exchange(self, send: bytes, n: int, done=None, timeout: float | None = None) -> bytes:
         """Write ``send``, then read up to ``n`` bytes (:meth:`read`)."""

@@ -8,7 +8,11 @@ garbage collection, a ``SIGSTOP``. The host loop cannot act while it does not ru
 started in ~25 ms, asleep between checks, at a real-time priority above the loop's where
 the OS permits it): when the host's last write left a non-zero force and the host has not
 written for ``bound_s`` while armed (stalled, or running without writing), it writes the
-driver's zero-force command to the port itself, once per silence.
+driver's zero-force command to the port itself, once per silence. The port is a device
+file it opens by path (a serial board), or a file of the host's it inherits (:data:`_SINKS`):
+the Falcon's USB device file, libusb's own (its claim of the interface is that file's, so
+the kernel takes the watchdog's bulk transfer), or the emulated FT232R's side channel,
+each write stamped with its time.
 
 No lock: the host, before each of its own writes, stamps its time on the shared page and
 then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.write` returns them;
@@ -42,7 +46,7 @@ import sys
 import tempfile
 import time
 
-__all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report"]
+__all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report", "watchdog_text"]
 
 #: Fields of the shared page (int64 each): the host's last write (monotonic ns), armed,
 #: zero writes made, the time of the last (monotonic ns), the host write it answered,
@@ -52,8 +56,18 @@ __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report"]
 #: by ``fired_for``, the host write it followed, so that it never clears a hold the
 #: host set just after its check).
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired", "fired_ns", "fired_for", "quit",
-                                  "longest_ns", "ready", "rt", "holding"))}
+                                  "longest_ns", "ready", "rt", "holding", "failed"))}
 _SIZE = 8 * len(_F)
+#: The sinks a watchdog writes to besides a device file it opens by path, each an
+#: inherited file descriptor: ``usbfs`` (a USB device's file under ``/dev/bus/usb``,
+#: libusb's own, and the bulk OUT endpoint: the Falcon's FT232R) and ``stamped`` (a pipe
+#: to an emulated chip: each write prefixed by its monotonic time [ns], 8 bytes little
+#: endian, so that the chip applies it at that time,
+#: :meth:`hapsim.emulated.ftdi_usb.VirtualFT232R.side_channel`).
+_SINKS = ("usbfs", "stamped")
+#: The usbfs transfer's timeout [ms]: a full-speed bulk OUT of one packet takes one
+#: frame (1 ms); a chip that NAKs longer (its FIFO full) is not waited for.
+USBFS_TIMEOUT_MS = 10
 #: How long the host waits for the watchdog process to start [s].
 START_TIMEOUT_S = 3.0
 
@@ -93,6 +107,10 @@ class TorqueWatchdog:
     rt_priority : int
         ``SCHED_FIFO`` priority the watchdog asks for (0: none); refused quietly where
         the OS does not permit it (:attr:`rt` says what it got).
+    sink : tuple, optional
+        Instead of opening ``port`` (then only named in messages): ``(kind, fd, *args)``,
+        a file descriptor of this process the watchdog inherits and writes ``zero`` to,
+        ``("usbfs", fd, endpoint)`` or ``("stamped", fd)`` (:data:`_SINKS`).
 
     Attributes
     ----------
@@ -103,15 +121,23 @@ class TorqueWatchdog:
     Raises
     ------
     ValueError
-        ``bound_s`` not positive.
+        ``bound_s`` not positive, an unknown sink.
     OSError
         The watchdog process did not start (its reason: it could not open ``port``, or
         did not answer within :data:`START_TIMEOUT_S`); nothing is left running.
     """
 
-    def __init__(self, port: str, zero: bytes, bound_s: float, rt_priority: int = 11) -> None:
+    def __init__(self, port: str, zero: bytes, bound_s: float, rt_priority: int = 11, *,
+                 sink: tuple | None = None) -> None:
         if not bound_s > 0:
             raise ValueError(f"bound_s must be > 0, got {bound_s!r}")
+        target, fds = port, ()
+        if sink is not None:
+            kind, fd_sink = sink[0], int(sink[1])
+            if kind not in _SINKS:
+                raise ValueError(f"unknown sink {kind!r}; valid: {', '.join(_SINKS)}")
+            target = ":".join(["fd", str(fd_sink), kind, *map(str, sink[2:])])
+            fds = (fd_sink,)
         self.bound_s = float(bound_s)
         self.check_s = self.bound_s / 4
         self._taken = 0
@@ -121,10 +147,11 @@ class TorqueWatchdog:
             os.write(fd, b"\0" * _SIZE)
             self._page = _Page(fd)
             self._proc = subprocess.Popen(
-                [sys.executable, "-I", "-S", os.path.abspath(__file__), path, port, zero.hex(),
-                 str(int(self.bound_s * 1e9)), str(os.getpid()), str(int(rt_priority))],
+                [sys.executable, "-I", "-S", os.path.abspath(__file__), path, target,
+                 zero.hex(), str(int(self.bound_s * 1e9)), str(os.getpid()),
+                 str(int(rt_priority))],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL, close_fds=True)
+                stderr=subprocess.DEVNULL, close_fds=True, pass_fds=fds)
             end = time.monotonic() + START_TIMEOUT_S
             while self._page.get("ready") == 0 and time.monotonic() < end:
                 if self._proc.poll() is not None:
@@ -137,6 +164,9 @@ class TorqueWatchdog:
                        "it did not start in time" if self._proc.returncode is None else
                        f"it exited with {self._proc.returncode}")
                 raise OSError(f"the host watchdog could not take {port}: {why}")
+        except BaseException:
+            os.close(fd)                    # (nothing left open by a watchdog not started)
+            raise
         finally:
             os.unlink(path)                 # both ends hold it open: gone with them
         #: The ``SCHED_FIFO`` priority the watchdog runs at (0: normal scheduling).
@@ -172,6 +202,11 @@ class TorqueWatchdog:
         self._taken += n
         return (p.get("fired_ns"),) * n
 
+    @property
+    def taken(self) -> int:
+        """The zero writes the host has taken (:meth:`take`) so far."""
+        return self._taken
+
     def write(self, ser, data: bytes, holding: bool) -> tuple:
         """The host writes ``data``: its time stamped first (the silence the watchdog
         counts is between the host's writes: a host that runs but does not write leaves
@@ -191,12 +226,33 @@ class TorqueWatchdog:
         tuple of int
             As :meth:`take`: the watchdog's writes that went out before ``data``.
         """
-        p = self._page
-        p.set("beat", time.monotonic_ns())
-        times = self.take()
+        times = self.beat()
         ser.write(data)
-        p.set("holding", 1 if holding else 0)
+        self.hold(holding)
         return times
+
+    def beat(self) -> tuple:
+        """The first half of :meth:`write` for a link that writes and reads in one call
+        (the Falcon's ``exchange``): the host's time stamped, the watchdog's writes made
+        since taken.
+
+        Returns
+        -------
+        tuple of int
+            As :meth:`take`.
+        """
+        self._page.set("beat", time.monotonic_ns())
+        return self.take()
+
+    def hold(self, holding: bool) -> None:
+        """The second half of :meth:`write`: whether the host's write just made leaves a
+        non-zero force.
+
+        Parameters
+        ----------
+        holding : bool
+        """
+        self._page.set("holding", 1 if holding else 0)
 
     def report(self) -> dict:
         """What the watchdog did.
@@ -204,12 +260,13 @@ class TorqueWatchdog:
         Returns
         -------
         dict
-            ``fired`` (zero writes made), ``longest_s`` (the longest host silence the
+            ``fired`` (zero writes made), ``failed`` (writes the sink refused, each
+            tried again at the next check), ``longest_s`` (the longest host silence the
             watchdog saw before a write [s], 0 without one: the stated bound's measured
             part), ``bound_s``, ``check_s``, ``rt_priority`` (granted; 0: none).
         """
         p = self._page
-        return {"fired": p.get("fired"), "longest_s": p.get("longest_ns") * 1e-9,
+        return {"fired": p.get("fired"), "failed": p.get("failed"), "longest_s": p.get("longest_ns") * 1e-9,
                 "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
 
     def _kill(self) -> None:
@@ -222,24 +279,31 @@ class TorqueWatchdog:
             self._proc.wait()
 
     def close(self) -> None:
-        """Stop the watchdog process (disarmed first; idempotent)."""
+        """Stop the watchdog process (disarmed first; idempotent). The shared page's file
+        is closed; its mapping stays, so :meth:`report` and :meth:`take` still read it."""
         if self._proc.returncode is None:
             self._page.set("armed", 0)
             self._kill()
+        if self._page.fd is not None:
+            os.close(self._page.fd)
+            self._page.fd = None
 
 
-def start_watchdog(port: str, zero: bytes, bound_s: float):
-    """A :class:`TorqueWatchdog` on ``port``, or the reason it could not start.
+def start_watchdog(port: str, zero: bytes, bound_s: float, *, sink: tuple | None = None):
+    """A :class:`TorqueWatchdog` on ``port`` (or ``sink``), or the reason it could not
+    start.
 
     Parameters
     ----------
     port : str
-        The port's path.
+        The port's path (with ``sink``: only its name in messages).
     zero : bytes
         The driver's zero-force command.
     bound_s : float
         The host's silence after which the watchdog writes ``zero`` [s]
         (:data:`hapsim.drivers.resync.HOLD_BOUND_S`).
+    sink : tuple, optional
+        :class:`TorqueWatchdog`'s ``sink``: an inherited file instead of ``port``.
 
     Returns
     -------
@@ -247,10 +311,10 @@ def start_watchdog(port: str, zero: bytes, bound_s: float):
         The watchdog, or None and why not (a port that is no device file: a URL, a
         socket; a process that could not start).
     """
-    if not os.path.exists(port):
+    if sink is None and not os.path.exists(port):
         return None, f"{port} is not a device file"
     try:
-        return TorqueWatchdog(port, zero, bound_s), None
+        return TorqueWatchdog(port, zero, bound_s, sink=sink), None
     except OSError as exc:
         return None, str(exc)
 
@@ -274,11 +338,71 @@ def watchdog_report(watchdog, why) -> dict:
     return {"running": True, **watchdog.report()}
 
 
+def watchdog_text(rep: dict, what: str = "zero force") -> str:
+    """One line of a run's report on its watchdog.
+
+    Parameters
+    ----------
+    rep : dict
+        :func:`watchdog_report`'s.
+    what : str
+        What the watchdog writes (``"zero force"``, ``"the zero command"``).
+
+    Returns
+    -------
+    str
+        ``host watchdog: ...``: the writes, the longest silence before one and the bound,
+        or none and why.
+    """
+    if not rep.get("running"):
+        return f"host watchdog: none ({rep.get('why')})"
+    failed = f", {rep['failed']} writes refused" if rep.get("failed") else ""
+    return (f"host watchdog: {what} written {rep['fired']} times{failed}, the longest host "
+            f"silence before one {rep['longest_s'] * 1e3:.1f} ms (bound "
+            f"{rep['bound_s'] * 1e3:g} ms + {rep['check_s'] * 1e3:g} ms checks)")
+
+
+def _usbfs_writer(fd: int, ep: int, data: bytes):
+    """A write of ``data`` to bulk OUT endpoint ``ep`` through a usbfs file ``fd`` (the
+    Linux kernel's ``USBDEVFS_BULK``: ``struct usbdevfs_bulktransfer {unsigned int ep,
+    len, timeout; void *data;}``, ``linux/usbdevice_fs.h``), standard library only. The
+    fd is libusb's own, inherited: its claim of the interface is this file's, so the
+    kernel takes the transfer; one transfer of at most 64 bytes is one full-speed bulk
+    packet, never interleaved with the host's."""
+    import ctypes
+    import fcntl
+    import struct
+    buf = ctypes.create_string_buffer(bytes(data), len(data))
+    arg = bytearray(struct.pack("@IIIP", ep, len(data), USBFS_TIMEOUT_MS,
+                                ctypes.addressof(buf)))
+    req = (3 << 30) | (len(arg) << 16) | (ord("U") << 8) | 2     # _IOWR('U', 2, ...)
+
+    def write() -> None:
+        fcntl.ioctl(fd, req, arg, True)
+    write.keep = buf                    # (the buffer the pointer names lives as long)
+    return write
+
+
+def _writer(port: str, zero: bytes):
+    """The watchdog's write of ``zero``: to a device file opened by path, or to a file
+    descriptor inherited (``fd:N:KIND[:ARG]``, :data:`_SINKS`)."""
+    if not port.startswith("fd:"):
+        fd = os.open(port, os.O_WRONLY | os.O_NOCTTY)
+        return lambda: os.write(fd, zero)
+    _, n, kind, *arg = port.split(":")
+    fd = int(n)
+    os.fstat(fd)                        # (OSError EBADF: not inherited)
+    if kind == "usbfs":
+        return _usbfs_writer(fd, int(arg[0]), zero)
+    # "stamped": the emulated chip's side channel, each write its monotonic time first
+    return lambda: os.write(fd, time.monotonic_ns().to_bytes(8, "little") + zero)
+
+
 def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: int) -> None:
     """The watchdog process (module notes)."""
     page = _Page(os.open(path, os.O_RDWR))
     try:
-        fd = os.open(port, os.O_WRONLY | os.O_NOCTTY)
+        write = _writer(port, zero)
     except OSError as exc:
         page.set("ready", -(exc.errno or 5))
         return
@@ -302,7 +426,11 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
             continue
         if page.get("beat") != beat or not page.get("armed") or not page.get("holding"):
             continue                        # (the host wrote meanwhile, or holds nothing)
-        os.write(fd, zero)
+        try:
+            write()
+        except OSError:
+            page.set("failed", page.get("failed") + 1)
+            continue
         page.set("fired_ns", time.monotonic_ns())
         page.set("fired_for", beat)
         page.set("longest_ns", max(page.get("longest_ns"), now - beat))

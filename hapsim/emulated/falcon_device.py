@@ -117,6 +117,9 @@ class FalconDevice:
         Wall clock: the device's time [s] its last reply is ready at.
     excursion : float
         The largest leg displacement from the operating point [rad] (the truth).
+    longest_hold_s : float
+        Wall clock: the longest time [s] a non-zero command was held until the next
+        packet took effect.
     """
 
     def __init__(self, scene, *, expected_image: bytes | None = None,
@@ -135,6 +138,10 @@ class FalconDevice:
         self._t = 0.0                         # the device's time the plant has reached [s]
         self._k = -1                          # the last tick that took a packet
         self._due: deque = deque()            # (time [s], commands) not yet in effect
+        self._took = None                     # when the commands in effect took it [s]
+        #: Wall clock: the longest time [s] a non-zero command was held with no packet
+        #: after it (the firmware holds each one: no watchdog published).
+        self.longest_hold_s = 0.0
         dev = scene.device
         if scene.dimension != 3 or dev is None or dev.kind != "delta":
             raise ConfigError("the Falcon drives a 3-D scene with a delta device",
@@ -223,12 +230,20 @@ class FalconDevice:
             tau = np.array([-c * self.nm_per_count for c in self.commands], float)
             self.plant.advance_torque(tau, nxt - self._t)
             self._t = nxt
-            while self._due and self._due[0][0] <= self._t:
-                self.commands = self._due.popleft()[1]
-        while self._due and self._due[0][0] <= self._t:
-            self.commands = self._due.popleft()[1]
+            self._take_due()
+        self._take_due()
         self.excursion = max(self.excursion,
                              float(np.abs(self.plant.joints() - self.plant.q0).max()))
+
+    def _take_due(self) -> None:
+        """The packets whose time has come take effect, each timed against the one
+        before (:attr:`longest_hold_s`)."""
+        while self._due and self._due[0][0] <= self._t:
+            t, cmds = self._due.popleft()
+            if any(self.commands) and self._took is not None:
+                self.longest_hold_s = max(self.longest_hold_s, t - self._took)
+            self._took = t
+            self.commands = cmds
 
     def feed(self, data: bytes, now: float | None = None) -> bytes:
         """Bytes from the host in, the device's bytes out (module notes).

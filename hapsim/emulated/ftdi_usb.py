@@ -114,6 +114,12 @@ class VirtualFT232R:
         self.plugged = True
         self._to_host = bytearray()
         self._later: list = []               # (device time ready [s], bytes) not yet in
+        self._side = None                    # the side channel's pipe (read, write)
+        self._side_buf = bytearray()
+        #: Bytes of one side-channel transfer (the Falcon's 16-byte packet).
+        self.side_size = 16
+        #: Side-channel transfers taken.
+        self.side_transfers = 0
         self.strings = {1: "FTDI", 2: "hapsim emulated FT232R", 3: serial}
         self.desc = SimpleNamespace(
             bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0,
@@ -229,16 +235,86 @@ class VirtualFT232R:
     def _status():
         return 0x01, 0x60
 
+    # ------------------------------------------------------------------ side channel
+    def side_channel(self) -> tuple:
+        """A second writer of bulk OUT bytes, for another process: the host's watchdog
+        (:mod:`hapsim.drivers.torque_watchdog`'s ``stamped`` sink), as a real chip takes
+        a bulk transfer from any process holding libusb's file.
+
+        Returns
+        -------
+        (str, int)
+            ``("stamped", fd)``: the write end of a pipe; each write is the writer's
+            ``time.monotonic_ns()`` (8 bytes, little endian) and then one
+            :attr:`side_size`-byte transfer, taken at that time by the device's own clock
+            (:meth:`_side_in`) whenever the chip next serves the host: the emulated device
+            runs in the host's process, so a write made while the host did not run lands
+            in the device's past, where a real chip would have taken it.
+
+        Raises
+        ------
+        OSError
+            A device in lockstep (its time is the host's transfers: a write from
+            elsewhere has no time in it), or no pipe could be made.
+        """
+        if getattr(self.device, "wall", None) is None:
+            raise OSError(errno.EPERM, "a lockstep device: its time is the host's transfers")
+        if self._side is None:
+            import os
+            r, w = os.pipe()
+            os.set_blocking(r, False)
+            self._side = (r, w)
+        return "stamped", self._side[1]
+
+    def _side_in(self) -> None:
+        """The side channel's transfers, each fed to the device at its own time."""
+        if self._side is None:
+            return
+        import os
+        rec = 8 + self.side_size
+        try:
+            self._side_buf += os.read(self._side[0], 65536)
+        except BlockingIOError:
+            pass
+        while len(self._side_buf) >= rec:
+            t_ns = int.from_bytes(self._side_buf[:8], "little")
+            data = bytes(self._side_buf[8:rec])
+            del self._side_buf[:rec]
+            now = None
+            if getattr(self.device, "wall", None) is not None:
+                now = self.device.now() - (time.monotonic_ns() - t_ns) * 1e-9
+            self.side_transfers += 1
+            self._take_out(data, now)
+
+    def close_side(self) -> None:
+        """Close the side channel's pipe (idempotent)."""
+        import os
+        side, self._side = self._side, None
+        if side is not None:
+            for fd in side:
+                os.close(fd)
+
     # ------------------------------------------------------------------ bulk
     def bulk_out(self, data) -> int:
         """Host -> device bytes: through the faults to ``device.feed``; its answer kept
         for the host (through the faults)."""
         self._count_transfer()
-        b = bytes(data)
+        self._side_in()
+        self._take_out(bytes(data))
+        return len(data)
+
+    def _take_out(self, b: bytes, now: float | None = None) -> None:
+        """Bulk OUT bytes ``b`` through the faults to the device (at its time ``now``:
+        default the device's own)."""
         on = self.faults_on
         if on and self.faults is not None:
             b = self.faults.rx(b)
-        ans = self.device.feed(b) if b else b""
+        if not b:
+            ans = b""
+        elif now is None:
+            ans = self.device.feed(b)
+        else:
+            ans = self.device.feed(b, now=now)
         if on and ans and self.faults is not None:
             ans = self.faults.tx(ans)
         if on and ans and self.dup_tx > 0:
@@ -250,12 +326,12 @@ class VirtualFT232R:
             self._later.append((self.device.ready_at, ans))
         else:
             self._to_host += ans
-        return len(data)
 
     def bulk_in(self, buff) -> int:
         """Device -> host: USB packets of the two status bytes and up to 62 data bytes,
         as many as ``buff`` holds (at least the status bytes)."""
         self._count_transfer()
+        self._side_in()
         if self._later:
             now = self.device.now()
             if not self._to_host and self._later[0][0] > now:
@@ -329,7 +405,9 @@ class VirtualUSB:
         return SimpleNamespace(dev=dev, handle=self._handles)
 
     def close_device(self, dev_handle) -> None:
-        """Nothing to release."""
+        """The chip's side channel closed (a watchdog's writes end with the host's
+        handle, as libusb's file)."""
+        dev_handle.dev.close_side()
 
     def set_configuration(self, dev_handle, config_value) -> None:
         """Only configuration 1 exists."""

@@ -129,7 +129,9 @@ def emulated_falcon(scene, image: bytes, *, faults=None, unplug_after: int | Non
     dev = FalconDevice(scene, expected_image=image, **device_options)
     chip = VirtualFT232R(dev, faults=faults, unplug_after=unplug_after, dup_tx=dup_tx,
                          seed=seed)
-    return FalconUSB(backend=VirtualUSB([chip])), dev, chip
+    link = FalconUSB(backend=VirtualUSB([chip]))
+    link.sink = chip.side_channel
+    return link, dev, chip
 
 
 def falcon_verdict(res: dict) -> dict:
@@ -422,6 +424,41 @@ def _zero(link, timeout: float) -> int:
     return sent
 
 
+def _start_watchdog(link, paced: bool):
+    """The host's watchdog for the loop over a Falcon on its own clock (its firmware
+    holds the last command: no watchdog published), writing a zero command through the
+    link's :meth:`~hapsim.drivers.falcon_usb.FalconUSB.watchdog_sink` after the host's
+    silence of :data:`HOLD_BOUND_S`; or None and the reason."""
+    if not paced:
+        return None, "a lockstep Falcon: its time is the packets'"
+    sink = getattr(link, "watchdog_sink", None)
+    if sink is None:
+        return None, "the link gives the watchdog nothing to write to"
+    from hapsim.drivers.falcon import LED_RED, host_packet
+    from hapsim.drivers.torque_watchdog import start_watchdog
+    try:
+        where = sink()
+    except OSError as exc:
+        return None, str(exc)
+    return start_watchdog(f"the Falcon's {where[0]} file", host_packet((0, 0, 0), LED_RED),
+                          HOLD_BOUND_S, sink=where)
+
+
+def _close_watchdog(wd, why, rows) -> dict:
+    """The watchdog disarmed and stopped; its report, with ``zeroed`` (its writes the
+    host took) and ``rows`` (the exchanges before which it had written)."""
+    from hapsim.drivers.torque_watchdog import watchdog_report
+    if wd is None:
+        return watchdog_report(None, why)
+    wd.arm(False)
+    wd.take()
+    wd.close()
+    rep = watchdog_report(wd, why)
+    rep["zeroed"] = wd.taken
+    rep["rows"] = list(rows)
+    return rep
+
+
 def _reply_end(b: bytes) -> bool:
     return len(b) >= 8 and b[-1] == 0x3E
 
@@ -553,6 +590,10 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     # not is the host waiting for a lost reply, not the host stalled
     answered = []
 
+    # the host's watchdog (paced: a Falcon on its own clock), armed over the loop
+    wd = [None]
+    wd_rows = []                            # exchanges before which it had written
+
     drain = getattr(link, "read", None)
     # the firmware's first answers after its load are waited for as long as the load's
     # own (PROBE_TIMEOUT_S: a firmware still starting is not one that does not run); from
@@ -572,9 +613,14 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             # and every reply after it one packet late: a loop with a period more delay,
             # which ran the emulated legs 45-110 rad beside two CPU-bound processes
             late = drain(64, 0.0) if drain is not None and sent[0] > 1 else b""
+            if wd[0] is not None and wd[0].beat():
+                wd_rows.append(len(stamps) - 1)
             # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
             # would otherwise leave the next reply one byte behind, read one packet late)
             ans = late + link.exchange(packet, 32, _reply_end, wait[0])
+            if wd[0] is not None:
+                pk = parse_host_packet(packet)
+                wd[0].hold(pk is not None and any(pk[0]))
             answered.append(_reply_end(ans))
             replied.append(time.perf_counter())
         except DeviceError as exc:
@@ -586,7 +632,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
 
     # the firmware answers packets (libnifalcon's isFirmwareLoaded): else the image was
     # not the Falcon's firmware, or the load did not take
-    from hapsim.drivers.falcon import DevicePacketDecoder, host_packet
+    from hapsim.drivers.falcon import DevicePacketDecoder, host_packet, parse_host_packet
     dec = DevicePacketDecoder()
     if not any(dec.feed(feed(host_packet((0, 0, 0)))) for _ in range(FIRMWARE_PROBES)):
         raise DeviceError(f"the Falcon answered none of {FIRMWARE_PROBES} packets after the "
@@ -612,6 +658,9 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     stamps.clear()
     replied.clear()
     answered.clear()
+    wd[0], wd_why = _start_watchdog(link, paced)
+    if wd[0] is not None:
+        wd[0].arm(True)
     try:
         # a stop on the motion (the legs out of their envelope, a paced host too late)
         # brakes the legs before the zero commands below, unless the scene says not to
@@ -623,6 +672,8 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         # the firmware holds the last command (no watchdog is published): zero torque
         # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
         zeroed = _zero(link, timeout)
+        watchdog = _close_watchdog(wd[0], wd_why, wd_rows)
+        wd[0] = None
     dt = time.perf_counter() - t0
     if progress:
         progress(1)
@@ -632,7 +683,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
            "position": res["position"], "commands": res["commands"], "truth": None,
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
            "held_zero": res["held_zero"], "stopped": res["stopped"],
-           "brake": res["brake"], "joints": res["joints"]}
+           "brake": res["brake"], "joints": res["joints"], "watchdog": watchdog}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
     # sample k reads the reply of exchange k (stamps[0]: the loop's priming packet). The
     # firmware takes a packet at its next tick, so packet k missed a tick (the command of
@@ -662,6 +713,9 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     if truth is not None:
         # sample k reads the reply of exchange k (exchange 0 primes the loop)
         read = ~np.isnan(res["joints"][:, 0])
+        # a reply read after the watchdog wrote may answer its zero command: the counts
+        # of an earlier tick than the truth taken after this exchange (not compared)
+        read[[k for k in wd_rows if k < read.size]] = False
         err = [max(abs(ticks_of(np.degrees(res["joints"][k, i])) - truths[k][i])
                    for i in range(3)) for k in np.flatnonzero(read)]
         out["truth"] = {"compared": int(read.sum()), "exact": int(sum(e == 0 for e in err)),

@@ -383,11 +383,8 @@ def format_report(rep: dict) -> str:
         wd = dl.get("watchdog")
         if wd:
             # the host's watchdog beside a board that holds its force (host_watchdog)
-            lines.append(
-                f"host watchdog: zero force written {wd['fired']} times, the longest host "
-                f"silence before one {wd['longest_s'] * 1e3:.1f} ms (bound "
-                f"{wd['bound_s'] * 1e3:g} ms + {wd['check_s'] * 1e3:g} ms checks)"
-                if wd.get("running") else f"host watchdog: none ({wd.get('why')})")
+            from hapsim.drivers.torque_watchdog import watchdog_text
+            lines.append(watchdog_text(wd))
     mk = lp.get("mock")
     if mk:
         lines.append(f"device (mock): {mk['ticks']} ticks, late {mk['late']}, watchdog "

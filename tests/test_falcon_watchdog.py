@@ -1,0 +1,185 @@
+"""The host's watchdog for the Falcon (issue 29: "the host never leaves a board without a
+watchdog holding a torque for longer than a stated bound"): its firmware holds the last
+command (no watchdog published) and pyftdi's libusb owns the device in the host's process,
+so the watchdog, a process of its own, writes the zero command through libusb's file,
+inherited (:func:`hapsim.drivers.falcon_usb.usbfs_sink`); on the emulated Falcon, through
+the emulated FT232R's side channel, each write taken at its own time on the device's clock
+(:meth:`hapsim.emulated.ftdi_usb.VirtualFT232R.side_channel`).
+
+The Falcon here keeps its own clock (the emulated firmware's ticks on the wall clock) and
+the host's silence is a real one: the loop's thread sleeps inside an exchange, touching
+nothing, as a descheduled host does. The emulated device runs in the host's process, so it
+takes the watchdog's write when the host next reaches the chip, at the time the write was
+made (what a real chip does at once): its ``longest_hold_s`` is the time a non-zero
+command was held on its own clock, whatever the machine's load.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pyftdi")       # the [falcon] extra; in [test] too: CI has it
+
+from hapsim.drivers import torque_watchdog as tw  # noqa: E402
+from hapsim.drivers.falcon import parse_host_packet  # noqa: E402
+from hapsim.drivers.falcon_usb import OUT_ENDPOINT, usbfs_sink  # noqa: E402
+from hapsim.pipeline import falcon_run as fr  # noqa: E402
+from hapsim.scene import load_scene_nd  # noqa: E402
+from test_falcon_stalls import IMAGE  # noqa: E402  (same directory)
+from test_host_watchdog import SILENCE_S, _stated  # noqa: E402
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def _stalled_run(silence_s: float, after: int = 20, samples: int = 200):
+    """configs/falcon_spring.yaml's loop on the emulated Falcon (wall clock), the hand let
+    go 2 mm off its rest so that the commands are not zero; the host silent ``silence_s``
+    once, in the first exchange after ``after`` packets of the loop whose command is not
+    zero. Returns (the run's result, the device, the packet stalled at or None)."""
+    sc = load_scene_nd(CONFIGS / "falcon_spring.yaml")
+    link, dev, chip = fr.emulated_falcon(sc, IMAGE)
+    assert dev.clock == "wall"
+    state = {"on": False, "k": 0, "at": None}
+    real = link.exchange
+
+    def exchange(send, *a, **k):
+        if state["on"]:
+            state["k"] += 1
+            pk = parse_host_packet(send)
+            if state["at"] is None and state["k"] > after and any(pk[0]):
+                state["at"] = state["k"]
+                out = real(send, *a, **k)
+                time.sleep(silence_s)       # the host does not run
+                return out
+        return real(send, *a, **k)
+    link.exchange = exchange
+
+    def start():
+        state["on"] = True
+        dev.let_go(np.array([2e-3, 0.0, 0.0]), np.zeros(3))
+    try:
+        res = fr.run_falcon(sc, link, IMAGE, samples, truth=dev.counts, paced=True,
+                            start=start)
+    finally:
+        link.close()
+    return res, dev, state["at"]
+
+
+def _open_files() -> dict:
+    """This process's open pipes and watchdog pages, counted."""
+    out = {"pipe": 0, "watchdog": 0}
+    for n in os.listdir("/proc/self/fd"):
+        try:
+            where = os.readlink(f"/proc/self/fd/{n}")
+        except OSError:
+            continue
+        out["pipe"] += where.startswith("pipe:")
+        out["watchdog"] += "hapsim-watchdog" in where
+    return out
+
+
+def test_falcon_host_silence_bounded_by_the_watchdog_and_accounted():
+    """The host silent five bounds with a non-zero command in effect: the watchdog writes
+    the zero command once, the Falcon held the command no longer than the stated bound
+    and a tick; the host, back, counts the stall and stops the loop for it (a paced host
+    too late: "degraded", the legs braked, zero commands). The same run without the
+    watchdog holds the command the whole silence (next test: so this one can fail)."""
+    res, dev, at = _stalled_run(SILENCE_S)
+    assert at is not None, "no packet with a non-zero command to stall at"
+    wd = res["watchdog"]
+    # once for the silence; a loaded machine (the suite's real-time loops beside) may
+    # deschedule the host past the bound again: once more for each such silence
+    assert wd["running"] and wd["fired"] == wd["zeroed"] >= 1 and wd["failed"] == 0, wd
+    tick = 1.0 / res["rate_hz"]
+    # the write's own time is the device's (stamped), so no scheduling of the emulator
+    # adds to the hold: the stated bound, the firmware's next tick and 1 ms for the
+    # write's syscall after the watchdog read its clock
+    assert dev.longest_hold_s <= _stated(wd) + tick + 1e-3, (dev.longest_hold_s, wd)
+    assert dev.longest_hold_s >= fr.HOLD_BOUND_S, (dev.longest_hold_s, wd)
+    assert res["stalls"] >= 1 and res["verdict"] == "degraded", res["reason"]
+    assert res["stopped"] is not None and "late" in res["stopped"][1], res["stopped"]
+    assert res["zeroed"] == fr.ZERO_PACKETS
+    # every reading compared after the silence but the one whose exchange followed the
+    # watchdog's write (its reply may answer the zero command): exact
+    assert res["truth"]["exact"] == res["truth"]["compared"], res["truth"]
+    assert any(r >= at for r in wd["rows"]), (wd["rows"], at)
+
+
+def test_falcon_host_silence_without_the_watchdog_holds_the_command(monkeypatch):
+    """The control: no watchdog (its reason reported), the Falcon holds the command
+    through the whole silence."""
+    monkeypatch.setattr(fr, "_start_watchdog", lambda link, paced: (None, "off for the test"))
+    res, dev, at = _stalled_run(SILENCE_S)
+    assert at is not None
+    assert res["watchdog"] == {"running": False, "why": "off for the test"}
+    assert dev.longest_hold_s >= SILENCE_S
+
+
+def test_a_punctual_host_leaves_the_watchdog_silent():
+    """No silence injected: the watchdog runs, the run ends whole, and the Falcon held
+    no command longer than the stated bound and a tick (on a quiet machine it writes
+    nothing; a loaded one may deschedule the host past the bound, and then it writes)."""
+    before = _open_files()
+    res, dev, _ = _stalled_run(0.0, after=10 ** 9)
+    # nothing left open: the watchdog's page, the side channel's pipe
+    assert _open_files() == before
+    wd = res["watchdog"]
+    assert wd["running"] and wd["failed"] == 0, wd
+    assert wd["zeroed"] == wd["fired"], wd
+    assert dev.longest_hold_s <= _stated(wd) + 1.0 / res["rate_hz"] + 1e-3, (
+        dev.longest_hold_s, wd)
+
+
+def test_a_lockstep_falcon_has_no_watchdog():
+    """A Falcon whose time is the host's packets (lockstep, named) has none: a write from
+    elsewhere has no time in it."""
+    sc = load_scene_nd(CONFIGS / "falcon_spring.yaml")
+    link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="lockstep")
+    try:
+        with pytest.raises(OSError, match="lockstep"):
+            link.watchdog_sink()
+        wd, why = fr._start_watchdog(link, paced=True)
+        assert wd is None and "lockstep" in why
+        assert fr._start_watchdog(link, paced=False) == (
+            None, "a lockstep Falcon: its time is the packets'")
+    finally:
+        link.close()
+
+
+def test_the_usbfs_sink_is_libusbs_file_found_among_the_open_files(tmp_path):
+    """On a real Falcon the sink is the file of ``/dev/bus/usb/BBB/DDD`` open in this
+    process; none open says which file was looked for."""
+    d = tmp_path / "fd"
+    d.mkdir()
+    os.symlink("/dev/bus/usb/003/017", d / "9")
+    os.symlink("/dev/null", d / "4")
+    assert usbfs_sink(3, 17, fd_dir=str(d)) == ("usbfs", 9, OUT_ENDPOINT)
+    with pytest.raises(OSError, match="/dev/bus/usb/003/018"):
+        usbfs_sink(3, 18, fd_dir=str(d))
+
+
+def test_the_usbfs_write_is_the_kernels_bulk_transfer(monkeypatch):
+    """The watchdog's write on a real Falcon: ``USBDEVFS_BULK`` (``_IOWR('U', 2, struct
+    usbdevfs_bulktransfer)``, ``linux/usbdevice_fs.h``) with the endpoint, the length,
+    the timeout and a pointer to the zero command, on the inherited file."""
+    import fcntl
+    seen = []
+
+    def ioctl(fd, req, arg, mutate):
+        ep, n, timeout, ptr = struct.unpack("@IIIP", bytes(arg))
+        seen.append((fd, req, ep, n, timeout, ctypes.string_at(ptr, n)))
+        return n
+    monkeypatch.setattr(fcntl, "ioctl", ioctl)
+    zero = bytes(range(16))
+    tw._usbfs_writer(42, OUT_ENDPOINT, zero)()
+    size = struct.calcsize("@IIIP")
+    assert seen == [(42, 0xC0000000 | size << 16 | 0x55 << 8 | 2, OUT_ENDPOINT, 16,
+                     tw.USBFS_TIMEOUT_MS, zero)]
+    assert size == 24 or struct.calcsize("P") != 8      # x86-64: 0xC0185502
