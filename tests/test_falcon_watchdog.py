@@ -38,28 +38,40 @@ from test_host_watchdog import SILENCE_S, _stated  # noqa: E402
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
-def _stalled_run(silence_s: float, after: int = 20, samples: int = 200):
+def _stalled_run(silence_s: float, after: int = 20, samples: int = 200,
+                 inside: bool = False):
     """configs/falcon_spring.yaml's loop on the emulated Falcon (wall clock), the hand let
     go 2 mm off its rest so that the commands are not zero; the host silent ``silence_s``
-    once, in the first exchange after ``after`` packets of the loop whose command is not
-    zero. Returns (the run's result, the device, the packet stalled at or None)."""
+    once, after the first exchange past ``after`` packets of the loop whose command is
+    not zero (``inside``: within the first exchange whose command is not zero after one
+    whose command is, between its write and its reply). Returns (the run's result, the
+    device, the packet stalled at or None)."""
     sc = load_scene_nd(CONFIGS / "falcon_spring.yaml")
     link, dev, chip = fr.emulated_falcon(sc, IMAGE)
     assert dev.clock == "wall"
-    state = {"on": False, "k": 0, "at": None}
-    real = link.exchange
+    state = {"on": False, "k": 0, "at": None, "zero": False}
+    real, real_write = link.exchange, link.write
 
     def exchange(send, *a, **k):
         if state["on"]:
             state["k"] += 1
             pk = parse_host_packet(send)
-            if state["at"] is None and state["k"] > after and any(pk[0]):
+            if not inside and state["at"] is None and state["k"] > after and any(pk[0]):
                 state["at"] = state["k"]
                 out = real(send, *a, **k)
                 time.sleep(silence_s)       # the host does not run
                 return out
         return real(send, *a, **k)
-    link.exchange = exchange
+
+    def write(send):
+        real_write(send)
+        if state["on"] and inside and state["at"] is None:
+            nz = any(parse_host_packet(send)[0])
+            if nz and state["zero"]:
+                state["at"] = state["k"]
+                time.sleep(silence_s)       # the host does not run, its reply not read
+            state["zero"] = not nz
+    link.exchange, link.write = exchange, write
 
     def start():
         state["on"] = True
@@ -109,7 +121,24 @@ def test_falcon_host_silence_bounded_by_the_watchdog_and_accounted():
     # every reading compared after the silence but the one whose exchange followed the
     # watchdog's write (its reply may answer the zero command): exact
     assert res["truth"]["exact"] == res["truth"]["compared"], res["truth"]
-    assert any(r >= at for r in wd["rows"]), (wd["rows"], at)
+    # (the loop's k-th exchange, its priming one first, is row k - 1; the silence is in
+    # exchange ``at``, so the write is taken there or after)
+    assert any(r >= at - 1 for r in wd["rows"]), (wd["rows"], at)
+
+
+def test_a_stall_between_a_write_and_its_reply_is_bounded_too():
+    """The host stopped inside an exchange, after writing the first non-zero command that
+    follows a zero one (the loop's first after its zero priming packet), before reading
+    the reply: the Falcon holds that command, and the watchdog knows it (the host says it
+    holds from before the write). Fails on the code that said so only after the reply:
+    the watchdog, told the zero packet before, let the command be held the whole
+    silence."""
+    res, dev, at = _stalled_run(SILENCE_S, inside=True)
+    assert at is not None, "no zero packet followed by a non-zero one"
+    wd = res["watchdog"]
+    assert wd["running"] and wd["fired"] == wd["zeroed"] >= 1, wd
+    tick = 1.0 / res["rate_hz"]
+    assert dev.longest_hold_s <= _stated(wd) + tick + 1e-3, (dev.longest_hold_s, wd)
 
 
 def test_falcon_host_silence_without_the_watchdog_holds_the_command(monkeypatch):

@@ -229,6 +229,10 @@ class FalconUSB:
     ftdi : pyftdi.ftdi.Ftdi
     written, read_bytes : int
         Bytes moved.
+    sink : callable or None
+        Gives the host watchdog's sink (the emulated chip's
+        :meth:`~hapsim.emulated.ftdi_usb.VirtualFT232R.side_channel`); None: libusb's file
+        (:meth:`watchdog_sink`).
 
     Raises
     ------

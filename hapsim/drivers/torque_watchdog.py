@@ -165,7 +165,10 @@ class TorqueWatchdog:
                        f"it exited with {self._proc.returncode}")
                 raise OSError(f"the host watchdog could not take {port}: {why}")
         except BaseException:
-            os.close(fd)                    # (nothing left open by a watchdog not started)
+            # (nothing left running or open by a watchdog not started: Ctrl-C here too)
+            if getattr(self, "_proc", None) is not None and self._proc.returncode is None:
+                self._kill()
+            os.close(fd)
             raise
         finally:
             os.unlink(path)                 # both ends hold it open: gone with them
@@ -227,6 +230,8 @@ class TorqueWatchdog:
             As :meth:`take`: the watchdog's writes that went out before ``data``.
         """
         times = self.beat()
+        if holding:
+            self.hold(True)                 # (from before the write: a stop inside it)
         ser.write(data)
         self.hold(holding)
         return times
@@ -251,6 +256,8 @@ class TorqueWatchdog:
         Parameters
         ----------
         holding : bool
+            The host's write leaves a non-zero force (set True before a write that
+            does, and again after it: a host stopped inside the write leaves it held).
         """
         self._page.set("holding", 1 if holding else 0)
 

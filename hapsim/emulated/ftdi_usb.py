@@ -290,6 +290,7 @@ class VirtualFT232R:
         """Close the side channel's pipe (idempotent)."""
         import os
         side, self._side = self._side, None
+        self._side_buf.clear()
         if side is not None:
             for fd in side:
                 os.close(fd)

@@ -451,8 +451,8 @@ def _close_watchdog(wd, why, rows) -> dict:
     if wd is None:
         return watchdog_report(None, why)
     wd.arm(False)
-    wd.take()
     wd.close()
+    wd.take()                               # (after close: a write in flight counted)
     rep = watchdog_report(wd, why)
     rep["zeroed"] = wd.taken
     rep["rows"] = list(rows)
@@ -613,14 +613,24 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             # and every reply after it one packet late: a loop with a period more delay,
             # which ran the emulated legs 45-110 rad beside two CPU-bound processes
             late = drain(64, 0.0) if drain is not None and sent[0] > 1 else b""
-            if wd[0] is not None and wd[0].beat():
-                wd_rows.append(len(stamps) - 1)
+            if wd[0] is not None:
+                pk = parse_host_packet(packet)
+                holds = pk is not None and any(pk[0])
+                if wd[0].beat():
+                    wd_rows.append(len(stamps) - 1)
+                if holds:
+                    # holding from before the write: a host stopped while it waits for
+                    # the reply leaves this packet's command held (the flag set after
+                    # the exchange missed a stall there after a zero packet)
+                    wd[0].hold(True)
             # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
             # would otherwise leave the next reply one byte behind, read one packet late)
             ans = late + link.exchange(packet, 32, _reply_end, wait[0])
             if wd[0] is not None:
-                pk = parse_host_packet(packet)
-                wd[0].hold(pk is not None and any(pk[0]))
+                wd[0].hold(holds)
+                if wd[0].take() and (not wd_rows or wd_rows[-1] != len(stamps) - 1):
+                    # written while this exchange ran: its reply may be the one read
+                    wd_rows.append(len(stamps) - 1)
             answered.append(_reply_end(ans))
             replied.append(time.perf_counter())
         except DeviceError as exc:
@@ -661,6 +671,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     wd[0], wd_why = _start_watchdog(link, paced)
     if wd[0] is not None:
         wd[0].arm(True)
+    watchdog = None
     try:
         # a stop on the motion (the legs out of their envelope, a paced host too late)
         # brakes the legs before the zero commands below, unless the scene says not to
@@ -671,9 +682,12 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     finally:
         # the firmware holds the last command (no watchdog is published): zero torque
         # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
-        zeroed = _zero(link, timeout)
-        watchdog = _close_watchdog(wd[0], wd_why, wd_rows)
-        wd[0] = None
+        try:
+            zeroed = _zero(link, timeout)
+        finally:
+            # (stopped whatever ends the zero packets: Ctrl-C there too)
+            watchdog = _close_watchdog(wd[0], wd_why, wd_rows)
+            wd[0] = None
     dt = time.perf_counter() - t0
     if progress:
         progress(1)
