@@ -184,6 +184,10 @@ class CheckReportND(Report):
     device : dict
         ``kind``, ``mass`` [kg], ``friction`` [N s/m], ``position`` [m], ``delay``,
         ``hold``.
+    not_at_rest : dict or None
+        None when the scene is at rest at the positions it names; else the net force,
+        the linearised balance's distance and a sentence
+        (:func:`hapsim.analysis.static_balance.not_at_rest`).
 
     Other attribute (not in ``--json``): ``analysis``, the
     :class:`~hapsim.analysis.scene_check.SceneCheckND`; ``scene_nd``, the scene.
@@ -207,6 +211,7 @@ class CheckReportND(Report):
     note: str | None
     scene: str
     device: dict
+    not_at_rest: dict | None = None
 
     @property
     def k(self) -> np.ndarray:
@@ -291,8 +296,9 @@ def check_nd(scene, progress=None) -> CheckReportND:
                           "kind 'port' and a device section (a scene without one: "
                           "hapsim.modes_nd)", file=scene.path, key="masses")
     chk = check_scene_nd(scene, progress=progress)
+    from hapsim.analysis.static_balance import not_at_rest
     dev = scene.device
-    d = {**chk.to_dict(), "scene": scene.path,
+    d = {**chk.to_dict(), "scene": scene.path, "not_at_rest": not_at_rest(scene),
          "device": {"kind": dev.kind, "mass": dev.mass.tolist(),
                     "friction": dev.friction.tolist(), "position": dev.position.tolist(),
                     "delay": dev.delay, "hold": dev.hold}}

@@ -42,7 +42,9 @@ matrices (the unique pair with the n rendered poles and their mode shapes at the
 handle), the principal directions with the (m, k, b) felt along each, and, when every
 port link ends on a ground, the stiffness limit K_max along the principal axes of the
 device's mass (--json: dof, felt_stiffness, felt_damping, principal_directions,
-spectral_radius, stiffness_limits). --plot draws the scene over the device's workspace
+spectral_radius, stiffness_limits). A scene whose forces do not balance at the positions
+it names (where a run starts) gets a line saying so, with the net force and how far the
+balance lies (--json: not_at_rest, null at rest). --plot draws the scene over the device's workspace
 with the felt stiffness ellipses. A scene without a port (a sounding membrane) gives its
 modes instead."""
 
@@ -282,6 +284,8 @@ def _run_nd(args) -> int:
             print(f"    {e}  K_max = {chk.stiffness_limits[i]:.6g} N/m", file=o)
     if r.note:
         print(f"  {r.note}", file=o)
+    if rep.not_at_rest is not None:
+        print(f"  {rep.not_at_rest['note']}", file=o)
     return 0 if chk.stable else 1
 
 
