@@ -22,8 +22,11 @@ link (:mod:`hapsim.kernels.nd`'s module notes):
 each with the opposite force on mass 2. The balance's distance is the linear estimate
 ``delta = K^-1 F`` over the masses that move (the port's included: its device adds no
 stiffness), with ``K`` the stiffness blocks of the linearisation ``check`` itself uses; a
-force no stiffness of it holds (``F`` outside ``K``'s range: a mass on a contact not
-engaged, a chain to no ground) has no such distance.
+force no stiffness of it holds (``F`` outside ``K``'s range) has no such distance. Unlike
+``check``'s stability, which counts every contact and plane engaged, the balance counts
+only those engaged at the positions named (a floor a mass does not touch holds nothing).
+Forces only: a mass given a ``v0`` starts moving by the scene's own design, which is not
+said here.
 """
 
 from __future__ import annotations
@@ -122,16 +125,33 @@ def not_at_rest(scene, limit: float = NOT_AT_REST_M) -> dict | None:
         return None
     names = sorted(F)
     idx = {k: i for i, k in enumerate(names)}
+    pos = {m.name: np.asarray(m.x0, float) for m in scene.masses}
+    # what holds a mass at the positions named: check's blocks less the contacts and the
+    # (plane, mass) pairs not engaged there (check counts them engaged, for its stability:
+    # here a floor a mass does not touch would hold it)
+    links = {lk.name: lk for lk in scene.links}
+    planes = {pl.name: pl for pl in scene.planes}
     K = np.zeros((n * len(names), n * len(names)))
-    for _, a, b, Kl, _ in link_blocks(scene):
+    for name, a, b, Kl, _ in link_blocks(scene):
+        lk = links.get(name)
+        if b is None and name in planes:
+            pl = planes[name]
+            if not pl.offset - float(pl.normal @ pos[a]) > 0.0:
+                continue
+        elif lk is not None and lk.kind == "contact":
+            if not 0.0 < float(np.linalg.norm(pos[a] - pos[b])) < lk.threshold:
+                continue
         for p, q, sign in ((a, a, 1.0), (b, b, 1.0), (a, b, -1.0), (b, a, -1.0)):
             if p in idx and q in idx:
                 i, j = idx[p], idx[q]
                 K[n * i:n * i + n, n * j:n * j + n] += sign * Kl
     f = np.concatenate([F[k] for k in names])
     delta, *_ = np.linalg.lstsq(K, f, rcond=None)
-    # held: the least-squares balance reproduces the force (F in K's range) to round-off
-    held = np.abs(K @ delta - f).max() <= 1e-9 * max(np.abs(f).max(), 1e-300)
+    # held: the least-squares balance reproduces the force (F in K's range) to its
+    # round-off (the solve's, a stiffness' condition times eps, within 1e-6 of it; the
+    # forces', 64 ulps of their terms): else a force no stiffness at rest holds
+    resid = np.abs(K @ delta - f).max()
+    held = resid <= max(1e-6 * np.abs(f).max(), 64 * eps * max(S.values()))
     worst = max(off, key=lambda k: float(np.linalg.norm(off[k])))
     out = {"mass": worst, "force": off[worst].tolist(),
            "largest_force_n": float(np.linalg.norm(off[worst])),

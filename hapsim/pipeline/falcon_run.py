@@ -593,6 +593,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     # the host's watchdog (paced: a Falcon on its own clock), armed over the loop
     wd = [None]
     wd_rows = []                            # exchanges before which it had written
+    wd_next = [False]                       # it wrote during the last exchange
 
     drain = getattr(link, "read", None)
     # the firmware's first answers after its load are waited for as long as the load's
@@ -616,8 +617,9 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             if wd[0] is not None:
                 pk = parse_host_packet(packet)
                 holds = pk is not None and any(pk[0])
-                if wd[0].beat():
+                if wd[0].beat() or wd_next[0]:
                     wd_rows.append(len(stamps) - 1)
+                wd_next[0] = False
                 if holds:
                     # holding from before the write: a host stopped while it waits for
                     # the reply leaves this packet's command held (the flag set after
@@ -628,9 +630,12 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             ans = late + link.exchange(packet, 32, _reply_end, wait[0])
             if wd[0] is not None:
                 wd[0].hold(holds)
-                if wd[0].take() and (not wd_rows or wd_rows[-1] != len(stamps) - 1):
-                    # written while this exchange ran: its reply may be the one read
-                    wd_rows.append(len(stamps) - 1)
+                if wd[0].take():
+                    # written while this exchange ran: its reply may be the one read, or
+                    # come after this exchange stopped reading and be the next one's
+                    if not wd_rows or wd_rows[-1] != len(stamps) - 1:
+                        wd_rows.append(len(stamps) - 1)
+                    wd_next[0] = True
             answered.append(_reply_end(ans))
             replied.append(time.perf_counter())
         except DeviceError as exc:
@@ -668,11 +673,12 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
     stamps.clear()
     replied.clear()
     answered.clear()
-    wd[0], wd_why = _start_watchdog(link, paced)
-    if wd[0] is not None:
-        wd[0].arm(True)
     watchdog = None
+    wd_why = None
     try:
+        wd[0], wd_why = _start_watchdog(link, paced)
+        if wd[0] is not None:
+            wd[0].arm(True)
         # a stop on the motion (the legs out of their envelope, a paced host too late)
         # brakes the legs before the zero commands below, unless the scene says not to
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
