@@ -167,6 +167,7 @@ def test_a_scene_not_at_rest_counts_its_drift_before_the_start(seed):
     past the wall's; a wall-clock run of such a scene left the envelope in 3 of its 5
     records and measured nothing.)"""
     from hapsim.analysis.linearisation import opening_motions, records_excursion
+    from hapsim.analysis.static_balance import not_at_rest
     from hapsim.commands.run_haply2 import designed_start
     sc = _not_at_rest(seed)
     N = identification_plan(sc)[2]
@@ -177,6 +178,11 @@ def test_a_scene_not_at_rest_counts_its_drift_before_the_start(seed):
     rest = _full(sc, 1e-4, N)[0]
     drift = records_excursion([rest])
     assert drift > 1e-4, drift                        # these scenes are not at rest
+    # and hapsim check says so before any run (hapsim.analysis.static_balance), its
+    # linearised balance within the record's excursion (0.41-0.57 of it on these eight:
+    # the record overshoots the balance)
+    said = not_at_rest(sc)
+    assert said is not None and 0 < said["balance_m"] <= drift, (said, drift)
     if a == 0.0:
         # the drift alone reaches the margin of what limits it
         toward = {nm: t for nm, _, t in opening_motions(sc, [rest], drift)}
