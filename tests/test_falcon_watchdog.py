@@ -212,3 +212,18 @@ def test_the_usbfs_write_is_the_kernels_bulk_transfer(monkeypatch):
     assert seen == [(42, 0xC0000000 | size << 16 | 0x55 << 8 | 2, OUT_ENDPOINT, 16,
                      tw.USBFS_TIMEOUT_MS, zero)]
     assert size == 24 or struct.calcsize("P") != 8      # x86-64: 0xC0185502
+
+
+def test_commands_zero_reads_the_wire_as_the_firmware_does():
+    """The host's test of a packet's zero commands (read in place, per packet of the loop)
+    is the firmware's reading of it, over random commands (clamped, any sign), LEDs and
+    homing flags."""
+    from hapsim.drivers.falcon import LED_BLUE, LED_GREEN, LED_RED, commands_zero, host_packet
+    rng = np.random.default_rng(0)
+    for _ in range(2000):
+        c = [int(v) if rng.uniform() < 0.7 else 0 for v in rng.integers(-40000, 40000, 3)]
+        if rng.uniform() < 0.2:
+            c = [0, 0, 0]
+        p = host_packet(c, int(rng.choice([0, LED_GREEN, LED_RED, LED_BLUE])),
+                        bool(rng.integers(2)))
+        assert commands_zero(p) == (not any(parse_host_packet(p)[0])), (c, p)

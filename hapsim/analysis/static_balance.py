@@ -41,6 +41,21 @@ __all__ = ["net_forces", "not_at_rest", "NOT_AT_REST_M"]
 NOT_AT_REST_M = 1e-6
 
 
+def _positions(scene) -> dict:
+    """Each mass's position as named [m], by name."""
+    return {m.name: np.asarray(m.x0, float) for m in scene.masses}
+
+
+def _contact_engaged(lk, pos: dict) -> bool:
+    """A sphere contact acts: ``0 < |d| < threshold`` (:mod:`hapsim.kernels.nd`)."""
+    return 0.0 < float(np.linalg.norm(pos[lk.m1] - pos[lk.m2])) < lk.threshold
+
+
+def _penetration(pl, x) -> float:
+    """A plane's penetration ``offset - normal . x`` [m] (it acts while positive)."""
+    return pl.offset - float(pl.normal @ x)
+
+
 def net_forces(scene) -> tuple[dict, dict]:
     """The net force of the links and planes on each mass that moves, at the positions
     the scene names, at rest (module notes).
@@ -58,7 +73,7 @@ def net_forces(scene) -> tuple[dict, dict]:
         ulps of it.
     """
     n = scene.dimension
-    pos = {m.name: np.asarray(m.x0, float) for m in scene.masses}
+    pos = _positions(scene)
     moving = {m.name for m in scene.masses if m.kind != "ground"}
     F = {k: np.zeros(n) for k in moving}
     S = {k: 0.0 for k in moving}
@@ -73,7 +88,7 @@ def net_forces(scene) -> tuple[dict, dict]:
         d = pos[lk.m1] - pos[lk.m2]
         ln = float(np.linalg.norm(d))
         if lk.kind == "contact":
-            if 0.0 < ln < lk.threshold:
+            if _contact_engaged(lk, pos):
                 add(lk.m1, lk.m2, -lk.stiffness * (ln - lk.threshold) * d / ln)
         elif lk.length == 0:
             add(lk.m1, lk.m2, -lk.stiffness * d)
@@ -81,7 +96,7 @@ def net_forces(scene) -> tuple[dict, dict]:
             add(lk.m1, lk.m2, -lk.stiffness * (ln - lk.length) * d / ln)
     for pl in scene.planes:
         for m in pl.masses:
-            p = pl.offset - float(pl.normal @ pos[m])
+            p = _penetration(pl, pos[m])
             if p > 0.0 and m in F:
                 f = pl.stiffness * p * np.asarray(pl.normal, float)
                 F[m] += f
@@ -125,7 +140,7 @@ def not_at_rest(scene, limit: float = NOT_AT_REST_M) -> dict | None:
         return None
     names = sorted(F)
     idx = {k: i for i, k in enumerate(names)}
-    pos = {m.name: np.asarray(m.x0, float) for m in scene.masses}
+    pos = _positions(scene)
     # what holds a mass at the positions named: check's blocks less the contacts and the
     # (plane, mass) pairs not engaged there (check counts them engaged, for its stability:
     # here a floor a mass does not touch would hold it)
@@ -135,12 +150,10 @@ def not_at_rest(scene, limit: float = NOT_AT_REST_M) -> dict | None:
     for name, a, b, Kl, _ in link_blocks(scene):
         lk = links.get(name)
         if b is None and name in planes:
-            pl = planes[name]
-            if not pl.offset - float(pl.normal @ pos[a]) > 0.0:
+            if not _penetration(planes[name], pos[a]) > 0.0:
                 continue
-        elif lk is not None and lk.kind == "contact":
-            if not 0.0 < float(np.linalg.norm(pos[a] - pos[b])) < lk.threshold:
-                continue
+        elif lk is not None and lk.kind == "contact" and not _contact_engaged(lk, pos):
+            continue
         for p, q, sign in ((a, a, 1.0), (b, b, 1.0), (a, b, -1.0), (b, a, -1.0)):
             if p in idx and q in idx:
                 i, j = idx[p], idx[q]

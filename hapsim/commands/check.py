@@ -44,8 +44,8 @@ port link ends on a ground, the stiffness limit K_max along the principal axes o
 device's mass (--json: dof, felt_stiffness, felt_damping, principal_directions,
 spectral_radius, stiffness_limits). A scene whose forces do not balance at the positions
 it names (where a run starts) gets a line saying so, with the net force and how far the
-balance lies (--json: not_at_rest, null at rest). --plot draws the scene over the device's workspace
-with the felt stiffness ellipses. A scene without a port (a sounding membrane) gives its
+balance lies (--json: not_at_rest, null at rest). --plot draws the scene over the
+device's workspace with the felt stiffness ellipses. A scene without a port (a sounding membrane) gives its
 modes instead."""
 
 _EPILOG = """\

@@ -40,7 +40,7 @@ import math
 from hapsim.drivers.base import AlignedDecoder
 
 __all__ = ["LED_GREEN", "LED_BLUE", "LED_RED", "HOMING_MODE", "HOMED", "host_packet",
-           "device_packet", "parse_host_packet", "parse_device_packet", "DevicePacketDecoder",
+           "device_packet", "parse_host_packet", "commands_zero", "parse_device_packet", "DevicePacketDecoder",
            "theta_deg", "ticks_of", "DEG_PER_TICK", "THETA_OFFSET_DEG", "TORQUE_PER_COUNT",
            "WORKSPACE_RAD", "ENVELOPE_RAD",
            "CHECK_SEND", "CHECK_REPLY", "LOADER_SEND", "FIRMWARE_CHUNK", "FalconFirmwareLoader",
@@ -131,6 +131,24 @@ def device_packet(encoders, homed: int = 0, grip: int = 0) -> bytes:
 def _body_ok(p, last: int) -> bool:
     return (len(p) == 16 and p[0] == _LT and p[15] == _GT
             and all(_A <= b <= _A + 15 for b in p[1:last]))
+
+
+def commands_zero(p: bytes) -> bool:
+    """Whether host packet ``p`` (:func:`host_packet`) commands zero on every motor: its
+    twelve command nibbles all ``'A'`` (an int16 zero is four zero nibbles), read in
+    place, nothing decoded or allocated (the host's watchdog asks it of every packet of
+    a real-time loop).
+
+    Parameters
+    ----------
+    p : bytes
+        16 bytes.
+
+    Returns
+    -------
+    bool
+    """
+    return p.count(_A, 1, 13) == 12
 
 
 def parse_host_packet(p: bytes):

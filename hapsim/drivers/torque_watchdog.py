@@ -273,8 +273,8 @@ class TorqueWatchdog:
             part), ``bound_s``, ``check_s``, ``rt_priority`` (granted; 0: none).
         """
         p = self._page
-        return {"fired": p.get("fired"), "failed": p.get("failed"), "longest_s": p.get("longest_ns") * 1e-9,
-                "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
+        return {"fired": p.get("fired"), "failed": p.get("failed"),
+                "longest_s": p.get("longest_ns") * 1e-9, "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
 
     def _kill(self) -> None:
         self._page.set("quit", 1)

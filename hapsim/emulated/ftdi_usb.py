@@ -118,8 +118,6 @@ class VirtualFT232R:
         self._side_buf = bytearray()
         #: Bytes of one side-channel transfer (the Falcon's 16-byte packet).
         self.side_size = 16
-        #: Side-channel transfers taken.
-        self.side_transfers = 0
         self.strings = {1: "FTDI", 2: "hapsim emulated FT232R", 3: serial}
         self.desc = SimpleNamespace(
             bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0,
@@ -280,11 +278,8 @@ class VirtualFT232R:
             t_ns = int.from_bytes(self._side_buf[:8], "little")
             data = bytes(self._side_buf[8:rec])
             del self._side_buf[:rec]
-            now = None
-            if getattr(self.device, "wall", None) is not None:
-                now = self.device.now() - (time.monotonic_ns() - t_ns) * 1e-9
-            self.side_transfers += 1
-            self._take_out(data, now)
+            # (a device on its own clock: side_channel refuses a lockstep one)
+            self._take_out(data, self.device.now() - (time.monotonic_ns() - t_ns) * 1e-9)
 
     def close_side(self) -> None:
         """Close the side channel's pipe (idempotent)."""

@@ -615,8 +615,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             # which ran the emulated legs 45-110 rad beside two CPU-bound processes
             late = drain(64, 0.0) if drain is not None and sent[0] > 1 else b""
             if wd[0] is not None:
-                pk = parse_host_packet(packet)
-                holds = pk is not None and any(pk[0])
+                holds = not commands_zero(packet)
                 if wd[0].beat() or wd_next[0]:
                     wd_rows.append(len(stamps) - 1)
                 wd_next[0] = False
@@ -647,7 +646,7 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
 
     # the firmware answers packets (libnifalcon's isFirmwareLoaded): else the image was
     # not the Falcon's firmware, or the load did not take
-    from hapsim.drivers.falcon import DevicePacketDecoder, host_packet, parse_host_packet
+    from hapsim.drivers.falcon import DevicePacketDecoder, commands_zero, host_packet
     dec = DevicePacketDecoder()
     if not any(dec.feed(feed(host_packet((0, 0, 0)))) for _ in range(FIRMWARE_PROBES)):
         raise DeviceError(f"the Falcon answered none of {FIRMWARE_PROBES} packets after the "
