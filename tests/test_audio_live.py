@@ -190,6 +190,47 @@ class Recorder:
         self.client.close()
 
 
+def without_xrun_periods(bad, n, xruns, block):
+    """The frames of a recording to compare with its reference, given those that differ.
+
+    A server xrun (the dummy backend's cycle missed on a loaded machine) can leave the
+    recording client one period that is not the one the producer wrote, and no more
+    (seen at load 9 and beside two CPU-bound processes: one period, 128 or 256 frames,
+    per xrun; every other frame exact). So the frames off must fall in at most ``xruns``
+    stretches, each shorter than one ``block``; this is asserted, and those frames are
+    left out of what is compared.
+
+    Parameters
+    ----------
+    bad : numpy.ndarray of int, shape (k,)
+        Indices of the frames that differ, ascending.
+    n : int
+        Frames compared.
+    xruns : int
+        Xruns the server reported while the producer was active.
+    block : int
+        The server's period [frames].
+
+    Returns
+    -------
+    numpy.ndarray of bool, shape (n,)
+        The frames to compare.
+    """
+    keep = np.ones(n, bool)
+    if bad.size == 0:
+        return keep
+    # a stretch starts at a frame off one period or more past the start of the one before
+    starts = [int(bad[0])]
+    for i in bad[1:]:
+        if i - starts[-1] >= block:
+            starts.append(int(i))
+    assert block > 0 and len(starts) <= xruns, (
+        f"{bad.size} frames off in {len(starts)} stretches of up to one {block}-frame "
+        f"period, starting at {starts[:8]}, with {xruns} xruns reported")
+    keep[bad] = False
+    return keep
+
+
 def resting_live(max_block=8192):
     """A LiveSound of the shipped string with the port at rest 1 mm below it."""
     from hapsim.audio.live import LiveSound
@@ -899,19 +940,9 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
         a, b = seg[seg != 0], ref[r0:][ref[r0:] != 0]
         m = min(a.size, b.size)
         assert m > 0.4 * 48000 - st["underruns"]
-    bad = np.flatnonzero(a[:m] != b[:m])
-    if bad.size and out.xruns:
-        # a server xrun (its cycle missed) can leave the recording client one period of
-        # other frames; the rest stays the offline rendering, in order (seen once beside
-        # two CPU-bound processes: 256 frames wrong, one xrun)
-        runs = np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1)
-        assert len(runs) <= out.xruns and all(r[-1] - r[0] < out.blocksize for r in runs), \
-            (len(runs), out.xruns, [(int(r[0]), int(r[-1])) for r in runs])
-        keep = np.ones(m, bool)
-        keep[bad] = False
-        a, b = a[:m][keep], b[:m][keep]
-        m = a.size
-    np.testing.assert_array_equal(a[:m], b[:m])
+    # the rest stays the offline rendering, in order
+    keep = without_xrun_periods(np.flatnonzero(a[:m] != b[:m]), m, out.xruns, out.blocksize)
+    np.testing.assert_array_equal(a[:m][keep], b[:m][keep])
 
 
 def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
@@ -954,3 +985,19 @@ def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
     with pytest.raises(DeviceError, match=r"no JACK server 'srv' running \(Error"):
         lv.open_client(jack, "hapsim", "srv")
     assert len(calls) == 1 and waits == []
+
+
+def test_an_xrun_excuses_one_period_and_no_more():
+    """The allowance the live recordings take (:func:`without_xrun_periods`): one period
+    of frames off per xrun reported, leaving it out; more stretches than xruns, a stretch
+    longer than a period, or frames off with no xrun fail."""
+    bad = np.arange(1280, 1408)                       # one 128-frame period
+    keep = without_xrun_periods(bad, 4000, 1, 128)
+    assert keep.sum() == 4000 - 128 and not keep[bad].any()
+    two = np.r_[bad, bad + 1000]
+    assert without_xrun_periods(two, 4000, 2, 128).sum() == 4000 - 256
+    for args in ((two, 4000, 1, 128), (np.arange(1280, 1409), 4000, 1, 128),
+                 (bad, 4000, 0, 128)):
+        with pytest.raises(AssertionError):
+            without_xrun_periods(*args)
+    assert without_xrun_periods(np.arange(0), 10, 0, 0).all()

@@ -225,15 +225,18 @@ def drain(live):
     return live.ring.render(live.written).copy()
 
 
+#: A binary32 output's error, relative to its channel's scale: 2^-24 = 6e-8 of the scale
+#: per sample at most (derived bound), the rest the double paths' round-off; measured 6e-8
+#: of the scale (generic 6e-8), that rounding alone: margin 6.7 over a bound no CPU exceeds
+F32_OF_SCALE = 4e-7
+
+
 def assert_float32_roundoff(got, ref):
     """Each channel equals the reference to float32 rounding of its scale."""
     for c in range(ref.shape[1]):
         scale = np.max(np.abs(ref[:, c]))
         assert scale > 0
-        # binary32 output: 2^-24 = 6e-8 of the scale per sample at most (derived bound),
-        # the rest the double paths' round-off; measured 6e-8 of the scale (generic 6e-8),
-        # that rounding alone: margin 6.7 over a bound no CPU exceeds
-        np.testing.assert_allclose(got[:, c], ref[:, c], rtol=0, atol=4e-7 * scale)
+        np.testing.assert_allclose(got[:, c], ref[:, c], rtol=0, atol=F32_OF_SCALE * scale)
 
 
 # ------------------------------------------------------------------------------ tests

@@ -12,9 +12,10 @@ import shutil
 import numpy as np
 import pytest
 
-from test_audio_live import Recorder, dummy_jackd
+from test_audio_live import Recorder, dummy_jackd, without_xrun_periods
 from test_osc import PATCH, Client, Sink, play_daemon, run_patch, stop, wait_for
-from test_play_nd import SCENE, assert_float32_roundoff, hand_of_scene, reference
+from test_play_nd import (F32_OF_SCALE, SCENE, assert_float32_roundoff, hand_of_scene,
+                          reference)
 from tolerance import rel_tol
 
 #: pytest-xdist: a private jackd and OSC clients, serialised with the other live tests.
@@ -32,6 +33,16 @@ def jack8k():
 def start_play(server, *extra):
     """``hapsim play SCENE --osc 0`` through ``server``; the process and its OSC port."""
     return play_daemon(SCENE, server, *extra)
+
+
+def assert_heard(seg, ref, sound):
+    """The recorded frames ``seg`` are the rendering ``ref`` (both shape (m,)) to float32
+    round-off, but for one period per xrun the server reported (``sound``: the report's,
+    :func:`test_audio_live.without_xrun_periods`; seen once in a fresh-clone suite: 128
+    frames of one period off, every later frame in order)."""
+    bad = np.flatnonzero(np.abs(seg - ref) > F32_OF_SCALE * np.max(np.abs(ref)))
+    keep = without_xrun_periods(bad, seg.size, sound["xruns"], sound["block"])
+    assert_float32_roundoff(seg[keep, None], ref[keep, None])
 
 
 def aligned(got, ref, window=400):
@@ -115,7 +126,7 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
         seg = seg[seg != 0]
     m = min(seg.size, n - j)
     assert m > n - j - 2000
-    assert_float32_roundoff(seg[:m, None], ref[j:j + m])
+    assert_heard(seg[:m], ref[j:j + m, 0], rep["sound"])
 
 
 def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
@@ -146,7 +157,7 @@ def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
         seg = seg[seg != 0]
     m = min(seg.size, 20000 - j)
     assert m > 4000 and (j + m) // 2000 > j // 2000 + 1      # two plucks at least heard
-    assert_float32_roundoff(seg[:m, None], ref[j:j + m])
+    assert_heard(seg[:m], ref[j:j + m, 0], rep["sound"])
 
 
 def test_pd_patch_changes_a_plane_of_the_2d_scene(jack8k, tmp_path):
