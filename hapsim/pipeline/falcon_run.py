@@ -668,7 +668,6 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         before_loop()
     if start is not None:
         dec = DevicePacketDecoder()
-    t0 = time.perf_counter()
     stamps.clear()
     replied.clear()
     answered.clear()
@@ -678,12 +677,16 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         wd[0], wd_why = _start_watchdog(link, paced)
         if wd[0] is not None:
             wd[0].arm(True)
+        # the loop's own time, its packets_per_s: not the watchdog's start (a process of
+        # its own, 25-100 ms, which made a 300-packet record "slow") nor the zero packets
+        t0 = time.perf_counter()
         # a stop on the motion (the legs out of their envelope, a paced host too late)
         # brakes the legs before the zero commands below, unless the scene says not to
         res = drive_falcon(feed, scene, samples, leds=LED_GREEN, decoder=dec,
                            hold_bound_s=HOLD_BOUND_S if paced else None,
                            late_stop=paced, envelope_rad=ENVELOPE_RAD,
                            brake=scene.safety.brake, start=start)
+        dt = time.perf_counter() - t0
     finally:
         # the firmware holds the last command (no watchdog is published): zero torque
         # at every end, a normal one, an error or Ctrl-C (a device gone takes none)
@@ -693,7 +696,6 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
             # (stopped whatever ends the zero packets: Ctrl-C there too)
             watchdog = _close_watchdog(wd[0], wd_why, wd_rows)
             wd[0] = None
-    dt = time.perf_counter() - t0
     if progress:
         progress(1)
     out = {"firmware": fw, "homing": homing, "samples": int(samples),
