@@ -389,11 +389,12 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     # the record from rest's own motion (a scene not at rest at its joints drifts to its
     # equilibrium, whatever the start) comes first; the start's share is linear in a
     drift = records_excursion([rest])
-    rest_toward = {nm: t for nm, _, t in opening_motions(scene, [rest], drift)}
+    # entry by entry (a plane on several masses is one entry per mass, one name)
+    rest_toward = [t for _, _, t in opening_motions(scene, [rest], drift)]
     best = ((START_MARGIN * env - drift) * reference / excursion, "envelope", env)
-    for nm, dep, toward in opens:
+    for (nm, dep, toward), r_t in zip(opens, rest_toward):
         if toward > 0.0:
-            a_c = (START_MARGIN * dep - rest_toward[nm]) * reference / toward
+            a_c = (START_MARGIN * dep - r_t) * reference / toward
             if a_c < best[0]:
                 best = (a_c, f"contact {nm}", dep)
     return max(best[0], 0.0), best[1], float(best[2])

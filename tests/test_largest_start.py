@@ -208,3 +208,40 @@ def test_the_scenes_not_at_rest_reach_both_outcomes():
         sc = _not_at_rest(seed)
         outcomes.add(largest_start(sc, identification_plan(sc)[2], 0.03)[0] > 0.0)
     assert outcomes == {True, False}
+
+
+def test_a_plane_on_several_masses_counts_each_ones_drift():
+    """A plane holding a virtual mass and the handle is two engaged entries under one
+    name, each with its own depth and its own motion toward opening: the start leaves
+    each entry's own drift its room. The record from rest drifts along the wall (its
+    tangent: none of it toward the handle's opening), the virtual mass, 0.2 mm deep, is
+    credited with the records' whole excursion (the port's records do not say how it
+    moves). Fails on the code that kept one drift per name (the handle's, 0, listed
+    last): the start then took the virtual mass's whole margin and its drift beside."""
+    from hapsim.analysis.linearisation import opening_motions, records_excursion
+    sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
+    wall = sc.planes[0]
+    m = dataclasses.replace(sc.masses[1], name="m", kind="mass", mass=0.01,
+                            x0=np.array([0.01, wall.offset - 2e-4]))
+    g = dataclasses.replace(sc.masses[1], name="g", x0=np.array([0.01, wall.offset - 2e-4]))
+    spring = dataclasses.replace(sc.links[0], name="m_g", m1="m", m2="g")
+    sc = dataclasses.replace(sc, masses=[*sc.masses, m, g], links=[*sc.links, spring],
+                             planes=[dataclasses.replace(wall, masses=("m", "hand"))])
+    N, ref = 50, 1e-4
+    t = np.linspace(0.0, 1.0, N)[:, None]
+    rest = np.hstack([1.5e-4 * t, 0.0 * t])                  # along the wall
+    recs = [rest] + [rest + ref * np.hstack([s * np.sin(7 * t), c * t])
+                     for s, c in ((0.1, 0.5), (0.3, -0.2), (-0.2, 0.4), (0.0, 1.0))]
+    a, by, limit = largest_start(sc, N, 0.03, reference=ref, records=recs)
+    assert a > 0.0, (a, by)
+    # each entry: its drift and the start's share, within the margin of its own depth
+    # (the share is linear in a here by construction; round-off only)
+    diffs = [r - rest for r in recs[1:]]
+    drift = records_excursion([rest])
+    rest_t = opening_motions(sc, [rest], drift)
+    entries = opening_motions(sc, diffs, records_excursion(diffs))
+    assert [e[0] for e in entries] == ["wall", "wall"]
+    for (nm, dep, toward), (_, _, r_t) in zip(entries, rest_t):
+        # (derived: a few roundings of quantities of the depth's size)
+        assert r_t + a / ref * toward <= START_MARGIN * dep * (1 + 16 * rel_tol(1)), (
+            nm, dep, r_t, toward, a)
