@@ -205,11 +205,6 @@ class TorqueWatchdog:
         self._taken += n
         return (p.get("fired_ns"),) * n
 
-    @property
-    def taken(self) -> int:
-        """The zero writes the host has taken (:meth:`take`) so far."""
-        return self._taken
-
     def write(self, ser, data: bytes, holding: bool) -> tuple:
         """The host writes ``data``: its time stamped first (the silence the watchdog
         counts is between the host's writes: a host that runs but does not write leaves

@@ -118,6 +118,9 @@ class VirtualFT232R:
         self._side_buf = bytearray()
         #: Bytes of one side-channel transfer (the Falcon's 16-byte packet).
         self.side_size = 16
+        #: Side-channel transfers fed to the device (:meth:`_side_in`): what the device
+        #: took of the watchdog's writes, counted on this side of the wire.
+        self.side_taken = 0
         self.strings = {1: "FTDI", 2: "hapsim emulated FT232R", 3: serial}
         self.desc = SimpleNamespace(
             bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0,
@@ -280,6 +283,7 @@ class VirtualFT232R:
             del self._side_buf[:rec]
             # (a device on its own clock: side_channel refuses a lockstep one)
             self._take_out(data, self.device.now() - (time.monotonic_ns() - t_ns) * 1e-9)
+            self.side_taken += 1
 
     def close_side(self) -> None:
         """Close the side channel's pipe (idempotent)."""
