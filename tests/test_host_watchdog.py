@@ -172,6 +172,48 @@ def test_watchdog_refuses_a_port_that_is_no_device_and_quits_with_its_parent():
     assert not alive
 
 
+@pytest.mark.parametrize("holding", [True, False])
+def test_a_host_that_dies_holding_a_force_gets_one_zero_write(holding):
+    """A host that dies (``os._exit``: killed, crashed; nothing closed) armed, right after
+    writing a force: the watchdog writes the zero command once, within its check interval
+    of the death (long before its 2 s silence bound), then quits; a host whose last write
+    was zero force gets nothing. Before, the watchdog quit at once, and a board without a
+    watchdog of its own held the dead host's force for good."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    root = os.path.dirname(os.path.dirname(tw.__file__)).rsplit("/hapsim", 1)[0]
+    code = "\n".join([
+        "import os, sys",
+        f"sys.path.insert(0, {root!r})",
+        "from hapsim.drivers.torque_watchdog import TorqueWatchdog as W",
+        f"w = W({os.ttyname(slave)!r}, b'ZERO', 2.0)",
+        f"fd = os.open({os.ttyname(slave)!r}, os.O_WRONLY | os.O_NOCTTY)",
+        "class P:",
+        "    def write(self, d):",
+        "        os.write(fd, d)",
+        "w.arm()",
+        f"w.write(P(), b'HOST', {holding!r})",
+        "print(w._proc.pid, flush=True)",
+        "os._exit(0)"])
+    try:
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=30)
+        t_dead = time.monotonic()
+        pid = int(out.stdout.split()[0])
+        # the check interval is 0.5 s: the write within it, far from the 2 s bound
+        wire = _read_all(master, 1.2)
+        gone = not os.path.exists(f"/proc/{pid}")
+        if not gone:
+            with open(f"/proc/{pid}/stat") as f:
+                gone = f.read().split()[2] == "Z"
+    finally:
+        os.close(slave)
+        os.close(master)
+    assert wire == (b"HOST" + b"ZERO" if holding else b"HOST"), wire
+    assert time.monotonic() - t_dead < 2.0        # (the read ended before the bound)
+    assert gone
+
+
 def _board(name: str, seed: int = 0):
     """An emulated board of driver ``name`` on the wall clock, its driver and rate [Hz]."""
     from hapsim.emulated.driver_mock import FireFaderDevice, HapkitSerialDevice, HaplyDevice

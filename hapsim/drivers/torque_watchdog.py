@@ -32,7 +32,8 @@ and dropped, a gap in ``seq``).
 The stated bound: a board is left holding a force without a write for at most ``bound_s``
 plus the watchdog's check interval (``bound_s / 4``) plus its own wake-up latency, which
 it measures (``longest_s``: the longest silence it saw before writing). The watchdog
-quits when its parent does.
+quits when its parent does: at once when the host had closed it or left no force held,
+after one zero write when the host died (killed, crashed) armed with a force held.
 
 Layout of the shared page: native int64 fields, see ``_F``.
 """
@@ -437,6 +438,14 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
         page.set("fired_for", beat)
         page.set("longest_ns", max(page.get("longest_ns"), now - beat))
         page.set("fired", page.get("fired") + 1)    # (last: the host reads it first)
+    if (not page.get("quit") and page.get("armed") and page.get("holding")
+            and page.get("fired_for") != page.get("beat")):
+        # the host died (killed, crashed) armed, its last write a force not yet zeroed:
+        # the board would hold it until someone writes; the port is still ours
+        try:
+            write()
+        except OSError:
+            pass
 
 
 if __name__ == "__main__":
