@@ -235,7 +235,7 @@ def test_the_usbfs_write_is_the_kernels_bulk_transfer(monkeypatch):
         return n
     monkeypatch.setattr(fcntl, "ioctl", ioctl)
     zero = bytes(range(16))
-    tw._usbfs_writer(42, OUT_ENDPOINT, zero)()
+    tw._usbfs_writer(42, OUT_ENDPOINT)(zero)
     size = struct.calcsize("@IIIP")
     assert seen == [(42, 0xC0000000 | size << 16 | 0x55 << 8 | 2, OUT_ENDPOINT, 16,
                      tw.USBFS_TIMEOUT_MS, zero)]

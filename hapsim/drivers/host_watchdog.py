@@ -17,13 +17,28 @@ runs across it (the 2DIY's record loop and the FireFader's two-fader loop accoun
 their own way: :mod:`hapsim.pipeline.haply2_record`, :mod:`hapsim.pipeline.faders_run`).
 A lockstep mock (its time is the commands') has none; nor has a port that
 is no device file (the report says why).
+
+**A board that may have lost its place.** The zero command reaches no motor on an
+unframed board whose parser lost the motor's address (the Haply M3: a reset read out of a
+torque's bytes after a lost byte; 1.5 % of the parser's states under 1 byte in 200 lost),
+and a host stalled then left its torque held for the whole stall (301 ms in a wall-clock
+run whose watchdog wrote at 20 ms). While the transport has evidence pending that the
+board lost its place (bytes read since the last record that made none), it tells the
+watchdog so (:meth:`TorqueWatchdog.suspect
+<hapsim.drivers.torque_watchdog.TorqueWatchdog.suspect>`), and the watchdog writes the
+driver's stop instead (:meth:`hapsim.drivers.base.Driver.stop_bytes`: for the Haply board
+its re-synchronisation, zero torque whatever the parser is inside, the set-up at the
+host's last angle): a re-synchronisation made by the watchdog, counted as one (reason
+``watchdog``), answered twice, a gap in ``seq``.
 """
 
 from __future__ import annotations
 
+import math
+
 from hapsim.drivers.resync import HOLD_BOUND_S, RING
 
-__all__ = ["Watched"]
+__all__ = ["Watched", "robust_stop"]
 
 
 class Watched:
@@ -48,18 +63,63 @@ class Watched:
             self._wd_why = "a lockstep mock: its time is the commands'"
             return
         from hapsim.drivers.torque_watchdog import start_watchdog
+        self._wd_suspect = False
         self.watchdog, self._wd_why = start_watchdog(port, driver.encode_force(0.0),
-                                                     HOLD_BOUND_S)
+                                                     HOLD_BOUND_S, robust=robust_stop(driver))
 
     def _wd_take(self, times: tuple) -> None:
         """The watchdog's zero writes ``times`` (monotonic ns), made after the host's last
-        command: commands of their own (module notes)."""
-        for t_ns in times:
+        command: commands of their own (module notes); its robust writes, the last ones
+        when there are any, re-synchronisations of its own (:meth:`_wd_resynced`)."""
+        if not times:
+            return
+        robust = self.watchdog.take_robust()
+        for i, t_ns in enumerate(times):
             self._cmd += 1
             self._sent_us[self._cmd % RING] = (t_ns - self._t0) // 1000
             self._wd_cmds.add(self._cmd)
             self.stats["watchdog_zeroed"] += 1
             self._force = 0.0
+            if i >= len(times) - robust:
+                self._wd_resynced()
+
+    def _wd_resynced(self) -> None:
+        """The watchdog's write just numbered was the driver's stop (module notes): the
+        board set up again at the host's last angle, its zero writes around the set-up
+        answered twice (a second command number, dropped too), a re-synchronisation
+        counted (``watchdog``) with the bound of its frame's error: the joint's reach
+        since the last record (the watchdog wrote at most that late) at the extrapolated
+        estimate, plus that estimate's distance from the angle written."""
+        self._t_resync = self._clock()
+        self._resync_times.append(self._t_resync)
+        self.stats["resyncs"] += 1
+        why = self.stats["resync_reasons"]
+        why["watchdog"] = why.get("watchdog", 0) + 1
+        x = self._extrapolate(self._cmd)
+        self.stats["frame_bound"] += self._frame_error_bound(x) + (
+            abs(x - self._x_last) if x == x else 0.0)
+        self._rx_since_record = 0
+        self._floor = min(self._floor, self._cmd - 1)
+        self._cmd += 1
+        self._sent_us[self._cmd % RING] = self._sent_us[(self._cmd - 1) % RING]
+        self._wd_cmds.add(self._cmd)
+        if self._answered < self._cmd - 2:      # the commands before it: missing samples
+            self.stats["missing"] += self._cmd - 2 - self._answered
+            self._answered = self._cmd - 2
+
+    def _wd_note(self) -> None:
+        """Tell the watchdog whether the board may have lost its place (module notes):
+        bytes read since the last record that made none (a board that lost its place
+        answers within 7 writes, with such bytes: docs/drivers.md, "Haply: a silent
+        board"; a late board's silence alone is no evidence), with the angle a robust
+        write would set it up at."""
+        wd = self.watchdog
+        if wd is None:
+            return
+        on = self._rx_since_record > 0
+        if on or on != self._wd_suspect:
+            self._wd_suspect = on
+            wd.suspect(on, math.degrees(self._x_last))
 
     def _wd_poll(self) -> None:
         """Before a read: take the watchdog's writes made since."""
@@ -96,3 +156,29 @@ class Watched:
         TorqueWatchdog.report`), or ``{"running": False, "why": ...}``."""
         from hapsim.drivers.torque_watchdog import watchdog_report
         return watchdog_report(self.watchdog, self._wd_why)
+
+
+def robust_stop(driver):
+    """The write that zeroes ``driver``'s board whatever its parser is inside, for the
+    watchdog (:class:`hapsim.drivers.torque_watchdog.TorqueWatchdog`'s ``robust``), or None
+    when its zero-force command already does (a framed or a fixed-length protocol).
+
+    Parameters
+    ----------
+    driver : hapsim.drivers.base.Driver
+
+    Returns
+    -------
+    (bytes, int) or None
+        ``driver.stop_bytes(0.0)`` and the index of the float32 in it that carries the
+        position (where the stops at two positions differ: four bytes in a row); None when
+        the stop is the zero-force command, or carries no such float.
+    """
+    zero = driver.encode_force(0.0)
+    a, b = driver.stop_bytes(0.0), driver.stop_bytes(1.0)
+    if a == zero or len(a) != len(b):
+        return None
+    diff = [i for i in range(len(a)) if a[i] != b[i]]
+    if not diff or diff[-1] - diff[0] > 3 or diff[0] + 4 > len(a):
+        return None
+    return a, diff[0]

@@ -78,8 +78,10 @@ SILENCE_LOST_S = 0.5
 #: Why a re-synchronisation was called (``stats["resync_reasons"]``): the decoder's
 #: ``desync`` (``lone`` among them), ``unreachable``, ``garbled`` (bytes and no reply for
 #: :data:`SILENT_S`), ``silent`` (a lockstep mock's commands unanswered), ``unarmed`` (no
-#: record yet: the arming again).
-RESYNC_REASONS = ("desync", "lone", "unreachable", "garbled", "silent", "unarmed")
+#: record yet: the arming again), ``watchdog`` (made by the host's watchdog while the board
+#: may have lost its place: :mod:`hapsim.drivers.host_watchdog`).
+RESYNC_REASONS = ("desync", "lone", "unreachable", "garbled", "silent", "unarmed",
+                  "watchdog")
 #: Commands remembered for attributing records and timing silences (the transport's ring):
 #: more than :data:`SILENCE_LOST_S` holds at 4 kHz, so the oldest command of a silence
 #: waited for keeps its time (64 before, when 20 ms ended any silence: past 64 commands
