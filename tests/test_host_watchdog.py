@@ -13,6 +13,7 @@ scheduling on top is the margin).
 
 from __future__ import annotations
 
+import math
 import os
 import pty
 import struct
@@ -475,14 +476,124 @@ def test_a_suspect_board_gets_the_robust_write_with_the_hosts_angle():
         time.sleep(SILENCE_S)
         want = data[:at] + struct.pack("<f", 12.5) + data[at + 4:]
         assert _read_all(master) == b"HOST" + want
-        assert len(wd.take()) == 1 and wd.take_robust() == 1 and wd.take_robust() == 0
+        assert len(wd.take()) == 1 and wd.take_robust() == (1, 12.5)
+        assert wd.take_robust()[0] == 0
         wd.suspect(False)
         wd.write(Port(), b"HOST", True)
         time.sleep(SILENCE_S)
         assert _read_all(master) == b"HOST" + b"ZERO"
-        assert len(wd.take()) == 1 and wd.take_robust() == 0
+        assert len(wd.take()) == 1 and wd.take_robust()[0] == 0
         assert wd.report()["robust"] == 1 and wd.report()["fired"] == 2
     finally:
         wd.close()
         os.close(slave)
         os.close(master)
+
+
+class _Frames:
+    """A reply decoder's reach stand-in: 100 deg/s^2 times tau^2 [deg]."""
+
+    def reach_deg(self, k, tau):
+        return 100.0 * tau * tau
+
+
+class _WD:
+    """The host's view of a watchdog that made ``robust`` robust writes at ``value`` deg."""
+
+    def __init__(self, robust, value):
+        self.pending, self.value, self.said = robust, value, []
+
+    def take_robust(self):
+        n, self.pending = self.pending, 0
+        return n, self.value
+
+    def suspect(self, on, value=0.0):
+        self.said.append((on, value))
+
+
+def _transport(robust=0, value=30.0):
+    """The transport's watchdog accounting (Watched, Resynchronising) on a stand-in
+    state: commands 1-10 sent 1 ms apart from t = 1 s, 1-9 answered, the last two
+    records at commands 8 and 9 (0.49 and 0.5 rad)."""
+    from hapsim.drivers.host_watchdog import Watched
+    from hapsim.drivers.resync import RING, Resynchronising
+
+    class T(Watched, Resynchronising):
+        def _clock(self):
+            return 5.0
+
+        def _now_us(self):
+            return 5_000_000                 # the host takes the writes 4 s later
+
+        def _extrapolate(self, seq):
+            v = (self._x_last - self._x_prev) / (self._s_last - self._s_prev)
+            return self._x_last + v * (seq - self._s_last)
+
+    t = T()
+    t.stats = {"watchdog_zeroed": 0, "missing": 0}
+    t._init_resync()
+    t.watchdog, t._wd_cmds, t._wd_robust, t._wd_suspect = _WD(robust, value), set(), True, False
+    t._sent_us = [0] * RING
+    for c in range(1, 11):
+        t._sent_us[c] = 1_000_000 + 1000 * c
+    t._t0, t._cmd, t._answered, t._floor, t._force = 0, 10, 9, 9, 0.1
+    t._x_prev, t._s_prev, t._x_last, t._s_last = 0.49, 8, 0.5, 9
+    t._frames, t._anchor_us = _Frames(), 0
+    return t
+
+
+def test_the_hosts_account_of_a_robust_write_is_its_own_resync():
+    """A robust write taken (made 20 ms after the host's last command, taken 4 s later):
+    two command numbers (its zero writes around the set-up) whose answers are dropped,
+    the host's unanswered command missing, a re-synchronisation counted ("watchdog"),
+    the frame's bound the reach up to the write (not to the take) plus the angle written
+    against the estimate; two robust writes in one take: four numbers, the host's
+    commands alone made missing; a plain write: one number, no re-synchronisation."""
+    import math as m
+    t = _transport(robust=1, value=30.0)
+    t_ns = (1_010_000 + 20_000) * 1000              # 20 ms after command 10
+    t._wd_take((t_ns,))
+    assert t._cmd == 12 and t._wd_cmds == {11, 12}
+    assert t.stats["resyncs"] == 1 and t.stats["resync_reasons"]["watchdog"] == 1
+    assert t._answered == 10 and t.stats["missing"] == 1 and t._floor == 9
+    from hapsim.drivers.resync import RESYNC_GAP_S
+    tau = (t_ns // 1000 - t._sent_us[9]) * 1e-6 + RESYNC_GAP_S
+    x_est = 0.5 + 0.01 * 2                         # command 11 extrapolated
+    # the reach to the write, the estimate's steps ahead of the last record (counted
+    # from the command after the first number, one step conservative), the angle
+    # written against the estimate
+    want = m.radians(100.0 * tau * tau) + (11 + 1 - 9 - 1) * 0.01 + abs(m.radians(30.0) - x_est)
+    # (derived: a few roundings of quantities of order 1)
+    assert t.stats["frame_bound"] == pytest.approx(want, rel=1e-12)
+    assert t.stats["frame_bound"] < m.radians(100.0 * 4.0 ** 2)   # not to the take
+    assert t.watchdog.said[-1][0] is False          # the next write: the zero command
+    two = _transport(robust=2)
+    two._wd_take((t_ns, t_ns))
+    assert two._cmd == 14 and two._wd_cmds == {11, 12, 13, 14}
+    assert two._answered == 10 and two.stats["missing"] == 1 and two.stats["resyncs"] == 2
+    plain = _transport(robust=0)
+    plain._wd_take((t_ns,))
+    assert plain._cmd == 11 and plain._wd_cmds == {11} and plain.stats["resyncs"] == 0
+    assert plain._answered == 9 and plain.stats["missing"] == 0
+
+
+def test_the_host_suspects_a_board_only_on_a_reply_not_whole_at_its_next_command():
+    """The watchdog is told the board may have lost its place when a host command finds
+    bytes read since the last record that made none (with the last angle), not when a
+    read is only part of a reply, and told it no longer is when a record comes; only on
+    a change; never before a record gave an angle."""
+    t = _transport()
+    said = t.watchdog.said
+    t._rx_since_record = 3
+    t._wd_note(False)                     # a reply split across two reads: nothing
+    assert said == []
+    t._wd_note(True)                      # a command with the bytes still not a record
+    assert said == [(True, pytest.approx(math.degrees(0.5)))]
+    t._wd_note(True)
+    assert len(said) == 1                 # (a change only)
+    t._rx_since_record = 0
+    t._wd_note(False)                     # a record
+    assert said[-1] == (False, pytest.approx(math.degrees(0.5)))
+    t._s_last, t._rx_since_record = -1, 5
+    t._wd_note(True)                      # no record yet: no angle to set up at
+    assert len(said) == 2

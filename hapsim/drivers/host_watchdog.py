@@ -56,6 +56,7 @@ class Watched:
         self.watchdog = None
         self._wd_cmds: set = set()
         self._wd_why = None
+        self._wd_robust = self._wd_suspect = False
         if driver.holds_force_s <= HOLD_BOUND_S:
             self._wd_why = "the board zeroes its force itself within the hold bound"
             return
@@ -63,9 +64,10 @@ class Watched:
             self._wd_why = "a lockstep mock: its time is the commands'"
             return
         from hapsim.drivers.torque_watchdog import start_watchdog
-        self._wd_suspect = False
+        robust = robust_stop(driver)
         self.watchdog, self._wd_why = start_watchdog(port, driver.encode_force(0.0),
-                                                     HOLD_BOUND_S, robust=robust_stop(driver))
+                                                     HOLD_BOUND_S, robust=robust)
+        self._wd_robust = self.watchdog is not None and robust is not None
 
     def _wd_take(self, times: tuple) -> None:
         """The watchdog's zero writes ``times`` (monotonic ns), made after the host's last
@@ -73,53 +75,63 @@ class Watched:
         when there are any, re-synchronisations of its own (:meth:`_wd_resynced`)."""
         if not times:
             return
-        robust = self.watchdog.take_robust()
+        own = self._cmd                     # the host's last command before them
+        robust, value = self.watchdog.take_robust()
         for i, t_ns in enumerate(times):
             self._cmd += 1
             self._sent_us[self._cmd % RING] = (t_ns - self._t0) // 1000
             self._wd_cmds.add(self._cmd)
             self.stats["watchdog_zeroed"] += 1
             self._force = 0.0
+            # (one write per silence: several in one take share its time, and the robust
+            # ones are taken to be the last)
             if i >= len(times) - robust:
-                self._wd_resynced()
+                self._wd_resynced(own, math.radians(value), t_ns)
 
-    def _wd_resynced(self) -> None:
-        """The watchdog's write just numbered was the driver's stop (module notes): the
-        board set up again at the host's last angle, its zero writes around the set-up
-        answered twice (a second command number, dropped too), a re-synchronisation
-        counted (``watchdog``) with the bound of its frame's error: the joint's reach
-        since the last record (the watchdog wrote at most that late) at the extrapolated
-        estimate, plus that estimate's distance from the angle written."""
+    def _wd_resynced(self, own: int, x_set: float, t_ns: int) -> None:
+        """The watchdog's write just numbered was the driver's stop (module notes), made
+        at ``t_ns`` after the host's command ``own``: the board set up again at ``x_set``
+        [rad], its zero writes around the set-up answered twice (a second command number,
+        dropped too), the host's commands before it missing unless answered, and a
+        re-synchronisation counted (``watchdog``) with the bound of its frame's error:
+        the joint's reach from the last record to the write at the host's estimate
+        (:meth:`hapsim.drivers.resync.Resynchronising._frame_error_bound`), plus the
+        estimate's distance from ``x_set``."""
         self._t_resync = self._clock()
         self._resync_times.append(self._t_resync)
         self.stats["resyncs"] += 1
         why = self.stats["resync_reasons"]
         why["watchdog"] = why.get("watchdog", 0) + 1
-        x = self._extrapolate(self._cmd)
-        self.stats["frame_bound"] += self._frame_error_bound(x) + (
-            abs(x - self._x_last) if x == x else 0.0)
+        x = self._extrapolate(own + 1)
+        self.stats["frame_bound"] += (
+            self._frame_error_bound(x, at_us=(t_ns - self._t0) // 1000)
+            + abs(x_set - (self._x_last if x != x else x)))
         self._rx_since_record = 0
-        self._floor = min(self._floor, self._cmd - 1)
+        self._wd_suspect = False            # (the watchdog's next write: the zero command)
+        self.watchdog.suspect(False)
+        self._floor = min(self._floor, own - 1)
         self._cmd += 1
         self._sent_us[self._cmd % RING] = self._sent_us[(self._cmd - 1) % RING]
         self._wd_cmds.add(self._cmd)
-        if self._answered < self._cmd - 2:      # the commands before it: missing samples
-            self.stats["missing"] += self._cmd - 2 - self._answered
-            self._answered = self._cmd - 2
+        if self._answered < own:            # the host's commands before it: missing
+            self.stats["missing"] += own - self._answered
+            self._answered = own
 
-    def _wd_note(self) -> None:
-        """Tell the watchdog whether the board may have lost its place (module notes):
-        bytes read since the last record that made none (a board that lost its place
-        answers within 7 writes, with such bytes: docs/drivers.md, "Haply: a silent
-        board"; a late board's silence alone is no evidence), with the angle a robust
-        write would set it up at."""
-        wd = self.watchdog
-        if wd is None:
+    def _wd_note(self, command: bool) -> None:
+        """Tell the watchdog whether the board may have lost its place (module notes),
+        for a driver with a robust write, on a change only: set at a host command when
+        bytes read since the last record made none (the reply to the command before did
+        not come whole within its tick; a reply split across two reads is no evidence,
+        nor is a late board's silence: docs/drivers.md, "Haply: a silent board"), once
+        a record has given an angle; cleared when a record comes. The robust write
+        would set the board up at the last angle read."""
+        if not self._wd_robust:
             return
-        on = self._rx_since_record > 0
-        if on or on != self._wd_suspect:
+        on = (self._rx_since_record > 0 and self._s_last >= 0) if command else (
+            self._wd_suspect and self._rx_since_record > 0)
+        if on != self._wd_suspect:
             self._wd_suspect = on
-            wd.suspect(on, math.degrees(self._x_last))
+            self.watchdog.suspect(on, math.degrees(self._x_last))
 
     def _wd_poll(self) -> None:
         """Before a read: take the watchdog's writes made since."""
@@ -171,9 +183,10 @@ def robust_stop(driver):
     -------
     (bytes, int) or None
         ``driver.stop_bytes(0.0)`` and the index of the float32 in it that carries the
-        position (where the stops at two positions differ: four bytes in a row); None when
-        the stop is the zero-force command, or carries no such float.
+        position in degrees (where the stops at two positions differ: four bytes in a
+        row); None when the stop is the zero-force command, or carries no such float.
     """
+    import struct
     zero = driver.encode_force(0.0)
     a, b = driver.stop_bytes(0.0), driver.stop_bytes(1.0)
     if a == zero or len(a) != len(b):
@@ -181,4 +194,10 @@ def robust_stop(driver):
     diff = [i for i in range(len(a)) if a[i] != b[i]]
     if not diff or diff[-1] - diff[0] > 3 or diff[0] + 4 > len(a):
         return None
-    return a, diff[0]
+    i = diff[0]
+    # the float is the angle in degrees (the watchdog's host writes it so: the Haply
+    # set-up's encoder offset), or this is no stop the watchdog can patch
+    deg = struct.unpack("<f", struct.pack("<f", math.degrees(1.0)))[0]
+    if struct.unpack("<f", b[i:i + 4])[0] != deg:
+        return None
+    return a, i

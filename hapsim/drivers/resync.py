@@ -252,7 +252,7 @@ class Resynchronising:
             self.stats["missing"] += self._cmd - 1 - self._answered
             self._answered = self._cmd - 1
 
-    def _frame_error_bound(self, x: float) -> float:
+    def _frame_error_bound(self, x: float, at_us: int | None = None) -> float:
         """How far [rad] a re-synchronisation about to be sent can move the board's frame:
         the error of the angle its set-up writes into the encoder's count, the estimate
         ``x`` (the last two records extrapolated to this command), against where the joint
@@ -274,6 +274,15 @@ class Resynchronising:
         sum of these bounds is what the joint's real position may differ from the host's
         readings by (:func:`hapsim.pipeline.runner.timing_verdict`).
 
+        Parameters
+        ----------
+        x : float
+            The estimate the set-up writes [rad] (NaN: none).
+        at_us : int, optional
+            When the re-synchronisation was sent, on the transport's clock [us] (default
+            now; the host's watchdog sent its own earlier:
+            :meth:`hapsim.drivers.host_watchdog.Watched._wd_resynced`).
+
         Returns
         -------
         float
@@ -290,7 +299,8 @@ class Resynchronising:
             since_us = self._sent_us[self._s_last % RING]
             if x == x:
                 n, v = self._cmd + 1 - self._s_last, self._step_per_command()
-        tau = max(self._now_us() - since_us, 0) * 1e-6 + RESYNC_GAP_S
+        now = self._now_us() if at_us is None else at_us
+        tau = max(now - since_us, 0) * 1e-6 + RESYNC_GAP_S
         return math.radians(frames.reach_deg(0, tau)) + max(n - 1, 0) * v
 
     def _step_per_command(self) -> float:

@@ -56,13 +56,15 @@ __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report", "watchdog_text
 #: start), real-time priority granted (0: none), holding (the host's last write left a
 #: non-zero force; written by the host alone: the watchdog marks a silence it answered
 #: by ``fired_for``, the host write it followed, so that it never clears a hold the
-#: host set just after its check); suspect (written by the host: the board may have lost
-#: its place in the byte stream, so the robust write goes instead of the zero command),
-#: value_bits (the float32 the robust write carries, its bits: the host's last reading),
-#: robust (how many of the writes made were the robust one).
+#: host set just after its check); suspect (written by the host, one word: 0, the board
+#: in step, or ``1 << 32 | bits``, the board may have lost its place and the robust
+#: write goes instead of the zero command, carrying the float32 of those bits), counts
+#: (one word: ``fired << 32 | robust``, the writes made and the robust ones among them,
+#: read by the host in one load) and wrote_bits (the float32 bits the last robust write
+#: carried).
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired", "fired_ns", "fired_for", "quit",
                                   "longest_ns", "ready", "rt", "holding", "failed",
-                                  "suspect", "value_bits", "robust"))}
+                                  "suspect", "counts", "wrote_bits"))}
 _SIZE = 8 * len(_F)
 _F32 = struct.Struct("<f")
 #: The sinks a watchdog writes to besides a device file it opens by path, each an
@@ -161,6 +163,8 @@ class TorqueWatchdog:
         self.check_s = self.bound_s / 4
         self._taken = 0
         self._robust_taken = 0
+        self._robust_new = 0
+        self._wrote = 0.0
         base = "/dev/shm" if os.path.isdir("/dev/shm") else None
         fd, path = tempfile.mkstemp(prefix="hapsim-watchdog-", dir=base)
         try:
@@ -220,23 +224,29 @@ class TorqueWatchdog:
             ``()`` when none (nothing allocated: it runs each tick of a real-time loop).
         """
         p = self._page
-        n = p.get("fired") - self._taken
+        c = p.get("counts")                 # (one load: the writes and the robust ones)
+        n = (c >> 32) - self._taken
         if not n:
             return ()
         self._taken += n
+        rob = c & 0xFFFFFFFF
+        if rob != self._robust_taken:
+            self._robust_new += rob - self._robust_taken
+            self._robust_taken = rob
+            self._wrote = _F32.unpack(p.get("wrote_bits").to_bytes(4, "little"))[0]
         return (p.get("fired_ns"),) * n
 
-    def take_robust(self) -> int:
-        """How many of the writes taken so far (:meth:`take`) were the robust one, not
-        counted by an earlier call (the host reads it after :meth:`take`).
+    def take_robust(self) -> tuple:
+        """How many of the writes :meth:`take` returned since the last call were the
+        robust one, and the value the last of them carried (the host reads it after
+        :meth:`take`).
 
         Returns
         -------
-        int
+        (int, float)
         """
-        n = min(self._page.get("robust"), self._taken) - self._robust_taken
-        self._robust_taken += n
-        return n
+        n, self._robust_new = self._robust_new, 0
+        return n, self._wrote
 
     def suspect(self, on: bool, value: float = 0.0) -> None:
         """Whether the board may have lost its place in the byte stream (the robust write
@@ -249,9 +259,8 @@ class TorqueWatchdog:
             The float32 the robust write carries at its index (the set-up's encoder
             offset [deg]: the joint's last angle read).
         """
-        p = self._page
-        p.set("value_bits", int.from_bytes(_F32.pack(value), "little"))
-        p.set("suspect", 1 if on else 0)
+        self._page.set("suspect", (1 << 32 | int.from_bytes(_F32.pack(value), "little"))
+                       if on else 0)        # (one store: the flag and its value together)
 
     def write(self, ser, data: bytes, holding: bool) -> tuple:
         """The host writes ``data``: its time stamped first (the silence the watchdog
@@ -317,7 +326,8 @@ class TorqueWatchdog:
             ``robust`` (of the writes, those that were the robust one).
         """
         p = self._page
-        return {"fired": p.get("fired"), "failed": p.get("failed"), "robust": p.get("robust"),
+        return {"fired": p.get("fired"), "failed": p.get("failed"),
+                "robust": p.get("counts") & 0xFFFFFFFF,
                 "longest_s": p.get("longest_ns") * 1e-9, "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
 
     def _kill(self) -> None:
@@ -442,7 +452,10 @@ def _writer(port: str):
     """The watchdog's write of bytes: to a device file opened by path, or to a file
     descriptor inherited (``fd:N:KIND[:ARG]``, :data:`_SINKS`)."""
     if not port.startswith("fd:"):
-        fd = os.open(port, os.O_WRONLY | os.O_NOCTTY)
+        # (non-blocking: a full buffer or a hung device refuses the write, counted and
+        # tried again at the next check, and never holds the watchdog, whose last write
+        # when its host died is made with nobody left to stop it)
+        fd = os.open(port, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
         return lambda data: os.write(fd, data)
     _, n, kind, *arg = port.split(":")
     fd = int(n)
@@ -459,12 +472,14 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
     page = _Page(os.open(path, os.O_RDWR))
 
     def data() -> tuple:
-        """The write to make: the robust one while the host suspects the board lost its
-        place, its value patched in; else the zero command."""
-        if robust and page.get("suspect"):
-            v = page.get("value_bits").to_bytes(4, "little")
-            return robust[:at] + v + robust[at + 4:], 1
-        return zero, 0
+        """The write to make, whether it is the robust one and its value's bits: the
+        robust one while the host suspects the board lost its place, its value patched
+        in; else the zero command."""
+        word = page.get("suspect") if robust else 0
+        if word:
+            bits = word & 0xFFFFFFFF
+            return robust[:at] + bits.to_bytes(4, "little") + robust[at + 4:], 1, bits
+        return zero, 0, 0
     try:
         write = _writer(port)
     except OSError as exc:
@@ -490,17 +505,19 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
             continue
         if page.get("beat") != beat or not page.get("armed") or not page.get("holding"):
             continue                        # (the host wrote meanwhile, or holds nothing)
-        out, rob = data()
+        out, rob, bits = data()
         try:
             write(out)
         except OSError:
             page.set("failed", page.get("failed") + 1)
             continue
-        page.set("robust", page.get("robust") + rob)
         page.set("fired_ns", time.monotonic_ns())
         page.set("fired_for", beat)
         page.set("longest_ns", max(page.get("longest_ns"), now - beat))
-        page.set("fired", page.get("fired") + 1)    # (last: the host reads it first)
+        if rob:
+            page.set("wrote_bits", bits)
+        page.set("counts", page.get("counts") + (1 << 32) + rob)  # (the host reads this)
+        page.set("fired", page.get("fired") + 1)
     if (not page.get("quit") and page.get("armed") and page.get("holding")
             and page.get("fired_for") != page.get("beat")):
         # the host died (killed, crashed) armed, its last write a force not yet zeroed:
