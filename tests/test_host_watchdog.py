@@ -597,3 +597,38 @@ def test_the_host_suspects_a_board_only_on_a_reply_not_whole_at_its_next_command
     t._s_last, t._rx_since_record = -1, 5
     t._wd_note(True)                      # no record yet: no angle to set up at
     assert len(said) == 2
+
+
+def test_a_write_goes_out_whole_or_not_at_all():
+    """The watchdog's write to a port opened by path (non-blocking: a hung device never
+    holds it): a full buffer refuses the whole write (counted, tried again), and a
+    buffer with room for part of it gets the rest as it drains, never a command cut
+    short (which would leave the board's parser inside it)."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    fd = os.open(os.ttyname(slave), os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        filler = 0
+        while True:                       # fill the pty's buffer
+            try:
+                filler += os.write(fd, b"\0" * 4096)
+            except BlockingIOError:
+                break
+        with pytest.raises(BlockingIOError):
+            tw._write_whole(fd, b"X" * 61)
+        got = bytearray()
+
+        def drain():
+            time.sleep(0.05)
+            while len(got) < filler + 61:
+                got.extend(os.read(master, 65536))
+        import threading
+        th = threading.Thread(target=drain)
+        th.start()
+        tw._write_whole(fd, b"Y" * 61, patience=1.0)     # waits, then all of it
+        th.join(5.0)
+        assert bytes(got[filler:]) == b"Y" * 61 and b"X" not in got
+    finally:
+        os.close(fd)
+        os.close(slave)
+        os.close(master)

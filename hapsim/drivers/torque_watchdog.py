@@ -440,7 +440,7 @@ def _usbfs_writer(fd: int, ep: int):
     import fcntl
     req = (3 << 30) | (struct.calcsize("@IIIP") << 16) | (ord("U") << 8) | 2   # _IOWR('U', 2)
 
-    def write(data: bytes) -> None:
+    def write(data: bytes, patience: float = 0.0) -> None:
         buf = ctypes.create_string_buffer(bytes(data), len(data))
         arg = bytearray(struct.pack("@IIIP", ep, len(data), USBFS_TIMEOUT_MS,
                                     ctypes.addressof(buf)))
@@ -448,22 +448,51 @@ def _usbfs_writer(fd: int, ep: int):
     return write
 
 
+def _write_whole(fd: int, data: bytes, patience: float = 0.0) -> None:
+    """Write all of ``data`` to a non-blocking ``fd``, or none of it: a command cut short
+    would leave the board's parser inside it, reading the host's next bytes wrongly.
+    Nothing taken within ``patience`` [s] is a refusal (``BlockingIOError``: counted and
+    tried again at the next check); once a byte has gone the rest is waited for (1 s at
+    most, then ``OSError``)."""
+    import select
+    view = memoryview(bytes(data))
+    first = time.monotonic() + float(patience)
+    end = None
+    while view:
+        try:
+            n = os.write(fd, view)
+        except BlockingIOError:
+            n = 0
+        if n:
+            view = view[n:]
+            end = end or time.monotonic() + 1.0
+            continue
+        now = time.monotonic()
+        if end is None and now >= first:
+            raise BlockingIOError("the port took none of the write")
+        if end is not None and now >= end:
+            raise OSError("the port took part of the write and no more for 1 s")
+        select.select([], [fd], [], 0.005)
+
+
 def _writer(port: str):
-    """The watchdog's write of bytes: to a device file opened by path, or to a file
-    descriptor inherited (``fd:N:KIND[:ARG]``, :data:`_SINKS`)."""
+    """The watchdog's write of bytes, ``write(data, patience=0.0)``: to a device file
+    opened by path (:func:`_write_whole`), or to a file descriptor inherited
+    (``fd:N:KIND[:ARG]``, :data:`_SINKS`: one transfer, one pipe write)."""
     if not port.startswith("fd:"):
         # (non-blocking: a full buffer or a hung device refuses the write, counted and
         # tried again at the next check, and never holds the watchdog, whose last write
         # when its host died is made with nobody left to stop it)
         fd = os.open(port, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
-        return lambda data: os.write(fd, data)
+        return lambda data, patience=0.0: _write_whole(fd, data, patience)
     _, n, kind, *arg = port.split(":")
     fd = int(n)
     os.fstat(fd)                        # (OSError EBADF: not inherited)
     if kind == "usbfs":
         return _usbfs_writer(fd, int(arg[0]))
     # "stamped": the emulated chip's side channel, each write its monotonic time first
-    return lambda data: os.write(fd, time.monotonic_ns().to_bytes(8, "little") + data)
+    return lambda data, patience=0.0: os.write(
+        fd, time.monotonic_ns().to_bytes(8, "little") + data)     # (<= PIPE_BUF: whole)
 
 
 def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: int,
@@ -523,7 +552,7 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
         # the host died (killed, crashed) armed, its last write a force not yet zeroed:
         # the board would hold it until someone writes; the port is still ours
         try:
-            write(data()[0])
+            write(data()[0], 1.0)           # (a full buffer waited for, 1 s at most)
         except OSError:
             pass
 

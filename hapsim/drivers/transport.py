@@ -330,7 +330,13 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         """Send one command (one host tick): number it and stamp it; to a board that takes
         commands on its own tick, once the write falls in the tick's middle
         (:meth:`tick_phase`)."""
+        n = self.stats["commands"]
         self._wd_settle()                   # (the host watchdog's writes: host_watchdog)
+        if self.stats["commands"] != n:
+            # the watchdog's answers, read first, called for a re-synchronisation (zero
+            # force first), which went out: this tick's command, not ``data`` (encoded
+            # before, from a force the re-synchronisation has set to zero)
+            return
         if self._write_at is not None:
             self._wait_for_band()
         sent = self._now_us()
