@@ -117,18 +117,18 @@ class Watched:
             self.stats["missing"] += own - self._answered
             self._answered = own
 
-    def _wd_note(self, command: bool) -> None:
+    def _wd_note(self) -> None:
         """Tell the watchdog whether the board may have lost its place (module notes),
-        for a driver with a robust write, on a change only: set at a host command when
-        bytes read since the last record made none (the reply to the command before did
-        not come whole within its tick; a reply split across two reads is no evidence,
-        nor is a late board's silence: docs/drivers.md, "Haply: a silent board"), once
-        a record has given an angle; cleared when a record comes. The robust write
-        would set the board up at the last angle read."""
+        for a driver with a robust write, on a change only: bytes read since the last
+        record that made none, once a record has given an angle; cleared when a record
+        comes. The robust write would set the board up at the last angle read. (Set only
+        at a host command, the rule missed boards that lost their place just before a
+        stall: one held a torque 94 ms of a 300 ms stall, the watchdog's zero command at
+        25 ms. A reply split across two reads sets it for the microseconds between them:
+        a stall of the hold bound must begin exactly there to make a needless set-up.)"""
         if not self._wd_robust:
             return
-        on = (self._rx_since_record > 0 and self._s_last >= 0) if command else (
-            self._wd_suspect and self._rx_since_record > 0)
+        on = self._rx_since_record > 0 and self._s_last >= 0
         if on != self._wd_suspect:
             self._wd_suspect = on
             self.watchdog.suspect(on, math.degrees(self._x_last))

@@ -345,7 +345,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         self._sent_us[self._cmd % _RING] = sent
         self._stray = False                 # bytes read from now on are its answer
         self.stats["commands"] += 1
-        self._wd_note(True)                 # (the board may have lost its place)
+        self._wd_note()                     # (the board may have lost its place)
 
     def send(self, msg) -> None:
         """Translate one framed-protocol message into the driver's bytes (module notes)."""
@@ -730,7 +730,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
             self._desyncs, self._unreach, self._lone = d, u, lone
             if self._armed:
                 self._resync(why)
-        self._wd_note(False)                # (a record: the board in step again)
+        self._wd_note()                     # (the board may have lost its place)
 
     def _speed_bound(self):
         """A bound on the joint's speed at the last reply decoded [deg/s], or None (no two
