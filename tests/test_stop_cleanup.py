@@ -84,10 +84,15 @@ _MOMENTS = [(s, round(_RNG.uniform(0.2, 3.0), 2))
                          ids=[f"{signal.Signals(s).name}-{t}s" for s, t in _MOMENTS])
 def test_a_stopped_run_leaves_nothing(sig, after, tmp_path):
     code, left, alive, err = _stopped_run(
-        ["run", "configs/wall.yaml", "--duration", "1.5", "--loop", "python"], tmp_path, after, sig)
+        ["run", "configs/first_wall.yaml", "--duration", "1.5", "--loop", "python"], tmp_path,
+        after, sig)
     assert not left and not alive, (sig, after, code, left, alive, err)
     # stopped: 130 (Ctrl-C) / 143 (SIGTERM) before the loop is armed, 0 once it stops
-    # cleanly; or it had finished (0)
+    # cleanly; or it had finished (0). (The first wall, stable up to a delay of 5
+    # samples: configs/wall.yaml's margin is one sample, and once, beside the suite's
+    # real-time loops and more load, its run with 30 late FORCEs in 161 ticks braked to
+    # rest and exited 1, a safety stop's code: the scene's documented behaviour under
+    # load, not this test's subject.)
     assert code in (0, 130 if sig == signal.SIGINT else 143), (code, err)
 
 
