@@ -392,7 +392,7 @@ def largest_start(scene, samples: int, envelope_rad: float, *,
     # entry by entry (a plane on several masses is one entry per mass, one name)
     rest_toward = [t for _, _, t in opening_motions(scene, [rest], drift)]
     best = ((START_MARGIN * env - drift) * reference / excursion, "envelope", env)
-    for (nm, dep, toward), r_t in zip(opens, rest_toward):
+    for (nm, dep, toward), r_t in zip(opens, rest_toward, strict=True):
         if toward > 0.0:
             a_c = (START_MARGIN * dep - r_t) * reference / toward
             if a_c < best[0]:

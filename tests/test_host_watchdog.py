@@ -174,6 +174,34 @@ def test_watchdog_refuses_a_port_that_is_no_device_and_quits_with_its_parent():
     assert not alive
 
 
+def _host_code(port: str, bound_s: float, holding: bool, end: str) -> str:
+    """A host process's code: a watchdog on ``port`` with ``bound_s``, armed, the host's
+    write ``HOST`` (``holding``: leaving a force held), the watchdog's pid printed, then
+    ``end``."""
+    root = os.path.dirname(os.path.dirname(tw.__file__)).rsplit("/hapsim", 1)[0]
+    return "\n".join([
+        "import os, sys, time",
+        f"sys.path.insert(0, {root!r})",
+        "from hapsim.drivers.torque_watchdog import TorqueWatchdog as W",
+        f"w = W({port!r}, b'ZERO', {bound_s!r})",
+        f"fd = os.open({port!r}, os.O_WRONLY | os.O_NOCTTY)",
+        "class P:",
+        "    def write(self, d):",
+        "        os.write(fd, d)",
+        "w.arm()",
+        f"w.write(P(), b'HOST', {holding!r})",
+        "print(w._proc.pid, flush=True)",
+        end])
+
+
+def _gone(pid: int) -> bool:
+    """Whether process ``pid`` has ended (gone, or a zombie)."""
+    if not os.path.exists(f"/proc/{pid}"):
+        return True
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().split()[2] == "Z"
+
+
 @pytest.mark.parametrize("holding", [True, False])
 def test_a_host_that_dies_holding_a_force_gets_one_zero_write(holding):
     """A host that dies (``os._exit``: killed, crashed; nothing closed) armed, right after
@@ -183,37 +211,74 @@ def test_a_host_that_dies_holding_a_force_gets_one_zero_write(holding):
     watchdog of its own held the dead host's force for good."""
     master, slave = pty.openpty()
     tty.setraw(slave)
-    root = os.path.dirname(os.path.dirname(tw.__file__)).rsplit("/hapsim", 1)[0]
-    code = "\n".join([
-        "import os, sys",
-        f"sys.path.insert(0, {root!r})",
-        "from hapsim.drivers.torque_watchdog import TorqueWatchdog as W",
-        f"w = W({os.ttyname(slave)!r}, b'ZERO', 2.0)",
-        f"fd = os.open({os.ttyname(slave)!r}, os.O_WRONLY | os.O_NOCTTY)",
-        "class P:",
-        "    def write(self, d):",
-        "        os.write(fd, d)",
-        "w.arm()",
-        f"w.write(P(), b'HOST', {holding!r})",
-        "print(w._proc.pid, flush=True)",
-        "os._exit(0)"])
+    code = _host_code(os.ttyname(slave), 2.0, holding, "os._exit(0)")
     try:
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                              timeout=30)
         t_dead = time.monotonic()
         pid = int(out.stdout.split()[0])
-        # the check interval is 0.5 s: the write within it, far from the 2 s bound
-        wire = _read_all(master, 1.2)
-        gone = not os.path.exists(f"/proc/{pid}")
-        if not gone:
-            with open(f"/proc/{pid}/stat") as f:
-                gone = f.read().split()[2] == "Z"
+        # the check interval is 0.5 s: the write within it (and a loaded machine's
+        # scheduling: 0.5 s more), far from the 2 s bound
+        wire, t_zero = b"", None
+        end = t_dead + 1.2
+        while time.monotonic() < end:
+            wire += _read_all(master, 0.01)
+            if t_zero is None and b"ZERO" in wire:
+                t_zero = time.monotonic()
+        gone = _gone(pid)
     finally:
         os.close(slave)
         os.close(master)
     assert wire == (b"HOST" + b"ZERO" if holding else b"HOST"), wire
-    assert time.monotonic() - t_dead < 2.0        # (the read ended before the bound)
+    if holding:
+        assert t_zero - t_dead < 1.0, t_zero - t_dead
     assert gone
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGSTOP", "SIGHUP"])
+def test_a_terminals_signal_to_the_host_leaves_the_watchdog_working(sig):
+    """A terminal's Ctrl-C, Ctrl-Z or hang-up goes to the whole foreground process group:
+    the host's, which must not take its watchdog with it. A host holding a force gets
+    the zero command within the bound and its check (and a loaded machine's 0.3 s) after
+    the signal, whether it died (Ctrl-C, hang-up: the dying write) or is stopped
+    (Ctrl-Z: the silence's write). Before, the watchdog shared the host's group: Ctrl-C
+    and the hang-up killed it with its host, Ctrl-Z stopped it, and the board held the
+    force. (Ctrl-Z's stop is sent as SIGSTOP here: this host's group, a session of its
+    own for the test, is orphaned, and the kernel discards a SIGTSTP to an orphaned
+    group.)"""
+    import signal
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    bound = 0.2
+    host = subprocess.Popen([sys.executable, "-c", _host_code(os.ttyname(slave), bound,
+                                                              True, "time.sleep(30)")],
+                            stdout=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        wd_pid = int(host.stdout.readline())
+        assert _read_all(master, 0.05) == b"HOST"
+        t_sig = time.monotonic()
+        os.killpg(host.pid, getattr(signal, sig))      # (the host's group, as a terminal)
+        wire, t_zero = b"", None
+        while time.monotonic() < t_sig + bound + 1.0:
+            wire += _read_all(master, 0.01)
+            if b"ZERO" in wire:
+                t_zero = time.monotonic()
+                break
+        assert wire == b"ZERO", (sig, wire)
+        assert t_zero - t_sig < bound + bound / 4 + 0.3, (sig, t_zero - t_sig)
+    finally:
+        for s in (signal.SIGCONT, signal.SIGKILL):
+            try:
+                os.killpg(host.pid, s)
+            except ProcessLookupError:
+                pass
+        host.wait(10)
+        end = time.monotonic() + 3.0            # (its parent gone: it quits)
+        while not _gone(wd_pid) and time.monotonic() < end:
+            time.sleep(0.01)
+        os.close(slave)
+        os.close(master)
+    assert _gone(wd_pid)
 
 
 def _board(name: str, seed: int = 0):
@@ -232,10 +297,11 @@ def _board(name: str, seed: int = 0):
 
 
 def _run(name: str, silence_s: float, at: int = 40, force: float = 0.05, seed: int = 0,
-         stray: bytes = b""):
+         stray: bytes = b"", stray_at: int | None = None):
     """The emulated board ``name`` behind its driver's transport: armed, ``at`` ticks of
-    ``force``, ``stray`` bytes read by the host as from the board (none: nothing), the
-    host silent ``silence_s``, 40 ticks more at a fifth of it, STOP.
+    ``force``, the host silent ``silence_s``, 40 ticks more at a fifth of it, STOP;
+    ``stray`` bytes read by the host alone as from the board at tick ``stray_at``
+    (None: just before the silence; no bytes: nothing).
     Returns (the transport's report, the board's report, STATEs after the silence)."""
     from hapsim.drivers.transport import DriverTransport
     board, drv, rate = _board(name, seed)
@@ -246,11 +312,11 @@ def _run(name: str, silence_s: float, at: int = 40, force: float = 0.05, seed: i
         assert _states_within(tr, 3.0), name
         after = []
         for k in range(at + 40):
+            if stray and k == (at if stray_at is None else stray_at):
+                os.write(master, stray)     # bytes that make no record, read alone
+                time.sleep(0.005)
+                tr.receive(0.0)
             if k == at:
-                if stray:                   # bytes that make no record, read alone
-                    os.write(master, stray)
-                    time.sleep(0.005)
-                    tr.receive(0.0)
                 time.sleep(silence_s)       # the host does not run
             tr.send(fp.Force(k, (force if k < at else force / 5,)))
             time.sleep(1.0 / rate)
@@ -297,10 +363,14 @@ def test_every_board_that_holds_its_force_is_zeroed_within_the_bound(seed):
     late = board["longest_gap_s"]
     assert board["longest_hold_s"] <= stated + period + 1e-3 + late, (
         board["longest_hold_s"], late, info)
+    # the silence's write: the zero command past the bound, none short of it (at least
+    # one: beside the suite's real-time workers and other load a host may stall past
+    # the bound once more in its 80 ticks, a write of its own: once seen, the Hapkit
+    # sketch written twice for one 51 ms silence; the accounting below is exact
+    # whatever their number). No byte lost: no robust write, however long the silence
     if silence >= HOLD_BOUND_S + wd["check_s"] + LATENCY_S:
-        assert wd["fired"] == 1, info
-    elif silence < HOLD_BOUND_S - period:
-        assert wd["fired"] == 0, info
+        assert wd["fired"] >= 1, info
+    assert wd["robust"] == 0, info
     assert rep["watchdog_zeroed"] == rep["watchdog_replies"] == wd["fired"], info
     # (answers left unclaimed, "unprompted", are this harness's, not the watchdog's, whose
     # answers are counted above: 1 a run for the Hapkit sketch on a quiet machine with no
@@ -315,18 +385,21 @@ def test_m3_host_silence_bounded_by_the_watchdog_and_accounted():
     """The M3 (no watchdog) holding 0.05 N m while its host is silent for five bounds:
     the host's watchdog zeroes it once, the board held the torque no longer than the
     stated bound, its answer to the watchdog's write is taken as such (no
-    re-synchronisation) and the records go on after the silence.
+    re-synchronisation: a link that lost no byte gets no robust write however long the
+    silence) and the records go on after the silence.
     The same run with no watchdog holds the torque the whole silence (so this test can
     fail)."""
     rep, board, after = _m3_run(SILENCE_S)
     wd = rep["watchdog"]
-    assert wd["running"] and wd["fired"] == 1, wd
-    assert rep["watchdog_zeroed"] == 1 and rep["watchdog_replies"] == 1, rep
+    # (at least: beside the suite's real-time workers the host may stall once more)
+    assert wd["running"] and wd["fired"] >= 1 and wd["robust"] == 0, wd
+    assert rep["watchdog_zeroed"] == rep["watchdog_replies"] == wd["fired"], rep
     assert rep["resyncs"] == 0, rep        # ("unprompted": the harness's, not asserted)
     stated = _stated(wd)
     # the board took the zero write when its bytes arrived: the pty and the board's
-    # thread add their time to the watchdog's (1 ms, as the replies' turnaround), and
-    # the emulator's own lateness when the machine did not run it (its count)
+    # thread add their time to the watchdog's (1 ms: the replies' turnaround on a pty,
+    # measured 0.1-0.3 ms on a quiet machine, margin 3), and the emulator's own
+    # lateness when the machine did not run it (its count)
     assert board["longest_hold_s"] <= stated + 1e-3 + board["longest_gap_s"], (
         board["longest_hold_s"], board["longest_gap_s"], wd)
     assert len(after) >= 20
@@ -342,8 +415,26 @@ def test_m3_bytes_that_make_no_record_before_a_silence_get_the_robust_write():
     lost the motor's address does not take: a torque held 94 ms of a 300 ms stall.)"""
     rep, board, after = _run("haply", SILENCE_S, stray=b"\x07\x07")
     wd = rep["watchdog"]
-    assert wd["running"] and wd["fired"] == 1 and wd["robust"] == 1, wd
-    assert rep["resync_reasons"].get("watchdog") == 1, rep["resync_reasons"]
+    # (the first write robust: no second one in that silence; beside the suite's
+    # real-time workers the host may stall once more)
+    assert wd["running"] and wd["fired"] >= 1 and wd["robust"] == wd["fired"], wd
+    assert rep["resync_reasons"].get("watchdog") == wd["robust"], rep["resync_reasons"]
+    assert board["longest_hold_s"] <= _stated(wd) + 1e-3 + board["longest_gap_s"], (
+        board["longest_hold_s"], board["longest_gap_s"], wd)
+    assert len(after) >= 20
+
+
+def test_a_lossy_links_long_silence_gets_the_robust_write_too():
+    """A link that has shown it loses bytes (stray bytes read at tick 10, records after
+    them), then a host silence of five bounds: the zero command at the bound, then, past
+    ``ROBUST_AFTER`` bounds, the robust write at the last angle the host published (a
+    parser that lost its place in the last bytes before the silence, unseen, takes no
+    zero command), counted as the watchdog's re-synchronisation; the records go on."""
+    rep, board, after = _run("haply", SILENCE_S, stray=b"\x07\x07", stray_at=10)
+    wd = rep["watchdog"]
+    assert wd["running"] and wd["fired"] >= 2 and wd["robust"] >= 1, wd
+    assert rep["resync_reasons"].get("watchdog") == wd["robust"], rep["resync_reasons"]
+    assert rep["watchdog_zeroed"] == wd["fired"], rep
     assert board["longest_hold_s"] <= _stated(wd) + 1e-3 + board["longest_gap_s"], (
         board["longest_hold_s"], board["longest_gap_s"], wd)
     assert len(after) >= 20
@@ -533,6 +624,9 @@ class _WD:
     def suspect(self, on, value=0.0):
         self.said.append((on, value))
 
+    def angle(self, value):
+        self.said.append(("angle", value))
+
 
 def _transport(robust=0, value=30.0):
     """The transport's watchdog accounting (Watched, Resynchronising) on a stand-in
@@ -556,6 +650,8 @@ def _transport(robust=0, value=30.0):
     t.stats = {"watchdog_zeroed": 0, "missing": 0}
     t._init_resync()
     t.watchdog, t._wd_cmds, t._wd_robust, t._wd_suspect = _WD(robust, value), set(), True, False
+    t._wd_angle_s, t._wd_lossy, t._damaged, t._desyncs = -1, False, 0, 0
+    t._wd_base = None
     t._sent_us = [0] * RING
     for c in range(1, 11):
         t._sent_us[c] = 1_000_000 + 1000 * c
@@ -603,22 +699,38 @@ def test_the_hosts_account_of_a_robust_write_is_its_own_resync():
 def test_the_host_suspects_a_board_on_bytes_that_made_no_record():
     """The watchdog is told the board may have lost its place as soon as bytes read since
     the last record made none (with the last angle), and that it no longer is when a
-    record comes; only on a change; never before a record gave an angle."""
+    record comes; only on a change; never before a record gave an angle. Once the link
+    has shown it loses bytes (a desync, a damaged reply: not bytes that made no record
+    alone, a reply split across two reads), the last angle is published once per new
+    record (a long silence's robust write carries it); before, none is."""
     t = _transport()
     said = t.watchdog.said
-    t._wd_note()                          # in step: nothing to say
+    t._wd_note()                          # in step, no byte lost: nothing to say
     assert said == []
     t._rx_since_record = 3
+    t._wd_note()                          # (the same value, exactly)
+    assert said == [(True, math.degrees(0.5))]
+    t._desyncs = 1                        # (the decoder's: the link loses bytes)
     t._wd_note()
-    assert said == [(True, math.degrees(0.5))]          # (the same value, exactly)
+    assert said[1:] == [("angle", math.degrees(0.5))]
     t._wd_note()
-    assert len(said) == 1                 # (a change only)
+    assert len(said) == 2                 # (a change only)
     t._rx_since_record = 0
-    t._wd_note()                          # a record
-    assert said[-1] == (False, math.degrees(0.5))
+    t._x_last, t._s_last = 0.75, 10
+    t._wd_note()                          # a new record: its angle, then in step
+    assert said[2:] == [("angle", math.degrees(0.75)), (False, math.degrees(0.75))]
+    t._wd_note()
+    assert len(said) == 4                 # (the same record: nothing new)
     t._s_last, t._rx_since_record = -1, 5
     t._wd_note()                          # no record yet: no angle to set up at
-    assert len(said) == 2
+    assert len(said) == 4
+    clean = _transport()
+    clean._x_last, clean._s_last = 0.75, 10
+    clean._wd_note()                      # a new record on a link that lost nothing
+    assert clean.watchdog.said == []
+    clean._damaged = 1                    # a damaged reply: the link loses bytes
+    clean._wd_note()
+    assert clean.watchdog.said == [("angle", math.degrees(0.75))]
 
 
 def _fill(fd: int) -> int:
@@ -669,3 +781,47 @@ def test_a_write_goes_out_whole_or_not_at_all():
         os.close(fd)
         os.close(slave)
         os.close(master)
+
+
+def test_a_write_the_port_took_part_of_is_finished_before_anything_else(monkeypatch,
+                                                                        tmp_path):
+    """The watchdog's loop (in a thread here) against a port that takes two bytes of its
+    zero command and then no more for longer than :data:`~hapsim.drivers.
+    torque_watchdog.REST_S`: the rest is kept and finished at the next checks, first
+    (refused once, then taken), and the command is never written again from its start
+    (which would leave the board's parser inside the first copy: the host's writes
+    after it read wrongly); one write counted. Before, a write cut short was an error,
+    counted, and the next check wrote the whole command again."""
+    import threading
+    calls = []
+
+    def writer(port):
+        def write(data, patience=0.0):
+            calls.append(bytes(data))
+            if len(calls) == 1:
+                return bytes(data[2:])              # (two bytes taken, the rest stuck)
+            if len(calls) == 2:
+                raise BlockingIOError               # (still no room)
+            return b""
+        return write
+    monkeypatch.setattr(tw, "_writer", writer)
+    path = tmp_path / "page"
+    path.write_bytes(b"\0" * tw._SIZE)
+    page = tw._Page(os.open(path, os.O_RDWR))
+    page.set("beat", time.monotonic_ns() - 10**9)  # (a host silent for 1 s)
+    page.set("armed", 1)
+    page.set("holding", 1)
+    stop: list = []
+    th = threading.Thread(target=tw._serve, args=(str(path), "fake", b"ZERO",
+                                                  int(HOLD_BOUND_S * 1e9), os.getppid(),
+                                                  0), kwargs={"stop": stop})
+    th.start()
+    end = time.monotonic() + 5.0
+    while len(calls) < 3 and time.monotonic() < end:
+        time.sleep(0.005)
+    time.sleep(5 * HOLD_BOUND_S)                   # (time for a wrong second write)
+    stop.append(1)
+    th.join(5.0)
+    os.close(page.fd)
+    assert calls == [b"ZERO", b"RO", b"RO"], calls
+    assert page.get("counts") >> 32 == 1 and page.get("failed") == 0

@@ -1,4 +1,4 @@
-"""The host's watchdog in the transport: its zero writes accounted as commands (issue 29;
+"""The host's watchdog in the transport: its writes accounted as commands (issue 29;
 :class:`Watched`, a base of :class:`hapsim.drivers.transport.DriverTransport`).
 
 A driver whose board holds its force longer than the hold bound with no write
@@ -29,7 +29,14 @@ watchdog so (:meth:`TorqueWatchdog.suspect
 driver's stop instead (:meth:`hapsim.drivers.base.Driver.stop_bytes`: for the Haply board
 its re-synchronisation, zero torque whatever the parser is inside, the set-up at the
 host's last angle): a re-synchronisation made by the watchdog, counted as one (reason
-``watchdog``), answered twice, a gap in ``seq``.
+``watchdog``), answered twice, a gap in ``seq``. A board that lost its place in the last
+bytes before the host fell silent, before any evidence was read, takes no zero command:
+on a link that has shown it loses bytes (a damaged reply, a desync, a
+re-synchronisation: the evidence of the run so far), the silence's second write, at
+:data:`hapsim.drivers.torque_watchdog.ROBUST_AFTER` bounds, is the robust one at the last
+angle the transport published
+(:meth:`TorqueWatchdog.angle <hapsim.drivers.torque_watchdog.TorqueWatchdog.angle>`, at
+each new record), accounted the same way (the robust writes of a take are its last).
 """
 
 from __future__ import annotations
@@ -57,6 +64,9 @@ class Watched:
         self._wd_cmds: set = set()
         self._wd_why = None
         self._wd_robust = self._wd_suspect = False
+        self._wd_angle_s = -1               # (the record whose angle was published)
+        self._wd_lossy = False              # (the link has shown it loses bytes)
+        self._wd_base = None                # (its counts at the first record)
         if driver.holds_force_s <= HOLD_BOUND_S:
             self._wd_why = "the board zeroes its force itself within the hold bound"
             return
@@ -70,7 +80,7 @@ class Watched:
         self._wd_robust = self.watchdog is not None and robust is not None
 
     def _wd_take(self, times: tuple) -> None:
-        """The watchdog's zero writes ``times`` (monotonic ns), made after the host's last
+        """The watchdog's writes ``times`` (monotonic ns), made after the host's last
         command: commands of their own (module notes); its robust writes, the last ones
         when there are any, re-synchronisations of its own (:meth:`_wd_resynced`)."""
         if not times:
@@ -121,14 +131,28 @@ class Watched:
         """Tell the watchdog whether the board may have lost its place (module notes),
         for a driver with a robust write, on a change only: bytes read since the last
         record that made none, once a record has given an angle; cleared when a record
-        comes. The robust write would set the board up at the last angle read. (Set only
-        at a host command, the rule missed boards that lost their place just before a
-        stall: one held a torque 94 ms of a 300 ms stall, the watchdog's zero command at
-        25 ms. A reply split across two reads sets it for the microseconds between them:
-        a stall of the hold bound must begin exactly there to make a needless set-up.)"""
+        comes. The robust write would set the board up at the last angle read, which is
+        also published at each new record once the link has shown it loses bytes (the
+        robust write of a long silence carries it; on a link that has lost none a
+        parser never loses its place, and a long silence costs no re-synchronisation). (Set only at a host command, the rule missed boards that lost their place
+        just before a stall: one held a torque 94 ms of a 300 ms stall, the watchdog's
+        zero command at 25 ms. A reply split across two reads sets it until its rest is
+        read, at most a read period: a stall of the hold bound must begin exactly there
+        to make a needless set-up.)"""
         if not self._wd_robust:
             return
         on = self._rx_since_record > 0 and self._s_last >= 0
+        # (a link that has shown it loses bytes since the first record: a damaged reply,
+        # a desync, a re-synchronisation; a reply split across two reads is no such
+        # evidence, nor the bytes before the arming's first record; on a link that
+        # loses none a parser never loses its place)
+        seen = (self._damaged, self._desyncs, self.stats["resyncs"])
+        if self._wd_base is None and self._s_last >= 0:
+            self._wd_base = seen
+        self._wd_lossy = self._wd_lossy or (self._wd_base is not None and seen != self._wd_base)
+        if self._wd_lossy and self._s_last != self._wd_angle_s and self._s_last >= 0:
+            self._wd_angle_s = self._s_last
+            self.watchdog.angle(math.degrees(self._x_last))
         if on != self._wd_suspect:
             self._wd_suspect = on
             self.watchdog.suspect(on, math.degrees(self._x_last))

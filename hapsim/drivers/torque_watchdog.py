@@ -16,24 +16,40 @@ each write stamped with its time.
 
 No lock: the host, before each of its own writes, stamps its time on the shared page and
 then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.write` returns them;
-before its
-reads too, :meth:`TorqueWatchdog.take`); the watchdog checks that time again just before
-it writes and counts a write after making it.
-A write counted when the host takes the count went out before the host's next write; one
-counted later is taken as after it. The only order that can be wrong is a write the
-watchdog made in the microsecond between its last check and its syscall while the host
-woke from a silence of the whole bound exactly then: its answer and the host's then read
-the board within microseconds of each other, so the swap costs nothing. (A lock around
-the host's write, tried first, would let a host descheduled inside it hold the watchdog
-off for as long.) The host accounts the board's answers to the zero writes
-(:class:`hapsim.drivers.transport.DriverTransport`: each is a command of its own, answered
-and dropped, a gap in ``seq``).
+before its reads too, :meth:`TorqueWatchdog.take`); the watchdog checks that time again
+just before it writes, and counts a write (its time, the silence it answers) *before*
+making it. A write counted when the host takes the count is taken as before the host's
+next write; one counted later as after it. The only order that can be wrong is a write
+counted in the microseconds between the watchdog's last check and the syscall's first
+byte, while the host woke from a silence of the whole bound exactly then and wrote before
+that byte: the two then reach the board within microseconds of each other. (Counted after
+the syscall instead, the window held the whole write, which waits for a port that took
+part of it.) A write the port refused is counted all the same (and tried again at the
+next check): a command the board never answers, a missing sample to the host, which is
+the conservative side. (A lock around the host's write, tried first, would let a host
+descheduled inside it hold the watchdog off for as long.) The host accounts the board's
+answers to the watchdog's writes (:class:`hapsim.drivers.transport.DriverTransport`:
+each is a command of its own, answered and dropped, a gap in ``seq``).
+
+A write goes out whole: a command cut short would leave the board's parser inside it. A
+port that takes part of a write and then no more for a second (a hung device) keeps the
+rest, which is finished before anything else is written, never written again from its
+start. The watchdog runs in a session of its own, so a terminal's Ctrl-C, Ctrl-Z or hang-up
+meant for the host (its process group) neither stops nor kills it, and it ignores those
+signals besides; ``SIGTERM`` ends its loop after the write in hand, never inside it.
 
 The stated bound: a board is left holding a force without a write for at most ``bound_s``
 plus the watchdog's check interval (``bound_s / 4``) plus its own wake-up latency, which
-it measures (``longest_s``: the longest silence it saw before writing). The watchdog
-quits when its parent does: at once when the host had closed it or left no force held,
-after one zero write when the host died (killed, crashed) armed with a force held.
+it measures (``longest_s``: the longest silence it saw before a write). For a board
+without framing (``robust``), whose parser may have lost its place in the last bytes
+before the host fell silent, with no evidence read yet to say so, the zero command may
+reach no motor: the silence's second write, at :data:`ROBUST_AFTER` bounds, is the robust
+one, at the last angle the host published (:meth:`TorqueWatchdog.angle`; a host publishes
+one once its link has shown it loses bytes), so that such a board holds its force for at
+most ``ROBUST_AFTER`` bounds plus a check and the latency.
+The watchdog quits when its parent does: at once when the host had closed it or left no
+force held, after one write when the host died (killed, crashed) armed with a force held
+(the robust one while the board is suspect).
 
 Layout of the shared page: native int64 fields, see ``_F``.
 """
@@ -51,20 +67,23 @@ import time
 __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report", "watchdog_text"]
 
 #: Fields of the shared page (int64 each): the host's last write (monotonic ns), armed,
-#: zero writes made, the time of the last (monotonic ns), the host write it answered,
-#: quit, the longest silence seen before a write [ns], ready (1: running, < 0: -errno at
-#: start), real-time priority granted (0: none), holding (the host's last write left a
-#: non-zero force; written by the host alone: the watchdog marks a silence it answered
-#: by ``fired_for``, the host write it followed, so that it never clears a hold the
-#: host set just after its check); suspect (written by the host, one word: 0, the board
-#: in step, or ``1 << 32 | bits``, the board may have lost its place and the robust
-#: write goes instead of the zero command, carrying the float32 of those bits), counts
-#: (one word: ``fired << 32 | robust``, the writes made and the robust ones among them,
-#: read by the host in one load) and wrote_bits (the float32 bits the last robust write
-#: carried).
-_F = {k: i for i, k in enumerate(("beat", "armed", "fired", "fired_ns", "fired_for", "quit",
+#: the time of the watchdog's last write (monotonic ns), the host write it answered, quit,
+#: the longest silence seen before a write [ns], ready (1: running, < 0: -errno at start),
+#: real-time priority granted (0: none), holding (the host's last write left a non-zero
+#: force; written by the host alone: the watchdog marks a silence it answered by
+#: ``fired_for``, the host write it followed, so that it never clears a hold the host set
+#: just after its check), failed (writes the port refused, each tried again), suspect
+#: (written by the host, one word: 0, the board in step, or ``1 << 32 | bits``, the board
+#: may have lost its place and the robust write goes instead of the zero command,
+#: carrying the float32 of those bits), counts (one word: ``fired << 32 | robust``, the
+#: writes made and the robust ones among them, read by the host in one load), wrote_bits
+#: (the float32 bits the last robust write carried), angle (written by the host: 0, or
+#: ``1 << 32 | bits``, its last angle read, which a long silence's robust write carries)
+#: and robust_for (the host write whose silence had its robust write).
+_F = {k: i for i, k in enumerate(("beat", "armed", "fired_ns", "fired_for", "quit",
                                   "longest_ns", "ready", "rt", "holding", "failed",
-                                  "suspect", "counts", "wrote_bits"))}
+                                  "suspect", "counts", "wrote_bits", "angle",
+                                  "robust_for"))}
 _SIZE = 8 * len(_F)
 _F32 = struct.Struct("<f")
 #: The sinks a watchdog writes to besides a device file it opens by path, each an
@@ -79,6 +98,13 @@ _SINKS = ("usbfs", "stamped")
 USBFS_TIMEOUT_MS = 10
 #: How long the host waits for the watchdog process to start [s].
 START_TIMEOUT_S = 3.0
+#: A silence's robust write, for a board without framing, comes at this many bounds of
+#: silence (module notes): after the zero command, at the first bound, had two bounds to
+#: be answered by a record the host would have read had it run.
+ROBUST_AFTER = 3
+#: How long a write that a port took part of waits for the port to take the rest [s]
+#: before the watchdog keeps it for its next checks (module notes).
+REST_S = 1.0
 
 
 class _Page:
@@ -118,7 +144,7 @@ class TorqueWatchdog:
         the OS does not permit it (:attr:`rt` says what it got).
     sink : tuple, optional
         Instead of opening ``port`` (then only named in messages): ``(kind, fd, *args)``,
-        a file descriptor of this process the watchdog inherits and writes ``zero`` to,
+        a file descriptor of this process the watchdog inherits and writes to,
         ``("usbfs", fd, endpoint)`` or ``("stamped", fd)`` (:data:`_SINKS`).
     robust : (bytes, int), optional
         For a board without framing: ``(data, index)``, the write that zeroes the force
@@ -176,7 +202,8 @@ class TorqueWatchdog:
                  str(int(rt_priority)), robust[0].hex() if robust else "",
                  str(int(robust[1])) if robust else "-1"],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL, close_fds=True, pass_fds=fds)
+                stderr=subprocess.DEVNULL, close_fds=True, pass_fds=fds,
+                start_new_session=True)     # (a terminal's signals are the host's)
             end = time.monotonic() + START_TIMEOUT_S
             while self._page.get("ready") == 0 and time.monotonic() < end:
                 if self._proc.poll() is not None:
@@ -214,7 +241,8 @@ class TorqueWatchdog:
         p.set("armed", 1 if on else 0)
 
     def take(self) -> tuple:
-        """The zero writes the watchdog made since the last call (the host reads).
+        """The writes the watchdog made since the last call (the host reads): the zero
+        command, or the robust write (:meth:`take_robust` says how many).
 
         Returns
         -------
@@ -261,6 +289,17 @@ class TorqueWatchdog:
         """
         self._page.set("suspect", (1 << 32 | int.from_bytes(_F32.pack(value), "little"))
                        if on else 0)        # (one store: the flag and its value together)
+
+    def angle(self, value: float) -> None:
+        """The host's last angle read, which the robust write of a long silence carries
+        (module notes; a watchdog without a robust write ignores it).
+
+        Parameters
+        ----------
+        value : float
+            The joint's last angle read [deg] (the set-up's encoder offset).
+        """
+        self._page.set("angle", 1 << 32 | int.from_bytes(_F32.pack(value), "little"))
 
     def write(self, ser, data: bytes, holding: bool) -> tuple:
         """The host writes ``data``: its time stamped first (the silence the watchdog
@@ -319,25 +358,33 @@ class TorqueWatchdog:
         Returns
         -------
         dict
-            ``fired`` (zero writes made), ``failed`` (writes the sink refused, each
-            tried again at the next check), ``longest_s`` (the longest host silence the
+            ``fired`` (writes made: the zero command or the robust write), ``failed``
+            (writes the sink refused, each counted in ``fired`` and tried again at the
+            next check), ``longest_s`` (the longest host silence the
             watchdog saw before a write [s], 0 without one: the stated bound's measured
             part), ``bound_s``, ``check_s``, ``rt_priority`` (granted; 0: none),
             ``robust`` (of the writes, those that were the robust one).
         """
         p = self._page
-        return {"fired": p.get("fired"), "failed": p.get("failed"),
-                "robust": p.get("counts") & 0xFFFFFFFF,
+        c = p.get("counts")
+        return {"fired": c >> 32, "failed": p.get("failed"), "robust": c & 0xFFFFFFFF,
                 "longest_s": p.get("longest_ns") * 1e-9, "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
 
     def _kill(self) -> None:
+        """End the watchdog process: its loop sees ``quit`` within a check; ``SIGTERM``
+        (which ends its loop after the write in hand, never inside it) if it has not
+        within 0.1 s; ``SIGKILL`` if it still has not when a write's rest would have
+        had its time (:data:`REST_S`)."""
         self._page.set("quit", 1)
-        self._proc.terminate()              # (it holds nothing: a write is one syscall)
-        try:
-            self._proc.wait(timeout=0.5)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self._proc.wait()
+        for stop, wait in ((None, 0.1), (self._proc.terminate, REST_S + 0.5),
+                           (self._proc.kill, None)):
+            if stop is not None:
+                stop()
+            try:
+                self._proc.wait(timeout=wait)
+                return
+            except subprocess.TimeoutExpired:
+                continue
 
     def close(self) -> None:
         """Stop the watchdog process (disarmed first; idempotent). The shared page's file
@@ -445,15 +492,38 @@ def _usbfs_writer(fd: int, ep: int):
         arg = bytearray(struct.pack("@IIIP", ep, len(data), USBFS_TIMEOUT_MS,
                                     ctypes.addressof(buf)))
         fcntl.ioctl(fd, req, arg, True)     # (buf lives through the call)
+        return b""                          # (one packet: whole)
     return write
 
 
-def _write_whole(fd: int, data: bytes, patience: float = 0.0) -> None:
-    """Write all of ``data`` to a non-blocking ``fd``, or none of it: a command cut short
-    would leave the board's parser inside it, reading the host's next bytes wrongly.
-    Nothing taken within ``patience`` [s] is a refusal (``BlockingIOError``: counted and
-    tried again at the next check); once a byte has gone the rest is waited for (1 s at
-    most, then ``OSError``)."""
+def _write_whole(fd: int, data: bytes, patience: float = 0.0,
+                 rest_s: float = REST_S) -> bytes:
+    """Write ``data`` to a non-blocking ``fd`` whole, or none of it: a command cut short
+    would leave the board's parser inside it, reading the next bytes wrongly.
+
+    Parameters
+    ----------
+    fd : int
+        A non-blocking file descriptor (a tty).
+    data : bytes
+    patience : float
+        How long a port that takes none of it is waited for [s] (0: not at all).
+    rest_s : float
+        Once a byte has gone, how long the rest is waited for [s].
+
+    Returns
+    -------
+    bytes
+        The rest the port did not take within ``rest_s`` (``b""``: all of it went):
+        the caller finishes it before it writes anything else, never from its start.
+
+    Raises
+    ------
+    BlockingIOError
+        The port took none of it within ``patience`` (counted, tried again).
+    OSError
+        The port failed.
+    """
     import select
     view = memoryview(bytes(data))
     first = time.monotonic() + float(patience)
@@ -465,24 +535,25 @@ def _write_whole(fd: int, data: bytes, patience: float = 0.0) -> None:
             n = 0
         if n:
             view = view[n:]
-            end = end or time.monotonic() + 1.0
+            end = end or time.monotonic() + rest_s
             continue
         now = time.monotonic()
         if end is None and now >= first:
             raise BlockingIOError("the port took none of the write")
         if end is not None and now >= end:
-            raise OSError("the port took part of the write and no more for 1 s")
+            return bytes(view)
         select.select([], [fd], [], 0.005)
+    return b""
 
 
 def _writer(port: str):
-    """The watchdog's write of bytes, ``write(data, patience=0.0)``: to a device file
-    opened by path (:func:`_write_whole`), or to a file descriptor inherited
-    (``fd:N:KIND[:ARG]``, :data:`_SINKS`: one transfer, one pipe write)."""
+    """The watchdog's write of bytes, ``write(data, patience=0.0) -> rest``: to a device
+    file opened by path (:func:`_write_whole`), or to a file descriptor inherited
+    (``fd:N:KIND[:ARG]``, :data:`_SINKS`: one transfer, one pipe write, whole)."""
     if not port.startswith("fd:"):
         # (non-blocking: a full buffer or a hung device refuses the write, counted and
-        # tried again at the next check, and never holds the watchdog, whose last write
-        # when its host died is made with nobody left to stop it)
+        # tried again at the next check; a write the port took part of waits REST_S for
+        # the rest at most, then keeps it for the next checks)
         fd = os.open(port, os.O_WRONLY | os.O_NOCTTY | os.O_NONBLOCK)
         return lambda data, patience=0.0: _write_whole(fd, data, patience)
     _, n, kind, *arg = port.split(":")
@@ -491,20 +562,27 @@ def _writer(port: str):
     if kind == "usbfs":
         return _usbfs_writer(fd, int(arg[0]))
     # "stamped": the emulated chip's side channel, each write its monotonic time first
-    return lambda data, patience=0.0: os.write(
-        fd, time.monotonic_ns().to_bytes(8, "little") + data)     # (<= PIPE_BUF: whole)
+    def stamped(data: bytes, patience: float = 0.0) -> bytes:
+        os.write(fd, time.monotonic_ns().to_bytes(8, "little") + data)  # (<= PIPE_BUF)
+        return b""
+    return stamped
 
 
 def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: int,
-           robust: bytes = b"", at: int = -1) -> None:
-    """The watchdog process (module notes)."""
+           robust: bytes = b"", at: int = -1, stop: list | None = None) -> None:
+    """The watchdog process (module notes); ``stop`` non-empty ends its loop (the
+    process's ``SIGTERM``, :func:`_signals`)."""
     page = _Page(os.open(path, os.O_RDWR))
+    stop = [] if stop is None else stop
 
-    def data() -> tuple:
+    def data(late: bool) -> tuple:
         """The write to make, whether it is the robust one and its value's bits: the
         robust one while the host suspects the board lost its place, its value patched
-        in; else the zero command."""
+        in, or in a long silence (``late``) at the host's last angle; else the zero
+        command."""
         word = page.get("suspect") if robust else 0
+        if not word and late:
+            word = page.get("angle")
         if word:
             bits = word & 0xFFFFFFFF
             return robust[:at] + bits.to_bytes(4, "little") + robust[at + 4:], 1, bits
@@ -524,40 +602,83 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
     page.set("rt", got)
     page.set("ready", 1)
     check = bound_ns / 4e9
-    while not page.get("quit") and os.getppid() == parent:
+    rest = b""                              # (a write the port took part of: its rest)
+
+    def finish(patience: float) -> bytes:
+        try:
+            return write(rest, patience)
+        except BlockingIOError:
+            return rest
+        except OSError:
+            return b""                      # (the port failed: nothing more goes)
+
+    def held() -> bool:
+        """Armed, with a force held or a board that may have lost its place."""
+        return bool(page.get("armed") and (page.get("holding")
+                                           or (robust and page.get("suspect"))))
+    while not stop and not page.get("quit") and os.getppid() == parent:
         time.sleep(check)
-        if not (page.get("armed") and page.get("holding")):
+        if rest:
+            rest = finish(0.0)              # (before anything else)
+            continue
+        if not held():
             continue
         beat = page.get("beat")
         now = time.monotonic_ns()
-        if now - beat <= bound_ns or page.get("fired_for") == beat:
+        if now - beat <= bound_ns:
             continue
-        if page.get("beat") != beat or not page.get("armed") or not page.get("holding"):
+        late = page.get("fired_for") == beat
+        if late and not (robust and page.get("robust_for") != beat
+                         and now - beat > ROBUST_AFTER * bound_ns):
+            continue
+        if page.get("beat") != beat or not held():
             continue                        # (the host wrote meanwhile, or holds nothing)
-        out, rob, bits = data()
-        try:
-            write(out)
-        except OSError:
-            page.set("failed", page.get("failed") + 1)
-            continue
+        out, rob, bits = data(late)
+        if late and not rob:
+            continue                        # (no angle published: no robust write)
+        # counted before the write (module notes): its time, its silence, its kind
+        was = page.get("fired_for")
         page.set("fired_ns", time.monotonic_ns())
         page.set("fired_for", beat)
         page.set("longest_ns", max(page.get("longest_ns"), now - beat))
         if rob:
+            page.set("robust_for", beat)
             page.set("wrote_bits", bits)
         page.set("counts", page.get("counts") + (1 << 32) + rob)  # (the host reads this)
-        page.set("fired", page.get("fired") + 1)
-    if (not page.get("quit") and page.get("armed") and page.get("holding")
+        try:
+            rest = write(out)
+        except OSError:
+            page.set("failed", page.get("failed") + 1)
+            page.set("fired_for", was)      # (tried again at the next check)
+            if rob:
+                page.set("robust_for", 0)
+    if rest:
+        rest = finish(REST_S)
+    if (not stop and not page.get("quit") and held()
             and page.get("fired_for") != page.get("beat")):
         # the host died (killed, crashed) armed, its last write a force not yet zeroed:
         # the board would hold it until someone writes; the port is still ours
         try:
-            write(data()[0], 1.0)           # (a full buffer waited for, 1 s at most)
+            write(data(False)[0], 1.0)      # (a full buffer waited for, 1 s at most)
         except OSError:
             pass
+
+
+def _signals() -> list:
+    """The watchdog process's signals (module notes): a terminal's ignored (its own
+    session already keeps them the host's), ``SIGTERM`` noted in the list returned,
+    which ends the loop after the write in hand, never inside it."""
+    import signal
+    stop: list = []
+    for sig in ("SIGINT", "SIGHUP", "SIGTSTP", "SIGTTOU", "SIGTTIN", "SIGQUIT"):
+        if hasattr(signal, sig):
+            signal.signal(getattr(signal, sig), signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    return stop
 
 
 if __name__ == "__main__":
     a = sys.argv[1:]
     _serve(a[0], a[1], bytes.fromhex(a[2]), int(a[3]), int(a[4]), int(a[5]),
-           bytes.fromhex(a[6]) if len(a) > 6 else b"", int(a[7]) if len(a) > 7 else -1)
+           bytes.fromhex(a[6]) if len(a) > 6 else b"", int(a[7]) if len(a) > 7 else -1,
+           stop=_signals())

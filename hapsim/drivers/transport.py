@@ -644,6 +644,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                 else:
                     waiting = ser.in_waiting
                     if waiting:
+                        self._wd_poll()     # (its writes before the bytes are decoded)
                         data = ser.read(waiting)
                     elif timeout > 0 and not out:
                         data = ser.read(1)
