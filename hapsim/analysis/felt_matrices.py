@@ -272,7 +272,8 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                   "linear estimate holds")
     rnd = float(getattr(bound, "roundoff", 0.0))
     # the wire's term taken over the errors' box (hapsim.analysis.wire_box) or at first order
-    how = ("over the errors' box" if isinstance(wire, dict) and wire.get("box")
+    how = ((wire.get("how") or ("over the errors' box" if wire.get("box")
+                                else "first order")) if isinstance(wire, dict)
            else "first order")
     excluded = excluded or {}
     st = []
@@ -317,6 +318,17 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                       f"stiffness by {wk:.2g} and the damping by {wd:.2g} (relative, "
                       f"{how}), above {limit:g}, and no principal direction is measurable "
                       "either: fewer missing replies (or a larger excitation) are needed")
+        elif (not math.isfinite(max(wk, wd)) and isinstance(wire, dict)
+              and wire.get("rounding")):
+            # a draw of the rounding's phase lost a pair of the loop or rendered a noise
+            # pair (hapsim.analysis.wire_rounding)
+            rd = wire["rounding"]
+            reason = (f"in {rd['lost'] + rd['noise']} of {rd['draws']} draws of the "
+                      "rounding's phase the fit lost a pair of the loop "
+                      f"({rd['lost']}) or rendered a noise pair ({rd['noise']}): the "
+                      "records do not determine every rendered pair (stretches cut "
+                      f"short, or an excitation {bound.amplitude:g} m too small for the "
+                      "wire's resolution)")
         elif not math.isfinite(max(wk, wd)) and how != "first order" and first is None:
             # a point of the box gave no felt matrices (hapsim.analysis.wire_box: fewer
             # than n pairs of the fit above the records' errors there)
