@@ -11,9 +11,12 @@ ch. 4: :mod:`hapsim.analysis.quantisation`). The n-D fit (a vector linear predic
 :func:`hapsim.analysis.pencil.fit_felt_nd`) is too ill-conditioned for a first-order
 variance to hold (its fast modes' poles are set by the errors alone:
 :mod:`hapsim.analysis.wire_box`), and the worst case over the errors' box, which covers
-that, takes every sign pattern of ``N`` rounding errors: about ``sqrt(3 N)`` times what
-rounding does to a least-squares fit (on configs/falcon_spring.yaml at its largest start,
-1.3 and more on the stiffness where the rounding moved it at most 0.088 in 400 draws).
+that, takes every sign pattern of ``N`` rounding errors: to first order up to ``sqrt(3 N)``
+times the standard deviation of what uniform rounding does (Hoelder's sum of ``|s_i| q/2``
+against the root-sum-square ``q/sqrt(12) |s|_2``; on configs/falcon_spring.yaml at its
+largest start,
+40 times the stiffness matrix's largest entry at the exact records, where 400 draws of
+the rounding moved it at most 0.093).
 
 What is computed (:func:`rounding_term`). The exact records of the loop the prediction
 describes (:class:`hapsim.lockstep.LockstepND`, the device's Cartesian mass at rest, no
@@ -34,8 +37,8 @@ gain) part of rounding (Gelb & Vander Velde 1968; :func:`hapsim.analysis.quantis
 quantiser_gain_bound`) is in the draws as well as the observation part: on
 configs/falcon_spring.yaml the loop with its counts renders a felt stiffness 1-5 % above
 the linear loop's along its principal directions and a damping 34-84 % above, against
--0.5 % and 17-39 % for the same roundings applied to the exact records afterwards
-(``tools/rounding_figures.py``).
+about -0.6 % and 17-39 % for the same roundings applied to the exact records afterwards
+(``tools/rounding_figures.py falcon``).
 
 The fit's fragile classes (:mod:`hapsim.analysis.wire_box`'s notes) stay covered: a draw
 whose fit gives no felt matrices (a pair of the loop turned real or under the fit's
@@ -62,20 +65,26 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["Rounding", "rounded_records", "rounding_term", "rounding_wire", "noise_pair",
-           "exact_loop", "stretch_loop", "virtual_response", "ROUNDING_DRAWS", "ROUNDING_MARGIN", "ROUNDING_SEED"]
+           "exact_loop", "stretch_loop", "virtual_response", "ROUNDING_DRAWS",
+           "ROUNDING_MARGIN", "ROUNDING_SEED"]
 
 #: Draws of the rounding's phase per term [-]: the largest of 100 exchangeable draws is
 #: exceeded by one more with probability 1/101 (module notes). Each draw costs one fit
-#: (~3 ms at 7 records of 300 rows in 3-D) and its share of the vectorised loop.
+#: (a few ms at 7 records of 300 rows in 3-D: the 100 draws and the loop ~0.5 s of CPU
+#: on configs/falcon_spring.yaml, one BLAS thread) and its share of the vectorised loop.
 ROUNDING_DRAWS = 100
-#: The factor over the largest change of the draws that is stated [-]. Measured
-#: (``tools/rounding_figures.py``): the emulated Falcon's own records (the delta's
-#: joint-space dynamics, its packets, its encoders at uniform sub-count phases) against
-#: the model's draws on configs/falcon_spring.yaml at its largest start: the largest of
-#: 60 emulated changes at most 0.99 of the model's largest of 100, per statement; over
-#: the random spring fields of ``tests/test_wire_rounding.py``: see
-#: docs/dimensions.md, "The wire's rounding term". 1.5 leaves a factor 1.5 over the
-#: worst ratio measured.
+#: The factor over the largest change of the draws that is stated [-]: it covers the
+#: model's departures from the device (the predicted loop linearised, its Cartesian mass
+#: at rest, the phases uniform). Measured against the emulated Falcon itself (its packets,
+#: the delta's joint-space dynamics, its encoders' index at uniform sub-count offsets;
+#: each statement's change against the same records through an encoder 64 times finer,
+#: over the run's largest change of 100 draws: ``tools/rounding_figures.py``,
+#: docs/rounding_falcon*.json): at most 0.88 on configs/falcon_spring.yaml (60 offsets),
+#: 1.08 over 20 random spring fields x 5 offsets (1 of 800 statements above 1, the
+#: exchangeable rate 1/101), 0.95 with 1 byte in 200 lost (records cut, 224
+#: statements), 0.94 at 60 rows (240). Cut records fitted about each stretch's own
+#: equilibrium, before the run's common one, reached 1.40 (10 of 240 above 1). 1.5
+#: leaves a factor 1.39 over the worst departure measured.
 ROUNDING_MARGIN = 1.5
 #: The draws' seed: a fixed one, so a statement is a function of its records (the
 #: lockstep run's and the prediction before it agree bit for bit); the device's own

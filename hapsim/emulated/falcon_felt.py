@@ -25,10 +25,11 @@ ROUNDING_MARGIN` times the largest change of each statement over
 share and its loop gain both in it; a draw that loses a pair of the loop or renders a
 noise pair leaves nothing stated. Before, the term was the first-order worst case over
 the errors' box (:mod:`hapsim.analysis.wire_box`: every sign pattern of the roundings,
-about ``sqrt(3 N)`` times what rounding does to a least-squares fit), which stated
-nothing at the Falcon's counts: on configs/falcon_spring.yaml at its largest start
-(3.77 mm) 1.3 and more on the stiffness, where 400 draws of the rounding moved it at
-most 0.088 (docs/dimensions.md, "The wire's rounding term"). The first-order figures
+to first order up to ``sqrt(3 N)`` times the standard deviation of what rounding does),
+which stated nothing at the Falcon's counts: on configs/falcon_spring.yaml at its largest
+start (3.77 mm) 40 times the stiffness matrix's largest entry at the exact records and
+1.1-1.5 at the wall-clock runs' records, where 400 draws of the rounding moved it at
+most 0.093 (docs/dimensions.md, "The wire's rounding term"). The first-order figures
 (:func:`quantiser_terms`: the worst case and Widrow & Kollar's ``q^2 / 12``) are
 printed beside it, for comparison.
 
@@ -445,7 +446,7 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8, progress=None) -> d
     (:func:`quantiser_terms`), which said "measurable" on configs/falcon_spring.yaml
     (0.19) where the run, over the errors' box, stated nothing; then the run's statement
     over the box, which stated nothing there either (1.3 and more on the stiffness,
-    where 400 draws of the rounding's phase moved it at most 0.088). ~1.5 s of CPU on
+    where 400 draws of the rounding's phase moved it at most 0.093). ~1 s of CPU on
     configs/falcon_spring.yaml (the records 0.4 s, the rounding's draws 1 s), with
     ``progress`` over the draws.
 
