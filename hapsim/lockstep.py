@@ -552,7 +552,10 @@ def wire_terms_nd(scene, diffs, chk, order: int, errors, *, usable=None,
     sensitivity ``sum_ab e_a e_b s[ab]`` (no larger than ``sum_ab |e_a e_b| wc_ab``, and
     smaller where the entries' changes cancel along ``e``); likewise for the damping.
     A rounding of a smooth signal a few counts wide is not white noise, so no
-    statistical interval is taken for it.
+    first-order statistical interval is taken for it (the Falcon's and the 2DIY's
+    verdicts draw their rounding through the loop instead,
+    :mod:`hapsim.analysis.wire_rounding`, and take this worst case for their other
+    errors).
 
     The fit is so ill-conditioned that errors within the bounds leave the region where
     its first-order sensitivity holds (:mod:`hapsim.analysis.wire_box`): with ``box``

@@ -189,11 +189,14 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
       change under the readings' and the forces' rounding, whatever their signs and
       correlation: for a direction, Hoelder's inequality on the linear form
       ``e_i^T dX e_i`` of the fit's first-order change ``dX``, over ``|e_i^T X_pred e_i|``
-      (for the 2DIY, the two faders, the Falcon and the Hapkit pantograph's firmware
-      taken over the errors' box with a margin, :mod:`hapsim.analysis.wire_box`: the fit
-      is too ill-conditioned for the first-order term at the records alone to bound what
+      (for the two faders and the Hapkit pantograph's firmware taken over the errors'
+      box with a margin, :mod:`hapsim.analysis.wire_box`: the fit is too
+      ill-conditioned for the first-order term at the records alone to bound what
       errors within the bounds do; a verdict that states nothing then extrapolates the
-      excitation needed from the first-order term, a lower bound).
+      excitation needed from the first-order term, a lower bound; for the Falcon and
+      the 2DIY their rounding by draws of its phase through the loop,
+      :mod:`hapsim.analysis.wire_rounding`, named by the wire's ``how``, the 2DIY's
+      other errors over the box).
 
     **When a statement is made.** Not at all when no felt matrices were measured, or
     when the amplitude reaches a contact's or a plane's depth (the law is not smooth:
