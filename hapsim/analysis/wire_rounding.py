@@ -139,9 +139,23 @@ class Rounding:
         self.binary32_torque = bool(binary32_torque)
 
     def read(self, q, phase):
-        """The joint angles the host reads [rad], shape of ``q`` (R, m): rounded to the
-        count on a grid offset by ``phase`` counts (R, m) in [0, 1), then binary32
-        degrees when the device sends them so."""
+        """The joint angles the host reads: each rounded to the nearest point of the
+        count's grid offset by ``phase`` counts, ``c (round(q / c - phase) + phase)``,
+        then to binary32 degrees when the device sends them so (the encoder's zero at an
+        unknown fraction of a count: module notes).
+
+        Parameters
+        ----------
+        q : ndarray, shape (R, m)
+            The joints' true angles [rad], one row per draw.
+        phase : ndarray, shape (R, m)
+            Each draw's grid offset per joint [counts], in [0, 1).
+
+        Returns
+        -------
+        ndarray, shape (R, m)
+            The angles read [rad].
+        """
         c = self.count
         out = c * (np.round(q / c - phase) + phase)
         if self.binary32_degrees:
@@ -149,8 +163,22 @@ class Rounding:
         return out
 
     def torque(self, tau, phase):
-        """The joint torques the device applies [N m], shape of ``tau`` (R, m): on the
-        command's grid offset by ``phase`` (R, m), then binary32 when sent so."""
+        """The joint torques the device applies: each rounded to the command's grid offset
+        by ``phase`` command counts (as :meth:`read`), then to binary32 when sent so; the
+        torque itself without a grid or binary32.
+
+        Parameters
+        ----------
+        tau : ndarray, shape (R, m)
+            The torques the host computed [N m], one row per draw.
+        phase : ndarray, shape (R, m)
+            Each draw's grid offset per joint [command counts], in [0, 1).
+
+        Returns
+        -------
+        ndarray, shape (R, m)
+            The torques applied [N m].
+        """
         out = tau
         if self.command is not None:
             c = self.command
