@@ -33,7 +33,7 @@ def feasibility_once():
     import hapsim.emulated.falcon_felt as ff
     real = ff.felt_feasibility
 
-    def once(scene, plan=None, *, max_step=8):
+    def once(scene, plan=None, *, max_step=8, progress=None):
         key = pickle.dumps((scene, None if plan is None else tuple(plan[1:]), max_step,
                             falcon.DEG_PER_TICK, falcon.THETA_OFFSET_DEG,
                             falcon.START_STEP))

@@ -132,7 +132,7 @@ def test_the_falcon_verdict_states_its_bound_at_its_fitted_rows():
         runs = [{"position": x_eq + x, "commands": np.zeros((N, 3)),
                  "joints": np.zeros((N, 3)) if joints is None else joints[j]}
                 for j, x in enumerate(X)]
-        return falcon_felt_verdict(sc, runs, plan, a, settle=True)
+        return falcon_felt_verdict(sc, runs, plan, a)
     clean = verdict(X)["bound"]
     reach = max(float(np.max(np.linalg.norm(x, axis=1))) for x in X)
     # (x_eq + x) - x_eq: a few ulps of x_eq off x
@@ -222,7 +222,7 @@ def test_cut_records_state_the_bound_at_their_own_motion_not_at_differences():
     joints[0][~ok3] = np.nan                  # the cut: its replies missing
     runs3 = [{"position": y_eq + (rest3 if j == 0 else y), "commands": np.zeros((100, 3)),
               "joints": joints[j]} for j, y in enumerate(Y)]
-    r3 = falcon_felt_verdict(sd, runs3, pd, a, settle=True)
+    r3 = falcon_felt_verdict(sd, runs3, pd, a)
     own_reach = max(float(np.max(np.linalg.norm(rest3[ok3], axis=1))),
                     max(float(np.max(np.linalg.norm(y, axis=1))) for y in Y[1:]))
     assert abs(r3["bound"].amplitude - own_reach) <= 8 * float(np.spacing(np.max(np.abs(y_eq))))

@@ -13,9 +13,10 @@ the Falcon's, 48 of 58 on the pantograph's).
 The records are the loop's own free responses on the simulated lockstep clock (named:
 :class:`hapsim.lockstep.LockstepND`), the errors fed back through the loop by it (an
 independent path from the superposition :func:`hapsim.analysis.wire_box.moved_records`
-uses); what is stated is the devices' own functions':
-:func:`hapsim.emulated.falcon_felt.falcon_felt_verdict` (half an encoder count per leg
-reading, half a motor command per torque) and
+uses); what is stated is the box's term of each device's bounds: the Falcon's (half an
+encoder count per leg reading, half a motor command per torque; the Falcon's verdict
+stated it until its rounding term, :mod:`hapsim.analysis.wire_rounding`, and the 2DIY's
+verdict still takes the box for its errors that are no rounding) and
 :func:`hapsim.emulated.pantograph_board.wire_term` (half a sensor count plus a binary32
 ulp per joint reading, half a PWM step plus the torque's binary32 rounding). The devices'
 counts are drawn finer than their own where a statement is to be made: at their own
@@ -176,15 +177,26 @@ def _falcon_counts(monkeypatch, finer):
 
 
 def _falcon_wire(sc, X, plan, a):
-    """The Falcon verdict's stated wire term and verdict for records ``X`` (every reply
-    in: readings finite, commands 0, never at the clamp)."""
-    from hapsim.emulated.falcon_felt import falcon_felt_verdict
-    N = plan[2]
-    # the readings' positions are the handle's: the operating point plus the motion
-    x_eq = device("delta", sc.device.geometry).forward(np.asarray(sc.device.joints, float))
-    runs = [{"position": x_eq + x, "joints": np.zeros((N, 3)),
-             "commands": np.zeros((N, 3))} for x in X]
-    return falcon_felt_verdict(sc, runs, plan, a)
+    """The worst case over the errors' box of the Falcon's counts (half a count per leg
+    reading, half a motor command per torque) for records ``X``, and its verdict: the
+    term the Falcon's verdict stated before its rounding term
+    (:mod:`hapsim.analysis.wire_rounding`), which the 2DIY's verdict still takes for the
+    errors that are no rounding (:func:`hapsim.lockstep.wire_terms_nd` with
+    ``box=True``)."""
+    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.linearisation import linearisation_bound
+    from hapsim.drivers.falcon import DEG_PER_TICK, TORQUE_PER_COUNT
+    chk, order, N = plan
+    J = device("delta", sc.device.geometry).jacobian(np.asarray(sc.device.joints, float))
+    diffs = [x - X[0] for x in X[1:]]
+    errors = [("reading", J, np.full(3, math.radians(DEG_PER_TICK) / 2.0)),
+              ("force", np.linalg.inv(J).T, np.full(3, TORQUE_PER_COUNT / 2.0))]
+    wire = wire_terms_nd(sc, diffs, chk, order, errors, box=True)
+    fit = fit_felt_nd(diffs, sc.device.mass, sc.period, order)
+    v = felt_verdict(felt_deviation(fit, chk),
+                     linearisation_bound(sc, a, chk.render.rendered_poles), wire,
+                     directions=felt_directions(fit, chk))
+    return {**v, "wire": wire}
 
 
 def _pantograph_wire(sc, X, plan, c, s):

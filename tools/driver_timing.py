@@ -361,6 +361,9 @@ def run_falcon_once(seed: int, loss: float, clock: str = "wall",
             "felt_missing": felt.get("missing"), "felt_late_rows": felt.get("late_rows"),
             "felt_stalls": sum(r["stalls"] for r in recs),
             "felt_link_verdicts": [r["link_verdict"] for r in recs],
+            # each statement made or not (its name, verdict, departure, uncertainty and
+            # wire term: the principal directions' too)
+            "statements": felt.get("statements"),
             "link_verdict": res["verdict"],
             "exit_code": 0, "missing": res["missing"], "reason": res["reason"],
             "held_zero": res["held_zero"],

@@ -189,11 +189,14 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
       change under the readings' and the forces' rounding, whatever their signs and
       correlation: for a direction, Hoelder's inequality on the linear form
       ``e_i^T dX e_i`` of the fit's first-order change ``dX``, over ``|e_i^T X_pred e_i|``
-      (for the 2DIY, the two faders, the Falcon and the Hapkit pantograph's firmware
-      taken over the errors' box with a margin, :mod:`hapsim.analysis.wire_box`: the fit
-      is too ill-conditioned for the first-order term at the records alone to bound what
+      (for the two faders and the Hapkit pantograph's firmware taken over the errors'
+      box with a margin, :mod:`hapsim.analysis.wire_box`: the fit is too
+      ill-conditioned for the first-order term at the records alone to bound what
       errors within the bounds do; a verdict that states nothing then extrapolates the
-      excitation needed from the first-order term, a lower bound).
+      excitation needed from the first-order term, a lower bound; for the Falcon and
+      the 2DIY their rounding by draws of its phase through the loop,
+      :mod:`hapsim.analysis.wire_rounding`, named by the wire's ``how``, the 2DIY's
+      other errors over the box).
 
     **When a statement is made.** Not at all when no felt matrices were measured, or
     when the amplitude reaches a contact's or a plane's depth (the law is not smooth:
@@ -272,7 +275,8 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                   "linear estimate holds")
     rnd = float(getattr(bound, "roundoff", 0.0))
     # the wire's term taken over the errors' box (hapsim.analysis.wire_box) or at first order
-    how = ("over the errors' box" if isinstance(wire, dict) and wire.get("box")
+    how = ((wire.get("how") or ("over the errors' box" if wire.get("box")
+                                else "first order")) if isinstance(wire, dict)
            else "first order")
     excluded = excluded or {}
     st = []
@@ -317,6 +321,17 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                       f"stiffness by {wk:.2g} and the damping by {wd:.2g} (relative, "
                       f"{how}), above {limit:g}, and no principal direction is measurable "
                       "either: fewer missing replies (or a larger excitation) are needed")
+        elif (not math.isfinite(max(wk, wd)) and isinstance(wire, dict)
+              and wire.get("rounding")):
+            # a draw of the rounding's phase lost a pair of the loop or rendered a noise
+            # pair (hapsim.analysis.wire_rounding)
+            rd = wire["rounding"]
+            reason = (f"in {rd['lost'] + rd['noise']} of {rd['draws']} draws of the "
+                      "rounding's phase the fit lost a pair of the loop "
+                      f"({rd['lost']}) or rendered a noise pair ({rd['noise']}): the "
+                      "records do not determine every rendered pair (stretches cut "
+                      f"short, or an excitation {bound.amplitude:g} m too small for the "
+                      "wire's resolution)")
         elif not math.isfinite(max(wk, wd)) and how != "first order" and first is None:
             # a point of the box gave no felt matrices (hapsim.analysis.wire_box: fewer
             # than n pairs of the fit above the records' errors there)

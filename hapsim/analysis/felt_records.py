@@ -38,7 +38,7 @@ _KINDS = ("reading", "force", "position", "velocity")
 
 
 def wire_terms_records(scene, records, chk, order: int, errors, *, usable,
-                       floor: float | None = None) -> dict:
+                       floor: float | None = None, added=None) -> dict:
     """The wire's term of the felt matrices fitted on records cut at their disturbances,
     each record on its own stretches about a common equilibrium (module notes): as
     :func:`hapsim.lockstep.wire_terms_nd` (the first-order worst case, Hoelder's
@@ -71,6 +71,8 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable,
     floor : float, optional
         :func:`hapsim.lockstep.wire_terms_nd`'s (the pairs the records do not determine
         never taken for rendered ones).
+    added : ndarray, optional
+        :func:`hapsim.lockstep.wire_terms_nd`'s (another worst case added, absolute).
 
     Returns
     -------
@@ -122,7 +124,8 @@ def wire_terms_records(scene, records, chk, order: int, errors, *, usable,
         return {**inf, "box": True}
     # taken over the box, as hapsim.lockstep.wire_terms_nd(box=True) says it: the
     # verdict's reasons name it (hapsim.analysis.felt_matrices.felt_verdict)
-    return {**relative_terms(chk, got[1], got[0]), "box": True}
+    plus = 0.0 if added is None else np.asarray(added, float)
+    return {**relative_terms(chk, got[1] + plus, got[0]), "box": True}
 
 
 def within_excursion(scene, diffs, usable, amplitude: float) -> list:

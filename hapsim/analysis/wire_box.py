@@ -49,6 +49,14 @@ falls to 0.62 (the stiffness along one direction stated), and where a point of t
 leaves fewer than ``n`` pairs of the loop (a pair turned real, 1.052 and 0.899, or below
 the floor) nothing is stated (term inf): the records, within their errors, do not
 determine that pair, which is what the cut stretches of a loaded host give.
+
+Where it is taken. The box is an adversary's errors: every sign pattern within the
+bounds. For errors that are no rounding (the 2DIY's estimated samples, its write timing)
+that is the term; a device's rounding is not chosen so, and the Falcon's and the 2DIY's
+verdicts take it by draws of its phase through the loop instead
+(:mod:`hapsim.analysis.wire_rounding`: on configs/falcon_spring.yaml the box's term is
+hundreds of times what rounding does). The Hapkit pantograph firmware's and the two
+faders' verdicts still take their rounding over the box.
 """
 
 from __future__ import annotations

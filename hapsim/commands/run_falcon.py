@@ -98,14 +98,14 @@ def run_falcon_command(args) -> int:
     packets = DEFAULT_PACKETS if getattr(args, "packets", None) is None else args.packets
     emulated = args.port is None
     # before the loop: what the Falcon's counts let this run state of the felt matrices
-    # (the run's own records and statement, the emulated Falcon in lockstep: ~1-2 s of
-    # CPU, ~5 s where something is stated); what will not be stated is said first, with
+    # (the run's own records and statement, the emulated Falcon in lockstep and the
+    # rounding's draws: ~1 s of CPU); what will not be stated is said first, with
     # the reason (issue 31 item 4), and the run goes on: exit 0, not a device fault
     try:
         with Progress(1, "run (Falcon: the felt matrices' feasibility, the emulated Falcon "
-                      "in lockstep)", unit="stages") as bar:
-            predicted = felt_prediction(scene, real=not emulated)
-            bar.update(1)
+                      "in lockstep and the rounding's draws)", unit="steps") as bar:
+            predicted = felt_prediction(scene, real=not emulated, progress=bar.update)
+            bar.update(bar.total)
     except DeviceError as exc:
         print(f"hapsim run: the felt matrices' feasibility: {exc}", file=sys.stderr)
         return 1
@@ -143,8 +143,11 @@ def run_falcon_command(args) -> int:
     # on the emulated Falcon, measured: the identification's records, each from a hand's
     # start on a fresh emulated Falcon on the same clock (~7 x 0.3 s)
     try:
-        felt = felt_statement(scene, image if emulated else None,
-                              clock=dev.clock if emulated else "wall", predicted=predicted)
+        with Progress(1, "run (Falcon: the felt matrices' records and the rounding's draws)",
+                      unit="steps") as bar:
+            felt = felt_statement(scene, image if emulated else None,
+                                  clock=dev.clock if emulated else "wall",
+                                  predicted=predicted, progress=bar.update)
     except DeviceError as exc:
         print(f"hapsim run: the felt matrices' records: {exc}", file=sys.stderr)
         return 1

@@ -148,11 +148,18 @@ def run_haply2_command(args) -> int:
                      "felt_damping": num(wire["felt_damping"]),
                      "reading_bound_rad": wire["reading_bound_rad"],
                      "torque_rel": wire["torque_rel"],
-                     # the same terms at the records alone, first order (the stated
-                     # ones are over the error box: hapsim.analysis.wire_box)
+                     # the same terms at the records alone, first order, where the
+                     # box was sampled (hapsim.analysis.wire_box: the errors that are
+                     # no rounding); the rounding's by draws of its phase
+                     # (hapsim.analysis.wire_rounding): how the term was taken and the
+                     # draws' figures
                      "first_order": None if not wire.get("first_order") else {
                          q: num(wire["first_order"][q])
                          for q in ("felt_stiffness", "felt_damping")},
+                     "how": wire.get("how"),
+                     "rounding": None if not wire.get("rounding") else {
+                         k: wire["rounding"][k] for k in ("draws", "lost", "noise",
+                                                          "margin")},
                      # the host's write timing on a board on its own clock: the largest
                      # hold's departure from a period, corrected (None: exact periods)
                      "hold_s": wire.get("hold_s")},
@@ -282,8 +289,8 @@ def designed_start(scene) -> tuple:
 def prediction_haply2(pre: dict, amplitude: float):
     """What a real-time 2DIY run will not state, from its records' verdict in lockstep
     (:func:`hapsim.emulated.haply2_lockstep.measure_felt_haply2`: the same board, counts
-    and binary32 rounding, no host timing; the statement over the errors' box depends on
-    the records alone).
+    and binary32 rounding, no host timing; the statement depends on the records alone,
+    its rounding's draws seeded: :mod:`hapsim.analysis.wire_rounding`).
 
     Parameters
     ----------
@@ -302,8 +309,8 @@ def prediction_haply2(pre: dict, amplitude: float):
     from hapsim.analysis.felt_matrices import said_before_run
     stated = [s["name"] for s in pre["statements"] if s["verdict"] != "not measurable"]
     not_stated = list(pre["not_stated"])
-    why = ("not stated, predicted before the run: the wire's term over the errors' box on "
-           "the same records in lockstep is beyond the limit")
+    why = ("not stated, predicted before the run: the wire's term on the same records in "
+           "lockstep is beyond the limit")
     reasons = {s["name"]: s["reason"] for s in pre["statements"]}
     detail = "; ".join(f"{n}: {reasons[n]}" for n in not_stated if reasons.get(n))
     return ({n: why for n in not_stated},

@@ -97,11 +97,19 @@ class FalconDevice:
         Leg torque per motor-command count [N m].
     clock : {"wall", "lockstep"}
         The device's clock (module notes).
+    encoder_offset : sequence of 3 float, optional
+        Where each leg's encoder index sits off its nominal angle, in counts (a real
+        encoder's zero is at an unknown fraction of a count): a homed count is
+        ``ticks_of`` of the angle moved by it, so the host's reading is off by a
+        constant and its counts' edges fall elsewhere along the motion (default 0:
+        libnifalcon's nominal zero). The tests of the wire's rounding term draw it
+        (:mod:`hapsim.analysis.wire_rounding`).
 
     Raises
     ------
     ConfigError
-        Not a 3-D delta scene, a sub-sample delay, an unknown clock.
+        Not a 3-D delta scene, a sub-sample delay, an unknown clock, an encoder offset
+        not 3 finite numbers.
 
     Attributes
     ----------
@@ -125,9 +133,15 @@ class FalconDevice:
     def __init__(self, scene, *, expected_image: bytes | None = None,
                  homing_packets: int = 20, power_up_joints_deg=None,
                  newton_metres_per_count: float = TORQUE_PER_COUNT,
-                 clock: str = "wall") -> None:
+                 clock: str = "wall", encoder_offset=(0.0, 0.0, 0.0)) -> None:
         if clock not in ("wall", "lockstep"):
             raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
+        off = np.asarray(encoder_offset, float)
+        if off.shape != (3,) or not np.all(np.isfinite(off)):
+            raise ConfigError(f"the encoder offset must be 3 finite counts, got "
+                              f"{encoder_offset!r}", key="encoder_offset")
+        #: Each leg's encoder index off its nominal angle [counts] (``encoder_offset``).
+        self.encoder_offset = off
         self.clock = clock
         #: The device itself on the wall clock, None in lockstep.
         self.wall = self if clock == "wall" else None
@@ -209,7 +223,8 @@ class FalconDevice:
 
     # ------------------------------------------------------------------ bytes
     def _counts(self) -> tuple:
-        q = np.degrees(self.plant.joints())
+        from hapsim.drivers.falcon import DEG_PER_TICK      # (the count a test sets)
+        q = np.degrees(self.plant.joints()) + self.encoder_offset * DEG_PER_TICK
         out = []
         for i in range(3):
             t = ticks_of(q[i])

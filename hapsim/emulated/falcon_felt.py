@@ -14,25 +14,28 @@ are free responses of the loop, fitted jointly by the n-D fit
 **The wire's term** of the stated uncertainty: the Falcon's packets carry each leg's
 angle as a whole encoder count (:data:`hapsim.drivers.falcon.DEG_PER_TICK`, 6.35e-4 rad;
 27-47 um at the handle of configs/delta_sphere.yaml) and each torque as a whole motor
-command (:data:`hapsim.drivers.falcon.TORQUE_PER_COUNT`). A reading is therefore the
-angle to within half a count, a torque the one computed to within half a command count;
-each error enters the records through the loop (the reading error through ``J(q0)``, the
-torque error through ``J(q0)^-T``: :func:`hapsim.lockstep.error_responses`) and the fit
-to first order, and their worst case whatever their signs and correlation, taken over
-the errors' box (at the records and at each statement's worst errors within the bounds,
-the largest times a margin: :mod:`hapsim.analysis.wire_box`), is the wire's term
-(:func:`hapsim.lockstep.wire_terms_nd` with ``box=True``; records cut at missing replies:
-:func:`hapsim.analysis.felt_records.wire_terms_records`), as for the 2DIY. The
-first-order term at the records alone is no bound here: on configs/falcon_spring.yaml at
-its largest start (3.77 mm, the exact records in lockstep) errors within half a count and
-half a motor command, each statement's worst signs re-linearised at the records they
-moved, moved the stiffness along the heaviest principal direction 2.2 times its
-first-order term (0.22 against 0.10, a term that stated it) and one stiffness entry's fit
-collapsed (1,800 times; tests/test_wire_box_devices.py). Over the box nothing is stated
-on that scene at the Falcon's counts; an encoder 10 times finer states the stiffness.
-A rounding of a smooth signal a few counts wide is not white noise, so no statistical
-interval is taken for it (Widrow & Kollar's ``q^2 / 12`` per reading is printed beside
-it by tools/falcon_felt_figures.py, for comparison only).
+command (:data:`hapsim.drivers.falcon.TORQUE_PER_COUNT`). Where a count's edge falls
+relative to the motion is set by the encoder's zero, an unknown fraction of a count: the
+wire's term is the spread of the run's own fit over draws of that phase
+(:func:`hapsim.analysis.wire_rounding.rounding_term`: the predicted loop's records at the
+run's starts with the counts and the motor commands rounding inside the loop, at uniform
+phases, each refitted by the run's fit; :data:`hapsim.analysis.wire_rounding.
+ROUNDING_MARGIN` times the largest change of each statement over
+:data:`hapsim.analysis.wire_rounding.ROUNDING_DRAWS` draws), the rounding's observation
+share and its loop gain both in it; a draw that loses a pair of the loop or renders a
+noise pair leaves nothing stated. Before, the term was the first-order worst case over
+the errors' box (:mod:`hapsim.analysis.wire_box`: every sign pattern of the roundings,
+to first order up to ``sqrt(3 N)`` times the standard deviation of what rounding does),
+which stated nothing at the Falcon's counts: on configs/falcon_spring.yaml at its largest
+start (3.77 mm) 40 times the stiffness matrix's largest entry at the exact records and
+1.1-1.5 at the wall-clock runs' records, where 400 draws of the rounding moved it at
+most 0.093 (docs/dimensions.md, "The wire's rounding term"). The first-order figures
+(:func:`quantiser_terms`: the worst case and Widrow & Kollar's ``q^2 / 12``) are
+printed beside it, for comparison.
+
+A fit that renders a pair nearer one of the loop's fast poles than any rendered pair
+(a noise pair outranking a loop pair) states nothing either (the run's own records, as
+each draw's: :func:`hapsim.analysis.wire_rounding.noise_pair`).
 
 **Missing samples.** A reply that did not come (lost or mangled bytes; the engine held
 the last reading) leaves its row out with the rows its stale force acted on: rows
@@ -97,8 +100,8 @@ def falcon_usable_rows(joints, delay: int) -> np.ndarray:
     return np.cumsum(bad[:N]) == 0
 
 
-def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = False,
-                        excluded=None) -> dict:
+def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, excluded=None,
+                        progress=None) -> dict:
     """The felt matrices of a Falcon's ``2n + 1`` records and their verdict (module notes).
 
     Parameters
@@ -112,14 +115,11 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
         :func:`hapsim.lockstep.identification_plan`'s ``(check, order, N)``.
     amplitude : float
         The hand's ``a`` [m].
-    settle : bool, optional
-        Whole records: sample the errors' box only until every statement is beyond
-        :data:`hapsim.analysis.felt_matrices.MEASURABLE_WIRE` (:func:`hapsim.lockstep.
-        wire_terms_nd`'s ``settle``): which statements are made is the same, the terms of
-        a verdict that states nothing lower bounds (``wire["box_complete"]`` False).
     excluded : dict, optional
         :func:`hapsim.analysis.felt_matrices.felt_verdict`'s: statements the prediction
         before the run excluded (:func:`felt_feasibility`), never made here.
+    progress : callable, optional
+        ``progress(done, total)`` over the rounding's draws.
 
     Returns
     -------
@@ -143,14 +143,14 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
     ConfigError
         As :func:`hapsim.analysis.pencil.fit_felt_nd` for whole records.
     """
-    from hapsim.analysis.felt_matrices import (MEASURABLE_WIRE, felt_deviation,
-                                               felt_directions, felt_verdict)
-    from hapsim.analysis.felt_records import window_rows, wire_terms_records, within_excursion
+    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.felt_records import window_rows, within_excursion
     from hapsim.analysis.linearisation import bound_at_records
     from hapsim.analysis.pencil import fit_felt_nd
+    from hapsim.analysis.wire_rounding import (Rounding, exact_loop, noise_pair,
+                                               rounding_term, rounding_wire, stretch_loop)
     from hapsim.drivers.falcon import DEG_PER_TICK, TORQUE_PER_COUNT
     from hapsim.kinematics import device
-    from hapsim.lockstep import wire_terms_nd
     chk, order, N = plan
     n = 3
     pos = [np.asarray(r["position"], float)[:N] for r in runs]
@@ -207,23 +207,40 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
                         "reason": short}
     else:
         dev = felt_deviation(fit, chk)
-        errors = [("reading", J, np.full(n, delta)),
-                  ("force", np.linalg.inv(J).T, np.full(n, tq))]
+        # the rounding's term: the run's own fit over draws of the counts' and the
+        # commands' phases, the quantisers in the predicted loop (module notes)
+        rounding = Rounding(J, q0, 2.0 * delta, command=2.0 * tq)
         if own is not None:
-            # a row no stretch holds changes only the initial state of the stretches
-            # after it (a free response the fit does not see to first order): its errors
-            # are left out, each record's own rows kept (hapsim.emulated.haply2_verdict)
-            errors = [(kind, G, [np.where(u[:, None], np.broadcast_to(b, (N, n)), 0.0)
-                                 for u in own]) for kind, G, b in errors]
-            wire.update(wire_terms_records(scene, held, chk, order, errors, usable=own))
+            def refit(recs):
+                return fit_felt_nd([x_eq + r for r in recs], scene.device.mass,
+                                   scene.period, order, usable=own, offset=True)
         else:
-            # over the error box (hapsim.analysis.wire_box; module notes): the
-            # first-order term at the records alone was exceeded 2.7 times by errors
-            # within the counts' bounds on configs/falcon_spring.yaml
-            wire.update(wire_terms_nd(scene, diffs, chk, order, errors, box=True,
-                                      settle=MEASURABLE_WIRE if settle else None))
+            def refit(recs):
+                return fit_felt_nd([r - recs[0] for r in recs[1:]], scene.device.mass,
+                                   scene.period, order)
+        base = None
+        if own is not None:
+            # the stretches between the cuts: the predicted loop's free responses that
+            # fit them, rounded in the draws (hapsim.analysis.wire_rounding.stretch_loop)
+            eq = fit.get("equilibrium")
+            base = stretch_loop(scene, [p - x_eq for p in held], own, order,
+                                exact_loop(scene, amplitude, N),
+                                equilibrium=None if eq is None else eq - x_eq)
+        term = rounding_term(scene, chk, rounding, amplitude, N, refit, exact=base,
+                             progress=progress)
+        wire.update(rounding_wire(chk, term))
+        # the records' own fit rendering a noise pair: no felt matrices of the loop
+        wire["noise_pair"] = bool(term is not None and noise_pair(fit, term["reference"]))
         v = felt_verdict(dev, bound, wire, estimated=0,
                          directions=felt_directions(fit, chk), excluded=excluded)
+        if wire.get("noise_pair") and v["verdict"] != "not measurable":
+            # no statement from a fit that renders a noise pair (a "differs" built on
+            # it would be wrong); a verdict that states nothing keeps its own reason
+            v = {"verdict": "not measurable", "within": None, "uncertainty": None,
+                 "statements": [], "not_stated": ["felt stiffness", "felt damping"],
+                 "reason": "the records' fit renders a pair nearer one of the loop's fast "
+                           "poles than any pair the loop renders (a noise pair set by the "
+                           "rounding): no felt matrices of the loop"}
         if usable is not None:
             v["reason"] += (f"; {missing} missing replies: the records cut there, each "
                             "fitted on its own undisturbed stretches about the fitted "
@@ -243,7 +260,7 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, settle: bool = F
 
 def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None,
                         samples: int | None = None, max_step: int = 8,
-                        faults=None, settle: bool = False) -> dict:
+                        faults=None, progress=None, encoder_offset=(0.0, 0.0, 0.0)) -> dict:
     """The felt matrices of a delta scene measured through the emulated Falcon's packets
     on its lockstep clock (named: deterministic), and their verdict (module notes).
 
@@ -273,8 +290,12 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
     faults : hapsim.emulated.driver_mock.ByteFaults, optional
         Byte faults on the records' packets, both ways (the homing clean): a reply lost
         is a missing sample, cut (module notes).
-    settle : bool, optional
-        :func:`falcon_felt_verdict`'s (what is stated, at less cost: the feasibility).
+    progress : callable, optional
+        :func:`falcon_felt_verdict`'s.
+    encoder_offset : sequence of 3 float, optional
+        The emulated encoders' index off nominal [counts]
+        (:class:`hapsim.emulated.falcon_device.FalconDevice`'s: where the counts' edges
+        fall along the motion).
 
     Returns
     -------
@@ -296,7 +317,8 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
     runs = []
     excursion = 0.0
     for x0, v0 in excitation_starts(3, amplitude, scene.period):
-        dev = FalconDevice(plant if plant is not None else scene, clock="lockstep")
+        dev = FalconDevice(plant if plant is not None else scene, clock="lockstep",
+                           encoder_offset=encoder_offset)
         load_firmware(dev, b"\x00" * 16)
         dec = DevicePacketDecoder()
         home(dev.feed, LED_BLUE, decoder=dec)
@@ -307,7 +329,7 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
         runs.append(r)
         q = np.asarray(r["joints"], float)
         excursion = max(excursion, float(np.nanmax(np.abs(q - scene.device.joints))))
-    out = falcon_felt_verdict(scene, runs, plan, amplitude, settle=settle)
+    out = falcon_felt_verdict(scene, runs, plan, amplitude, progress=progress)
     out["excursion_rad"] = excursion
     return out
 
@@ -394,11 +416,11 @@ def quantiser_terms(scene, amplitude: float, plan) -> dict:
     return out
 
 
-def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
+def felt_feasibility(scene, plan=None, *, max_step: int = 8, progress=None) -> dict:
     """What a run can state of the felt matrices of a delta scene through the Falcon's
     counts, predicted before it: the run's own records and statement
     (:func:`measure_felt_falcon`: the emulated Falcon, its packets' whole counts and motor
-    commands, :func:`falcon_felt_verdict`'s term over the errors' box) taken in lockstep
+    commands, :func:`falcon_felt_verdict`'s rounding term) taken in lockstep
     (named: the counts' and the commands' rounding alone, no host timing) at the largest
     excitation the scene's linear range allows, the start the run takes.
 
@@ -414,28 +436,19 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     norm against the shallowest depth: on configs/delta_sphere.yaml 0.24 mm where the
     motion toward the sphere's opening allows 0.55 mm.
 
-    **Why the lockstep records, over the box.** Before, the prediction was the
-    first-order term about the exact records (:func:`quantiser_terms`) against the limit
-    of a statement: on configs/falcon_spring.yaml it said "measurable" (0.19) and the
-    run, over the box at its own rounded records, stated nothing (10^5-10^6): a
-    prediction the run contradicted. The statement over the box is a function of the
-    records alone, so the lockstep records give the lockstep run's statements exactly; a
-    run on the Falcon's own clock takes the same records unless the host is late (its
-    rows cut, fitted otherwise), and it never makes a statement excluded here
-    (:func:`hapsim.pipeline.falcon_run.felt_statement` passes them on: a smaller term
-    over the box at other records is no better evidence).
-    **The cheaper sufficient evaluation.** The
-    box's term of a statement is :data:`hapsim.analysis.wire_box.BOX_MARGIN` times a
-    maximum over sampled points, the records among them: it only grows as points are
-    added. So the box is sampled, the points of the statements still under the limit
-    first, only until every statement is beyond it
-    (:func:`hapsim.analysis.wire_box.box_worst_case`'s ``settled``): on
-    configs/falcon_spring.yaml 1 point of the 24, on configs/delta_sphere.yaml none (the
-    records' own point settles every statement); the feasibility ~1.0 s of CPU on
-    either, where sampling the whole box would add ~1.2 s (measured on a 2-core
-    machine: configs/falcon_spring.yaml's :func:`measure_felt_falcon` 0.65 s settled,
-    1.84 s in full).
-    Where something is stated every point is sampled (the run's full term).
+    **Why the lockstep records.** The run's statement is a function of its records and
+    of the predicted loop (its wire's term, :func:`hapsim.analysis.wire_rounding.
+    rounding_term`, is drawn with a fixed seed), so the lockstep records give the
+    lockstep run's statements exactly; a run on the Falcon's own clock takes the same
+    records unless the host is late (its rows cut, fitted otherwise), and it never makes
+    a statement excluded here (:func:`hapsim.pipeline.falcon_run.felt_statement` passes
+    them on). Before, the prediction was the first-order term about the exact records
+    (:func:`quantiser_terms`), which said "measurable" on configs/falcon_spring.yaml
+    (0.19) where the run, over the errors' box, stated nothing; then the run's statement
+    over the box, which stated nothing there either (1.3 and more on the stiffness,
+    where 400 draws of the rounding's phase moved it at most 0.093). ~1 s of CPU on
+    configs/falcon_spring.yaml (the records 0.4 s, the rounding's draws 1 s), with
+    ``progress`` over the draws.
 
     The first-order figures about the exact records (:func:`quantiser_terms`: the worst
     case, Widrow & Kollar's, the excitation and the count their extrapolations would
@@ -450,6 +463,8 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     max_step : int, optional
         The reply decoder's plausible step [counts] (:func:`measure_felt_falcon`'s: an
         encoder finer than the Falcon's scales it).
+    progress : callable, optional
+        ``progress(done, total)`` over the rounding's draws.
 
     Returns
     -------
@@ -458,7 +473,8 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
         lockstep records state something), ``stated`` and ``not_stated`` (the
         statements' names), ``statement`` (None when every statement is made, else the
         sentence a run says before it starts), ``lockstep`` (the lockstep records'
-        verdict: ``verdict``, ``wire`` relative terms, ``box_complete``), ``reason`` (str,
+        verdict: ``verdict``, ``wire`` relative terms, ``rounding``: the draws' figures,
+        :func:`hapsim.analysis.wire_rounding.rounding_wire`), ``reason`` (str,
         with the numbers), ``amplitude_m`` (``a_max``), ``limited_by`` (a contact's depth
         or the envelope), ``count_at_handle_m`` (one count through ``J(q0)``: its
         smallest and largest singular values times the count [m]), ``worst``,
@@ -476,7 +492,6 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
         The emulated Falcon did not home (:func:`measure_felt_falcon`).
     """
     from hapsim.analysis.felt_matrices import MEASURABLE_WIRE
-    from hapsim.analysis.wire_box import BOX_MARGIN
     from hapsim.drivers.falcon import DEG_PER_TICK, ENVELOPE_RAD
     from hapsim.kinematics import device
     from hapsim.lockstep import (START_MARGIN, exact_records, identification_plan,
@@ -526,23 +541,24 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
     need_q = {k: q * MEASURABLE_WIRE / t["worst_reading"][k]
               if t["worst_reading"][k] > 0 else math.inf for k in keys}
     # the run's own records and statement, in lockstep (class notes)
-    m = measure_felt_falcon(scene, a_max, plan=plan, settle=True, max_step=max_step)
+    m = measure_felt_falcon(scene, a_max, plan=plan, max_step=max_step, progress=progress)
     stated = [st["name"] for st in m["statements"] if st["verdict"] != "not measurable"]
     not_stated = list(m["not_stated"])
     w = m["wire"]
-    full = w.get("box_complete", True)
     wk, wb = w["felt_stiffness"], w["felt_damping"]
-    least = "" if full else "at least "
-    first = w.get("first_order") or {}
+    rd = w.get("rounding")
     said = (f"on the emulated Falcon's own records in lockstep at that start (what the run "
             f"fits), the counts' and commands' rounding may move the felt stiffness by "
-            f"{least}{wk:.2g} and the damping by {least}{wb:.2g} (relative, over the "
-            "errors' box" + ("" if full else ", sampled until every statement was beyond "
-                             "the limit") + ")")
-    if first:
-        said += (f"; the first-order term at those records is {first['felt_stiffness']:.2g}"
-                 f" and {first['felt_damping']:.2g} (the box's is at least "
-                 f"{BOX_MARGIN:g} times it)")
+            f"{wk:.2g} and the damping by {wb:.2g} (relative, {w.get('how', 'first order')}"
+            + ("" if not rd else
+               f"; the draws' largest {rd['largest']['felt_stiffness']:.2g} and "
+               f"{rd['largest']['felt_damping']:.2g}, their median "
+               f"{rd['median']['felt_stiffness']:.2g} and "
+               f"{rd['median']['felt_damping']:.2g}") + ")")
+    if rd and (rd["lost"] or rd["noise"]):
+        said += (f"; in {rd['lost'] + rd['noise']} of {rd['draws']} draws of the rounding "
+                 f"the fit lost a pair of the loop ({rd['lost']}) or rendered a noise pair "
+                 f"({rd['noise']}): the records do not determine every rendered pair")
     reason = (f"one encoder count is {col.min() * 1e6:.0f}-{col.max() * 1e6:.0f} um at the "
               f"handle; the largest hand start the scene's linear range allows is "
               f"{a_max * 1e3:.2f} mm, about {a_max / col.mean():.0f} counts (the records "
@@ -554,18 +570,18 @@ def felt_feasibility(scene, plan=None, *, max_step: int = 8) -> dict:
               + (("stated: " + ", ".join(stated)
                   + ("; not stated: " + ", ".join(not_stated) if not_stated else ""))
                  if stated else "nothing stated")
-              + f" (for comparison, the first-order term about the exact records, no "
-              f"rounding: {t['worst']['felt_stiffness']:.3g} and "
+              + f" (for comparison, the first-order worst case about the exact records "
+              f"over every sign of the roundings: {t['worst']['felt_stiffness']:.3g} and "
               f"{t['worst']['felt_damping']:.3g}; Widrow & Kollar's standard deviation "
               f"{t['widrow_kollar']['felt_stiffness']:.2g} and "
               f"{t['widrow_kollar']['felt_damping']:.2g})")
     return {"verdict": "measurable" if stated else "not measurable", "reason": reason,
             "stated": stated, "not_stated": not_stated,
             "statement": _before_run(a_max, stated, not_stated, reason),
-            "lockstep": {"verdict": m["verdict"], "box_complete": bool(full),
+            "lockstep": {"verdict": m["verdict"],
                          "wire": {k: w[k] for k in ("felt_stiffness", "felt_damping",
                                                     "directions")},
-                         "first_order": first or None},
+                         "rounding": rd},
             "amplitude_m": a_max, "limited_by": by,
             "count_at_handle_m": [float(col.min()), float(col.max())],
             "worst": t["worst"], "worst_reading": t["worst_reading"],

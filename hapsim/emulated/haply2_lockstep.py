@@ -176,23 +176,18 @@ def measure_felt_haply2(scene, generation: str = "gen3", *, amplitude: float = 1
     minus the one from rest fitted as in lockstep
     (:func:`hapsim.analysis.pencil.fit_felt_nd`).
 
-    The stated uncertainty (:func:`hapsim.analysis.felt_matrices.felt_verdict`) is the linearisation
-    bound at ``a`` plus the wire's term: each reading is the joint angle to within
-    ``delta_j`` = half a count of the set-up's resolution plus one binary32 ulp of the
-    largest angle read (the count rounded, then ``360 c / res`` in single precision: two
-    roundings of half an ulp), and each torque the host computed reaches the board
-    rounded to binary32 (``2^-24 |tau|``). Each error moves the records through the loop
-    (:func:`hapsim.lockstep.error_responses`: observed and fed back through the links;
-    the joint errors reach the handle through ``J(q0)``, the torque errors through
-    ``J(q0)^-T``), and the fit to first order
-    (:func:`hapsim.analysis.pencil.felt_sensitivity_nd`); their worst case, whatever
-    their signs and correlation (:func:`hapsim.analysis.pencil.worst_case_nd`; the
-    rest record's errors enter every difference), taken at the records and at each
-    statement's worst errors within the bounds, the largest
-    (:func:`hapsim.analysis.wire_box.box_worst_case`: the fit is too ill-conditioned for
-    the first-order term at the records alone to bound them), is the wire's term. A rounding of a
-    smooth signal a few counts wide is not white noise, so no statistical interval is
-    taken for it.
+    The stated uncertainty (:func:`hapsim.analysis.felt_matrices.felt_verdict`) is the
+    linearisation bound at ``a`` plus the wire's term
+    (:func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs`): each reading is the
+    joint angle rounded to a count of the set-up's resolution, then ``360 c / res`` in
+    single precision, and each torque the host computed reaches the board rounded to
+    binary32; that rounding is taken by draws of its phase through the predicted loop,
+    each refitted by the run's fit (:mod:`hapsim.analysis.wire_rounding`: 1.5 times the
+    largest change of 100 draws). Before, it was the first-order worst case over the
+    errors' box (:func:`hapsim.analysis.wire_box.box_worst_case`), every sign of half a
+    count plus a binary32 ulp per reading and ``2^-24 |tau|`` per torque, which the
+    verdict still takes for the errors that are no rounding (estimated samples, the
+    host's write timing).
 
     Parameters
     ----------

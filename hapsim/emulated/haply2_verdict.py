@@ -80,6 +80,8 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.wire_rounding import (Rounding, exact_loop, noise_pair,
+                                               rounding_term, rounding_wire, stretch_loop)
     from hapsim.lockstep import wire_terms_nd
     chk, order, N = plan
     n = 2
@@ -147,12 +149,33 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     bound, _ = bound_at_records(scene, amplitude, [r["position"] for r in runs],
                                 chk.render.rendered_poles, origin=kin.forward(q),
                                 usable=rows)
-    # the wire's term (docstring)
+    # the wire's term (docstring): the rounding's (the counts, the binary32 degrees and
+    # torques) by draws of its phase through the predicted loop, refitted by this fit
+    # (hapsim.analysis.wire_rounding), plus the worst case over the errors' box of the
+    # errors that are no rounding: the estimated samples' extrapolation, the write
+    # timing's state changes (hapsim.analysis.wire_box)
     torque_rel = 2.0 ** -24
     wire = {"felt_stiffness": math.inf, "felt_damping": math.inf,
             "reading_bound_rad": delta.tolist(), "torque_rel": torque_rel}
-    errors = [("reading", J, delta),
-              ("force", np.linalg.inv(J).T, [torque_rel * np.abs(r["torque"]) for r in runs])]
+    x_eq = kin.forward(q)
+    if own is not None:
+        def refit(recs):
+            return fit_felt_nd([x_eq + r for r in recs], mass, T, order, usable=own,
+                               offset=True, floor=floor)
+        eq = fit.get("equilibrium")
+        base = stretch_loop(scene, [r["position"] - x_eq for r in runs], own, order,
+                            exact_loop(scene, amplitude, N),
+                            equilibrium=None if eq is None else eq - x_eq)
+    else:
+        def refit(recs):
+            return fit_felt_nd([r - recs[0] for r in recs[1:]], mass, T, order,
+                               usable=usable, floor=floor)
+        base = None
+    term = rounding_term(scene, chk, Rounding(J, q, 2.0 * math.pi / float(resolution),
+                                              binary32_degrees=True, binary32_torque=True),
+                         amplitude, N, refit, exact=base)
+    wire.update(rounding_wire(chk, term))
+    errors = []
     if any("bounds" in r for r in runs):
         errors.append(("reading", np.eye(n), [r.get("bounds", np.zeros(2)) for r in runs]))
     holds = [r.get("holds") for r in runs]
@@ -174,14 +197,22 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         errors = [(kind, G, [np.where(keep[i][:, None], np.broadcast_to(
             np.asarray(b[i] if isinstance(b, list) else b, float), (N, n)), 0.0)
             for i in range(len(runs))]) for kind, G, b in errors]
-    if own is not None:
-        wire.update(wire_terms_records(scene, [r["position"] for r in runs], chk, order,
-                                       errors, usable=own, floor=floor))
-    else:
-        # over the error box (hapsim.analysis.wire_box): the first-order term at the
-        # records alone did not bound what errors within the bounds do to the fit
-        wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable,
-                                  box=True, floor=floor))
+    errors = [e for e in errors if any(np.any(np.asarray(b) != 0) for b in e[2])]
+    if term is not None and errors and np.all(np.isfinite(term["wc"])):
+        how = wire["how"] + ", plus the errors that are no rounding over the errors' box"
+        if own is not None:
+            wire.update(wire_terms_records(scene, [r["position"] for r in runs], chk,
+                                           order, errors, usable=own, floor=floor,
+                                           added=term["wc"]))
+        else:
+            # over the error box (hapsim.analysis.wire_box): the first-order term at the
+            # records alone did not bound what errors within the bounds do to the fit
+            wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable,
+                                      box=True, floor=floor, added=term["wc"]))
+        wire["how"] = how
+    # the records' own fit rendering a noise pair: no felt matrices of the loop
+    wire["noise_pair"] = bool(term is not None and fit["felt_stiffness"] is not None
+                              and noise_pair(fit, term["reference"]))
     # a torque at the clamp in a row fitted (a record cut there has none in its
     # stretches: hapsim.pipeline.haply2_host.usable_rows)
     clamped = int(sum(np.count_nonzero(
@@ -191,6 +222,14 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     v = felt_verdict(dev, bound, wire, estimated=int(sum(
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
         directions=felt_directions(fit, chk), excluded=excluded)
+    if wire.get("noise_pair") and v["verdict"] != "not measurable":
+        # no statement from a fit that renders a noise pair (a "differs" built on
+        # it would be wrong); a verdict that states nothing keeps its own reason
+        v = {"verdict": "not measurable", "within": None, "uncertainty": None,
+             "statements": [], "not_stated": ["felt stiffness", "felt damping"],
+             "reason": "the records' fit renders a pair nearer one of the loop's fast poles "
+                       "than any pair the loop renders (a noise pair set by the errors): "
+                       "no felt matrices of the loop"}
     if fit["felt_stiffness"] is None and short is None:
         # fewer than n of the fit's pairs above the floor (hapsim.analysis.pencil.
         # MODE_FLOOR): the records do not carry every rendered mode above their errors

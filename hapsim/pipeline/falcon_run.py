@@ -179,7 +179,7 @@ def falcon_verdict(res: dict) -> dict:
             f"missing sample holds the last reading); {caveat}"}
 
 
-def felt_prediction(scene, real: bool = False, plan=None) -> dict:
+def felt_prediction(scene, real: bool = False, plan=None, progress=None) -> dict:
     """What a Falcon run will say of the felt matrices, predicted before its loop starts
     (issue 31 item 4): whether they can be measured through the Falcon's counts at all
     (:func:`hapsim.emulated.falcon_felt.felt_feasibility`: the run's own records and
@@ -195,6 +195,9 @@ def felt_prediction(scene, real: bool = False, plan=None) -> dict:
         A real Falcon (no image: no host can start a hand, nothing is measured).
     plan : tuple, optional
         :func:`hapsim.lockstep.identification_plan` of ``scene``.
+    progress : callable, optional
+        ``progress(done, total)`` over the rounding's draws
+        (:func:`hapsim.emulated.falcon_felt.felt_feasibility`'s).
 
     Returns
     -------
@@ -219,7 +222,8 @@ def felt_prediction(scene, real: bool = False, plan=None) -> dict:
                "minutes): tools/falcon_felt_figures.py computes them")
         return {"verdict": "not measured", "states": int(plan[0].states), "reason": why,
                 "statement": f"felt matrices not measured, said before the run: {why}"}
-    f = felt_feasibility(scene, plan)
+    f = (felt_feasibility(scene, plan) if progress is None
+         else felt_feasibility(scene, plan, progress=progress))
     out = {k: v for k, v in f.items() if k not in ("worst_reading", "worst_command")}
     if real and f["verdict"] == "measurable":
         out["verdict"] = "not measured"
@@ -231,7 +235,7 @@ def felt_prediction(scene, real: bool = False, plan=None) -> dict:
 
 
 def felt_statement(scene, image: bytes | None = None, *, clock: str = "wall",
-                   faults=None, predicted: dict | None = None) -> dict:
+                   faults=None, predicted: dict | None = None, progress=None) -> dict:
     """What a Falcon run says of the felt matrices: the prediction made before the loop
     (:func:`felt_prediction`: what the Falcon's counts let a run state at all) and, where
     something can be stated and the Falcon is the emulated one (``image`` given), their
@@ -252,6 +256,9 @@ def felt_statement(scene, image: bytes | None = None, *, clock: str = "wall",
         ``record index -> ByteFaults or None``, as :func:`measure_felt_emulated`.
     predicted : dict, optional
         :func:`felt_prediction`'s, made before the loop (default: made here).
+    progress : callable, optional
+        ``progress(done, total)`` over the records and the rounding's draws
+        (:func:`measure_felt_emulated`'s).
 
     Returns
     -------
@@ -278,10 +285,10 @@ def felt_statement(scene, image: bytes | None = None, *, clock: str = "wall",
     # a statement the prediction excluded (beyond the limit on the complete lockstep
     # records) is not made from records the host's timing cut, which hold less: the run
     # never contradicts what it said before
-    why = ("not stated, predicted before the run: the wire's term over the errors' box "
-           "on the complete records in lockstep is beyond the limit")
+    why = ("not stated, predicted before the run: the wire's term on the complete "
+           "records in lockstep is beyond the limit")
     m = measure_felt_emulated(scene, image, predicted["amplitude_m"], clock=clock,
-                              faults=faults,
+                              faults=faults, progress=progress,
                               excluded={n: why for n in predicted.get("not_stated", [])})
     out.update(m["summary"])
     out["feasibility"] = predicted["reason"]
@@ -306,7 +313,8 @@ def _number(v):
 
 
 def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
-                          clock: str = "wall", faults=None, excluded=None) -> dict:
+                          clock: str = "wall", faults=None, excluded=None,
+                          progress=None) -> dict:
     """The felt matrices of a delta scene measured as a run takes them: the
     identification's ``2n + 1`` records (:func:`hapsim.lockstep.excitation_starts` at
     ``amplitude``, the one from rest first), each one :func:`run_falcon` over pyftdi and
@@ -342,6 +350,9 @@ def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
     excluded : dict, optional
         ``{statement name: reason}``: statements the prediction before the run excluded,
         never made (:func:`hapsim.emulated.falcon_felt.falcon_felt_verdict`).
+    progress : callable, optional
+        ``progress(done, total)``: one unit per record, then one per draw of the
+        rounding's phase (the verdict's wire term).
 
     Returns
     -------
@@ -361,13 +372,15 @@ def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
     hapsim.errors.DeviceError
         As :func:`run_falcon` (the firmware load, the homing, the link).
     """
+    from hapsim.analysis.wire_rounding import ROUNDING_DRAWS
     from hapsim.emulated.falcon_felt import falcon_felt_verdict
     from hapsim.lockstep import excitation_starts, identification_plan
     if plan is None:
         plan = identification_plan(scene)
     N = plan[2]
     runs, recs = [], []
-    for i, (x0, v0) in enumerate(excitation_starts(3, amplitude, scene.period)):
+    starts = excitation_starts(3, amplitude, scene.period)
+    for i, (x0, v0) in enumerate(starts):
         f = None if faults is None else faults(i)
         link, dev, chip = emulated_falcon(scene, image, faults=f, clock=clock)
         chip.faults_on = False
@@ -395,7 +408,12 @@ def measure_felt_emulated(scene, image: bytes, amplitude: float, *, plan=None,
                          np.asarray(res["joints"], float)
                          - np.asarray(scene.device.joints, float)), initial=0.0)),
                      "excursion_true_rad": float(dev.excursion)})
-    out = falcon_felt_verdict(scene, runs, plan, amplitude, excluded=excluded)
+        if progress is not None:
+            progress(i + 1, len(starts) + ROUNDING_DRAWS)
+    out = falcon_felt_verdict(scene, runs, plan, amplitude, excluded=excluded,
+                              progress=None if progress is None else (
+                                  lambda done, total: progress(len(starts) + done,
+                                                               len(starts) + total)))
     out["records"] = recs
     out["summary"] = _number({
         "verdict": out["verdict"], "within": out["within"], "reason": out["reason"],
