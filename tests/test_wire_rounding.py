@@ -33,10 +33,10 @@ from tests.tolerance import measured
 pytestmark = pytest.mark.numerical
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
-#: Rows per record in the Falcon's property tests (the shipped runs take the plan's 300;
-#: measured over seeds 0-29 of the family at 60 rows: 110 statements made, none
-#: "differs", the emulated rounding at most 0.93 of the draws' largest change).
-N = 60
+#: Rows per record in the property tests: the shipped runs' 300, the fewest at which the
+#: draws' term is taken (wire_rounding.ROUNDING_MIN_ROWS: with fewer rows the fit's
+#: changes have heavier tails than its margin was measured for).
+N = 300
 
 
 def _independent(sc, J, q0, count, command, a, rows, draws, seed):
@@ -50,6 +50,9 @@ def _independent(sc, J, q0, count, command, a, rows, draws, seed):
     ph = rng.uniform(0.0, 1.0, (draws, 2 * m))
     Ji = np.linalg.inv(J)
     d = int(sc.device.delay)
+    # (at delay 0 the force is the step's own, known only inside it: this model's torque
+    # rounding needs a delay of a sample or more)
+    assert d >= 1 and d == sc.device.delay, sc.device.delay
     out = []
     for x0, v0 in excitation_starts(sc.dimension, a, sc.period):
         recs = []
@@ -155,7 +158,7 @@ def test_the_term_covers_the_emulated_falcons_rounding(lossy, monkeypatch):
     draw = np.random.default_rng(7 + lossy)
     for seed in draw.choice(np.setdiff1d(np.arange(30), [7]), 2, replace=False):
         sc, rng = _falcon_loop(int(seed))
-        plan = identification_plan(sc, N if not lossy else 150)
+        plan = identification_plan(sc, N)
         a = largest_start(sc, plan[2], ENVELOPE_RAD)[0]
         off = rng.uniform(-0.5, 0.5, 3)
 
@@ -174,22 +177,38 @@ def test_the_term_covers_the_emulated_falcons_rounding(lossy, monkeypatch):
         assert np.all(d <= stated), (seed, d, stated)
 
 
-def test_more_leg_inertia_differs_where_the_term_allows():
-    """Seeded random spring fields, a device whose legs carry 30-45 % more inertia
-    (drawn) at the fields' largest starts: "differs" in the felt stiffness, beyond its
-    stated uncertainty (measured over 30 fields at 60 rows: 29 "differs", the 30th's
-    fit renders noise pairs in most draws, "not measurable")."""
+def test_more_leg_inertia_differs_where_the_term_allows(monkeypatch):
+    """Seeded random spring fields, a device whose legs carry 2-2.5 times the inertia
+    (drawn) at the fields' largest starts: each statement the Falcon's counts make is
+    "differs" wherever the heavy device's own deviation from the prediction (measured
+    through an encoder 64 times finer, the same device and starts) is beyond twice its
+    stated uncertainty (the measurement, within the uncertainty of that truth, is then
+    beyond it), and a statement said "within" never has it that far. (Legs 30-45 %
+    heavier move the felt stiffness ~0.2, at its stated uncertainty at 300 rows: told
+    apart in 13 of 20 fields, measured, never beyond twice it; twice as heavy, 0.4-0.52
+    against 2 x 0.17-0.33.)"""
     from hapsim.drivers.falcon import ENVELOPE_RAD
     draw = np.random.default_rng(45)
+    told = 0
     for seed in draw.choice(np.setdiff1d(np.arange(30), [7]), 2, replace=False):
         sc, rng = _falcon_loop(int(seed))
-        heavy, _ = _falcon_loop(int(seed), inertia=float(draw.uniform(1.3, 1.45)))
+        heavy, _ = _falcon_loop(int(seed), inertia=float(draw.uniform(2.0, 2.5)))
         plan = identification_plan(sc, N)
         a = largest_start(sc, N, ENVELOPE_RAD)[0]
-        r = _emulated(sc, a, plan, rng.uniform(-0.5, 0.5, 3), plant=heavy)
-        assert r["verdict"] == "differs", (seed, r["reason"])
-        assert any(s["verdict"] == "differs" and s["deviation"] > s["uncertainty"]
-                   for s in r["statements"] if "stiffness" in s["name"])
+        off = rng.uniform(-0.5, 0.5, 3)
+        r = _emulated(sc, a, plan, off, plant=heavy)
+        with monkeypatch.context() as mp:
+            fine = _emulated(sc, a, plan, off, plant=heavy, finer=64.0, monkeypatch=mp)
+        truth = {s["name"]: s["deviation"] for s in fine["statements"]}
+        for st in r["statements"]:
+            if st["verdict"] == "not measurable" or "stiffness" not in st["name"]:
+                continue
+            far = truth[st["name"]] > 2.0 * st["uncertainty"]
+            told += far
+            assert st["verdict"] == "differs" or not far, (seed, st, truth[st["name"]])
+            if st["verdict"] == "within":
+                assert not far, (seed, st, truth[st["name"]])
+    assert told >= 1                        # (the property met where it can be)
 
 
 def test_noise_pairs_in_the_draws_leave_nothing_stated():
@@ -252,7 +271,7 @@ def _haply2(seed, plant=None):
             del self.out[:n]
             return b
     return sc, measure_felt_haply2_port(Link(), sc, "gen3", amplitude=a, resolution=2.0 ** 22,
-                                        samples=200, plan=identification_plan(sc, 200),
+                                        samples=N, plan=identification_plan(sc, N),
                                         probe_wiring=False, lockstep_board=True)
 
 
@@ -281,3 +300,30 @@ def test_the_lossy_2diy_with_more_joint_inertia_differs():
     assert r["verdict"] == "differs", r["reason"]
     assert any(s["verdict"] == "differs" for s in r["statements"]
                if "stiffness" in s["name"])
+
+
+def test_short_records_keep_the_box_a_matching_2diy_never_differs(monkeypatch):
+    """A matching emulated 2DIY in lockstep, its encoders' zero at a sub-count phase
+    (patched in), on configs/pantograph_circle.yaml at 2^22 counts/rev, a = 1.5e-5 m and
+    150 rows a record: the draws' term (taken at 150 rows, before ROUNDING_MIN_ROWS)
+    called it "differs" here (its felt damping 0.212 off against 0.207 stated; 3 of
+    1,500 phases scanned, a review's finding). Records shorter than ROUNDING_MIN_ROWS
+    keep the rounding's worst case over the errors' box: no "differs"."""
+    import math
+
+    import hapsim.emulated.haply2_board as hb
+    from hapsim.analysis.wire_rounding import ROUNDING_MIN_ROWS
+    from hapsim.emulated.haply2_lockstep import measure_felt_haply2
+    from hapsim.scene import load_scene_nd
+    off = (0.24645948, 0.45533127)                  # counts, per joint
+
+    def hw_count(self, joint, plant=None):
+        q = (self.plant if plant is None else plant).joints()[joint]
+        return round(math.degrees(q) * self.cpr / 360.0 + off[joint])
+    monkeypatch.setattr(hb.Haply2DIYBoard, "_hw_count", hw_count)
+    sc = load_scene_nd(CONFIGS / "pantograph_circle.yaml")
+    assert 150 < ROUNDING_MIN_ROWS
+    m = measure_felt_haply2(sc, "gen3", amplitude=1.5e-5, cpr=2.0 ** 22, samples=150,
+                            plan=identification_plan(sc, 150))
+    assert m["verdict"] != "differs", m["reason"]
+    assert m["wire"].get("rounding") is None          # (the box's, not the draws')

@@ -322,7 +322,8 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
                       f"{how}), above {limit:g}, and no principal direction is measurable "
                       "either: fewer missing replies (or a larger excitation) are needed")
         elif (not math.isfinite(max(wk, wd)) and isinstance(wire, dict)
-              and wire.get("rounding")):
+              and wire.get("rounding")
+              and wire["rounding"]["lost"] + wire["rounding"]["noise"] > 0):
             # a draw of the rounding's phase lost a pair of the loop or rendered a noise
             # pair (hapsim.analysis.wire_rounding)
             rd = wire["rounding"]

@@ -144,13 +144,15 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, excluded=None,
         As :func:`hapsim.analysis.pencil.fit_felt_nd` for whole records.
     """
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
-    from hapsim.analysis.felt_records import window_rows, within_excursion
+    from hapsim.analysis.felt_records import window_rows, within_excursion, wire_terms_records
     from hapsim.analysis.linearisation import bound_at_records
     from hapsim.analysis.pencil import fit_felt_nd
     from hapsim.analysis.wire_rounding import (Rounding, exact_loop, noise_pair,
-                                               rounding_term, rounding_wire, stretch_loop)
+                                               rounding_applies, rounding_term,
+                                               rounding_wire, stretch_loop)
     from hapsim.drivers.falcon import DEG_PER_TICK, TORQUE_PER_COUNT
     from hapsim.kinematics import device
+    from hapsim.lockstep import wire_terms_nd
     chk, order, N = plan
     n = 3
     pos = [np.asarray(r["position"], float)[:N] for r in runs]
@@ -226,9 +228,23 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, excluded=None,
             base = stretch_loop(scene, [p - x_eq for p in held], own, order,
                                 exact_loop(scene, amplitude, N),
                                 equilibrium=None if eq is None else eq - x_eq)
-        term = rounding_term(scene, chk, rounding, amplitude, N, refit, exact=base,
-                             progress=progress)
-        wire.update(rounding_wire(chk, term))
+        if rounding_applies(N):
+            term = rounding_term(scene, chk, rounding, amplitude, N, refit, exact=base,
+                                 progress=progress)
+            wire.update(rounding_wire(chk, term))
+        else:
+            # records shorter than the draws' margin was measured at: the rounding's
+            # worst case over the errors' box (hapsim.analysis.wire_rounding.
+            # ROUNDING_MIN_ROWS; hapsim.analysis.wire_box)
+            term = None
+            errors = [("reading", J, np.full(n, delta)),
+                      ("force", np.linalg.inv(J).T, np.full(n, tq))]
+            if own is not None:
+                errors = [(kind, G, [np.where(u[:, None], np.broadcast_to(b, (N, n)), 0.0)
+                                     for u in own]) for kind, G, b in errors]
+                wire.update(wire_terms_records(scene, held, chk, order, errors, usable=own))
+            else:
+                wire.update(wire_terms_nd(scene, diffs, chk, order, errors, box=True))
         # the records' own fit rendering a noise pair: no felt matrices of the loop
         wire["noise_pair"] = bool(term is not None and noise_pair(fit, term["reference"]))
         v = felt_verdict(dev, bound, wire, estimated=0,

@@ -81,7 +81,8 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     from hapsim.kinematics import device
     from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
     from hapsim.analysis.wire_rounding import (Rounding, exact_loop, noise_pair,
-                                               rounding_term, rounding_wire, stretch_loop)
+                                               rounding_applies, rounding_term,
+                                               rounding_wire, stretch_loop)
     from hapsim.lockstep import wire_terms_nd
     chk, order, N = plan
     n = 2
@@ -171,11 +172,17 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
             return fit_felt_nd([r - recs[0] for r in recs[1:]], mass, T, order,
                                usable=usable, floor=floor)
         base = None
-    term = rounding_term(scene, chk, Rounding(J, q, 2.0 * math.pi / float(resolution),
-                                              binary32_degrees=True, binary32_torque=True),
-                         amplitude, N, refit, exact=base)
-    wire.update(rounding_wire(chk, term))
-    errors = []
+    term, errors = None, []
+    if rounding_applies(N):
+        term = rounding_term(scene, chk, Rounding(
+            J, q, 2.0 * math.pi / float(resolution), binary32_degrees=True,
+            binary32_torque=True), amplitude, N, refit, exact=base)
+        wire.update(rounding_wire(chk, term))
+    else:
+        # records shorter than the draws' margin was measured at: the rounding's worst
+        # case over the errors' box too (hapsim.analysis.wire_rounding.ROUNDING_MIN_ROWS)
+        errors = [("reading", J, delta), ("force", np.linalg.inv(J).T,
+                                          [torque_rel * np.abs(r["torque"]) for r in runs])]
     if any("bounds" in r for r in runs):
         errors.append(("reading", np.eye(n), [r.get("bounds", np.zeros(2)) for r in runs]))
     holds = [r.get("holds") for r in runs]
@@ -198,7 +205,14 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
             np.asarray(b[i] if isinstance(b, list) else b, float), (N, n)), 0.0)
             for i in range(len(runs))]) for kind, G, b in errors]
     errors = [e for e in errors if any(np.any(np.asarray(b) != 0) for b in e[2])]
-    if term is not None and errors and np.all(np.isfinite(term["wc"])):
+    if term is None and not rounding_applies(N):
+        if own is not None:
+            wire.update(wire_terms_records(scene, [r["position"] for r in runs], chk,
+                                           order, errors, usable=own, floor=floor))
+        else:
+            wire.update(wire_terms_nd(scene, diffs, chk, order, errors, usable=usable,
+                                      box=True, floor=floor))
+    elif term is not None and errors and np.all(np.isfinite(term["wc"])):
         how = wire["how"] + ", plus the errors that are no rounding over the errors' box"
         if own is not None:
             wire.update(wire_terms_records(scene, [r["position"] for r in runs], chk,
