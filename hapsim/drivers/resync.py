@@ -153,6 +153,11 @@ class Resynchronising:
             self.stats["silence_max_s"] = max(self.stats["silence_max_s"], s)
             self._silent_from_us = None
 
+    def _lost_place(self) -> str | None:
+        """Why the board must be put back in step now, or None: its replies' shift
+        (:meth:`_shifted`, ``"shifted"``), else :meth:`_stalled`'s evidence."""
+        return "shifted" if self._shifted() else self._stalled()
+
     def _quiet_now(self) -> bool:
         """Whether the host keeps silent now, for a board realigning on its silence
         (:meth:`_resync`): this tick's command is then not written (counted

@@ -358,7 +358,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         t = type(msg)
         if t is fp.Force:
             f = msg.force[0]
-            why = "shifted" if self._shifted() else self._stalled()
+            why = self._lost_place()
             if why:
                 self._resync(why)
                 return
@@ -534,7 +534,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         if self._answered == self._cmd or (
                 self._quiet() if self._handled is not None
                 else self._now_us() - self._sent_us[self._cmd % _RING] >= self._deadline_us):
-            why = self._stalled()
+            why = self._lost_place()
             if why:
                 self._resync(why)
                 return
