@@ -435,7 +435,14 @@ def serve(firmware, board_args: dict, plant: Plant, args, extra_truth) -> int:
         "excursion": plant.excursion, "reference": plant.reference,
         "stop_hits": plant.stop_hits, "final": {"x": plant.x, "v": plant.v, "u": plant.u},
         "events": board.events[:2000], "events_total": len(board.events),
+        # when the host's writes came, the longest gap between two (the host's own
+        # silences, beside the force the firmware held over them)
+        "host_gap_max_s": (max((b - a for a, b in zip(board.host_bytes_times,
+                                                       board.host_bytes_times[1:])),
+                               default=0.0)),
     }
+    if getattr(args, "write_times", False):
+        truth["host_write_times"] = board.host_bytes_times[:50000]
     truth.update(extra_truth())
     if args.truth:
         tmp = args.truth + ".tmp"
@@ -464,6 +471,8 @@ def common_arguments(parser) -> None:
     parser.add_argument("--drop-tx", type=float, default=0.0,
                         help="probability a board byte is lost on its way to the host")
     parser.add_argument("--seed", type=int, default=0, help="seed of the loss (and phases)")
+    parser.add_argument("--write-times", action="store_true",
+                        help="keep every host write's arrival time in the truth log")
     parser.add_argument("--rt-priority", type=int, default=20,
                         help="SCHED_FIFO priority of the board process (0: normal)")
 

@@ -52,6 +52,16 @@ BOARDS = {
     "hapkit-serial": ("hapkit_sketch.py", "configs/hapkit_serial.yaml", ["--x0", "0.01"]),
 }
 LOSS = 0.005
+#: ``hapsim identify``'s options per driver (``--identify``): the scenes' rates and force
+#: limits, an envelope inside each board's travel.
+IDENTIFY = {
+    "haply": ["--rate", "1000", "--duration", "2", "--force-limit", "0.1", "--envelope", "1",
+              "--max-delay", "4"],
+    "firefader": ["--rate", "250", "--duration", "3", "--force-limit", "0.38", "--envelope",
+                  "0.02"],
+    "hapkit-serial": ["--rate", "250", "--duration", "3", "--force-limit", "1.0",
+                      "--envelope", "0.02"],
+}
 
 
 def _hogs(n: int) -> list:
@@ -137,6 +147,10 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
     loss = LOSS if "loss" in condition else 0.0
     extra = [o.replace("=", " ", 1).split(" ") if o.startswith("--") else [o]
              for o in args.board_opt.get(driver, [])]
+    if args.identify:
+        # identification starts where the hand leaves the handle: the envelope's centre
+        # (hapsim identify says why it stops when a device rests off-centre)
+        bopts = ["--x0", str(args.identify_x0)]
     cmd = [sys.executable, os.path.join(HERE, script), "--link", link, "--ready", ready,
            "--truth", truth_path, "--seed", str(seed), "--drop-rx", str(loss),
            "--drop-tx", str(loss), "--rt-priority", str(args.board_priority), *bopts]
@@ -155,7 +169,10 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
         return row
     hcmd = [sys.executable, "-m", "hapsim", "run", scene, "--driver", driver, "--port", link,
             "--duration", str(args.duration), "--json"]
-    if driver == "haply":
+    if args.identify:
+        hcmd = [sys.executable, "-m", "hapsim", "identify", "--driver", driver, "--port",
+                link, "--json", *IDENTIFY[driver]]
+    if driver == "haply" and not args.identify:
         dev = os.path.join(tmp, "m3_device.yaml")
         _device_file(dev, scene, {"offset_deg": math.degrees(0.2)})
         hcmd += ["--device", dev]
@@ -208,8 +225,37 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
     except (OSError, ValueError) as exc:
         run = {}
         row["run_error"] = f"{type(exc).__name__}: {exc}"
-    _fill(row, driver, run, truth)
+    if args.identify:
+        _fill_identify(row, run, truth)
+    else:
+        _fill(row, driver, run, truth)
     return row
+
+
+def _fill_identify(row: dict, rep: dict, truth: dict) -> None:
+    """An identification's row: the mass and friction found with their intervals against
+    the board's own (the truth log's), the delay, the fit's verdict."""
+    p = truth.get("params", {})
+    true = {"mass": p.get("inertia", p.get("mass")), "friction": p.get("friction")}
+    row.update(verdict=(rep.get("error") or {}).get("message") or rep.get("verdict")
+               or rep.get("model_verdict"),
+               longest_hold_s=truth.get("longest_hold_s"),
+               excursion_true=truth.get("excursion"), lost_in=truth.get("counters", {}).get(
+                   "lost_in"), lost_out=truth.get("counters", {}).get("lost_out"))
+    dev = rep.get("device") or {}
+    for q in ("mass", "friction"):
+        est = dev.get(q) or {}
+        row[q] = est.get("value")
+        row[q + "_true"] = true[q]
+        row[q + "_interval"] = [est.get("lo"), est.get("hi")]
+        if None not in (est.get("lo"), est.get("hi"), true[q]):
+            row[q + "_truth_in_interval"] = bool(est["lo"] <= true[q] <= est["hi"])
+    lp = rep.get("loop") or {}
+    row.update(delay=dev.get("delay"), model_verdict=dev.get("verdict"),
+               safety_stop=lp.get("safety_stop"), stop_reason=lp.get("stop_reason"),
+               resyncs=(lp.get("driver") or {}).get("resyncs"))
+    row["truth_in_interval"] = bool(row.get("mass_truth_in_interval")
+                                    and row.get("friction_truth_in_interval"))
 
 
 def _fill(row: dict, driver: str, run: dict, truth: dict) -> None:
@@ -324,6 +370,12 @@ def main(argv=None) -> int:
     p.add_argument("--board-opt", action="append", default=[],
                    help="DRIVER=--option=value, passed to that driver's board")
     p.add_argument("--json", help="write every row and the summary here")
+    p.add_argument("--identify", action="store_true",
+                   help="run 'hapsim identify --driver NAME --port PTY' on each board "
+                        "instead of the scene (the mass and friction found against the "
+                        "board's own)")
+    p.add_argument("--identify-x0", type=float, default=0.0,
+                   help="--identify: where the handle rests when it starts [m or rad]")
     p.add_argument("--hapsim-root",
                    help="run the hapsim of this source tree (its configs too), e.g. an "
                         "export of an older commit, for a before/after table")
@@ -361,6 +413,7 @@ def main(argv=None) -> int:
             h.wait()
     summary = summarize(rows)
     doc = {"command": " ".join([os.path.basename(sys.executable)] + sys.argv),
+           "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "load_before": load0, "load_after": os.getloadavg()[0], "cpus": os.cpu_count(),
            "rows": rows, "summary": summary}
     print(json.dumps(summary, indent=1))
