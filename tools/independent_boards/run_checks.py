@@ -412,7 +412,9 @@ def main(argv=None) -> int:
             h.kill()
             h.wait()
     summary = summarize(rows)
-    doc = {"command": " ".join([os.path.basename(sys.executable)] + sys.argv),
+    sys.path.insert(0, os.path.dirname(HERE))
+    from provenance import command_line   # tools/: portable paths in committed files
+    doc = {"command": command_line(__file__, argv),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "load_before": load0, "load_after": os.getloadavg()[0], "cpus": os.cpu_count(),
            "rows": rows, "summary": summary}
