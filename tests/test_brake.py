@@ -161,6 +161,50 @@ def test_no_braking_without_a_motion_stop():
     assert res.stop_reason == "duration" and not res.safety_stop and res.brake == {}
 
 
+def test_a_board_on_its_own_clock_is_braked_at_the_runs_end():
+    """A driver's board that keeps its own time (``driver.own_clock``: hardware, or an
+    emulated board on the wall clock) is braked at the end of a run that ran its
+    duration, as after a motion stop: the handle's travel after the run (to its rest,
+    ``x + v m / b`` in closed form after the last zero force) within the braking's
+    bound, ``|v| T (d + 1 + 1/g)`` and the rest speed's coast; the same run on a board
+    without its own clock (a lockstep mock, its time the commands') is not braked, and
+    its handle coasts ``|v| m / b``. Random devices on the virtual clock, the run's end
+    mid-swing. Before, the end of a run sent zero force at once: against the independent
+    board models of ``tools/independent_boards`` the Haply M3's joint went 1-2 rad past
+    its last reading and the Hapkit's paddle to its end stops."""
+    import types
+    rng = np.random.default_rng(31)
+    for _ in range(6):
+        m = float(rng.uniform(0.02, 0.2))
+        b = float(rng.uniform(0.05, 0.3))
+        rate, d = 250.0, 1
+        K = float(rng.uniform(0.01, 0.03)) * m * rate ** 2 / (d + 1)
+        sc = _scene(m, b, d, rate, K, 0.01)
+        n = int(rng.integers(int(0.3 * rate), int(0.6 * rate)))
+        travel = {}
+        for own in (True, False):
+            mock = MockDevice(sc.device, sc.excitation, native_rate_hz=rate, lockstep=False)
+            tr = SimTransport(mock)
+            tr.driver = types.SimpleNamespace(own_clock=own)
+            cfg = LoopConfig(rate_hz=rate, n_samples=n, delay=d, force_limit=LIMIT,
+                             watchdog_us=200_000, brake_damping=brake_damping(m, rate),
+                             brake_rest=1e-4)
+            loop = _Spy(Engine(sc), tr, cfg, Telemetry(n))
+            res = loop.run()
+            assert res.stop_reason == "duration" and not res.safety_stop
+            x_end, v_end = loop.at_stop
+            ph = mock.physics
+            travel[own] = (abs(ph.x + ph.v * m / b - x_end), abs(v_end))
+            assert (res.brake and res.brake["ended"] == "rest") if own else res.brake == {}
+        (braked, v), (free, v0) = travel[True], travel[False]
+        # the same end; x + v m / b is an invariant of the free motion (the mock's exact
+        # ZOH, closed form): equal to round-off, a few ulps a step over < 100 steps
+        # (derived: 1e-9 relative is 1e5 ulps)
+        assert v == v0 and free == pytest.approx(v * m / b, rel=1e-9)
+        assert braked <= v / rate * (d + 1 + 1 / BRAKE_GAIN) + 1e-4 * m / b, (braked, v)
+        assert braked < 0.5 * free, (braked, free)
+
+
 def test_the_braking_damping_of_a_device():
     assert brake_damping(0.1, 250.0) == BRAKE_GAIN * 0.1 * 250.0
     for bad in (0.0, -1.0, math.nan, math.inf):

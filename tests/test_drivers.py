@@ -288,16 +288,19 @@ def test_haply_closed_loop_through_its_mock_in_lockstep():
 
 def test_hapkit_serial_layouts():
     """10-byte command [header][function][float32 a][float32 force], header = type << 4 |
-    motor mask as Board.format_header builds it for motor 1, type 1 (0x11); 9-byte reply
-    [function][float32 x][float32 force]; binary32 little-endian."""
+    motor mask as Board.format_header builds it for motor 1, type 1 (0x11), ``a`` the
+    shift signature (bytes A1 A2 A3 A4: the sketch's host-force function does not use
+    it); 9-byte reply [function][float32 x][float32 force]; binary32 little-endian."""
     import struct
 
     from hapsim.drivers import hapkit_serial as hk
     drv = get_driver("hapkit-serial")
     assert hk.HEADER == 0x11
-    assert drv.encode_force(0.5) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 0.5)
-    assert drv.encode_force(9.0) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 2.0)
-    assert drv.encode_force(math.inf) == bytes([0x11, 255]) + struct.pack("<ff", 0.0, 0.0)
+    sig = bytes([0xA1, 0xA2, 0xA3, 0xA4])
+    assert hk.SHIFT_SIGNATURE == sig
+    assert drv.encode_force(0.5) == bytes([0x11, 255]) + sig + struct.pack("<f", 0.5)
+    assert drv.encode_force(9.0) == bytes([0x11, 255]) + sig + struct.pack("<f", 2.0)
+    assert drv.encode_force(math.inf) == bytes([0x11, 255]) + sig + struct.pack("<f", 0.0)
     assert len(drv.encode_force(0.1)) == 10
     rep = bytes([255]) + struct.pack("<ff", 0.0125, -0.3)
     assert len(rep) == 9 and hk.reply_packet(255, 0.0125, -0.3) == rep

@@ -200,3 +200,35 @@ def test_signals_stay_handled_until_the_fit_is_made(monkeypatch):
     assert set(seen) == set(before)
     assert {s: signal.getsignal(s) for s in before} == before
     assert rec["loop"]["stop_reason"] == "duration" and fit.mass.contains(0.1)
+
+
+def test_a_record_cut_by_a_safety_stop_says_so(monkeypatch):
+    """A record too short to fit because the excitation ended on a safety stop says the
+    stop and where the device started against the envelope (the excitation moves it about
+    its start, the stop is at ``|x| > envelope``). Before, it said only "too short a
+    record": the independent FireFader model of ``tools/independent_boards`` resting at
+    15 mm, ``--envelope 0.02``, three runs of three. A short record that ran its length
+    gets no such note."""
+    import hapsim.pipeline.identify_run as identify_run
+    from hapsim.api import excite_and_fit
+    from hapsim.errors import IdentificationError
+
+    def short(stop, safety, x0):
+        n = 177
+        rec = {"position": np.full(n, x0), "force": np.zeros(n), "late": np.zeros(n, bool),
+               "time": np.arange(n) / 250.0, "seq": np.arange(n), "account": None,
+               "period": 1 / 250.0,
+               "loop": {"samples": n, "requested": 750, "stop_reason": stop,
+                        "safety_stop": safety}}
+        monkeypatch.setattr(identify_run, "record", lambda *a, **k: rec)
+        with pytest.raises(IdentificationError) as err:
+            excite_and_fit(device=Device(mass=0.05, friction=0.1, delay=1), envelope=0.02,
+                           transport="inprocess", progress=False, max_delay=3)
+        return str(err.value)
+
+    stop = "safety: position 0.0203125 m beyond +-0.02 m"
+    msg = short(stop, True, 0.015)
+    assert "too short a record" in msg and "safety stop at sample 177" in msg
+    assert stop in msg and "started at 0.015" in msg and "0.005 inside" in msg
+    msg = short("duration", False, 0.0)
+    assert "too short a record" in msg and "safety stop" not in msg

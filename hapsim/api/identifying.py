@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -227,6 +228,8 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         try:
             fit = fit_device(rec["position"], rec["force"], rec["period"],
                              late=rec["late"], max_delay=max_delay + 1, applied=acc, seq=seq)
+        except IdentificationError as exc:
+            raise IdentificationError(f"{exc}{_safety_note(rec, envelope)}") from None
         except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
             if isinstance(exc, HapsimError):
                 raise
@@ -285,6 +288,44 @@ def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: fl
     opts = driver.options()
     opts[opt] = sc.full_scale
     return sc, fit, get_driver(driver.name, **opts)
+
+
+def _safety_note(rec: dict, envelope: float) -> str:
+    """Why a record that could not be fitted ended, when it ended on a safety stop: the
+    stop, and where the device started against the envelope (the excitation moves it
+    about its start, up to 0.7-0.8 of ``envelope``, while the stop is at ``|x| >
+    envelope``: a device resting off-centre leaves the envelope early). ``""`` otherwise.
+
+    Before, such a record said only "too short a record" (the independent FireFader model
+    of ``tools/independent_boards`` resting at 15 mm, ``--envelope 0.02``: stopped at
+    sample 177 of 750, three runs of three).
+
+    Parameters
+    ----------
+    rec : dict
+        The record (:func:`hapsim.pipeline.identify_run.record`): ``loop``'s
+        ``safety_stop``, ``stop_reason`` and ``samples``, and ``position`` [m].
+    envelope : float
+        ``--envelope`` [m].
+
+    Returns
+    -------
+    str
+        ``"; the excitation ended on a safety stop ..."`` or ``""``.
+    """
+    loop = rec.get("loop") or {}
+    if not loop.get("safety_stop"):
+        return ""
+    pos = np.asarray(rec.get("position", ()), float)
+    note = (f"; the excitation ended on a safety stop at sample {loop.get('samples')}: "
+            f"{loop.get('stop_reason')}")
+    if pos.size and math.isfinite(pos[0]):
+        x0 = float(pos[0])
+        room = float(envelope) - abs(x0)
+        note += (f"; the device started at {x0:.4g}, {room:.3g} inside the envelope of "
+                 f"+-{envelope:g} (the excitation moves it up to 0.8 x that about its "
+                 f"start): start it near the envelope's centre (0), or widen --envelope")
+    return note
 
 
 def _record_summary(rec, a: int, b: int) -> str:

@@ -30,9 +30,27 @@ import struct
 from hapsim.drivers.base import FLAG_ESTIMATED, AlignedDecoder, Driver, MappedDecoder
 
 __all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
-           "ReplyDecoder", "ReplyLog", "CommandDecoder"]
+           "ReplyDecoder", "ReplyLog", "CommandDecoder", "SKETCH_READ_TIMEOUT_S",
+           "SHIFT_SIGNATURE"]
 
 HOST_FORCE_FUNCTION = 255
+#: How long the sketch's ``Serial.readBytes`` waits for each byte of a command [s]: the
+#: Stream's 1000 ms of ``millis()``, which runs 64 times fast on the sketch's board:
+#: ``standard_hapkit_setup`` sets Timer0's prescaler to 1 for the motor's PWM on pin 5
+#: (``Hapkit_arduino.h``, ``initialize_actuator`` -> ``setPwmFrequency(pwm, 1)``), and
+#: Arduino's ``millis()`` counts Timer0's overflows as if it ran at 1/64: 15.625 ms. A
+#: command cut short by a lost byte is completed by the next command's bytes, and the
+#: sketch reads every later command one byte out of step, until the host is silent longer
+#: than this (haphub/WHC2017 ``hFirmware/Hapkit_Arduino_Control/Hapkit_arduino``:
+#: ``loop`` reads a header byte and ``receive_data``'s ``readBytes`` of 9, no framing).
+SKETCH_READ_TIMEOUT_S = 1.0 / 64
+#: The bytes of the command's first float, which the sketch's host-force function does
+#: not use (``freq``): distinct bytes that no function of the sketch renders (its
+#: functions are 0-3 and the host's), so that a sketch reading the commands ``s`` bytes
+#: out of step (1 <= s <= 4) takes ``0xA0 + s`` for the function byte: no force, and its
+#: reply ``[0xA0 + s][x][0.0]`` tells the host by how much
+#: (:meth:`HapkitSerial.realign_bytes`). A float of about -7e-17.
+SHIFT_SIGNATURE = bytes([0xA1, 0xA2, 0xA3, 0xA4])
 #: Header byte: type 1 (read encoder data / command) << 4 | motor 1 (Board.format_header).
 HEADER = (1 << 4) | 0x01
 _FF = struct.Struct("<ff")
@@ -61,6 +79,10 @@ def command_packet(force: float, function: int = HOST_FORCE_FUNCTION,
                    header: int = HEADER, a: float = 0.0) -> bytes:
     """The 10-byte command ``[header][function][float32 a][float32 force]``."""
     return bytes([header & 0xFF, function & 0xFF]) + _FF.pack(a, force)
+
+
+#: The first float of the driver's commands: :data:`SHIFT_SIGNATURE` as a binary32.
+SIGNATURE_A = struct.unpack("<f", SHIFT_SIGNATURE)[0]
 
 
 def reply_packet(function: int, x: float, force: float) -> bytes:
@@ -133,10 +155,23 @@ class ReplyDecoder(AlignedDecoder):
     def __init__(self, function: int = HOST_FORCE_FUNCTION) -> None:
         super().__init__()
         self.function = function & 0xFF
+        self.stats["shifted"] = 0
+        #: The last out-of-step reply's shift ``s`` (bytes the sketch reads late, 1-4),
+        #: and how many such replies came (:attr:`shifts`).
+        self.shift = 0
+        self.shifts = 0
 
     def parse(self, buf):
-        """``(x, force)`` of a plausible reply at the start of ``buf``, or None."""
+        """``(x, force)`` of a plausible reply at the start of ``buf``, or None. A reply of
+        a sketch reading the commands out of step (``[0xA0 + s][x][0.0]``, x plausible:
+        :data:`SHIFT_SIGNATURE`) is no reply; it is counted (``stats["shifted"]``) and its
+        ``s`` kept (:attr:`shift`)."""
         if buf[0] != self.function:
+            s = buf[0] - SHIFT_SIGNATURE[0] + 1
+            if 1 <= s <= 4 and buf[5:9] == b"\0\0\0\0" and \
+                    _plausible(_FF.unpack_from(buf, 1)[0], MAX_POSITION):
+                self.stats["shifted"] += 1
+                self.shift, self.shifts = s, self.shifts + 1
             return None
         x, f = _FF.unpack_from(buf, 1)
         return (x, f) if _plausible(x, MAX_POSITION) and _plausible(f, MAX_FORCE) else None
@@ -201,6 +236,26 @@ class HapkitSerial(Driver):
     #: (:meth:`hapsim.drivers.tick_align.TickAligned.tick_phase`).
     tick_s = 1e-3
     answering_firmware = "WHC2017 Hapkit sketch layout (one reply per command)"
+    #: The sketch reads a command as a header byte and nine more, no framing
+    #: (:data:`SKETCH_READ_TIMEOUT_S`): a host byte lost puts every later command out of
+    #: step, and only a silence longer than its ``readBytes`` timeout puts it back. The
+    #: transport realigns it so (:meth:`hapsim.drivers.resync.Resynchronising._resync`):
+    #: no write for :attr:`realign_quiet_s` from its last, on the evidence of
+    #: :attr:`garbled_commands` commands unanswered for :attr:`garbled_s` while replies'
+    #: bytes came that made none (out of step, the sketch answers every command with its
+    #: function byte read from the host's first float: 0).
+    unframed = True
+    #: The sketch's read timeout and 2.4 ms for the link's latency and a tick [s]; less
+    #: than the hold bound, so the host's watchdog writes after the sketch realigned.
+    realign_quiet_s = SKETCH_READ_TIMEOUT_S + 0.0024
+    #: More than this many commands unanswered (with :attr:`garbled_s`): the sketch
+    #: answers a command within ~4.5 ms (its 10 bytes, a tick, its reply's 9 bytes at
+    #: 57600 baud), and a reply found after bytes dropped is taken when the next one's
+    #: function byte comes (:attr:`ReplyDecoder.confirm_next`): two unanswered may be
+    #: in step.
+    garbled_commands = 2
+    #: The oldest unanswered command's wait that, with the above, is evidence [s].
+    garbled_s = 0.006
 
     def __init__(self, function: int = HOST_FORCE_FUNCTION, force_limit: float = 2.0) -> None:
         from hapsim.errors import ConfigError
@@ -216,7 +271,8 @@ class HapkitSerial(Driver):
     def encode_force(self, force: float) -> bytes:
         """The command for ``force`` [N], clamped to the limit (NaN/inf: 0)."""
         f = float(force) if math.isfinite(force) else 0.0
-        return command_packet(max(-self.force_limit, min(self.force_limit, f)), self.function)
+        return command_packet(max(-self.force_limit, min(self.force_limit, f)), self.function,
+                              a=SIGNATURE_A)
 
     def applied_force(self, force: float) -> float:
         """The force the command carries [N]: clamped, rounded to binary32."""
@@ -253,6 +309,73 @@ class HapkitSerial(Driver):
                 f"{self.tick_s * 1e3:g} ms ticks (the board samples and applies forces on "
                 f"them: its intervals would alternate, not the loop modelled); nearest: "
                 f"{', '.join(near) or 'none'}", key="rate_hz")
+
+    def realign_bytes(self, frames) -> bytes:
+        """The bytes that put the sketch back in step, from the replies it sent out of step
+        (:class:`ReplyDecoder`'s :attr:`~ReplyDecoder.shift`): a sketch reading ``s``
+        bytes late completes the command it waits for with ``s`` more bytes, and reads the
+        next command in step (the one it completes takes function byte ``0xA0 + s``: no
+        force). ``b""`` when the decoder has no shift.
+
+        Parameters
+        ----------
+        frames : ReplyDecoder
+            The transport's frame decoder.
+
+        Returns
+        -------
+        bytes
+            ``s`` zero bytes, or ``b""``.
+        """
+        s = int(getattr(frames, "shift", 0) or 0)
+        frames.shift = 0
+        return bytes(s) if 1 <= s <= 4 else b""
+
+    def unknown_force_rows(self, columns: dict):
+        """Rows whose force the sketch took from commands read out of step, left out of
+        the measurement (:meth:`hapsim.drivers.base.Driver.unknown_force_rows`).
+
+        A host byte lost puts the sketch's reads out of step (:data:`SKETCH_READ_TIMEOUT_S`):
+        its commands then carry the function byte 0 (no force) or a byte of the host's
+        force (one of the sketch's own environments), neither the force sent nor the one
+        before, and their replies do not parse (``FLAG_ESTIMATED`` rows), until the
+        transport realigns it with a silence, a gap in ``seq``. A run of estimated rows
+        ``[r0, r1]`` that a gap ends is such a run: the commands of those rows act at
+        rows ``r0 + d - 1 .. r1 + d - 1``; rows ``r0 - 1 .. r1 + d`` are left out (the
+        fit drops ``d + 2`` rows after a cut as well). A run no gap ends is a reply lost
+        on its way back, whose commands were taken: :meth:`account` states it.
+
+        Parameters
+        ----------
+        columns : dict of str to ndarray
+            The run's telemetry columns (``seq``, ``flags``, each shape (n,)).
+
+        Returns
+        -------
+        ndarray of bool, shape (n,), or None
+            None when the columns or the delay are missing.
+        """
+        import numpy as np
+        d = getattr(self, "loop_delay", None)
+        seq, flags = columns.get("seq"), columns.get("flags")
+        if d is None or seq is None or flags is None:
+            return None
+        seq = np.asarray(seq, np.int64)
+        est = (np.asarray(flags) & FLAG_ESTIMATED) != 0
+        n = est.size
+        out = np.zeros(n, bool)
+        r = 0
+        while r < n:
+            if not est[r]:
+                r += 1
+                continue
+            r1 = r
+            while r1 + 1 < n and est[r1 + 1] and seq[r1 + 1] == seq[r1] + 1:
+                r1 += 1
+            if r1 + 1 < n and seq[r1 + 1] > seq[r1] + 1:
+                out[max(r - 1, 0):min(r1 + int(d) + 1, n)] = True
+            r = r1 + 1
+        return out
 
     def probe_decoder(self):
         """A fresh frame decoder for the transport's tick probe at arming: replies as
@@ -343,7 +466,10 @@ class HapkitSerial(Driver):
         k = np.flatnonzero(est) + d - 1
         amb[k[(k >= 0) & (k < n)]] = True
         amb &= ~replied
-        if not (amb.any() or late.any()):
+        unknown = self.unknown_force_rows(columns)
+        if unknown is not None:
+            known &= ~unknown
+        if not (amb.any() or late.any() or (unknown is not None and unknown.any())):
             return None
         for r in np.flatnonzero(amb):
             on = float(base.applied[r])

@@ -126,7 +126,8 @@ def find_direction(drv, link, *, force_limit: float, envelope: float,
     """
     q = drv.position_scale                       # one count [rad]
     top, reach = pulse_limits(force_limit, q, envelope, min_counts, "the motor direction")
-    ex = Exchange(drv, link, rate_hz, pace, timeout)
+    ex = Exchange(drv, link, rate_hz, pace, timeout,
+                  resync=drv.resync if getattr(drv, "unframed", False) else None)
     zero = drv.encode_force(0.0)
     x = math.nan
     try:

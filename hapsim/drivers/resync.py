@@ -41,6 +41,18 @@ re-synchronisations a run, the emulated board's joint 13.8 rad from its start in
 although the board had lost no byte. A lockstep mock (named, paced by the commands) is
 unchanged: its time is the commands', and more than :data:`SILENT_COMMANDS` unanswered
 there is a lost answer.
+
+**A board that reads fixed-length commands without framing** (the Hapkit sketch:
+:mod:`hapsim.drivers.hapkit_serial`, ``realign_quiet_s`` > 0) is not set up again: a host
+byte lost makes it read every later command ``s`` bytes late, and it is put back by
+bytes or by silence alone. Its out-of-step replies say ``s`` (:meth:`Resynchronising.
+_shifted`): ``s`` fill bytes and a zero-force command, at the next tick (reason
+``shifted``); without them (two bytes lost in one command) bytes that make no reply for
+``garbled_commands`` commands and ``garbled_s`` (the driver's, shorter than the M3's) call
+a silence of ``realign_quiet_s`` from the last write, longer than the sketch's read
+timeout (``garbled``). Its position is absolute: no frame moves, ``frame_bound`` is not
+grown. (Found with the independent board model of ``tools/independent_boards``; the
+emulated board realigned on its own before, so the loop never saw it.)
 """
 
 from __future__ import annotations
@@ -79,9 +91,11 @@ SILENCE_LOST_S = 0.5
 #: ``desync`` (``lone`` among them), ``unreachable``, ``garbled`` (bytes and no reply for
 #: :data:`SILENT_S`), ``silent`` (a lockstep mock's commands unanswered), ``unarmed`` (no
 #: record yet: the arming again), ``watchdog`` (made by the host's watchdog while the board
-#: may have lost its place: :mod:`hapsim.drivers.host_watchdog`).
+#: may have lost its place: :mod:`hapsim.drivers.host_watchdog`), ``shifted`` (a board
+#: reading fixed-length commands out of step, by how much its replies say:
+#: :meth:`Resynchronising._shifted`).
 RESYNC_REASONS = ("desync", "lone", "unreachable", "garbled", "silent", "unarmed",
-                  "watchdog")
+                  "watchdog", "shifted")
 #: Commands remembered for attributing records and timing silences (the transport's ring):
 #: more than :data:`SILENCE_LOST_S` holds at 4 kHz, so the oldest command of a silence
 #: waited for keeps its time (64 before, when 20 ms ended any silence: past 64 commands
@@ -114,6 +128,10 @@ class Resynchronising:
         self._resync_times = deque()          # those of the last second
         self._rx_since_record = 0             # bytes read since the last record taken
         self._silent_from_us = None           # a silence being waited for: its start
+        self._quiet_until = -math.inf         # no write before then (a realignment) [s]
+        self._fill = b""                      # bytes that put a shifted reader in step
+        self._shifts_seen = 0                 # its decoder's out-of-step replies taken
+        self._skip_shift = 0                  # of those, the next one to pass over
         self.stats.update(resyncs=0, resync_reasons=dict.fromkeys(RESYNC_REASONS, 0),
                           silences=0, silence_max_s=0.0, frame_bound=0.0)
 
@@ -135,6 +153,56 @@ class Resynchronising:
             self.stats["silence_max_s"] = max(self.stats["silence_max_s"], s)
             self._silent_from_us = None
 
+    def _lost_place(self) -> str | None:
+        """Why the board must be put back in step now, or None: its replies' shift
+        (:meth:`_shifted`, ``"shifted"``), else :meth:`_stalled`'s evidence."""
+        return "shifted" if self._shifted() else self._stalled()
+
+    def _quiet_now(self) -> bool:
+        """Whether the host keeps silent now, for a board realigning on its silence
+        (:meth:`_resync`): this tick's command is then not written (counted
+        ``quiet_commands``)."""
+        if self._clock() < self._quiet_until:
+            self.stats["quiet_commands"] = self.stats.get("quiet_commands", 0) + 1
+            return True
+        return False
+
+    def _quiet_missing(self) -> None:
+        """A command not written in a realignment's silence, just numbered: a missing
+        sample at once (no answer is owed; the realignment is judged on the commands
+        written after it)."""
+        if self._answered == self._cmd - 1:
+            self._answered = self._cmd
+            self.stats["missing"] += 1
+
+    def _shifted(self) -> bool:
+        """Whether a board that reads fixed-length commands without framing says it reads
+        them out of step, by how much it does (the driver's
+        :meth:`~hapsim.drivers.hapkit_serial.HapkitSerial.realign_bytes` from its frame
+        decoder's evidence: the Hapkit sketch's replies ``[0xA0 + s]...``); the bytes that
+        put it back are kept for :meth:`_resync` (reason ``shifted``). The first such
+        reply after a fill is the fill's own command's (read out of step by design) and
+        is passed over.
+
+        Returns
+        -------
+        bool
+        """
+        hook = getattr(self.driver, "realign_bytes", None)
+        if hook is None or not self._armed:
+            return False
+        frames = getattr(self._dec, "frames", self._dec)
+        n = int(getattr(frames, "shifts", 0))
+        if n <= self._shifts_seen:
+            return False
+        fresh, self._shifts_seen = n - self._shifts_seen, n
+        if self._skip_shift:
+            fresh, self._skip_shift = fresh - 1, 0
+        if fresh <= 0:
+            return False
+        self._fill = hook(frames)
+        return bool(self._fill)
+
     def _stalled(self) -> str | None:
         """Whether answers stopped in a way that is evidence the board lost its place
         (module notes): more than :data:`SILENT_COMMANDS` commands unanswered (armed, an
@@ -155,15 +223,18 @@ class Resynchronising:
             No byte back for :data:`SILENCE_LOST_S` while commands went out (the stop
             sequence, zero torque whatever the board's parser is inside, is sent first).
         """
-        if not (self.driver.unframed and self._armed
-                and self._cmd - self._answered > SILENT_COMMANDS):
+        drv = self.driver
+        quiet = float(getattr(drv, "realign_quiet_s", 0.0) or 0.0)
+        n_max = int(getattr(drv, "garbled_commands", SILENT_COMMANDS))
+        if not (drv.unframed and self._armed and self._cmd - self._answered > n_max):
             return None
         if self._handled is not None or self._deadline_us > 0:
-            # a mock paced by the commands (a lockstep run): its time is the commands'
-            return "silent"
+            # a mock paced by the commands (a lockstep run): its time is the commands';
+            # one that realigns only on a silence has none to realign on
+            return None if quiet > 0 else "silent"
         oldest = self._sent_us[(self._answered + 1) % RING]
         waited = self._now_us() - oldest
-        if waited < SILENT_S * 1e6:
+        if waited < float(getattr(drv, "garbled_s", SILENT_S)) * 1e6:
             return None
         # (fewer bytes than one reply, then nothing: a reply whose rest is late, as the
         # silence after it; a board that lost its place answers each write, and its id
@@ -229,6 +300,22 @@ class Resynchronising:
         self.stats["resyncs"] += 1
         self._force = 0.0
         self._rx_since_record = 0
+        quiet = float(getattr(self.driver, "realign_quiet_s", 0.0) or 0.0)
+        if quiet > 0:
+            # a fixed-length reader with no framing (the Hapkit sketch): put back in step
+            # by the bytes its shift asks for (its out-of-step replies say it: the fill
+            # and a zero-force command, this tick's), else by a silence longer than its
+            # read's timeout (no byte until then, the commands meanwhile missing samples:
+            # DriverTransport._command). Its position is absolute: no frame moves
+            if reason == "shifted" and self._fill:
+                self._command(self._fill + self.driver.encode_force(0.0))
+                self._skip_shift = 1        # the fill's own command answers out of step
+            else:
+                self._quiet_until = max(self._quiet_until, self._t_write + quiet)
+                self.stats["quiet_s"] = self.stats.get("quiet_s", 0.0) + quiet
+            self._fill = b""
+            self._close_gap(reason)
+            return
         # where the device is now: the last two records extrapolated to this command (a
         # board that re-zeroes its position at the set-up goes on from there)
         x = self._extrapolate(self._cmd + 1)
@@ -243,6 +330,11 @@ class Resynchronising:
             # the commands before it may still come)
             self._floor = min(self._floor, self._cmd - 1)
             self._command(self.driver.resync(self._x_last if x != x else x))
+        self._close_gap(reason)
+
+    def _close_gap(self, reason: str) -> None:
+        """A re-synchronisation's end: its reason counted, and a deliberate gap in
+        ``seq`` (the commands before it unanswered are missing samples)."""
         self.stats["resync_reasons"][reason] = self.stats["resync_reasons"].get(reason, 0) + 1
         # a deliberate gap in seq: the position may jump by the error of that estimate, so
         # a measurement does not run across a re-synchronisation

@@ -337,14 +337,19 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
             # force first), which went out: this tick's command, not ``data`` (encoded
             # before, from a force the re-synchronisation has set to zero)
             return
-        if self._write_at is not None:
-            self._wait_for_band()
         sent = self._now_us()
-        self._write(data)                   # (numbers the watchdog's writes before it)
+        quiet = self._quiet_now()           # (a realignment's silence: Resynchronising)
+        if not quiet:
+            if self._write_at is not None:
+                self._wait_for_band()
+                sent = self._now_us()
+            self._write(data)               # (numbers the watchdog's writes before it)
         self._cmd += 1
         self._sent_us[self._cmd % _RING] = sent
         self._stray = False                 # bytes read from now on are its answer
         self.stats["commands"] += 1
+        if quiet:
+            self._quiet_missing()
         self._wd_note()                     # (the board may have lost its place)
 
     def send(self, msg) -> None:
@@ -353,7 +358,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         t = type(msg)
         if t is fp.Force:
             f = msg.force[0]
-            why = self._stalled()
+            why = self._lost_place()
             if why:
                 self._resync(why)
                 return
@@ -529,7 +534,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         if self._answered == self._cmd or (
                 self._quiet() if self._handled is not None
                 else self._now_us() - self._sent_us[self._cmd % _RING] >= self._deadline_us):
-            why = self._stalled()
+            why = self._lost_place()
             if why:
                 self._resync(why)
                 return

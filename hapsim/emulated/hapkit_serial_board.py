@@ -10,7 +10,116 @@ import math
 
 from hapsim.emulated.actuated import Actuated, offline_record
 
-__all__ = ["HapkitSerialDevice", "hapkit_serial_offline_loop"]
+__all__ = ["HapkitSerialDevice", "SketchReader", "hapkit_serial_offline_loop"]
+
+
+class SketchReader:
+    """The sketch's reads of the host's bytes, as its firmware makes them: no framing.
+
+    On a tick with a byte waiting, ``loop`` reads one header byte and
+    ``receive_data`` nine more with ``Serial.readBytes`` (haphub/WHC2017
+    ``hFirmware/Hapkit_Arduino_Control/Hapkit_arduino/``: ``Hapkit_arduino.ino``, ``loop``;
+    ``Hapkit_arduino.h``, ``receive_data``): the function byte and two binary32 values,
+    whatever they are. ``readBytes`` waits for each byte up to
+    :data:`hapsim.drivers.hapkit_serial.SKETCH_READ_TIMEOUT_S` (15.6 ms); a byte not come
+    by then leaves the buffer's old content (a local array at the same place of the stack
+    each call: taken as the last command's bytes) and the next byte starts a command. So
+    a host byte lost makes the command complete with the next command's first byte, and
+    every later command is read one byte out of step (its function byte the host's first
+    float's first byte: 0, no force) until the host is silent longer than the timeout.
+    (Before, the emulated board realigned on the header and the function byte, which the
+    sketch does not: with 1 byte in 200 lost its loop lost no more than the commands hit,
+    where the sketch's is out of step from the first loss on.)
+
+    Parameters
+    ----------
+    timeout_s : float
+        ``readBytes``' wait per byte [s].
+
+    Attributes
+    ----------
+    stats : dict
+        ``frames`` (commands read), ``misparsed`` (whose function byte is not the host
+        force's), ``timeouts`` (completed by the timeout), ``non_finite`` (a host-force
+        command whose force is no finite number: applied as 0).
+    function : int
+        The last command's function byte (what the reply echoes).
+    t_last : float or None
+        When the last byte came [s] (the board's time).
+    """
+
+    def __init__(self, timeout_s: float | None = None, function: int = 255) -> None:
+        from hapsim.drivers.hapkit_serial import HOST_FORCE_FUNCTION, SKETCH_READ_TIMEOUT_S
+        self.timeout_s = float(SKETCH_READ_TIMEOUT_S if timeout_s is None else timeout_s)
+        self.host_function = int(function if function is not None else HOST_FORCE_FUNCTION)
+        self._cur = bytearray()
+        self._stale = bytearray(9)
+        self.t_last = None
+        self.function = 0
+        self.stats = {"frames": 0, "misparsed": 0, "timeouts": 0, "non_finite": 0}
+
+    def feed(self, data: bytes, now: float) -> list:
+        """Bytes that came at the board's time ``now`` [s]; the commands completed, in order.
+
+        Returns
+        -------
+        list of (float, int, float, float)
+            ``(t, function, a, b)``: when the command was complete [s] (its last byte's
+            time, or the timeout's end), its function byte and its two values.
+        """
+        out = self.expire(now)
+        for b in data:
+            self._cur.append(b)
+            if len(self._cur) == 10:
+                out.append(self._finish(now))
+        if data:
+            self.t_last = float(now)
+        return out
+
+    def expire(self, now: float) -> list:
+        """The command a ``readBytes`` still waits for, completed by its timeout if the
+        host has been silent longer than it by ``now`` [s]; ``[]`` or one command."""
+        if self._cur and self.t_last is not None and now - self.t_last > self.timeout_s:
+            self.stats["timeouts"] += 1
+            return [self._finish(self.t_last + self.timeout_s)]
+        return []
+
+    def _finish(self, t: float) -> tuple:
+        import struct
+        body = bytes(self._cur[1:]) + bytes(self._stale[len(self._cur) - 1:])
+        self._stale = bytearray(body)
+        self._cur = bytearray()
+        self.function = body[0]
+        a, b = struct.unpack_from("<ff", body, 1)
+        self.stats["frames"] += 1
+        if body[0] != self.host_function:
+            self.stats["misparsed"] += 1
+        elif not math.isfinite(b):
+            self.stats["non_finite"] += 1
+        return (float(t), body[0], a, b)
+
+
+def sketch_force(function: int, host_function: int, b: float, x: float, v: float) -> float:
+    """The force the sketch renders for a command's function byte (``renderingAlgorithm``
+    of ``Hapkit_Kinematics_Simulation.h``; haphub/WHC2017): the host's force ``b`` [N] for
+    ``host_function`` (the case the driver's firmware adds; non-finite: 0), 0 none, 1 a
+    wall at 5 mm (400 N/m), 2 a damper (15 N s/m on the velocity ``v`` [m/s]), 3 a spring
+    (100 N/m on the handle's position ``x`` [m]), any other none.
+
+    Returns
+    -------
+    float
+        The force [N].
+    """
+    if function == host_function:
+        return float(b) if math.isfinite(b) else 0.0
+    if function == 1:
+        return -400.0 * (x - 0.005) if x > 0.005 else 0.0
+    if function == 2:
+        return -15.0 * v
+    if function == 3:
+        return -100.0 * x
+    return 0.0
 
 
 class HapkitSerialDevice(Actuated):
@@ -44,7 +153,8 @@ class HapkitSerialDevice(Actuated):
 
     Attributes
     ----------
-    decoder : CommandDecoder
+    decoder : SketchReader or hapsim.drivers.hapkit_serial.CommandDecoder
+        The sketch's reads (wall clock), or the lockstep device's realigning decoder.
     ready_at : float
         Wall clock: the board's time [s] its last reply has left at (:func:`serve` writes
         it then).
@@ -62,7 +172,10 @@ class HapkitSerialDevice(Actuated):
         self._phases: list = []                       # where in its tick each came
         self._ticks: list = []                        # the tick that took each
         super().__init__(device, rate_hz, excitation, force_limit, seed, clock=clock)
-        self.decoder = hk.CommandDecoder()
+        # the wall clock's board reads as the sketch does (SketchReader); the lockstep
+        # test device, paced by the commands, has no time for its reads' timeout and
+        # realigns on the header and function bytes (CommandDecoder)
+        self.decoder = SketchReader() if clock == "wall" else hk.CommandDecoder()
         self.ready_at = 0.0
         self._tick = -1                               # the last tick that took a command
 
@@ -70,22 +183,11 @@ class HapkitSerialDevice(Actuated):
         """Bytes from the host in (at the board's time ``now`` [s], needed on the wall
         clock), one 9-byte reply per command out."""
         out = b""
-        wall = self.wall is not None
+        if self.wall is not None:
+            for t, fn, _a, b in self.decoder.feed(data, now):
+                out += self._take(t, fn, b)
+            return out
         for f in self.decoder.feed(data):
-            if wall:
-                # the tick after the command came (several in one read: one tick each)
-                k = max(math.floor(now / self.TICK_S) + 1, self._tick + 1)
-                self._phases.append(now / self.TICK_S - math.floor(now / self.TICK_S))
-                self._ticks.append(k)
-                self._tick = k
-                tick = k * self.TICK_S
-                self.wall.run_to(tick)
-                x = self.physics.sample()             # the handle read at the tick
-                self.apply(f, now=tick)               # the force from the tick on
-                out += self._hk.reply_packet(self.decoder.function, x,
-                                             self.wall.settles_on())
-                self.ready_at = tick + self.REPLY_WIRE_S
-                continue
             self.apply(f)
             # the sketch replies with the handle it read and the force it applies from
             # that tick on (as on the wall clock): the queue's head, not the force of the
@@ -94,9 +196,32 @@ class HapkitSerialDevice(Actuated):
                                          self.held_from_now())
         return out
 
+    def _take(self, t: float, fn: int, b: float) -> bytes:
+        """Wall clock: a command the sketch read, complete at ``t`` [s]: taken at the tick
+        after it (several in one read: one tick each), the handle read there and the
+        force it renders applied from there; its reply."""
+        k = max(math.floor(t / self.TICK_S) + 1, self._tick + 1)
+        self._phases.append(t / self.TICK_S - math.floor(t / self.TICK_S))
+        self._ticks.append(k)
+        self._tick = k
+        tick = k * self.TICK_S
+        self.wall.run_to(tick)
+        x = self.physics.sample()                     # the handle read at the tick
+        f = sketch_force(fn, self.decoder.host_function, b, x, self.physics.v)
+        self.apply(f, now=tick)                       # the force from the tick on
+        self.ready_at = tick + self.REPLY_WIRE_S
+        return self._hk.reply_packet(fn, x, self.wall.settles_on())
+
     def idle(self, silent_s: float) -> bytes:
-        """The sketch has no silence rule: it holds its force."""
-        return b""
+        """The sketch has no silence rule: it holds its force. On the wall clock, a host
+        silent longer than ``readBytes``' timeout completes the command it waits for
+        (:class:`SketchReader`), which the sketch then takes and answers."""
+        if self.wall is None or self.decoder.t_last is None:
+            return b""
+        out = b""
+        for t, fn, _a, b in self.decoder.expire(self.decoder.t_last + silent_s):
+            out += self._take(t, fn, b)
+        return out
 
     @property
     def tick_arrivals(self) -> dict:

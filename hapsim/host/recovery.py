@@ -3,7 +3,8 @@ ends a stretch of the loop with :class:`~hapsim.host.loop_types.LostDevice`; zer
 and STOP are sent, the port is re-opened, HELLO and CONFIG are asked again with backoff,
 and the next stretch restarts the scene at rest under a force ramp.
 
-The end of a run after a safety stop on the device's motion brakes it first
+The end of a run after a safety stop on the device's motion brakes it first, and so does
+the end of a run (its duration, a signal) on a driver's board that keeps its own time
 (:meth:`Recovery._brake`): zero force alone leaves a moving handle to its own friction,
 which carries it ``v m / b`` further (a Hapkit paddle of 0.1 kg on 0.3 N s/m: 0.33 s
 times its speed; a board without a watchdog holds the last force through a host stall,
@@ -73,8 +74,15 @@ class Recovery:
         ``f = -B v`` (``B`` = ``config.brake_damping``, clamped to the force limit, ``v``
         the backward difference of the last two STATEs on the device's clock) until three
         speeds in a row are below ``config.brake_rest``, for at most
-        :data:`BRAKE_MAX_S` (module notes). Nothing after a non-finite reading, a lost
-        device or any other end. What it did is :attr:`LoopResult.brake`.
+        :data:`BRAKE_MAX_S` (module notes). The same at the end of a run (its duration or
+        a signal: ``stop_reason`` still ``"duration"`` here) on a driver's board that
+        keeps its own time (its transport's ``driver.own_clock``: a real board, or an
+        emulated one on the wall clock): a run's last force goes, and the handle goes on
+        at its speed, ``v m / b`` (issue 29, the independent board models of
+        ``tools/independent_boards``: the Haply M3's joint 1.0-2.0 rad past its last
+        reading, the Hapkit's paddle to its end stops 6 cm out, after runs that ended on
+        their duration). Nothing after a non-finite reading, a lost device or any other
+        end. What it did is :attr:`LoopResult.brake`.
 
         Raises
         ------
@@ -84,7 +92,10 @@ class Recovery:
         cfg, res = self.config, self.result
         B = float(cfg.brake_damping)
         reason = res.stop_reason or ""
-        if (not res.safety_stop or not B > 0.0 or reason.startswith("safety: non-finite")
+        own = bool(getattr(getattr(self.transport, "driver", None), "own_clock", False))
+        at_end = not res.safety_stop and reason == "duration" and own
+        if (not (res.safety_stop or at_end) or not B > 0.0
+                or reason.startswith("safety: non-finite")
                 or self.state not in ("armed", "running")):
             return
         tr, clock, sleep = self.transport, self._clock, self._sleep
