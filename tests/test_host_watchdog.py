@@ -661,6 +661,36 @@ def _transport(robust=0, value=30.0):
     return t
 
 
+def test_a_host_stopped_before_its_bytes_then_again_gets_a_write_each_time():
+    """A host stopped between its write's stamp and its bytes for five bounds (the
+    watchdog writes the zero command in that silence), which then writes its stale
+    force and is stopped again at once for five bounds: the second silence gets a write
+    of its own. Before, the silence was counted from the first stamp alone, already
+    answered: an independent M3 board model held that force through the whole second
+    stop (50 ms, tools/independent_boards)."""
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    wd = tw.TorqueWatchdog(os.ttyname(slave), b"ZERO", HOLD_BOUND_S)
+
+    class Port:
+        def write(self, b):
+            os.write(slave, b)
+    try:
+        wd.arm()
+        wd.beat()                           # (the first half of the host's write)
+        wd.hold(True)
+        time.sleep(SILENCE_S)               # stopped before its bytes
+        Port().write(b"HOST")               # its stale force, when it runs again
+        wd.hold(True)                       # (the second half)
+        time.sleep(SILENCE_S)               # stopped again at once
+        assert _read_all(master) == b"ZERO" + b"HOST" + b"ZERO"
+        assert len(wd.take()) == 2
+    finally:
+        wd.close()
+        os.close(slave)
+        os.close(master)
+
+
 def test_the_hosts_account_of_a_robust_write_is_its_own_resync():
     """A robust write taken (made 20 ms after the host's last command, taken 4 s later):
     two command numbers (its zero writes around the set-up) whose answers are dropped,

@@ -342,14 +342,24 @@ class TorqueWatchdog:
 
     def hold(self, holding: bool) -> None:
         """The second half of :meth:`write`: whether the host's write just made leaves a
-        non-zero force.
+        non-zero force, its time stamped again (a silence after it counts from it).
 
         Parameters
         ----------
         holding : bool
             The host's write leaves a non-zero force (set True before a write that
             does, and again after it: a host stopped inside the write leaves it held).
+
+        Notes
+        -----
+        Stamped again after the write: a host stopped between its first stamp and its
+        bytes (the watchdog's write then goes out in that silence) that writes its
+        stale force when it runs again and is stopped again at once starts a new
+        silence, which gets a write of its own; with the first stamp alone it was the
+        same silence, already answered, and an independent M3 model held that force
+        through a second 50 ms stop (tools/independent_boards, docs/testing.md).
         """
+        self._page.set("beat", time.monotonic_ns())
         self._page.set("holding", 1 if holding else 0)
 
     def report(self) -> dict:
