@@ -855,3 +855,43 @@ def test_a_write_the_port_took_part_of_is_finished_before_anything_else(monkeypa
     os.close(page.fd)
     assert calls == [b"ZERO", b"RO", b"RO"], calls
     assert page.get("counts") >> 32 == 1 and page.get("failed") == 0
+
+
+@pytest.mark.parametrize("with_watchdog", [True, False])
+def test_the_direction_probe_has_the_watchdog_beside_it(with_watchdog, monkeypatch):
+    """identify's direction probe on the M3 (its torque pulses on the board's own clock,
+    :func:`hapsim.drivers.haply_probe.probe_port`), the host silent for five bounds in
+    the middle of its first pulse: the host's watchdog zeroes the pulse within the
+    stated bound, its write answered and read as a late reply, and the probe still finds
+    the direction; without it the board holds the pulse the whole silence (the control:
+    before, the probe had none, and an identify over a lossy M3 held a torque 54 ms)."""
+    from hapsim.drivers.exchange import Exchange
+    from hapsim.drivers.haply_probe import probe_port
+    if not with_watchdog:
+        monkeypatch.setattr(tw, "start_watchdog", lambda *a, **k: (None, "off for the test"))
+    reply = Exchange.reply
+    zero = get_driver("haply").encode_force(0.0)
+    state = {"done": False}
+
+    def silent_once(self, data):
+        if not state["done"] and not data.endswith(zero):
+            state["done"] = True
+            self.link.write(data)           # (the pulse's first write goes out)
+            time.sleep(SILENCE_S)           # then the host does not run
+        return reply(self, data)
+    monkeypatch.setattr(Exchange, "reply", silent_once)
+    board, drv, _ = _board("haply")
+    path, slave, master, flag, th = _pty_device(board)
+    try:
+        found = probe_port(drv, path, force_limit=0.05, envelope=0.5, rate_hz=1000.0)
+    finally:
+        _stop_board(flag, th, slave, master)
+    rep = flag["report"]
+    assert state["done"] and found.motor_direction in (0, 1)
+    if with_watchdog:
+        # the stated bound with the watchdog's latency allowance, the board's own
+        # lateness, the pty's turnaround (1 ms, as in the tests above)
+        assert rep["longest_hold_s"] <= (HOLD_BOUND_S + HOLD_BOUND_S / 4 + LATENCY_S
+                                         + 1e-3 + rep["longest_gap_s"]), rep["longest_hold_s"]
+    else:
+        assert rep["longest_hold_s"] >= SILENCE_S

@@ -156,6 +156,7 @@ class Exchange:
         try:
             self.link.write(data)
             replies += max(0, self.writes - self.replies) if self.replies else 0
+            replies += int(getattr(self.link, "extra", 0))  # (a watchdog's writes')
             end = time.monotonic() + self.timeout
             n = 0
             while n < replies and time.monotonic() < end:
@@ -176,6 +177,12 @@ class SerialLink:
         Baud rate [bit/s].
     rtscts : bool
         RTS/CTS flow control (as the driver asks).
+    watchdog : hapsim.drivers.torque_watchdog.TorqueWatchdog, optional
+        The host's watchdog on this port, armed by the caller: each write goes through
+        it (:meth:`write`).
+    zero : bytes
+        The driver's zero-torque command (with ``watchdog``: a write ending with it
+        leaves no torque held).
 
     Raises
     ------
@@ -183,8 +190,13 @@ class SerialLink:
         The port cannot be opened; a write or read failed.
     """
 
-    def __init__(self, port: str, baud: int, rtscts: bool = False) -> None:
+    def __init__(self, port: str, baud: int, rtscts: bool = False, *, watchdog=None,
+                 zero: bytes = b"") -> None:
         import serial
+        self.watchdog, self.zero = watchdog, bytes(zero)
+        #: The watchdog's writes taken (each answered by a reply the exchange reads as a
+        #: late one: :meth:`Exchange.stop` reads them too).
+        self.extra = 0
         try:
             # a fixed short read timeout (setting it per read reconfigures the port)
             self.ser = serial.serial_for_url(port, baudrate=baud, rtscts=rtscts, timeout=0.005,
@@ -194,8 +206,15 @@ class SerialLink:
         self.port = port
 
     def write(self, data: bytes) -> None:
+        """Write ``data``; with a watchdog (a board without one, on its own clock), through
+        it: its time stamped, whether it leaves a torque held (anything but the zero
+        command, or writes that end with it), the watchdog's writes since counted."""
         try:
-            self.ser.write(data)
+            if self.watchdog is None:
+                self.ser.write(data)
+            else:
+                holding = not data.endswith(self.zero)
+                self.extra += len(self.watchdog.write(self.ser, data, holding))
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to {self.port} failed: {exc}") from None
 
