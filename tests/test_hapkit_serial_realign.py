@@ -49,20 +49,7 @@ M, B0 = 0.1, 0.3             # the paddle [kg], its friction [N s/m]
 K, BV = 50.0, 0.2            # the virtual spring [N/m] and damper [N s/m]
 
 
-class SimClock:
-    """The simulated monotonic clock the transport reads (its ``time`` module)."""
-
-    def __init__(self):
-        self.t = 0.0
-
-    def monotonic(self):
-        return self.t
-
-    def monotonic_ns(self):
-        return int(round(self.t * 1e9))
-
-    def sleep(self, s):
-        self.t += max(float(s), 0.0)
+from test_haply_silence import SimClock  # noqa: E402  (same directory)
 
 
 class Sketch:

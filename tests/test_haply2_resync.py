@@ -21,38 +21,16 @@ from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.pipeline.haply2_host import measure_felt_haply2_port
 from hapsim.pipeline.haply2_record import SILENT_WRITES, record_realtime
 from hapsim.emulated.driver_mock import ByteFaults
+from hapsim.emulated.links import BoardLink
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.scene import load_scene_nd
 
 WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
 
 
-class FaultyLink:
-    """The emulated board behind ``write``/``in_waiting``/``read``: host bytes go through
-    ``rx``, the board's replies through ``tx`` (each ``bytes -> bytes``), and a reply is
-    there to read as soon as its write was sent. ``truth`` holds the board's joints
-    after each write [rad]."""
-
-    def __init__(self, board, rx=None, tx=None):
-        self.board = board
-        self.rx = rx or (lambda b: b)
-        self.tx = tx or (lambda b: b)
-        self.out = bytearray()
-        self.truth = []
-
-    def write(self, data):
-        self.out += self.tx(self.board.feed(self.rx(bytes(data))))
-        self.truth.append(self.board.plant.joints().copy())
-        return len(data)
-
-    @property
-    def in_waiting(self):
-        return len(self.out)
-
-    def read(self, n):
-        b = bytes(self.out[:n])
-        del self.out[:n]
-        return b
+#: The emulated board behind ``write``/``in_waiting``/``read``, host bytes through ``rx``
+#: and replies through ``tx``, its joints after each write in ``truth``.
+FaultyLink = BoardLink
 
 
 def _at_nth_write(n, fault):

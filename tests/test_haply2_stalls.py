@@ -21,6 +21,7 @@ import pytest
 
 from hapsim.pipeline import haply2_host as host
 from hapsim.pipeline import haply2_record as record
+from hapsim.emulated.links import BoardLink
 from hapsim.emulated.haply2_board import Haply2DIYBoard
 from hapsim.emulated.driver_mock import ByteFaults
 from hapsim.drivers.haply2 import Haply2DIY
@@ -34,18 +35,17 @@ WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yam
 WORKSPACE_RAD = 0.5
 
 
-class StallingLink:
+class StallingLink(BoardLink):
     """The emulated board behind ``write``/``in_waiting``/``read``, host bytes through
-    ``rx``, replies through ``tx``; the host stalls ``stalls[n]`` seconds inside its
-    ``n``-th write of a record's loop (a sleep: the host process descheduled). ``times``:
-    perf_counter() of each 10-byte write; ``truth``: the board's joints after each."""
+    ``rx``, replies through ``tx`` (:class:`hapsim.emulated.links.BoardLink`); the host
+    stalls ``stalls[n]`` seconds inside its ``n``-th write of a record's loop (a sleep:
+    the host process descheduled). ``times``: perf_counter() of each 10-byte write;
+    ``truth``: the board's joints after each."""
 
     def __init__(self, board, stalls, rx=None, tx=None):
-        self.board, self.stalls = board, dict(stalls)
-        self.rx = rx or (lambda b: b)
-        self.tx = tx or (lambda b: b)
-        self.out = bytearray()
-        self.truth, self.times = [], []
+        super().__init__(board, rx, tx)
+        self.stalls = dict(stalls)
+        self.times = []
 
     def write(self, data):
         if len(data) == 10:
@@ -53,18 +53,7 @@ class StallingLink:
             s = self.stalls.get(len(self.times))
             if s:
                 time.sleep(s)
-        self.out += self.tx(self.board.feed(self.rx(bytes(data))))
-        self.truth.append(self.board.plant.joints().copy())
-        return len(data)
-
-    @property
-    def in_waiting(self):
-        return len(self.out)
-
-    def read(self, n):
-        b = bytes(self.out[:n])
-        del self.out[:n]
-        return b
+        return super().write(data)
 
 
 class WallLink:

@@ -247,6 +247,7 @@ def _haply2(seed, plant=None):
     from hapsim.commands.run_haply2 import designed_start
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.emulated.haply2_board import Haply2DIYBoard
+    from hapsim.emulated.links import BoardLink
     from hapsim.pipeline.haply2_host import measure_felt_haply2_port
     from hapsim.scene import load_scene_nd
     sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
@@ -254,23 +255,8 @@ def _haply2(seed, plant=None):
     board = Haply2DIYBoard(plant or sc, "gen3", cpr=2.0 ** 22, amplitude=a,
                            clock="lockstep")
     f = ByteFaults({"drop_rx": 0.005, "drop_tx": 0.005, "seed": seed})
-
-    class Link:
-        out = bytearray()
-
-        def write(self, data):
-            self.out += f.tx(board.feed(f.rx(bytes(data))))
-            return len(data)
-
-        @property
-        def in_waiting(self):
-            return len(self.out)
-
-        def read(self, n):
-            b = bytes(self.out[:n])
-            del self.out[:n]
-            return b
-    return sc, measure_felt_haply2_port(Link(), sc, "gen3", amplitude=a, resolution=2.0 ** 22,
+    return sc, measure_felt_haply2_port(BoardLink(board, f.rx, f.tx), sc, "gen3", amplitude=a,
+                                        resolution=2.0 ** 22,
                                         samples=N, plan=identification_plan(sc, N),
                                         probe_wiring=False, lockstep_board=True)
 

@@ -281,6 +281,7 @@ def haply2(args) -> dict:
     from hapsim.commands.run_haply2 import designed_start
     from hapsim.emulated.driver_mock import ByteFaults
     from hapsim.emulated.haply2_board import Haply2DIYBoard
+    from hapsim.emulated.links import BoardLink
     from hapsim.emulated.haply2_verdict import felt_verdict_of_runs
     from hapsim.lockstep import identification_plan
     from hapsim.scene import load_scene_nd
@@ -299,23 +300,8 @@ def haply2(args) -> dict:
     def run(seed, plant):
         board = Haply2DIYBoard(plant, "gen3", cpr=2.0 ** 22, amplitude=a, clock="lockstep")
         f = ByteFaults({"drop_rx": args.loss, "drop_tx": args.loss, "seed": seed})
-
-        class Link:
-            out = bytearray()
-
-            def write(self, data):
-                self.out += f.tx(board.feed(f.rx(bytes(data))))
-                return len(data)
-
-            @property
-            def in_waiting(self):
-                return len(self.out)
-
-            def read(self, n):
-                b = bytes(self.out[:n])
-                del self.out[:n]
-                return b
-        return host.measure_felt_haply2_port(Link(), sc, "gen3", amplitude=a,
+        return host.measure_felt_haply2_port(BoardLink(board, f.rx, f.tx), sc, "gen3",
+                                             amplitude=a,
                                              resolution=2.0 ** 22, samples=N, plan=plan,
                                              probe_wiring=False, lockstep_board=True)
     real = host.felt_verdict_of_runs

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 __all__ = ["said_before_run", "felt_deviation", "felt_directions", "felt_verdict", "statement_name",
-           "MEASURABLE_WIRE", "FELT_QUANTITIES"]
+           "noise_pair_verdict", "MEASURABLE_WIRE", "FELT_QUANTITIES"]
 
 
 def felt_deviation(fit: dict, chk) -> dict | None:
@@ -375,6 +375,28 @@ def felt_verdict(deviation, bound, wire=None, *, limit: float = MEASURABLE_WIRE,
     return {"verdict": verdict, "within": bool(ok),
             "uncertainty": unc, "reason": reason, "statements": st,
             "not_stated": not_stated}
+
+
+def noise_pair_verdict(by: str) -> dict:
+    """The verdict of records whose own fit renders a noise pair: nothing stated (a
+    "differs" built on it would be wrong; :func:`hapsim.analysis.wire_rounding.noise_pair`).
+
+    Parameters
+    ----------
+    by : str
+        What set the noise pair, in words (``"the rounding"``, ``"the errors"``).
+
+    Returns
+    -------
+    dict
+        ``verdict`` "not measurable", ``within`` and ``uncertainty`` None, no statements,
+        both felt matrices not stated, ``reason``.
+    """
+    return {"verdict": "not measurable", "within": None, "uncertainty": None,
+            "statements": [], "not_stated": ["felt stiffness", "felt damping"],
+            "reason": "the records' fit renders a pair nearer one of the loop's fast poles "
+                      f"than any pair the loop renders (a noise pair set by {by}): no felt "
+                      "matrices of the loop"}
 
 
 def said_before_run(how: str, stated, not_stated, reason: str) -> str | None:

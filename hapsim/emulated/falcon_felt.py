@@ -143,7 +143,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, excluded=None,
     ConfigError
         As :func:`hapsim.analysis.pencil.fit_felt_nd` for whole records.
     """
-    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.felt_matrices import (felt_deviation, felt_directions, felt_verdict,
+                                               noise_pair_verdict)
     from hapsim.analysis.felt_records import window_rows, within_excursion, wire_terms_records
     from hapsim.analysis.linearisation import bound_at_records
     from hapsim.analysis.pencil import fit_felt_nd
@@ -250,13 +251,8 @@ def falcon_felt_verdict(scene, runs, plan, amplitude: float, *, excluded=None,
         v = felt_verdict(dev, bound, wire, estimated=0,
                          directions=felt_directions(fit, chk), excluded=excluded)
         if wire.get("noise_pair") and v["verdict"] != "not measurable":
-            # no statement from a fit that renders a noise pair (a "differs" built on
-            # it would be wrong); a verdict that states nothing keeps its own reason
-            v = {"verdict": "not measurable", "within": None, "uncertainty": None,
-                 "statements": [], "not_stated": ["felt stiffness", "felt damping"],
-                 "reason": "the records' fit renders a pair nearer one of the loop's fast "
-                           "poles than any pair the loop renders (a noise pair set by the "
-                           "rounding): no felt matrices of the loop"}
+            # (a verdict that states nothing keeps its own reason)
+            v = noise_pair_verdict("the rounding")
         if usable is not None:
             v["reason"] += (f"; {missing} missing replies: the records cut there, each "
                             "fitted on its own undisturbed stretches about the fitted "

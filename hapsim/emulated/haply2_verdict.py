@@ -79,7 +79,8 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
     from hapsim.analysis.linearisation import bound_at_records
     from hapsim.drivers.haply import MAX_TORQUE
     from hapsim.kinematics import device
-    from hapsim.analysis.felt_matrices import felt_deviation, felt_directions, felt_verdict
+    from hapsim.analysis.felt_matrices import (felt_deviation, felt_directions, felt_verdict,
+                                               noise_pair_verdict)
     from hapsim.analysis.wire_rounding import (Rounding, exact_loop, noise_pair,
                                                rounding_applies, rounding_term,
                                                rounding_wire, stretch_loop)
@@ -237,13 +238,8 @@ def felt_verdict_of_runs(scene, runs, plan, resolution: float, amplitude: float,
         np.count_nonzero(r["estimated"]) for r in runs if "estimated" in r)),
         directions=felt_directions(fit, chk), excluded=excluded)
     if wire.get("noise_pair") and v["verdict"] != "not measurable":
-        # no statement from a fit that renders a noise pair (a "differs" built on
-        # it would be wrong); a verdict that states nothing keeps its own reason
-        v = {"verdict": "not measurable", "within": None, "uncertainty": None,
-             "statements": [], "not_stated": ["felt stiffness", "felt damping"],
-             "reason": "the records' fit renders a pair nearer one of the loop's fast poles "
-                       "than any pair the loop renders (a noise pair set by the errors): "
-                       "no felt matrices of the loop"}
+        # (a verdict that states nothing keeps its own reason)
+        v = noise_pair_verdict("the errors")
     if fit["felt_stiffness"] is None and short is None:
         # fewer than n of the fit's pairs above the floor (hapsim.analysis.pencil.
         # MODE_FLOOR): the records do not carry every rendered mode above their errors

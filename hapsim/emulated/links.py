@@ -21,7 +21,7 @@ import firmware_protocol as fp
 from hapsim.errors import DeviceError
 from hapsim.spawn import PtyChild
 
-__all__ = ["InProcessTransport", "EmbeddedMock", "SimTransport"]
+__all__ = ["InProcessTransport", "EmbeddedMock", "SimTransport", "BoardLink"]
 
 
 class InProcessTransport:
@@ -376,3 +376,49 @@ class SimTransport:
             ``""`` before any frame.
         """
         return self._dec.format_last_frames()
+
+
+class BoardLink:
+    """A driver's board stepped by its bytes, behind a serial port's ``write``,
+    ``in_waiting`` and ``read`` (pyserial's names): each write fed to ``board.feed`` at
+    once (a lockstep board: its time is the writes'), its replies readable at once. The
+    host's bytes pass through ``rx`` and the board's through ``tx`` (the link's faults:
+    :class:`hapsim.emulated.driver_mock.ByteFaults`' ``rx``/``tx``); ``truth`` keeps the
+    board's joints after each write when it has a plant.
+
+    Parameters
+    ----------
+    board : object
+        ``feed(bytes) -> bytes`` (e.g. :class:`hapsim.emulated.haply2_board.Haply2DIYBoard`
+        with ``clock="lockstep"``).
+    rx, tx : callable, optional
+        ``bytes -> bytes`` on the host's and the board's bytes (default: unchanged).
+
+    Attributes
+    ----------
+    truth : list of ndarray
+        The board's ``plant.joints()`` after each write [rad] (empty without a plant).
+    """
+
+    def __init__(self, board, rx=None, tx=None) -> None:
+        self.board = board
+        self.rx = rx or (lambda b: b)
+        self.tx = tx or (lambda b: b)
+        self.out = bytearray()
+        self.truth: list = []
+
+    def write(self, data) -> int:
+        self.out += self.tx(self.board.feed(self.rx(bytes(data))))
+        plant = getattr(self.board, "plant", None)
+        if plant is not None:
+            self.truth.append(plant.joints().copy())
+        return len(data)
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.out)
+
+    def read(self, n: int) -> bytes:
+        b = bytes(self.out[:n])
+        del self.out[:n]
+        return b
