@@ -52,7 +52,10 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
     watchdog's pid printed; at the loop's ``at``-th tick the stray byte
     written to the board, and then (``action``) ``"kill"``: SIGKILL of itself at once;
     ``"stop"``: SIGSTOP of itself two ticks later (the board's answers to those two
-    writes read: bytes that made no reply)."""
+    writes read: bytes that made no reply); ``"stop at once"``: SIGSTOP of itself at
+    once, on a link that lost its place 200 ticks before (the host re-synchronised
+    the board then: a lossy link); ``"stop clean"``: the same on a link that had lost
+    nothing before."""
     root = str(Path(__file__).resolve().parent.parent)
     return "\n".join([
         "import os, signal, sys",
@@ -83,6 +86,10 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
         "            os.kill(os.getpid(), signal.SIGKILL)",
         f"    if n[0] == {at} + 2 and {action!r} == 'stop':",
         "        os.kill(os.getpid(), signal.SIGSTOP)",
+        f"    if n[0] == {at} and {action!r} in ('stop at once', 'stop clean'):",
+        "        os.kill(os.getpid(), signal.SIGSTOP)",
+        f"    if n[0] == {at} - 200 and {action!r} == 'stop at once':",
+        f"        os.write(fd, {STRAY!r})       # (an earlier loss: the link is lossy)",
         "    return tick_end(self, k, got, resynced)",
         "Realigner.tick_end = hook",
         "Engine(sc).step()",
@@ -106,7 +113,7 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
                                                                   action)],
                                 stdout=subprocess.PIPE, text=True, start_new_session=True)
         wd_pid = int(host.stdout.readline())
-        if action == "stop":
+        if action.startswith("stop"):
             end = time.monotonic() + 30.0
             while time.monotonic() < end:       # (until it has stopped itself)
                 with open(f"/proc/{host.pid}/stat") as f:
@@ -147,6 +154,37 @@ def test_a_2diy_whose_parser_lost_its_motors_is_zeroed_when_its_host_dies_or_sto
     bound = (CHECK_S if action == "kill" else HOLD_BOUND_S + CHECK_S) + LATENCY_S
     assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
         rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
+
+
+def test_a_lossy_2diy_link_stopped_in_the_bytes_that_lost_its_place_gets_the_robust_write():
+    """A host stopped at once after the stray byte (no evidence read), on a link that
+    lost its place 200 ticks before (re-synchronised then): the zero command at the
+    bound reaches no motor, and the silence's second write, at ``ROBUST_AFTER`` bounds,
+    is the robust one (the link lossy): the board's torque ends at zero within
+    ``ROBUST_AFTER`` bounds, a check and the latency, plus the robust write's own time
+    and the board's lateness. (On a link that has lost nothing no robust write goes in a
+    silence before evidence is read: docs/drivers.md, "The host's watchdog".)"""
+    rep, gone = _faulted_host("stop at once")
+    assert rep is not None and gone, (rep, gone)
+    assert rep["held_at_end"] == 0.0, rep
+    bound = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + LATENCY_S
+    assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
+        rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
+    # (the zero command came first and did nothing: a hold past the first bound)
+    assert rep["longest_hold_s"] > HOLD_BOUND_S, rep["longest_hold_s"]
+
+
+def test_a_clean_2diy_link_stopped_in_its_first_lost_byte_is_zeroed_when_the_host_dies():
+    """What is left open, measured: a host stopped at once after the first byte its link
+    ever lost (no evidence read, no lossy link) gets the zero command only, which reaches
+    no motor: the board holds its torque for the whole stop (0.4 s here); once the
+    stopped host is killed, the watchdog's dying write is the robust one (the silence had
+    the zero command alone) and the board is left at zero. (Before, the silence counted
+    as answered and the dead host's torque stayed on.)"""
+    rep, gone = _faulted_host("stop clean")
+    assert rep is not None and gone, (rep, gone)
+    assert rep["held_at_end"] == 0.0, rep
+    assert rep["longest_hold_s"] >= 0.4, rep["longest_hold_s"]
 
 
 def test_a_2diy_whose_parser_lost_its_motors_holds_the_torque_on_the_zero_command():
@@ -216,9 +254,10 @@ if __name__ == "__main__":
     print(f"load {os.getloadavg()[0]:.1f}, {os.cpu_count()} CPUs; bound "
           f"{HOLD_BOUND_S * 1e3:g} ms, check {CHECK_S * 1e3:g} ms, robust write "
           f"{ROBUST_S * 1e3:.1f} ms")
-    for action, robust in (("kill", True), ("stop", True), ("kill", False)):
+    for action, robust in (("kill", True), ("stop", True), ("stop at once", True),
+                           ("kill", False)):
         got = [_faulted_host(action, robust)[0] for _ in range(runs)]
-        print(f"{action:4s} {'robust' if robust else 'zero command only':17s} hold ms "
+        print(f"{action:12s} {'robust' if robust else 'zero command only':17s} hold ms "
               + " ".join(f"{g['longest_hold_s'] * 1e3:.1f}" for g in got)
               + " | board late ms " + " ".join(f"{g['longest_gap_s'] * 1e3:.1f}" for g in got)
               + " | held at end N m " + " ".join(f"{g['held_at_end']:.1e}" for g in got))

@@ -52,7 +52,8 @@ offsets, two encoders; its host follows it with a re-arming of its own,
 :mod:`hapsim.pipeline.haply2_record`): the host then says its link is lossy with
 :meth:`TorqueWatchdog.lossy`.
 The watchdog quits when its parent does: at once when the host had closed it or left no
-force held, after one write when the host died (killed, crashed) armed with a force held:
+force held, after one write when the host died (killed, crashed) armed with a force held
+not yet answered, or answered by the zero command alone (a host stopped, then killed):
 the robust one whenever there is one (no host is left to account a set-up, and the host
 may have died in the very bytes that lost the board its place, before any evidence: a
 2DIY whose parser lost its motors' addresses held a dead host's torque after its zero
@@ -690,12 +691,16 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
                 page.set("robust_for", 0)
     if rest:
         rest = finish(REST_S)
+    beat = page.get("beat")
     if (not stop and not page.get("quit") and held()
-            and page.get("fired_for") != page.get("beat")):
-        # the host died (killed, crashed) armed, its last write a force not yet zeroed:
-        # the board would hold it until someone writes; the port is still ours. The
-        # robust write when there is one (module notes): the host may have died in the
-        # bytes that lost the board its place, with no evidence read
+            and (page.get("fired_for") != beat
+                 or (robust and page.get("robust_for") != beat))):
+        # the host died (killed, crashed) armed, its last write a force not yet zeroed
+        # (or zeroed by the zero command alone, which a board that lost its place does
+        # not take: a host stopped, then killed): the board would hold it until someone
+        # writes; the port is still ours. The robust write when there is one (module
+        # notes): the host may have died in the bytes that lost the board its place,
+        # with no evidence read
         try:
             write(data(False, dying=True)[0], 1.0)  # (a full buffer waited for, 1 s at most)
         except OSError:
