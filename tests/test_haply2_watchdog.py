@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from hapsim.drivers.haply import LONGEST_WAIT
 from hapsim.drivers.resync import HOLD_BOUND_S
-from hapsim.drivers.torque_watchdog import ROBUST_AFTER
+from hapsim.drivers.torque_watchdog import ROBUST_AFTER, watchdog_text
 from hapsim.emulated.haply2_board import PASS_S, SETUP_S
 
 from test_host_watchdog import (BOARD_PRIORITY, LATENCY_S, SILENCE_S, _2diy_run,  # same dir
@@ -214,6 +214,8 @@ def test_a_live_host_follows_the_watchdogs_robust_write_with_its_own_rearming(mo
     assert wd["running"] and wd["robust"] >= 1, wd
     assert sum(wd["resyncs"]) == wd["robust"] and wd["resyncs"][0] >= 1, wd
     assert r["resyncs"][0] >= wd["resyncs"][0], (r["resyncs"], wd)
+    # the run's report says so (the 1-DoF report's wording)
+    assert "with the set-up around it" in watchdog_text(wd, "the zero command"), wd
     assert len(recs) == 5 and rep["held_at_end"] == 0.0, (len(recs), rep)
     assert rep["longest_hold_s"] <= _stated(wd) + ROBUST_S + 2e-3 + rep["longest_gap_s"], (
         rep["longest_hold_s"], rep["longest_gap_s"], wd)

@@ -55,7 +55,11 @@ taken for a board out of step. An estimated tick whose newest reading is older t
 :data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise);
 a host that does not run at all cannot, and the host's watchdog beside it does
 (``watchdog``, :mod:`hapsim.drivers.host_watchdog`: its zero write after
-:data:`HOLD_BOUND_S` of the host's silence is a write of its own, its reply dropped).
+:data:`HOLD_BOUND_S` of the host's silence is a write of its own, its reply dropped; while
+bytes read made no reply yet, or in a long silence of a link that has lost bytes, its
+write is the robust one, :func:`watchdog_robust`, the loop's re-arming, which a board
+whose parser lost its place takes where it takes no zero command: the host, awake, reads
+no reply after it and re-arms the board itself, the record cut there).
 The loop is linear and time-invariant between disturbances, so a record is cut at each
 (a stall, a run of missing replies, a zeroed tick, a re-synchronisation, a torque at the
 clamp: :func:`hapsim.pipeline.haply2_host.usable_rows`) and its undisturbed stretches
