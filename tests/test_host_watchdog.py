@@ -449,10 +449,15 @@ def test_m3_host_silence_without_the_watchdog_holds_the_torque(monkeypatch):
     assert board["longest_hold_s"] >= SILENCE_S
 
 
-def _2diy_run(monkeypatch, silence_s: float, at_tick: int = 30):
+def _2diy_run(monkeypatch, silence_s: float, at_tick: int = 30, stray: bytes = b"",
+              stray_tick: int | None = None, records: list | None = None):
     """The 2DIY's measurement over a pty (the board in its child process, on its own
     clock), the host silent ``silence_s`` once, at the ``at_tick``-th tick of the loop
-    (in the first record). Returns (the measurement, the board's report)."""
+    (in the first record); ``stray`` bytes written to the board (on the host's side of
+    the pty, as a host byte too many) at the ``stray_tick``-th tick, 3 ms before the
+    tick goes on (the board's parser takes them alone); ``records``, a list, gets the
+    loop's records (:func:`hapsim.pipeline.haply2_record.record_realtime`'s, each with the
+    measurement's ``usable`` rows). Returns (the measurement, the board's report)."""
     from pathlib import Path
 
     from hapsim.lockstep import identification_plan
@@ -466,21 +471,38 @@ def _2diy_run(monkeypatch, silence_s: float, at_tick: int = 30):
 
     def silent_once(self, k, got, resynced):
         ticks["n"] += 1
+        if stray and ticks["n"] == stray_tick:
+            os.write(fd[0], stray)
+            time.sleep(0.003)
         if ticks["n"] == at_tick:
             time.sleep(silence_s)           # the host does not run (not the port either)
         return tick_end(self, k, got, resynced)
     monkeypatch.setattr(Realigner, "tick_end", silent_once)
+    if records is not None:
+        import hapsim.pipeline.haply2_host as host
+        loop = host.record_realtime
+
+        def kept(*a, **k):
+            records.append(loop(*a, **k))
+            return records[-1]
+        monkeypatch.setattr(host, "record_realtime", kept)
     sc = load_scene_nd(wall)
     N = 60
     child = Embedded2DIY(str(wall), "gen3", amplitude=1e-4, cpr=2.0 ** 22,
                          rt_priority=BOARD_PRIORITY)
+    fd = [os.open(child.port, os.O_WRONLY | os.O_NOCTTY)] if stray else [None]
     try:
         r = measure_felt_haply2_port(child.port, sc, "gen3", amplitude=1e-4,
                                      resolution=2.0 ** 22, samples=N,
                                      plan=identification_plan(sc, N), probe_wiring=False)
+        if fd[0] is not None:
+            os.close(fd[0])
+            fd[0] = None
         child.release_slave()
         rep = child.report(5.0)
     finally:
+        if fd[0] is not None:
+            os.close(fd[0])
         child.close()
     return r, rep
 

@@ -182,6 +182,15 @@ def run_haply2_command(args) -> int:
               f"{res['estimated']}; ticks the host began a period late: "
               f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}; "
               f"host loop scheduling: {res.get('scheduling')}", file=o)
+        wd = res.get("watchdog")
+        if wd is not None:
+            # the host's watchdog (the board has none), as the 1-DoF report words it; its
+            # robust writes each followed by the host's re-arming, the record cut there
+            from hapsim.drivers.torque_watchdog import watchdog_text
+            again = sum(wd.get("resyncs") or ())
+            print("  " + watchdog_text(wd, "the zero command")
+                  + (f"; the host re-armed the board after {again} of them (records cut "
+                     "there)" if again else ""), file=o)
     if realtime:
         for j, bk in enumerate(res["brake"]):
             if bk:

@@ -76,6 +76,19 @@ class AlignedDecoder:
     def parse(self, buf):
         raise NotImplementedError
 
+    def unframed(self) -> bool:
+        """Whether bytes read since the last frame taken have made none yet: held (a
+        frame's start, or bytes not tried yet) or dropped realigning. The evidence, before
+        any desync is counted, that a device may have lost its place (a host's watchdog is
+        told so: :meth:`hapsim.drivers.torque_watchdog.TorqueWatchdog.suspect`); a frame
+        split across two reads is held too, until its rest comes.
+
+        Returns
+        -------
+        bool
+        """
+        return bool(self._buf) or self._realigning
+
     def starts_frame(self, byte: int) -> bool:
         """Whether a frame can start with ``byte`` (:attr:`confirm_next`: the byte after a
         window; by default any)."""

@@ -208,6 +208,12 @@ class ResyncRule:
             return True
         return False
 
+    def answered(self) -> None:
+        """A re-synchronisation made for another reason (the host watchdog's robust
+        write, :mod:`hapsim.pipeline.haply2_record`): the desyncs counted so far are
+        answered by it, and call for none more (not counted here)."""
+        self._seen = self._stats.get("desync", 0)
+
 
 class HaplyM3(Driver):
     """A Haply M3 board joint as a 1-DoF rotary axis (module notes).

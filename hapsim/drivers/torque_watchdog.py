@@ -46,10 +46,18 @@ before the host fell silent, with no evidence read yet to say so, the zero comma
 reach no motor: the silence's second write, at :data:`ROBUST_AFTER` bounds, is the robust
 one, at the last angle the host published (:meth:`TorqueWatchdog.angle`; a host publishes
 one once its link has shown it loses bytes), so that such a board holds its force for at
-most ``ROBUST_AFTER`` bounds plus a check and the latency.
+most ``ROBUST_AFTER`` bounds plus a check and the latency. A robust write may also carry
+no value (``robust=(data, None)``: the Haply 2DIY's re-arming at its fixed arming
+offsets, two encoders; its host follows it with a re-arming of its own,
+:mod:`hapsim.pipeline.haply2_record`): the host then says its link is lossy with
+:meth:`TorqueWatchdog.lossy`.
 The watchdog quits when its parent does: at once when the host had closed it or left no
 force held, after one write when the host died (killed, crashed) armed with a force held
-(the robust one while the board is suspect).
+not yet answered, or answered by the zero command alone (a host stopped, then killed):
+the robust one whenever there is one (no host is left to account a set-up, and the host
+may have died in the very bytes that lost the board its place, before any evidence: a
+2DIY whose parser lost its motors' addresses held a dead host's torque after its zero
+command, tests/test_haply2_watchdog.py), else the zero command.
 
 Layout of the shared page: native int64 fields, see ``_F``.
 """
@@ -146,7 +154,7 @@ class TorqueWatchdog:
         Instead of opening ``port`` (then only named in messages): ``(kind, fd, *args)``,
         a file descriptor of this process the watchdog inherits and writes to,
         ``("usbfs", fd, endpoint)`` or ``("stamped", fd)`` (:data:`_SINKS`).
-    robust : (bytes, int), optional
+    robust : (bytes, int or None), optional
         For a board without framing: ``(data, index)``, the write that zeroes the force
         whatever the board's parser is inside (the driver's ``stop_bytes``: zero writes
         around a set-up), written instead of ``zero`` while the host says the board may
@@ -155,12 +163,16 @@ class TorqueWatchdog:
         (:meth:`suspect`'s ``value``). ``zero`` reaches no motor on a board whose parser
         lost the motor's address (a reset read out of a torque's bytes): 1.5 % of the
         parser's states under 1 byte in 200 lost (tests/test_host_watchdog.py).
+        ``index`` None: the write carries no value, written as it is (the 2DIY's
+        re-arming at its arming offsets; :meth:`lossy` instead of :meth:`angle`).
 
     Attributes
     ----------
     bound_s : float
     check_s : float
         The watchdog's check interval [s] (``bound_s / 4``).
+    robust : bool
+        It has a robust write.
 
     Raises
     ------
@@ -175,7 +187,8 @@ class TorqueWatchdog:
                  sink: tuple | None = None, robust: tuple | None = None) -> None:
         if not bound_s > 0:
             raise ValueError(f"bound_s must be > 0, got {bound_s!r}")
-        if robust is not None and not 0 <= int(robust[1]) <= len(robust[0]) - 4:
+        if (robust is not None and robust[1] is not None
+                and not 0 <= int(robust[1]) <= len(robust[0]) - 4):
             raise ValueError(f"the robust write's value index {robust[1]!r} is not within "
                              f"its {len(robust[0])} bytes")
         target, fds = port, ()
@@ -187,6 +200,8 @@ class TorqueWatchdog:
             fds = (fd_sink,)
         self.bound_s = float(bound_s)
         self.check_s = self.bound_s / 4
+        #: Whether it has a robust write (``robust`` given).
+        self.robust = robust is not None
         self._taken = 0
         self._robust_taken = 0
         self._robust_new = 0
@@ -200,7 +215,7 @@ class TorqueWatchdog:
                 [sys.executable, "-I", "-S", os.path.abspath(__file__), path, target,
                  zero.hex(), str(int(self.bound_s * 1e9)), str(os.getpid()),
                  str(int(rt_priority)), robust[0].hex() if robust else "",
-                 str(int(robust[1])) if robust else "-1"],
+                 str(int(robust[1])) if robust and robust[1] is not None else "-1"],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL, close_fds=True, pass_fds=fds,
                 start_new_session=True)     # (a terminal's signals are the host's)
@@ -300,6 +315,12 @@ class TorqueWatchdog:
             The joint's last angle read [deg] (the set-up's encoder offset).
         """
         self._page.set("angle", 1 << 32 | int.from_bytes(_F32.pack(value), "little"))
+
+    def lossy(self) -> None:
+        """The host's link has shown it loses bytes: a long silence's robust write goes
+        (:data:`ROBUST_AFTER`), for a robust write that carries no value (``robust=(data,
+        None)``; :meth:`angle` for one that does)."""
+        self._page.set("angle", 1 << 32)
 
     def write(self, ser, data: bytes, holding: bool) -> tuple:
         """The host writes ``data``: its time stamped first (the silence the watchdog
@@ -423,7 +444,7 @@ def start_watchdog(port: str, zero: bytes, bound_s: float, *, sink: tuple | None
         (:data:`hapsim.drivers.resync.HOLD_BOUND_S`).
     sink : tuple, optional
         :class:`TorqueWatchdog`'s ``sink``: an inherited file instead of ``port``.
-    robust : (bytes, int), optional
+    robust : (bytes, int or None), optional
         :class:`TorqueWatchdog`'s ``robust``.
 
     Returns
@@ -585,16 +606,22 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
     page = _Page(os.open(path, os.O_RDWR))
     stop = [] if stop is None else stop
 
-    def data(late: bool) -> tuple:
+    def data(late: bool, dying: bool = False) -> tuple:
         """The write to make, whether it is the robust one and its value's bits: the
         robust one while the host suspects the board lost its place, its value patched
-        in, or in a long silence (``late``) at the host's last angle; else the zero
-        command."""
+        in, or in a long silence (``late``) at the host's last angle, or for a host that
+        died (``dying``: at its last value if any, else as it is); else the zero command.
+        A robust write with no value (``at`` < 0) is written as it is."""
         word = page.get("suspect") if robust else 0
-        if not word and late:
+        if not word and (late or dying) and robust:
             word = page.get("angle")
+        if not word and dying and robust:
+            word = 1 << 32 | int.from_bytes(robust[at:at + 4], "little") if at >= 0 \
+                else 1 << 32
         if word:
             bits = word & 0xFFFFFFFF
+            if at < 0:
+                return robust, 1, bits
             return robust[:at] + bits.to_bytes(4, "little") + robust[at + 4:], 1, bits
         return zero, 0, 0
     try:
@@ -664,12 +691,18 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
                 page.set("robust_for", 0)
     if rest:
         rest = finish(REST_S)
+    beat = page.get("beat")
     if (not stop and not page.get("quit") and held()
-            and page.get("fired_for") != page.get("beat")):
-        # the host died (killed, crashed) armed, its last write a force not yet zeroed:
-        # the board would hold it until someone writes; the port is still ours
+            and (page.get("fired_for") != beat
+                 or (robust and page.get("robust_for") != beat))):
+        # the host died (killed, crashed) armed, its last write a force not yet zeroed
+        # (or zeroed by the zero command alone, which a board that lost its place does
+        # not take: a host stopped, then killed): the board would hold it until someone
+        # writes; the port is still ours. The robust write when there is one (module
+        # notes): the host may have died in the bytes that lost the board its place,
+        # with no evidence read
         try:
-            write(data(False)[0], 1.0)      # (a full buffer waited for, 1 s at most)
+            write(data(False, dying=True)[0], 1.0)  # (a full buffer waited for, 1 s at most)
         except OSError:
             pass
 

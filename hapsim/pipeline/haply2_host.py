@@ -286,8 +286,13 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         (estimated samples per record), ``late_ticks`` (per record), ``replies``
         (replies read per record, of ``writes``), ``left`` and ``brake`` per record (the
         tick the joints left the envelope, -1 if none; the braking after it,
-        :func:`record_realtime`'s, or None), ``resyncs`` and ``skipped`` (bytes
+        :func:`record_realtime`'s, or None), ``resyncs`` (the loop's
+        re-synchronisations, the re-arming at a record's end, and those after the
+        watchdog's robust writes) and ``skipped`` (bytes
         that made no reply) per record, ``stalls`` (host stalls per record),
+        ``watchdog`` (:func:`hapsim.drivers.torque_watchdog.watchdog_report`'s, with per
+        record ``zeroed``, ``replies`` and ``resyncs``: its writes, their replies dropped,
+        its robust writes each followed by the host's re-arming),
         ``held_zero`` (ticks written at zero torque for want of a fresh sample,
         :data:`hapsim.pipeline.haply2_record.HOLD_BOUND_S`), ``probes`` and
         ``realigned`` per record (markers sent, and their answers that moved the count of
@@ -332,9 +337,13 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     wd, wd_why = None, "a lockstep board: its time is the writes'"
     if not lockstep_board:
         # the board has no watchdog: the host's beside it (hapsim.drivers.host_watchdog)
+        # with its robust write (the loop's re-arming: a board whose parser lost its
+        # place takes no zero command; hapsim.pipeline.haply2_record.watchdog_robust)
         from hapsim.drivers.resync import HOLD_BOUND_S
         from hapsim.drivers.torque_watchdog import start_watchdog
-        wd, wd_why = (start_watchdog(port, drv.write_bytes((0.0, 0.0)), HOLD_BOUND_S)
+        from hapsim.pipeline.haply2_record import watchdog_robust
+        wd, wd_why = (start_watchdog(port, drv.write_bytes((0.0, 0.0)), HOLD_BOUND_S,
+                                     robust=watchdog_robust(drv, scene))
                       if own else (None, "a port object, not a device file"))
     try:
         if probe_wiring:
@@ -400,7 +409,9 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     out = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude,
                                excluded=excluded)
     out["direction_probe"] = None if probe is None else probe.to_dict()
-    resyncs = [r["resyncs"] + r["rearmed_at_end"] for r in runs]
+    # (the host's re-armings after the watchdog's robust writes among them)
+    resyncs = [r["resyncs"] + r["rearmed_at_end"] + r.get("watchdog_resyncs", 0)
+               for r in runs]
     stalls = [int(r["stalled"].sum()) for r in runs]
     zeroed = [int(r["held_zero"]) for r in runs]
     left = [int(r.get("left", -1)) for r in runs]
@@ -465,7 +476,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                probes=[int(r.get("probes", 0)) for r in runs],
                left=left, brake=[r.get("brake") for r in runs],
                watchdog=dict(wd_report, zeroed=[r.get("watchdog_zeroed", 0) for r in runs],
-                             replies=[r.get("watchdog_replies", 0) for r in runs]))
+                             replies=[r.get("watchdog_replies", 0) for r in runs],
+                             resyncs=[r.get("watchdog_resyncs", 0) for r in runs]))
     return out
 
 

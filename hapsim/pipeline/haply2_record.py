@@ -55,7 +55,11 @@ taken for a board out of step. An estimated tick whose newest reading is older t
 :data:`HOLD_BOUND_S` writes zero torque (no watchdog on the board holds it otherwise);
 a host that does not run at all cannot, and the host's watchdog beside it does
 (``watchdog``, :mod:`hapsim.drivers.host_watchdog`: its zero write after
-:data:`HOLD_BOUND_S` of the host's silence is a write of its own, its reply dropped).
+:data:`HOLD_BOUND_S` of the host's silence is a write of its own, its reply dropped; while
+bytes read made no reply yet, or in a long silence of a link that has lost bytes, its
+write is the robust one, :func:`watchdog_robust`, the loop's re-arming, which a board
+whose parser lost its place takes where it takes no zero command: the host, awake, reads
+no reply after it and re-arms the board itself, the record cut there).
 The loop is linear and time-invariant between disturbances, so a record is cut at each
 (a stall, a run of missing replies, a zeroed tick, a re-synchronisation, a torque at the
 clamp: :func:`hapsim.pipeline.haply2_host.usable_rows`) and its undisturbed stretches
@@ -95,7 +99,8 @@ from hapsim.errors import DeviceError
 from hapsim.pipeline.haply2_port import PortLink, read_waiting as _read, write_all as _write
 from hapsim.pipeline.haply2_realign import SILENT_COUNT, Realigner
 
-__all__ = ["record_realtime", "PortLink", "ENVELOPE_RAD", "WORKSPACE_RAD"]
+__all__ = ["record_realtime", "watchdog_robust", "PortLink", "ENVELOPE_RAD",
+           "WORKSPACE_RAD"]
 
 #: Longest wait for the first reply after a set-up [s] (a board process just started
 #: loads its compiled plant first).
@@ -177,6 +182,36 @@ REARM_SENDS = 20
 AWAKE_GAP_S = 2e-3
 
 
+def watchdog_robust(driver: Haply2DIY, scene) -> tuple:
+    """The 2DIY's robust write for the host's watchdog
+    (:class:`hapsim.drivers.torque_watchdog.TorqueWatchdog`'s ``robust``): the loop's own
+    re-arming at the scene's operating point (:meth:`hapsim.drivers.haply2.Haply2DIY.
+    arm_bytes`: a zero write, :data:`~hapsim.drivers.haply.LONGEST_WAIT` zero bytes, two
+    bytes 3, the set-up, a zero write; zero torque whatever the board's parser is inside),
+    carrying no value.
+
+    Fixed arming offsets, not the joints last read: the set-up carries two encoder
+    offsets, and the loop re-arms at the operating point (module notes: the emulated
+    board's hand holds the handle there at each set-up; a real board's angles are then off
+    by the motion since the arming, within :data:`ENVELOPE_RAD`). A live host follows the
+    watchdog's set-up with a re-arming of its own (:func:`record_realtime`), so the angles
+    the board reads after it are never taken for motion; a dead host's board is left at
+    zero torque.
+
+    Parameters
+    ----------
+    driver : hapsim.drivers.haply2.Haply2DIY
+    scene : hapsim.scene.SceneND
+        A 2-D pantograph scene (its operating point's joints [rad]).
+
+    Returns
+    -------
+    (bytes, None)
+        80 bytes and no value index.
+    """
+    return driver.arm_bytes([math.degrees(v) for v in scene.device.joints]), None
+
+
 def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                     lockstep_board: bool = False, running: bool = False,
                     brake: bool | None = None, watchdog=None) -> dict:
@@ -219,6 +254,14 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         own): armed from the arming's reply to the record's closing zero write; each of
         its zero writes is a write of its own, whose reply is dropped (counted
         ``watchdog_zeroed``, ``watchdog_replies``; :mod:`hapsim.drivers.host_watchdog`).
+        With a robust write (:func:`watchdog_robust`) the loop tells it when bytes read
+        made no reply yet (``suspect``: its write in a silence is then the robust one)
+        and, once the link has shown it loses bytes (a damaged reply, a desync, a
+        re-synchronisation since the first arming), that a long silence's write must be
+        the robust one too (``lossy``); a robust write taken is the board set up again
+        by the watchdog: no reply is taken after it, the host re-arms the board itself at
+        that tick (``resynced``, the record cut there, counted ``watchdog_resyncs``), or at
+        the record's end (``rearmed_at_end``).
 
     Returns
     -------
@@ -237,7 +280,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         ``held_zero`` (estimated ticks written at zero torque: no fresh sample for
         :data:`HOLD_BOUND_S`), ``bad_setups`` (armings whose first reply did not come or did not read the
         offsets sent, armed again), ``rearmed_at_end`` (the closing zero write's reply
-        did not come: the board was re-armed to leave it at zero torque), ``decoder``
+        did not come, or the watchdog's robust write came before it: the board was
+        re-armed to leave it at zero torque), ``watchdog_zeroed``,
+        ``watchdog_replies``, ``watchdog_resyncs`` (the watchdog's writes, their replies
+        dropped, its robust writes, each followed by a re-arming of the host's),
+        ``decoder``
         (the reply decoder's counters: ``frames``, ``skipped``, ``desync``,
         ``damaged``), ``write_s`` (N, 2) [s]: when the host's write whose reply is row
         ``k``'s sample began and ended (``perf_counter``, from the first one's start;
@@ -357,18 +404,42 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             got += 1
             replies += 1
             j += 1
+        if wd_rob:
+            # bytes read since the last reply that made none (the board may have lost
+            # its place: the watchdog's write in a silence is then its robust one),
+            # told on a change only
+            on = dec.unframed()
+            if on != wd_susp[0]:
+                wd_susp[0] = on
+                watchdog.suspect(on)
 
     zero = driver.write_bytes((0.0, 0.0))
     # the host watchdog's zero writes not answered yet: the host write each went out
     # before (its reply comes after that write's predecessor's); zero writes, replies
     wd_before: deque = deque()
-    wd_count = [0, 0]
+    # zero writes, their replies, robust writes taken (each followed by a re-arming)
+    wd_count = [0, 0, 0]
+    # the watchdog has a robust write (watchdog_robust: the re-arming at the arming's
+    # offsets); the board suspect as told it; a robust write taken, the re-arming due;
+    # the link shown lossy (told once), and the evidence's count at the first arming
+    wd_rob = watchdog is not None and bool(getattr(watchdog, "robust", False))
+    wd_susp = [False]
+    wd_due = [False]
+    wd_lossy = [False, -1]
 
     def wd_note(before: int, times) -> None:
-        """The watchdog's writes ``times``, made before host write ``before``."""
+        """The watchdog's writes ``times``, made before host write ``before``; a robust
+        one among them (the board set up again at the arming's offsets: its answers
+        unknown in number, one of them reading the set-up's offsets) makes a re-arming
+        due, before any more replies are taken (module notes)."""
         if times:
             wd_before.extend([before] * len(times))
             wd_count[0] += len(times)
+            if wd_rob:
+                n = watchdog.take_robust()[0]
+                if n:
+                    wd_count[2] += n
+                    wd_due[0] = True
 
     link = PortLink(ser)                    # (its write: write_all's DeviceError)
 
@@ -399,6 +470,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             watchdog.arm(False)                 # (its waits are on purpose)
             wd_note(k, watchdog.take())         # (drained below with the rest)
             wd_before.clear()
+            wd_due[0] = False                   # (a robust write: this re-arming follows)
+            if wd_susp[0]:
+                wd_susp[0] = False
+                watchdog.suspect(False)
         data = driver.arm_bytes(at_deg)
         # the first set-up waits for a board process that loads its plant first; the
         # others for a board already running
@@ -459,6 +534,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             if got == k + 1 and np.max(np.abs(np.degrees(qr[k]) - at_deg)) <= dec.max_step:
                 rearm_sends = 0
                 if watchdog is not None:
+                    if wd_lossy[1] < 0:         # (the evidence counted from here)
+                        wd_lossy[1] = _evidence()
                     watchdog.arm()
                 return
             if bounded and got == k:
@@ -476,6 +553,12 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             raise DeviceError(f"no reply from the 2DIY after {ARM_TRIES} set-ups")
         raise DeviceError(f"the 2DIY's first reply after {ARM_TRIES} set-ups did not read "
                           "the offsets sent: the stream corrupts its set-ups")
+
+    def _evidence() -> int:
+        """The link's evidence that it loses bytes so far: damaged replies, desyncs,
+        re-synchronisations (the loop's and the watchdog's)."""
+        st = dec.stats
+        return st["damaged"] + st["desync"] + rule.count + wd_count[2]
 
     def _await_setup(at_deg) -> bool:
         """A re-arming's evidence: a reply, among what the board sent after the bytes,
@@ -586,7 +669,16 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         g0 = got
         if watchdog is not None:
             wd_note(k + 1, watchdog.take())     # (its writes since write k)
-        take(_read(ser))
+            if wd_rob and not wd_lossy[0] and 0 <= wd_lossy[1] != _evidence():
+                # the link has shown it loses bytes since the first arming: a long
+                # silence's robust write goes too (torque_watchdog.ROBUST_AFTER)
+                wd_lossy[0] = True
+                watchdog.lossy()
+        if not wd_due[0]:
+            # (after a robust write of the watchdog's the bytes waiting may be its
+            # answers, one reading the set-up's offsets: no motion; the re-arming below
+            # drains them)
+            take(_read(ser))
         # behind for SILENT_COUNT ticks, though replies come: a board late (it catches up
         # within a few: the backlog comes in one read), or a write it swallowed (a host
         # byte lost: firmware V1.5 completes the write with the next one's first byte and
@@ -608,10 +700,15 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         if realign.lost:
             unanswered = SILENT_WRITES + 1          # (markers unanswered, or answers too many)
             mark = False
-        if rule.due(unanswered):
-            # the board lost its place (module notes): zero torque first, the set-up;
-            # its reply is this tick's sample, and the clock starts again from it (the
-            # time it took is counted)
+        if wd_due[0] or rule.due(unanswered):
+            # the board lost its place (module notes), or the watchdog set it up again
+            # (its robust write: the host follows it with its own, so that the count of
+            # replies and the record start again from a set-up of its own; the record is
+            # cut here, usable_rows): zero torque first, the set-up; its reply is this
+            # tick's sample, and the clock starts again from it (the time it took is
+            # counted)
+            if wd_due[0]:
+                rule.answered()
             t_r = time.perf_counter()
             arm(q0deg, k)
             resynced[k] = True
@@ -739,12 +836,14 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             # the loop: a reply read late is a late sample
             dec.elapsed(time.perf_counter() - t_wrote[seen])
             take(data)
-        while seen < K + 1 and time.monotonic() < end:
+        while seen < K + 1 and time.monotonic() < end and not wd_due[0]:
             n0 = replies
             _awake_wait(lambda: replies != n0 or seen >= K + 1, SILENT_S, take_late)
             if replies == n0:
                 break
-    rearmed_at_end = seen < K + 1
+    # (a robust write of the watchdog's before the closing zero write: its answers
+    # unknown, the board re-armed by the host too)
+    rearmed_at_end = seen < K + 1 or wd_due[0]
     if rearmed_at_end:
         # (a write swallowed at the end leaves the count short: the rows in doubt)
         realign.drop_open(K + 1)
@@ -753,6 +852,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "estimated": est[:N], "lag": lag[:N], "late_ticks": late, "replies": replies,
             "writes": K + 2 + wd_count[0], "readings": xr[:N].copy(), "resyncs": rule.count,
             "watchdog_zeroed": wd_count[0], "watchdog_replies": wd_count[1],
+            "watchdog_resyncs": wd_count[2],
             "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
             "stall_s": stall_s, "held_zero": held_zero, "bad_setups": bad_setups,
             "left": left, "brake": brake_out,

@@ -1,0 +1,265 @@
+"""The Haply 2DIY's host watchdog writes its robust stop (:func:`hapsim.pipeline.haply2_record.
+watchdog_robust`: the loop's re-arming, zero torque whatever the board's parser is inside)
+when the board may have lost its place, and the 2DIY's record loop survives it.
+
+The board is the emulated 2DIY in its child process behind a pty, on its own clock
+(:class:`hapsim.pipeline.haply2_embedded.Embedded2DIY`, at a real-time priority above the
+host's, as a microcontroller is never descheduled); the host's silences are real ones.
+The fault is one stray byte ``0x00`` written to the board on the host's side of the pty
+(a host byte too many): firmware V1.5's parser reads it as a reset, which clears every
+port's address and keeps the torque (``Haply_M3_Firmware_V1_5.h`` lines 144-164;
+:class:`hapsim.emulated.haply_firmware.CommandDecoder`), so that no write, the zero
+command included, reaches a motor until a set-up: the board holds its torque. Helpers
+are tests/test_host_watchdog.py's (the 1-DoF watchdog's tests).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hapsim.drivers.haply import LONGEST_WAIT
+from hapsim.drivers.resync import HOLD_BOUND_S
+from hapsim.drivers.torque_watchdog import ROBUST_AFTER, watchdog_text
+from hapsim.emulated.haply2_board import PASS_S, SETUP_S
+
+from test_host_watchdog import (BOARD_PRIORITY, LATENCY_S, SILENCE_S, _2diy_run,  # same dir
+                                _gone, _stated)
+
+WALL = Path(__file__).resolve().parent.parent / "configs" / "pantograph_wall.yaml"
+#: The stray byte: a reset on the board (module notes).
+STRAY = b"\x00"
+#: What the robust write itself takes on the board [s], from its first byte to its
+#: closing zero write taking effect: one command a pass (``.ino`` lines 59-64, at most one
+#: per 50 us), at most one per byte of its 80 (the zero write, LONGEST_WAIT zero bytes,
+#: two 3s, the set-up, the zero write), and the set-up's two encoders' 2 ms waits
+#: (``.h`` lines 441-442): 80 x 50 us + 4 ms = 8 ms. A bound, not a measurement.
+ROBUST_S = (10 + LONGEST_WAIT + 2 + 26 + 10) * PASS_S + 2 * SETUP_S
+#: The watchdog's check interval [s] (``bound_s / 4``).
+CHECK_S = HOLD_BOUND_S / 4
+
+
+def _host_code(port: str, robust: bool, at: int, action: str) -> str:
+    """A 2DIY host process's code: the record loop (:func:`hapsim.pipeline.haply2_record.
+    record_realtime`, two records of 300 ticks: the first one's hand starts from rest,
+    the second's moves) on ``port`` with its watchdog (its robust write or not), the
+    watchdog's pid printed; at the loop's ``at``-th tick the stray byte
+    written to the board, and then (``action``) ``"kill"``: SIGKILL of itself at once;
+    ``"stop"``: SIGSTOP of itself two ticks later (the board's answers to those two
+    writes read: bytes that made no reply); ``"stop at once"``: SIGSTOP of itself at
+    once, on a link that lost its place 200 ticks before (the host re-synchronised
+    the board then: a lossy link); ``"stop clean"``: the same on a link that had lost
+    nothing before."""
+    root = str(Path(__file__).resolve().parent.parent)
+    return "\n".join([
+        "import os, signal, sys",
+        f"sys.path.insert(0, {root!r})",
+        "import serial",
+        "from hapsim.engine import Engine",
+        "from hapsim.scene import load_scene_nd",
+        "from hapsim.drivers.haply2 import Haply2DIY",
+        "from hapsim.drivers.resync import HOLD_BOUND_S",
+        "from hapsim.drivers.torque_watchdog import start_watchdog",
+        "from hapsim.pipeline.haply2_record import record_realtime, watchdog_robust",
+        "from hapsim.pipeline.haply2_realign import Realigner",
+        f"sc = load_scene_nd({str(WALL)!r})",
+        "drv = Haply2DIY('gen3', resolution=2.0 ** 22)",
+        f"ser = serial.serial_for_url({port!r}, baudrate=115200, timeout=0,"
+        " write_timeout=1.0)",
+        f"wd, why = start_watchdog({port!r}, drv.write_bytes((0.0, 0.0)), HOLD_BOUND_S,"
+        f" robust=watchdog_robust(drv, sc) if {robust!r} else None)",
+        "print(wd._proc.pid, flush=True)",
+        f"fd = os.open({port!r}, os.O_WRONLY | os.O_NOCTTY)",
+        "n = [0]",
+        "tick_end = Realigner.tick_end",
+        "def hook(self, k, got, resynced):",
+        "    n[0] += 1",
+        f"    if n[0] == {at}:",
+        f"        os.write(fd, {STRAY!r})",
+        f"        if {action!r} == 'kill':",
+        "            os.kill(os.getpid(), signal.SIGKILL)",
+        f"    if n[0] == {at} + 2 and {action!r} == 'stop':",
+        "        os.kill(os.getpid(), signal.SIGSTOP)",
+        f"    if n[0] == {at} and {action!r} in ('stop at once', 'stop clean'):",
+        "        os.kill(os.getpid(), signal.SIGSTOP)",
+        f"    if n[0] == {at} - 200 and {action!r} == 'stop at once':",
+        f"        os.write(fd, {STRAY!r})       # (an earlier loss: the link is lossy)",
+        "    return tick_end(self, k, got, resynced)",
+        "Realigner.tick_end = hook",
+        "Engine(sc).step()",
+        "for j in range(2):",
+        "    record_realtime(ser, drv, sc, 300, watchdog=wd, running=j > 0)",
+        "print('not stopped', flush=True)"])
+
+
+def _faulted_host(action: str, robust: bool = True, at: int = 305):
+    """The emulated 2DIY (its own clock) and a host process (:func:`_host_code`) that
+    writes the stray byte at its ``at``-th tick and is killed or stopped; a stopped host
+    is killed 0.4 s later (its watchdog answered the silence: no write at its death).
+    Returns the board's report (once the port is closed by all: the host, its
+    watchdog, this test) and whether the watchdog process had gone."""
+    from hapsim.pipeline.haply2_embedded import Embedded2DIY
+    child = Embedded2DIY(str(WALL), "gen3", amplitude=1e-4, cpr=2.0 ** 22,
+                         rt_priority=BOARD_PRIORITY)
+    host = None
+    try:
+        host = subprocess.Popen([sys.executable, "-c", _host_code(child.port, robust, at,
+                                                                  action)],
+                                stdout=subprocess.PIPE, text=True, start_new_session=True)
+        wd_pid = int(host.stdout.readline())
+        if action.startswith("stop"):
+            end = time.monotonic() + 30.0
+            while time.monotonic() < end:       # (until it has stopped itself)
+                with open(f"/proc/{host.pid}/stat") as f:
+                    if f.read().rsplit(")", 1)[1].split()[0] == "T":
+                        break
+                time.sleep(0.005)
+            time.sleep(0.4)                     # its silence: 20 bounds
+            os.killpg(host.pid, signal.SIGKILL)
+        host.wait(30)
+        end = time.monotonic() + 3.0            # (its parent gone: it quits)
+        while not _gone(wd_pid) and time.monotonic() < end:
+            time.sleep(0.01)
+        gone = _gone(wd_pid)
+        child.release_slave()
+        rep = child.report(5.0)
+    finally:
+        if host is not None and host.poll() is None:
+            os.killpg(host.pid, signal.SIGKILL)
+            host.wait(10)
+        child.close()
+    return rep, gone
+
+
+@pytest.mark.parametrize("action", ["kill", "stop"])
+def test_a_2diy_whose_parser_lost_its_motors_is_zeroed_when_its_host_dies_or_stops(action):
+    """A host killed at once after a stray byte reset the board's parser (no evidence
+    read), or stopped two ticks after it (the board's answers to those writes read,
+    bytes that made no reply): the watchdog's write is the robust one, and the board's
+    torque ends at zero within the bound, a check and the latency, plus the robust
+    write's own time on the board (:data:`ROBUST_S`), and the board's own lateness
+    (its count). The control, the zero command alone, is
+    :func:`test_a_2diy_whose_parser_lost_its_motors_holds_the_torque_on_the_zero_command`."""
+    rep, gone = _faulted_host(action)
+    assert rep is not None and gone, (rep, gone)
+    assert rep["held_at_end"] == 0.0, rep
+    # the dead host's: its death noticed within a check; the stopped one's: the silence's
+    # bound and a check (LATENCY_S, test_host_watchdog's allowance, covers the latency)
+    bound = (CHECK_S if action == "kill" else HOLD_BOUND_S + CHECK_S) + LATENCY_S
+    assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
+        rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
+
+
+def test_a_lossy_2diy_link_stopped_in_the_bytes_that_lost_its_place_gets_the_robust_write():
+    """A host stopped at once after the stray byte (no evidence read), on a link that
+    lost its place 200 ticks before (re-synchronised then): the zero command at the
+    bound reaches no motor, and the silence's second write, at ``ROBUST_AFTER`` bounds,
+    is the robust one (the link lossy): the board's torque ends at zero within
+    ``ROBUST_AFTER`` bounds, a check and the latency, plus the robust write's own time
+    and the board's lateness. (On a link that has lost nothing no robust write goes in a
+    silence before evidence is read: docs/drivers.md, "The host's watchdog".)"""
+    rep, gone = _faulted_host("stop at once")
+    assert rep is not None and gone, (rep, gone)
+    assert rep["held_at_end"] == 0.0, rep
+    bound = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + LATENCY_S
+    assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
+        rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
+    # (the zero command came first and did nothing: a hold past the first bound)
+    assert rep["longest_hold_s"] > HOLD_BOUND_S, rep["longest_hold_s"]
+
+
+def test_a_clean_2diy_link_stopped_in_its_first_lost_byte_is_zeroed_when_the_host_dies():
+    """What is left open, measured: a host stopped at once after the first byte its link
+    ever lost (no evidence read, no lossy link) gets the zero command only, which reaches
+    no motor: the board holds its torque for the whole stop (0.4 s here); once the
+    stopped host is killed, the watchdog's dying write is the robust one (the silence had
+    the zero command alone) and the board is left at zero. (Before, the silence counted
+    as answered and the dead host's torque stayed on.)"""
+    rep, gone = _faulted_host("stop clean")
+    assert rep is not None and gone, (rep, gone)
+    assert rep["held_at_end"] == 0.0, rep
+    assert rep["longest_hold_s"] >= 0.4, rep["longest_hold_s"]
+
+
+def test_a_2diy_whose_parser_lost_its_motors_holds_the_torque_on_the_zero_command():
+    """The control: the same killed host with a watchdog that has only the zero command
+    (the 2DIY's before): its write reaches no motor and the board holds the dead host's
+    torque (so the test above can fail)."""
+    rep, gone = _faulted_host("kill", robust=False)
+    assert rep is not None and gone, (rep, gone)
+    assert rep["held_at_end"] > 0.0, rep
+
+
+def test_a_live_host_follows_the_watchdogs_robust_write_with_its_own_rearming(monkeypatch):
+    """A live host across a robust write: the stray byte resets the board's parser before
+    write 28, the host reads the board's answers to two writes (bytes that made no
+    reply: suspect) and is silent for five bounds at the 30th tick: the watchdog's write
+    in that silence is the robust one; the host, awake, re-arms the board at once
+    (counted as the watchdog's, ``resyncs``, at the first tick after the silence:
+    ``resynced``), the record is cut from the fault to past the re-arming (no row of
+    the corrupted stretch enters the fit), the five records complete and the board is
+    left at zero, having held a torque no longer than the stated bound plus the robust
+    write's time."""
+    from hapsim.pipeline.haply2_host import usable_rows
+    recs = []
+    r, rep = _2diy_run(monkeypatch, SILENCE_S, at_tick=30, stray=STRAY, stray_tick=28,
+                       records=recs)
+    wd = r["watchdog"]
+    assert wd["running"] and wd["robust"] >= 1, wd
+    assert sum(wd["resyncs"]) == wd["robust"] and wd["resyncs"][0] >= 1, wd
+    assert r["resyncs"][0] >= wd["resyncs"][0], (r["resyncs"], wd)
+    # the run's report says so (the 1-DoF report's wording)
+    assert "with the set-up around it" in watchdog_text(wd, "the zero command"), wd
+    assert len(recs) == 5 and rep["held_at_end"] == 0.0, (len(recs), rep)
+    assert rep["longest_hold_s"] <= _stated(wd) + ROBUST_S + 2e-3 + rep["longest_gap_s"], (
+        rep["longest_hold_s"], rep["longest_gap_s"], wd)
+    # the record of the fault: re-armed at the tick after the silence (tick 30: the 31st
+    # tick_end), cut from the row before the stray byte's write to past the re-arming
+    # and the scene's delay; the rest measured
+    rec = recs[0]
+    s = int(np.flatnonzero(rec["resynced"])[0])
+    assert s == 30 and rec["stalled"][s], (np.flatnonzero(rec["resynced"]), rec["stalled"][s])
+    d = 1                                   # (configs/pantograph_wall.yaml's delay)
+    use = rec["usable"]
+    assert np.array_equal(use, usable_rows(rec, d, T=1e-3))
+    assert not use[27:s + d + 2].any(), np.flatnonzero(use[20:40]) + 20
+    assert use[s + d + 2:].sum() >= 10 and r["usable"][0] == use.sum(), r["usable"]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_no_fault_no_robust_write(monkeypatch, seed):
+    """The property, over random silences of 0-100 ms at a random tick with no byte lost
+    or added: the watchdog never writes its robust stop (no bytes that made no reply,
+    no lossy link) and the host never re-arms for it; a silence past the bound and a
+    check gets the zero command."""
+    rng = np.random.default_rng(seed)
+    silence = float(rng.uniform(0.0, 5 * HOLD_BOUND_S))
+    r, rep = _2diy_run(monkeypatch, silence, at_tick=int(rng.integers(10, 50)))
+    wd = r["watchdog"]
+    assert wd["running"] and wd["robust"] == 0 and sum(wd["resyncs"]) == 0, (silence, wd)
+    if silence >= HOLD_BOUND_S + CHECK_S + LATENCY_S:
+        assert wd["fired"] >= 1, (silence, wd)
+    assert rep["held_at_end"] == 0.0, rep
+
+
+if __name__ == "__main__":
+    # the figures docs/drivers.md quotes ("The host's watchdog"): each faulted host
+    # ``runs`` times, the board's longest hold [ms] and the torque left [N m]
+    # (PYTHONPATH=. python tests/test_haply2_watchdog.py [runs])
+    runs = int(sys.argv[1]) if len(sys.argv) > 1 else 5
+    print(f"load {os.getloadavg()[0]:.1f}, {os.cpu_count()} CPUs; bound "
+          f"{HOLD_BOUND_S * 1e3:g} ms, check {CHECK_S * 1e3:g} ms, robust write "
+          f"{ROBUST_S * 1e3:.1f} ms")
+    for action, robust in (("kill", True), ("stop", True), ("stop at once", True),
+                           ("kill", False)):
+        got = [_faulted_host(action, robust)[0] for _ in range(runs)]
+        print(f"{action:12s} {'robust' if robust else 'zero command only':17s} hold ms "
+              + " ".join(f"{g['longest_hold_s'] * 1e3:.1f}" for g in got)
+              + " | board late ms " + " ".join(f"{g['longest_gap_s'] * 1e3:.1f}" for g in got)
+              + " | held at end N m " + " ".join(f"{g['held_at_end']:.1e}" for g in got))
