@@ -170,8 +170,11 @@ def test_a_lossy_2diy_link_stopped_in_the_bytes_that_lost_its_place_gets_the_rob
     bound = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + LATENCY_S
     assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
         rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
-    # (the zero command came first and did nothing: a hold past the first bound)
-    assert rep["longest_hold_s"] > HOLD_BOUND_S, rep["longest_hold_s"]
+    # (the zero command came first and did nothing: a hold past the longest the zero
+    # command, taken, would have left, the bound, a check, the latency and the board's
+    # lateness)
+    assert rep["longest_hold_s"] > (HOLD_BOUND_S + CHECK_S + LATENCY_S
+                                    + rep["longest_gap_s"]), rep
 
 
 def test_a_clean_2diy_link_stopped_in_its_first_lost_byte_is_zeroed_when_the_host_dies():
@@ -213,11 +216,16 @@ def test_a_live_host_follows_the_watchdogs_robust_write_with_its_own_rearming(mo
     wd = r["watchdog"]
     assert wd["running"] and wd["robust"] >= 1, wd
     assert sum(wd["resyncs"]) == wd["robust"] and wd["resyncs"][0] >= 1, wd
-    assert r["resyncs"][0] >= wd["resyncs"][0], (r["resyncs"], wd)
+    # (the record's re-armings: the watchdog's counted once, none for the fault itself)
+    assert recs[0]["watchdog_resyncs"] == wd["resyncs"][0], (recs[0]["watchdog_resyncs"], wd)
+    assert r["resyncs"][0] == recs[0]["resyncs"] + wd["resyncs"][0] + (
+        recs[0]["rearmed_at_end"] and not recs[0]["rearmed_for_watchdog"]), r["resyncs"]
     # the run's report says so (the 1-DoF report's wording)
     assert "with the set-up around it" in watchdog_text(wd, "the zero command"), wd
     assert len(recs) == 5 and rep["held_at_end"] == 0.0, (len(recs), rep)
-    assert rep["longest_hold_s"] <= _stated(wd) + ROBUST_S + 2e-3 + rep["longest_gap_s"], (
+    # (the stated bound, the robust write's time and the board's own lateness, no more:
+    # measured 24-31 ms inside it, six runs at load 3.6 on 2 CPUs)
+    assert rep["longest_hold_s"] <= _stated(wd) + ROBUST_S + rep["longest_gap_s"], (
         rep["longest_hold_s"], rep["longest_gap_s"], wd)
     # the record of the fault: re-armed at the tick after the silence (tick 30: the 31st
     # tick_end), cut from the row before the stray byte's write to past the re-arming
@@ -229,7 +237,12 @@ def test_a_live_host_follows_the_watchdogs_robust_write_with_its_own_rearming(mo
     use = rec["usable"]
     assert np.array_equal(use, usable_rows(rec, d, T=1e-3))
     assert not use[27:s + d + 2].any(), np.flatnonzero(use[20:40]) + 20
-    assert use[s + d + 2:].sum() >= 10 and r["usable"][0] == use.sum(), r["usable"]
+    assert r["usable"][0] == use.sum(), r["usable"]
+    # the cut is the re-arming's own: without the host's stalls and write times (the
+    # stray byte's 3 ms and the silence are stalls, which cut these rows by themselves),
+    # the rows from the stray byte's write to past the re-arming are still cut
+    bare = {key: v for key, v in rec.items() if key not in ("stalled", "write_s")}
+    assert not usable_rows(bare, d, T=1e-3)[27:s + d + 2].any()
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -174,16 +174,17 @@ def test_watchdog_refuses_a_port_that_is_no_device_and_quits_with_its_parent():
     assert not alive
 
 
-def _host_code(port: str, bound_s: float, holding: bool, end: str) -> str:
-    """A host process's code: a watchdog on ``port`` with ``bound_s``, armed, the host's
-    write ``HOST`` (``holding``: leaving a force held), the watchdog's pid printed, then
-    ``end``."""
+def _host_code(port: str, bound_s: float, holding: bool, end: str,
+               robust: tuple | None = None) -> str:
+    """A host process's code: a watchdog on ``port`` with ``bound_s`` (and ``robust``),
+    armed, the host's write ``HOST`` (``holding``: leaving a force held), the watchdog's
+    pid printed, then ``end``."""
     root = os.path.dirname(os.path.dirname(tw.__file__)).rsplit("/hapsim", 1)[0]
     return "\n".join([
         "import os, sys, time",
         f"sys.path.insert(0, {root!r})",
         "from hapsim.drivers.torque_watchdog import TorqueWatchdog as W",
-        f"w = W({port!r}, b'ZERO', {bound_s!r})",
+        f"w = W({port!r}, b'ZERO', {bound_s!r}, robust={robust!r})",
         f"fd = os.open({port!r}, os.O_WRONLY | os.O_NOCTTY)",
         "class P:",
         "    def write(self, d):",
@@ -232,6 +233,40 @@ def test_a_host_that_dies_holding_a_force_gets_one_zero_write(holding):
     assert wire == (b"HOST" + b"ZERO" if holding else b"HOST"), wire
     if holding:
         assert t_zero - t_dead < 1.0, t_zero - t_dead
+    assert gone
+
+
+@pytest.mark.parametrize("case", ["no angle", "angle", "no value"])
+def test_a_dying_host_with_a_robust_write_gets_the_robust_one(case):
+    """A host that dies armed right after writing a force, its watchdog holding a robust
+    write (the M3's: a set-up whose float is the encoder offset; the 2DIY's: no value):
+    the dying write is the robust one (no host is left to account its set-up, and the
+    host may have died in the bytes that lost the board its place), its float the angle
+    the host last published, else the one it was given, else written as it is."""
+    import struct
+    data = b"RBST" + struct.pack("<f", 12.5) + b"END"
+    robust = (data, None) if case == "no value" else (data, 4)
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    end = ("w.angle(30.0)\n" if case == "angle" else "") + "os._exit(0)"
+    code = _host_code(os.ttyname(slave), 2.0, True, end, robust=robust)
+    try:
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=30)
+        pid = int(out.stdout.split()[0])
+        wire = b""
+        end_t = time.monotonic() + 1.2         # (the check interval 0.5 s, and 0.5 s more)
+        while time.monotonic() < end_t and not wire.endswith(b"END"):
+            wire += _read_all(master, 0.01)
+        end_t = time.monotonic() + 3.0
+        while not _gone(pid) and time.monotonic() < end_t:
+            time.sleep(0.01)
+        gone = _gone(pid)
+    finally:
+        os.close(slave)
+        os.close(master)
+    want = data if case != "angle" else b"RBST" + struct.pack("<f", 30.0) + b"END"
+    assert wire == b"HOST" + want, wire
     assert gone
 
 

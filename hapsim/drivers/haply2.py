@@ -246,7 +246,7 @@ class Haply2DIY:
         outlast any wait; 556 (:data:`~hapsim.drivers.haply.LONGEST_COMMAND`, before) were
         278 resets, one a pass of at least 50 us (``.ino`` lines 59-64): 14 ms of board
         time with a garbage torque held before the set-up, and 600 bytes of which 1 lost
-        in 200 loses at least one 95 % of the time (76 bytes now: 32 %).
+        in 200 loses at least one 95 % of the time (80 bytes now: 33 %).
         """
         return resync_bytes(self.write_bytes((0.0, 0.0)), self.setup_bytes(joints_deg),
                             zeros=LONGEST_WAIT)

@@ -335,6 +335,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     runs = []
     probe = None
     wd, wd_why = None, "a lockstep board: its time is the writes'"
+    ended = False
     if not lockstep_board:
         # the board has no watchdog: the host's beside it (hapsim.drivers.host_watchdog)
         # with its robust write (the loop's re-arming: a board whose parser lost its
@@ -347,22 +348,28 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                       if own else (None, "a port object, not a device file"))
     try:
         if probe_wiring:
+            from hapsim.errors import IdentificationError
             # each joint's wiring before any torque loop runs (paced on the host's clock:
             # a board on its own clock moves in real time; a lockstep board advances one
             # period per write: unpaced, each reply waited for)
             from hapsim.emulated.haply2_board import PROBE_ENVELOPE, PROBE_TORQUE
             from hapsim.drivers.haply2_probe import find_directions
-            probe = find_directions(drv, PortLink(ser),
-                                    [math.degrees(v) for v in scene.device.joints],
-                                    force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
-                                    rate_hz=scene.rate_hz, pace=not lockstep_board,
-                                    timeout=0.5,
-                                    first_timeout=ARM_TIMEOUT)
+            try:
+                probe = find_directions(drv, PortLink(ser),
+                                        [math.degrees(v) for v in scene.device.joints],
+                                        force_limit=PROBE_TORQUE, envelope=PROBE_ENVELOPE,
+                                        rate_hz=scene.rate_hz, pace=not lockstep_board,
+                                        timeout=0.5,
+                                        first_timeout=ARM_TIMEOUT)
+            except IdentificationError:
+                ended = True                # (the probe's refusal: its stop made, in step)
+                raise
         for j in range(5):
             runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board,
                                         running=j > 0 or probe is not None, watchdog=wd))
             if progress is not None:
                 progress(j + 1, 5)
+        ended = True
     finally:
         from hapsim.drivers.torque_watchdog import watchdog_report
         wd_report = watchdog_report(wd, wd_why)
@@ -370,7 +377,15 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
             wd.close()
         if own:
             try:
-                ser.write(drv.write_bytes((0.0, 0.0)))
+                # a run cut short (Ctrl-C, an error) may have left the board's parser out
+                # of step, where the zero command reaches no motor: the re-arming then
+                # (zero torque whatever the parser is inside; the watchdog, closed, makes
+                # no dying write); a record's end left it in step
+                if ended or lockstep_board:
+                    ser.write(drv.write_bytes((0.0, 0.0)))
+                else:
+                    from hapsim.pipeline.haply2_record import watchdog_robust
+                    ser.write(watchdog_robust(drv, scene)[0])
                 ser.flush()
             except Exception:  # best effort: the port may be gone
                 pass
@@ -410,8 +425,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                                excluded=excluded)
     out["direction_probe"] = None if probe is None else probe.to_dict()
     # (the host's re-armings after the watchdog's robust writes among them)
-    resyncs = [r["resyncs"] + r["rearmed_at_end"] + r.get("watchdog_resyncs", 0)
-               for r in runs]
+    resyncs = [r["resyncs"] + (r["rearmed_at_end"] and not r.get("rearmed_for_watchdog"))
+               + r.get("watchdog_resyncs", 0) for r in runs]
     stalls = [int(r["stalled"].sum()) for r in runs]
     zeroed = [int(r["held_zero"]) for r in runs]
     left = [int(r.get("left", -1)) for r in runs]

@@ -443,13 +443,26 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
 
     link = PortLink(ser)                    # (its write: write_all's DeviceError)
 
-    def send(data, before: int, holding: bool):
+    def send(data, before: int, holding: bool, swap: bool = True) -> bool:
         """Write ``data``, host write ``before`` (``holding``: it leaves a torque), the
-        watchdog's writes since taken first."""
+        watchdog's writes since taken first (:meth:`TorqueWatchdog.write`'s halves). A
+        robust write of the watchdog's among them (made in the tick's work, after its
+        take: the board set up again at the arming's offsets, in step) gets the zero
+        write instead of a torque computed in the old frame (the re-arming follows at the
+        next tick; ``swap`` False: a marker, whose answer the count awaits, goes as it
+        is, the board zeroed by the robust write holding zero through it); True then."""
         if watchdog is None:
             _write(ser, data)
-        else:
-            wd_note(before, watchdog.write(link, data, holding))
+            return False
+        wd_note(before, watchdog.beat())
+        swap = swap and holding and wd_due[0]
+        if swap:
+            data, holding = zero, False
+        if holding:
+            watchdog.hold(True)                 # (from before the write: a stop inside it)
+        link.write(data)
+        watchdog.hold(holding)
+        return swap
     # the count of replies checked by a marker write when the loop ends ticks behind
     # though replies come (a write swallowed, or a late board: never a wait)
     realign = Realigner(dec, xr, qr)
@@ -471,9 +484,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             wd_note(k, watchdog.take())         # (drained below with the rest)
             wd_before.clear()
             wd_due[0] = False                   # (a robust write: this re-arming follows)
-            if wd_susp[0]:
-                wd_susp[0] = False
-                watchdog.suspect(False)
+            # (told whatever this record last told: the page keeps an earlier record's
+            # flag, and a stale one makes every silence's write the robust one)
+            wd_susp[0] = False
+            watchdog.suspect(False)
         data = driver.arm_bytes(at_deg)
         # the first set-up waits for a board process that loads its plant first; the
         # others for a board already running
@@ -555,10 +569,13 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                           "the offsets sent: the stream corrupts its set-ups")
 
     def _evidence() -> int:
-        """The link's evidence that it loses bytes so far: damaged replies, desyncs,
-        re-synchronisations (the loop's and the watchdog's)."""
+        """The link's evidence that it loses bytes so far: damaged replies, desyncs and
+        writes the board swallowed (a marker's answer: haply2_realign). Not the
+        re-synchronisations of a board that stopped answering (a board late on a loaded
+        machine) nor the watchdog's robust writes (a reply split across two reads makes
+        the board suspect): neither is a byte lost."""
         st = dec.stats
-        return st["damaged"] + st["desync"] + rule.count + wd_count[2]
+        return st["damaged"] + st["desync"] + realign.realigned
 
     def _await_setup(at_deg) -> bool:
         """A re-arming's evidence: a reply, among what the board sent after the bytes,
@@ -667,6 +684,10 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             pass
         dec.elapsed(time.perf_counter() - t_wrote[seen])   # since the last reading's write
         g0 = got
+        # read, then the watchdog's writes taken: it counts a write before making it, so
+        # every answer in the bytes read belongs to a write taken here (taken first, a
+        # robust write made between the take and the read had its answers read as motion)
+        data = _read(ser)
         if watchdog is not None:
             wd_note(k + 1, watchdog.take())     # (its writes since write k)
             if wd_rob and not wd_lossy[0] and 0 <= wd_lossy[1] != _evidence():
@@ -678,7 +699,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             # (after a robust write of the watchdog's the bytes waiting may be its
             # answers, one reading the set-up's offsets: no motion; the re-arming below
             # drains them)
-            take(_read(ser))
+            take(data)
         # behind for SILENT_COUNT ticks, though replies come: a board late (it catches up
         # within a few: the backlog comes in one read), or a write it swallowed (a host
         # byte lost: firmware V1.5 completes the write with the next one's first byte and
@@ -799,7 +820,9 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         pos[k, 1] = x[1]
         write_into(wbuf, tau1, tau2)
         t_began[k + 1] = time.perf_counter()
-        send(realign.marker if mark else wbuf, k + 1, tau1 != 0.0 or tau2 != 0.0)
+        if send(realign.marker if mark else wbuf, k + 1, tau1 != 0.0 or tau2 != 0.0,
+                swap=not mark):
+            torque[k, 0] = torque[k, 1] = 0.0   # (the zero write went: send)
         t_wrote[k + 1] = time.perf_counter()
     # zero torque (no watchdog), and the late replies, counted. The zero write's reply,
     # read in step, says the board took it as a write (only a flipped top exponent bit
@@ -818,6 +841,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     t_wrote[K + 1] = time.perf_counter()
     if watchdog is not None:
         watchdog.arm(False)                     # (zero torque held: the record's end)
+        wd_note(K + 1, watchdog.take())         # (its writes up to the disarming)
     if lockstep_board:
         end = time.monotonic() + END_WAIT_S
         while seen < K + 1 and time.monotonic() < end:
@@ -844,6 +868,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
     # (a robust write of the watchdog's before the closing zero write: its answers
     # unknown, the board re-armed by the host too)
     rearmed_at_end = seen < K + 1 or wd_due[0]
+    rearmed_for_watchdog = bool(wd_due[0])      # (counted in watchdog_resyncs)
     if rearmed_at_end:
         # (a write swallowed at the end leaves the count short: the rows in doubt)
         realign.drop_open(K + 1)
@@ -856,7 +881,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
             "stall_s": stall_s, "held_zero": held_zero, "bad_setups": bad_setups,
             "left": left, "brake": brake_out,
-            "rearmed_at_end": rearmed_at_end, "realigned": realign.realigned,
+            "rearmed_at_end": rearmed_at_end, "rearmed_for_watchdog": rearmed_for_watchdog,
+            "realigned": realign.realigned,
             "probes": realign.probes, "probes_late": realign.late, "probed": probed[:N],
             "decoder": dict(dec.stats),
             "write_s": np.stack([t_began[:N], t_wrote[:N]], axis=1) - t_began[0],
