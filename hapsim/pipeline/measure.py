@@ -59,6 +59,12 @@ def contact_replay(scene: Scene, cols: dict, skipped=None):
 def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
+    A driver's board that renders some time after its read, known within bounds
+    (``prep.pred["render_latency_s"]``, :func:`hapsim.pipeline.render_latency.
+    timed_prediction`): the measurement is made with the loop modelled at the latency
+    within the bounds at which the measured and predicted felt damping agree
+    (:func:`hapsim.pipeline.render_latency.latency_search`), ``prep.pred`` updated to it.
+
     The whole record while it fits in memory; the head once the ring has gone round.
 
     Parameters
@@ -86,7 +92,17 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
         scene's contacts leave no closed stretch long enough: :func:`contact_verdict`).
     """
-    scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
+    if prep.pred.get("render_latency_s") and prep.model_scene is not None:
+        from hapsim.pipeline.render_latency import latency_search
+        return latency_search(prep, lambda p: _identify_at(p, tel, hello, driver))
+    return _identify_at(prep, tel, hello, driver)
+
+
+def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
+    """:func:`identify_run` with the loop modelled as ``prep`` states it
+    (:attr:`PreparedRun.model`: a driver's render latency in its delay)."""
+    scene = prep.model
+    dev, pred, targets = scene.device, prep.pred, prep.targets
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
