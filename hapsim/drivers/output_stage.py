@@ -107,7 +107,8 @@ def sketch_output_from_tp(tp, sign_of=None):
     -------
     out : ndarray, shape (n,)
         The force applied [N]: ``sign * 0.0183 (n / 255)^2 / (rp / rs rh)``, the middle of
-        the two levels where the level is not certain; 0 for a non-finite ``tp``.
+        the two levels where the level is not certain; an infinite ``tp`` the clamp's
+        level 255 (as the firmware's ``duty > 1``), a NaN 0.
     half_width : ndarray, shape (n,)
         Half the difference of the two levels there [N], 0 elsewhere.
     level : ndarray of int64, shape (n,)
@@ -118,17 +119,22 @@ def sketch_output_from_tp(tp, sign_of=None):
     with np.errstate(over="ignore", invalid="ignore"):
         a = np.abs(t)
         q = a / _f32(SKETCH_MOTOR_K)                            # binary32 quotient
-        duty = np.sqrt(q)                                       # binary32 root
-        duty = np.where(duty > _f32(1.0), _f32(1.0), duty)
+        root = np.sqrt(q)                                       # binary32 root
+        duty = np.where(root > _f32(1.0), _f32(1.0), root)
         duty = np.where(duty < _f32(0.0), _f32(0.0), duty)
         v = duty * _f32(SKETCH_LEVELS)                          # binary32 product
         ok = np.isfinite(v)
         v = np.where(ok, v, _f32(0.0))
         n = np.floor(v).astype(np.int64)                        # (int): truncation
-        m = np.rint(v)
-        edge = (m >= 1) & (np.abs(v.astype(np.float64) - m)
-                           <= SKETCH_EDGE_ULPS * np.spacing(np.maximum(v, _f32(1.0)))
-                           .astype(np.float64))
+        # a level's edge in doubt: the product before the clamp within the ulps of a
+        # whole number (past the clamp by more, the duty is 1 exactly: level 255, no doubt)
+        raw = np.where(np.isfinite(root), root * _f32(SKETCH_LEVELS), _f32(np.inf))
+        m = np.rint(raw)
+        edge = (m >= 1) & (m <= SKETCH_LEVELS) & ok & (
+            np.abs(raw.astype(np.float64) - m)
+            <= SKETCH_EDGE_ULPS * np.spacing(np.maximum(np.minimum(raw, _f32(2.0 ** 20)),
+                                                        _f32(1.0))).astype(np.float64))
+        m = np.where(edge, m, 0.0)
     lo = np.where(edge, m - 1, n).astype(np.int64)
     hi = np.where(edge, m, n).astype(np.int64)
     scale = SKETCH_MOTOR_K / (SKETCH_RP / SKETCH_RS * SKETCH_RH)
