@@ -25,7 +25,10 @@ Two boards quantise the force on its way to the motor, and neither says so in a 
   ``pwm_set_resolution(12)`` (.h:173) named to the Due's ``PWM_RESOLUTION`` of 8
   (variant.h:229) by ``mapResolution``'s shift of 4 (pwm01.h:58-66), on a channel whose
   period is ``pwm_max_duty_Ncount`` = 255 counts (pwm01.h:37, 99): the motor gets
-  ``(duty >> 4) / 255`` of 0.123 N m, 256 levels 0.482 mN m apart, truncated toward zero.
+  ``(duty >> 4) / 255`` of 0.123 N m, 256 levels 0.482 mN m apart: the duty truncated,
+  but its top 8 bits taken as a fraction of 255, not of 4095 / 16, so a level lies up
+  to one level below the torque or up to about ``15 k / (255 * 4095)`` of 0.123 N m
+  above it at level ``k`` (0.45 mN m at the top; 0.04 N m gives 0.040035).
 
 Both are deterministic functions of the command's value: the host knows the force the
 motor got for every command it sent, to within the firmware's rounding where a level's

@@ -62,7 +62,7 @@ class HaplyDevice(Actuated):
         485-487) and ``pwm_write_duty`` writes it at the Due's ``PWM_RESOLUTION`` of 8
         bits (randomvibe's ``pwm01.h:58-66, 110-120``; ArduinoCore-sam
         ``variants/arduino_due_x/variant.h:229``) on a period of 255 counts: the motor
-        gets ``(duty >> 4) / 255`` of 0.123 N m, truncated toward zero
+        gets ``(duty >> 4) / 255`` of 0.123 N m (within a level of the torque)
         (:func:`hapsim.drivers.output_stage.m3_output`). 0 (named): the float applied
         exactly, as this board did before.
 

@@ -116,13 +116,13 @@ def timed_prediction(scene, driver) -> tuple:
     -------
     tuple
         ``(model_scene, pred)``: the scene the loop is modelled with (``scene`` itself when
-        the driver has no latency, or bounds of 0, or the hold is not ``zoh``) and :func:`hapsim.analysis.prediction.predict` of it;
-        with a latency, ``pred`` also has ``render_latency_s`` (the bounds [s]),
-        ``delay_modelled`` [periods], ``k_spread`` and ``b_spread`` (the largest departure
-        of the felt k [N/m] and b [N s/m] over the range from the middle's, over
-        :data:`SPREAD_POINTS` latencies: how much the latency can move the prediction,
-        for the report; the verdict searches the latency instead,
-        :func:`latency_search`).
+        the driver has no latency, or bounds of 0, or the hold is not ``zoh``) and
+        :func:`hapsim.analysis.prediction.predict` of it; with a latency, ``pred`` also
+        has ``render_latency_s`` (the bounds [s]), ``delay_modelled`` [periods],
+        ``k_spread`` and ``b_spread`` (the largest departure of the felt k [N/m] and b
+        [N s/m] over the range from the middle's, over :data:`SPREAD_POINTS` latencies:
+        how much the latency can move the prediction, for the report; the verdict
+        searches the latency instead, :func:`latency_search`).
 
     Raises
     ------
