@@ -312,7 +312,8 @@ def account_from_force_seq(seq, force, force_seq, status, *, zero_delay: bool = 
 
 
 def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
-                        force_scale: float = 0.0, quantise=None) -> AppliedAccount:
+                        force_scale: float = 0.0, quantise=None,
+                        stage_half_width=None) -> AppliedAccount:
     """The account of a device whose protocol names no applied force (module notes).
 
     Parameters
@@ -335,6 +336,11 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
         The driver's own rule, forces sent [N] -> forces the device receives [N] (its
         :meth:`~hapsim.drivers.base.Driver.applied_force`, the arithmetic its protocol
         encodes with); it replaces ``force_scale``'s nearest multiple.
+    stage_half_width : array_like, shape (n,), optional
+        How far each force in ``force`` is uncertain [N] (a board's output stage whose
+        level the firmware's rounding may name either way:
+        :meth:`hapsim.drivers.base.Driver.output_stage`); carried to the rows that hold
+        it (an ambiguous row: the larger of its two forces').
 
     Returns
     -------
@@ -371,5 +377,10 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
     # with that half-width would leave the other case outside)
     hw = np.where(amb, 0.5 * np.abs(applied - prev), 0.0)
     applied = np.where(amb, 0.5 * (applied + prev), applied)
+    if stage_half_width is not None:
+        sh = np.asarray(stage_half_width, float).reshape(f.shape)
+        own = np.where(src >= 0, sh[np.maximum(src, 0)], 0.0)
+        before = np.where(src >= 1, sh[np.maximum(src - 1, 0)], 0.0)
+        hw = hw + np.where(amb, np.maximum(own, before), own)
     tick = np.where(lt, d + 1, d).astype(np.int64)
     return AppliedAccount(applied, src, tick, d, lt, hw, np.ones(n, bool), "timing")

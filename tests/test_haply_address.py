@@ -61,7 +61,9 @@ def test_the_default_address_is_no_command():
 def test_a_lost_host_byte_costs_one_write_not_the_set_up(seed):
     """Every position of the lost byte in one write (6 bytes) among seeded torques: the
     set-up stays, and from the second write after the damaged one on, each is taken with
-    the torque sent (binary32) and answered with a whole reply ([id][angle], 5 bytes)."""
+    the torque sent (binary32, through the firmware's 256 levels: the driver's
+    ``output_stage``, which the board applies) and answered with a whole reply ([id][angle],
+    5 bytes)."""
     rng = np.random.default_rng(seed)
     torques = rng.uniform(-0.12, 0.12, 8)
     drv = get_driver("haply")
@@ -73,7 +75,7 @@ def test_a_lost_host_byte_costs_one_write_not_the_set_up(seed):
         assert dec.encoder_res[0] == drv.resolution, j
         for i in range(k + 2, len(torques)):
             assert replies[i] == 5, (j, i, replies)
-            assert held[i] == drv.applied_force(float(torques[i])), (j, i)
+            assert held[i] == float(drv.output_stage(np.array([torques[i]]))[0][0]), (j, i)
 
 
 def test_with_address_1_a_lost_byte_loses_the_set_up():

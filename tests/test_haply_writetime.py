@@ -120,12 +120,16 @@ def test_the_correction_removes_the_holds_motion(seed, tmp_path):
     with writes exactly a period apart, to a small part of what the jitter did. An
     encoder of 2^22 counts per revolution, so that the jitter's effect (400 to 1,300
     counts) stands far above the rounding (the M3's 4880 counts: about one count, the
-    rounding's own size)."""
+    rounding's own size). The board applies the torque's float exactly (named,
+    ``torque_levels=0``): its firmware's 256 levels would let the two loops take other
+    levels once apart, a difference that is not the holds' (the measurement takes the
+    levels out as a known input: tests/test_haply_writetime.py's verdicts above)."""
     from hapsim.analysis.write_holds import write_time_terms
     from hapsim.host.telemetry import FLAG_ESTIMATED
     prep, late = _random_case(seed, tmp_path)
-    exact, _, _ = haply_offline_loop(prep.scene, ROWS, resolution=2.0 ** 22)
-    cols, drv, _ = haply_offline_loop(prep.scene, ROWS, write_late=late, resolution=2.0 ** 22)
+    exact, _, _ = haply_offline_loop(prep.scene, ROWS, resolution=2.0 ** 22, torque_levels=0)
+    cols, drv, _ = haply_offline_loop(prep.scene, ROWS, write_late=late, resolution=2.0 ** 22,
+                                      torque_levels=0)
     q = drv.position_scale
     terms = write_time_terms(prep.scene, cols, quantum=q, position_rel=drv.position_rel,
                              flag_estimated=FLAG_ESTIMATED)

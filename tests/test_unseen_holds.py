@@ -98,16 +98,20 @@ def test_the_signature_is_a_holds_disturbance():
     hold_signature`), computed from the record without it, to a few per cent of its norm
     (the force's error taken as an impulse over the period, the rows around the hold
     interpolated), and five times nearer to it than the signature of any other whole
-    number of ticks (so the search finds the hold's own)."""
+    number of ticks (so the search finds the hold's own). The board a sketch that applies
+    the float at its read (``levels=0, render_s=0``, named): the signature is the scene's
+    linear loop's, which the sketch's levels and render latency are not."""
     from hapsim.analysis.error_response import force_error_response, sensor_error_response
     from hapsim.analysis.unseen_holds import hold_signature
     prep = _prep("configs/hapkit_serial.yaml")
     n = 375
-    base, _, _ = hapkit_serial_offline_loop(prep.scene, n)
+    ideal = {"levels": 0, "render_s": 0.0}
+    base, _, _ = hapkit_serial_offline_loop(prep.scene, n, **ideal)
     S = sensor_error_response(prep.scene, n)
     H = force_error_response(prep.scene, n)
     for ticks in (1, 2, 3):
-        cols, _, board = hapkit_serial_offline_loop(prep.scene, n, read_late={100: ticks})
+        cols, _, board = hapkit_serial_offline_loop(prep.scene, n, read_late={100: ticks},
+                                                    **ideal)
         assert board.tick_arrivals["off_at"] == [100, 101]     # its hold and the next
         d = cols["position"] - base["position"]
         assert not np.any(d[:100])

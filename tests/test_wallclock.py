@@ -141,9 +141,12 @@ def test_firefader_silence_zeroes_the_force_at_the_instant_its_polls_run_out():
 @pytest.mark.parametrize("seed", range(4))
 def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     """The sketch takes a command at the 1 kHz tick after it came (its own clock), reads
-    the handle there and applies the force from there, and its reply leaves the 9 bytes'
-    wire time later; over a host pause (no silence rule) the handle moves as the held
-    force over the real time between the two ticks (closed form)."""
+    the handle there and applies the force's level (its sqrt output, 256 levels) from its
+    render's end, :data:`hapsim.drivers.hapkit_serial.RENDER_S` after the read, and its
+    reply (the force's ``Tp``) leaves the 9 bytes' wire time after that; over a host pause
+    (no silence rule) the handle moves as the held level over the real time from the first
+    render to the next tick (closed form)."""
+    from hapsim.drivers.output_stage import sketch_board_output, sketch_tp
     rng = np.random.default_rng(seed)
     m, b = rng.uniform(0.05, 0.3), rng.uniform(0.0, 1.0)
     dev = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), 250.0,
@@ -154,20 +157,22 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     rep = hk.ReplyDecoder().feed(dev.feed(drv.encode_force(f1), now=now))
     tick = (math.floor(now / 1e-3) + 1) * 1e-3
     # measured 0 (generic 0): exact on both targets
-    assert dev.ready_at == pytest.approx(tick + 9 * 10 / 57600, abs=1e-15)
-    assert rep[-1][0] == 0.0 and rep[-1][1] == pytest.approx(f1, rel=2.0 ** -23)
+    assert dev.ready_at == pytest.approx(tick + hk.RENDER_S + 9 * 10 / 57600, abs=1e-15)
+    assert rep[-1][0] == 0.0 and rep[-1][1] == float(sketch_tp([f1])[0])
+    level = float(sketch_board_output([f1])[0])
+    assert 0.0 < abs(level) <= abs(f1) and level * f1 > 0
     pause = rng.uniform(20e-3, 200e-3)
     now2 = now + pause
     rep = hk.ReplyDecoder().feed(dev.feed(drv.encode_force(0.0), now=now2))
     tick2 = (math.floor(now2 / 1e-3) + 1) * 1e-3
-    x, v = _held(0.0, 0.0, m, b, f1, tick2 - tick)
+    x, v = _held(0.0, 0.0, m, b, level, tick2 - tick - hk.RENDER_S)
     assert rep[-1][0] == pytest.approx(x, rel=2.0 ** -23 + _tol(1.0, 60))
     # lockstep (named) would have moved it one period (4 ms) whatever the pause
     lock = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), 250.0,
                               Excitation(), clock="lockstep")
     lock.feed(drv.encode_force(f1))
     lock.feed(drv.encode_force(0.0))
-    assert abs(lock.physics.x - _held(0.0, 0.0, m, b, f1, 4e-3)[0]) <= _tol(x, 2)
+    assert abs(lock.physics.x - _held(0.0, 0.0, m, b, level, 4e-3)[0]) <= _tol(x, 2)
     assert abs(x) > 2 * abs(lock.physics.x)
 
 

@@ -400,10 +400,21 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         np.asarray(computed, float) != np.asarray(cols["force"], float)))
     dev = scene.device
     hook = getattr(driver, "account", None) if driver is not None else None
+    stage = None
     if driver is not None:
         # a driver's STATEs name no applied force (force_seq = seq - d): its account is
         # its own timing's (Driver.account -> hapsim.applied.account_from_timing)
         acc = hook(cols, cols["force"]) if hook is not None else None
+        # a board whose firmware quantises the force on its way to the motor
+        # (Driver.output_stage): the account's forces are the motor's, and the on-time
+        # ones (the forces sent, through the stage) are the reference of the timing's
+        # doubts; the stage's own departure is a known input at every row
+        fn = getattr(driver, "output_stage", None)
+        stage = fn(np.asarray(cols["force"], float)) if fn is not None else None
+        d_drv = getattr(driver, "loop_delay", None)
+        if acc is None and stage is not None and d_drv is not None:
+            from hapsim.applied import account_from_timing
+            acc = account_from_timing(stage[0], int(d_drv), stage_half_width=stage[1])
         if acc is None:
             return pos, late, {}
         # rows whose force the account cannot name at all (an unframed board's parser out
@@ -411,19 +422,24 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         kn = np.asarray(acc.known, bool)
         unknown = {"_unknown_rows": ~kn} if kn.shape == np.shape(pos) and not kn.all() \
             else {}
+        ref = cols["force"] if stage is None else stage[0]
         if not np.any(acc.late) and not n_clamped:
-            # nothing taken out, but the forces it cannot order (a command whose answer
-            # never came: sent, or the one before) are in the stated uncertainty. The
-            # record is measured against the on-time force, so the bound at such a row
-            # is the account's distance from it plus its half-width (the middle of the
-            # two and half their step, 2x the half-width: the half-width alone, stated
-            # before, left the other case outside by as much again)
+            # nothing taken out (but the output stage's departure, below), but the forces
+            # it cannot order (a command whose answer never came: sent, or the one
+            # before) are in the stated uncertainty. The record is measured against the
+            # on-time force, so the bound at such a row is the account's distance from it
+            # plus its half-width (the middle of the two and half their step, 2x the
+            # half-width: the half-width alone, stated before, left the other case
+            # outside by as much again)
             hw = np.asarray(acc.half_width, float)
+            info = dict(unknown)
+            if stage is not None:
+                pos, info = _stage_taken_out(scene, cols, pos, stage[0], acc.delay,
+                                             restarts, info)
             if np.any(hw > 0):
-                w = acc.disturbance(cols["force"], cols["seq"])
-                return pos, late, {"_force_half_width": hw + np.where(hw > 0, np.abs(w),
-                                                                      0.0), **unknown}
-            return pos, late, dict(unknown)
+                w = acc.disturbance(ref, cols["seq"])
+                info["_force_half_width"] = hw + np.where(hw > 0, np.abs(w), 0.0)
+            return pos, late, info
     else:
         # an actuator with steps (HELLO.force_scale: the Hapkit's 256-step PWM) applies
         # the nearest step of every force (the firmware rounds so): a known input at every
@@ -470,7 +486,17 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         info["clamped_accounted"] = n_clamped
     # what the account leaves uncertain (a driver's timing): a force error per sample
     info["_force_half_width"] = np.asarray(acc.half_width, float)
-    info["_late_force_bound"] = late_force_bound(acc, w)
+    if stage is not None:
+        # a late tick's doubt is its distance from the on-time force as the motor got it
+        # (the stage's own departure, taken out at every row, is no doubt)
+        lim_ref = ref if computed is None else np.asarray(computed, float) + (ref - cols[
+            "force"])
+        info["_late_force_bound"] = late_force_bound(acc, acc.disturbance(lim_ref,
+                                                                          cols["seq"]))
+        info["output_stage"] = int(np.count_nonzero(ref != np.asarray(cols["force"],
+                                                                      float)))
+    else:
+        info["_late_force_bound"] = late_force_bound(acc, w)
     if driver is not None and late is not None and np.any(late):
         # a driver's account names which force each row applied, not for how long: a
         # host tick that went out late (the row's late flag) held the force before it
@@ -479,6 +505,29 @@ def late_accounted(scene, cols: dict, hello=None, driver=None, *, restarts=None,
         # as on time)
         return pos - xw, np.asarray(late, bool), info
     return pos - xw, None, info
+
+
+def _stage_taken_out(scene, cols: dict, pos, out, delay: int, restarts, info: dict):
+    """:func:`late_accounted`'s positions with the response to a board's output stage
+    taken out: ``w[k] = out[k - d] - force[k - d]`` on each stretch of consecutive
+    ``seq`` (:meth:`hapsim.applied.AppliedAccount.disturbance` of the on-time forces as
+    the motor got them), through :func:`hapsim.analysis.error_response.
+    disturbance_response`; ``info`` gains ``output_stage`` (the rows whose force the stage
+    changed). Unchanged when the loop's model cannot be built."""
+    from hapsim.applied import account_from_timing
+    from hapsim.analysis.error_response import disturbance_response
+    f = np.asarray(cols["force"], float)
+    w = account_from_timing(out, max(int(delay), 0)).disturbance(f, cols["seq"])
+    seq = np.asarray(cols["seq"], np.int64)
+    cut = np.diff(seq) != 1
+    if restarts is not None:
+        cut |= np.asarray(restarts, bool)[1:]
+    try:
+        xw = disturbance_response(scene, w, starts=np.flatnonzero(cut) + 1)
+    except ConfigError:
+        return pos, info
+    info = dict(info, output_stage=int(np.count_nonzero(out != f)))
+    return pos - xw, info
 
 
 def late_force_bound(acc, w) -> np.ndarray:

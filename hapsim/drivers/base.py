@@ -478,6 +478,31 @@ class Driver:
         quantisation and clamp): what identification must fit against."""
         return float(force)
 
+    def output_stage(self, force):
+        """What the board's firmware makes of the forces its commands carry before its
+        motor gets them, or None (the default: the command's value is applied as it is).
+
+        A board whose firmware quantises the force on its way to the motor (the Hapkit
+        sketch's square-root PWM, the Haply M3's 8-bit duty:
+        :mod:`hapsim.drivers.output_stage`) applies a deterministic function of the value
+        the command carries; the account (:meth:`account`) and the measurement
+        (:func:`hapsim.analysis.measurement.late_accounted`) take the difference out as a
+        known input at every row.
+
+        Parameters
+        ----------
+        force : ndarray, shape (n,)
+            Forces the host sent [N] (before the wire's rounding and the clamp, which
+            this applies too).
+
+        Returns
+        -------
+        tuple of ndarray or None
+            ``(out, half_width)``, each shape (n,): the force the motor gets [N] and how
+            far the firmware's rounding leaves it uncertain [N].
+        """
+        return None
+
     def unknown_force_rows(self, columns: dict):
         """Rows whose applied force no account can name, left out of the measurement, or
         None (the default: every row's force is the one sent, the one before, or named by
@@ -558,8 +583,14 @@ class Driver:
         # at row r - d + 1
         k = np.flatnonzero(est) + d - 1
         amb[k[(k >= 0) & (k < n)]] = True
-        acc = account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale,
-                                  quantise=self.applied_force if self.force_scale > 0 else None)
+        stage = self.output_stage(np.asarray(force, float))
+        if stage is not None:
+            # the board's output stage (Driver.output_stage): the forces its motor got
+            acc = account_from_timing(stage[0], d, ambiguous=amb, stage_half_width=stage[1])
+        else:
+            acc = account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale,
+                                      quantise=self.applied_force if self.force_scale > 0
+                                      else None)
         # the rows whose force no account can name (an unframed board's parser out of
         # step): not known, so identify's fit and run's measurement both leave them out
         unknown = self.unknown_force_rows(columns)

@@ -9,9 +9,17 @@ host -> device, 10 bytes ::
     [header][function][float32 a][float32 b]
     header = type << 4 | motor mask (this driver: type 1, motor 1 -> 0x11)
 
-device -> host, 9 bytes, one per command (on the sketch's next 1 kHz tick) ::
+device -> host, 9 bytes, one per command (after the render that follows its read) ::
 
-    [function][float32 x: handle position, m][float32 force the device applied, N]
+    [function][float32 x: handle position, m][float32 the sketch's Tp, N m, or force, N]
+
+The reply's second float is the motor pulley's torque ``Tp`` the sketch computed
+(``Hapkit_arduino.ino:129`` at the repository's head, haphub/WHC2017 ef6028f) or, in its
+copy of 2017-04-07 (e09075d, ``Virtual-Environment/Hapkit_arduino/Hapkit_arduino.ino:129``),
+the rendered ``force``; neither is the force the motor applies, which the sketch quantises
+on a square-root curve to 256 levels (:mod:`hapsim.drivers.output_stage`). The driver
+tells the two apart from the replies (``reply``), and its account computes the motor's
+force from them.
 
 The published sketch renders its own virtual environments (``function`` picks one, the
 floats are its parameters). To close the THS on the host, the firmware must apply the
@@ -51,6 +59,28 @@ SKETCH_READ_TIMEOUT_S = 1.0 / 64
 #: reply ``[0xA0 + s][x][0.0]`` tells the host by how much
 #: (:meth:`HapkitSerial.realign_bytes`). A float of about -7e-17.
 SHIFT_SIGNATURE = bytes([0xA1, 0xA2, 0xA3, 0xA4])
+#: The time from the sketch's sensor sample to its motor's new duty [s], bounds: the
+#: branch with no byte waiting (``Hapkit_arduino.ino:111-122``) samples in ``analogRead``
+#: (ADC sample-and-hold 1.5 ADC clocks into a 13-clock conversion at 125 kHz: 92 us more
+#: to its end, ATmega328P datasheet, "ADC conversion timing"; the Arduino core's ADC
+#: prescaler 128), then runs ``computePosition``, the render and ``forceOutput``'s binary32
+#: arithmetic (sim.h:130-149, 158-229: a division and a square root among ~12 float
+#: operations, 3100-3600 cycles counted in simavr for avr-gcc -Os, 4900-5800 with
+#: Timer0's overflow interrupt every 256 cycles, which ``setPwmFrequency(5, 1)`` makes,
+#: ``Hapkit_arduino.h:76-91, 123``) and ``analogWrite``, whose compare register Timer0
+#: takes at its next overflow (16 us at most): 0.43-0.50 ms by that count. The independent
+#: board model takes 0.19 ms. The firmware's text fixes neither (a compiler, a core
+#: version): the range covers both, and the run's verdict takes the prediction over it
+#: (:func:`hapsim.pipeline.render_latency.timed_prediction`).
+RENDER_LATENCY_S = (0.15e-3, 0.55e-3)
+#: The emulated board's own render latency [s] (the count above; inside
+#: :data:`RENDER_LATENCY_S`).
+RENDER_S = 0.45e-3
+#: The sketch's Timer1 tick [s]: the overflow interrupt reloads ``TCNT1 = 65474``
+#: (``Hapkit_arduino.h:2``, the ISR at ``Hapkit_arduino.ino:137-140``) on a 16 MHz / 256
+#: prescaler (``Hapkit_arduino.h:62-68``): 62 counts of 16 us, 0.992 ms (its comment,
+#: ``Hapkit_arduino.h:59-60``: "0.992ms period equals 1.008kHz").
+FIRMWARE_TICK_S = 62 * 256 / 16e6
 #: Header byte: type 1 (read encoder data / command) << 4 | motor 1 (Board.format_header).
 HEADER = (1 << 4) | 0x01
 _FF = struct.Struct("<ff")
@@ -257,7 +287,14 @@ class HapkitSerial(Driver):
     #: The oldest unanswered command's wait that, with the above, is evidence [s].
     garbled_s = 0.006
 
-    def __init__(self, function: int = HOST_FORCE_FUNCTION, force_limit: float = 2.0) -> None:
+    #: The sketch's render after its read (:data:`RENDER_LATENCY_S`): the loop's delay is
+    #: the scene's whole periods and this much more, within these bounds [s]
+    #: (:func:`hapsim.pipeline.render_latency.timed_prediction`).
+    render_latency_s = RENDER_LATENCY_S
+
+    def __init__(self, function: int = HOST_FORCE_FUNCTION, force_limit: float = 2.0,
+                 reply: str = "auto", levels: int = 256,
+                 render_latency_s: tuple | list | None = None) -> None:
         from hapsim.errors import ConfigError
         if not 0 <= int(function) <= 255:
             raise ConfigError(f"function code must be 0..255, got {function!r}",
@@ -265,8 +302,62 @@ class HapkitSerial(Driver):
         if not (math.isfinite(force_limit) and force_limit > 0):
             raise ConfigError(f"must be a positive force [N], got {force_limit!r}",
                               key="force_limit")
+        if reply not in ("auto", "Tp", "force"):
+            raise ConfigError(f"the reply's second float: 'Tp' (the repository's head), "
+                              f"'force' (its copy of 2017-04-07) or 'auto', got {reply!r}",
+                              key="reply")
+        if levels not in (256, 0):
+            raise ConfigError(f"the sketch's output levels: 256 (forceOutput's "
+                              f"(int)(255 * duty), Hapkit_Kinematics_Simulation.h:227) or 0 "
+                              f"(a sketch that applies the float as it is), got {levels!r}",
+                              key="levels")
+        if render_latency_s is not None:
+            try:
+                lo, hi = (float(v) for v in render_latency_s)
+            except (TypeError, ValueError):
+                lo, hi = math.nan, math.nan
+            if not (math.isfinite(hi) and 0.0 <= lo <= hi):
+                raise ConfigError(f"must be [low, high] seconds, 0 <= low <= high, got "
+                                  f"{render_latency_s!r}", key="render_latency_s")
+        else:
+            lo, hi = RENDER_LATENCY_S
+        #: The bounds in force [s] (a list: a device file's ``protocol_options``).
+        self.render_latency_s = [float(lo), float(hi)]
         self.function = int(function)
         self.force_limit = float(force_limit)
+        #: The sketch's output levels (``forceOutput``): 256, or 0 for a sketch that
+        #: applies the rendered float as it is (no output stage: :meth:`output_stage`).
+        self.levels = int(levels)
+        #: What the reply's second float is (module notes): ``"Tp"``, ``"force"`` or
+        #: ``"auto"`` (told from the replies by :meth:`account`; the last run's answer in
+        #: :attr:`reply_found`).
+        self.reply = reply
+        self.reply_found = None
+
+    def output_stage(self, force):
+        """The force the sketch's motor makes for the forces sent
+        (:meth:`hapsim.drivers.base.Driver.output_stage`): the command's binary32, clamped
+        at the limit, through ``forceOutput``'s 256 square-root levels
+        (:func:`hapsim.drivers.output_stage.sketch_output`; sim.h:191, 206-229).
+
+        Parameters
+        ----------
+        force : ndarray, shape (n,)
+            Forces sent [N].
+
+        Returns
+        -------
+        tuple of ndarray
+            ``(out, half_width)`` [N], shape (n,).
+        """
+        if not self.levels:
+            return None
+        import numpy as np
+
+        from hapsim.drivers.output_stage import sketch_output
+        f = np.asarray(force, float)
+        f = np.where(np.isfinite(f), np.clip(f, -self.force_limit, self.force_limit), 0.0)
+        return sketch_output(f)
 
     def encode_force(self, force: float) -> bytes:
         """The command for ``force`` [N], clamped to the limit (NaN/inf: 0)."""
@@ -394,24 +485,57 @@ class HapkitSerial(Driver):
         self.replies = ReplyLog()
         return MappedDecoder(ReplyDecoder(self.function), self.replies)
 
-    def account(self, columns: dict, force):
-        """The force the device applied per tick: the sketch's replies name it.
+    def reply_kind(self, tp_on, force_on, got) -> str:
+        """What the replies' second float is (module notes), from the replies themselves
+        unless :attr:`reply` names it: ``"Tp"`` where more replies carry the ``Tp`` of the
+        force sent than the force itself (a force of 0 says nothing: both are 0), else
+        ``"force"``; ``"Tp"`` (the repository's head) when none tells.
 
-        Each reply carries the force the sketch applied from the tick it read the handle
-        at (module notes). A command the sketch took wrongly (a byte lost: its parser
-        took the next command's header as the last byte of a float, a force of ~1e-28 N,
-        or a corrupted float byte) is then no unknown disturbance: the row whose reply
-        says it has that force, a known input the measurement takes out, as a late tick
-        on the framed link. The rows are matched to the replies in order by their
-        position (the binary32 the reply carried, exactly; a reply no row took, from an
-        arming, a record the host dropped or one its decoder held until the next came, is
-        passed over). A row with no reply (``FLAG_ESTIMATED``) may have had its command
-        lost: the force from it on is the one sent, or what the sketch held at the row
-        before -- that row's account, the force its reply named (a damaged command's
-        ~0 N, not the force the host sent) or, itself unknown, its whole interval. The
-        account takes the middle of the two and states half their span (before, "the one
-        before" was the host's sent force, which a damaged command had not applied; two
-        lost commands in a row left the force two back outside).
+        Parameters
+        ----------
+        tp_on, force_on : ndarray, shape (m,)
+            The ``Tp`` and the binary32 force of the command each reply answers.
+        got : ndarray, shape (m,)
+            The replies' second floats.
+
+        Returns
+        -------
+        str
+        """
+        import numpy as np
+        if self.reply != "auto":
+            return self.reply
+        said = force_on != 0
+        n_tp = int(np.count_nonzero(said & (got == tp_on)))
+        n_f = int(np.count_nonzero(said & (got == force_on)))
+        return "force" if n_f > n_tp else "Tp"
+
+    def account(self, columns: dict, force):
+        """The force the device applied per tick: what the sketch rendered, as its replies
+        name it, through its output stage.
+
+        Each reply carries the ``Tp`` (or, in the 2017-04-07 copy, the ``force``) the
+        sketch computed at the render that follows its read of a command (module notes):
+        which command it rendered, not the force its motor applied, which ``forceOutput``
+        cuts to one of 256 levels (:meth:`output_stage`). A command the sketch took
+        wrongly (a byte lost: its parser took the next command's header as the last byte
+        of a float, a force of ~1e-28 N, or a corrupted float byte) is then no unknown
+        disturbance: the row whose reply says it has that render's output, a known input
+        the measurement takes out, as a late tick on the framed link. Every other row
+        holds the force sent through the output stage: a known input too, at every row.
+        The rows are matched to the replies in order by their position (the binary32 the
+        reply carried, exactly; a reply no row took, from an arming, a record the host
+        dropped or one its decoder held until the next came, is passed over). A reply
+        whose value is the sent force's to within the binary32 rounding of ``Tp`` is in
+        step. A row with no reply (``FLAG_ESTIMATED``) may have had its command lost: the
+        force from it on is the one sent, or what the sketch held at the row before --
+        that row's account, the output its reply named (a damaged command's ~0 N, not the
+        force the host sent) or, itself unknown, its whole interval. The account takes
+        the middle of the two and states half their span (before, "the one before" was
+        the host's sent force, which a damaged command had not applied; two lost commands
+        in a row left the force two back outside). Before the output stage, the reply's
+        float was read as the force applied (the head's ``Tp``, 0.43 % of the force, would
+        have been taken for it).
 
         Parameters
         ----------
@@ -423,29 +547,28 @@ class HapkitSerial(Driver):
         Returns
         -------
         hapsim.applied.AppliedAccount or None
-            None when the delay is not known, no reply was logged, or every command was
-            answered with the force sent (:meth:`Driver.account`'s answer then).
+            None when the delay is not known or no reply was logged
+            (:meth:`Driver.account`'s answer then).
         """
         import numpy as np
 
         from hapsim.applied import AppliedAccount, account_from_timing
+        from hapsim.drivers.output_stage import SKETCH_EDGE_ULPS, sketch_output_from_tp, \
+            sketch_tp
         d = getattr(self, "loop_delay", None)
         log = getattr(self, "replies", None)
         flags = columns.get("flags")
         pos = columns.get("position")
         if d is None or log is None or log.n == 0 or flags is None or pos is None:
             return super().account(columns, force)
-        # the forces sent as the sketch receives them (binary32, clamped): a reply that
-        # names the same force is no late tick
+        # the forces sent as the sketch receives them (binary32, clamped), on time
         base = account_from_timing(force, d, quantise=self.applied_force)
+        f_on = base.applied.astype(np.float32)
+        tp_on = sketch_tp(f_on)
         est = (np.asarray(flags) & FLAG_ESTIMATED) != 0
         n = est.size
         xs, fs = log.x[:log.n], log.force[:log.n]
-        applied = base.applied.copy()
-        late = base.late.copy()
-        hw = np.zeros(n)
-        known = base.known.copy()
-        replied = np.zeros(n, bool)
+        rows, got = [], []
         j = 0
         for r in np.flatnonzero(~est):
             # the next reply at this row's position (a few replies at most are passed
@@ -456,11 +579,37 @@ class HapkitSerial(Driver):
             if k >= xs.size or xs[k] != pos[r]:
                 continue
             j = k + 1
-            f = float(fs[k])
-            late[r] = late[r] or f != applied[r]
-            applied[r] = f
-            replied[r] = True
-            known[r] = True
+            rows.append(r)
+            got.append(fs[k])
+        rows = np.asarray(rows, np.int64)
+        got = np.asarray(got, np.float64).astype(np.float32)
+        kind = self.reply_kind(tp_on[rows], f_on[rows], got)
+        self.reply_found = kind
+        tp_got = got if kind == "Tp" else sketch_tp(got)
+        # in step: the reply is the sent force's Tp to within Tp's rounding
+        tol = SKETCH_EDGE_ULPS * np.spacing(np.abs(tp_on[rows]))
+        step = np.abs(tp_got.astype(np.float64) - tp_on[rows].astype(np.float64)) <= tol
+        if self.levels:
+            out_on, hw_on, _ = sketch_output_from_tp(tp_on, sign_of=f_on)
+            out_got, hw_got, _ = sketch_output_from_tp(tp_got, sign_of=tp_got)
+        else:
+            # a sketch that applies the rendered float as it is (levels 0, by name)
+            from hapsim.drivers.output_stage import sketch_gearing
+            out_on, hw_on = f_on.astype(np.float64), np.zeros(n)
+            out_got = (got.astype(np.float64) if kind == "force"
+                       else got.astype(np.float64) / sketch_gearing())
+            hw_got = np.zeros(out_got.size)
+        applied = np.where(base.source >= 0, out_on, 0.0)
+        hw = np.where(base.source >= 0, hw_on, 0.0)
+        late = base.late.copy()
+        known = base.known.copy()
+        replied = np.zeros(n, bool)
+        replied[rows] = True
+        known[rows] = True
+        moved = rows[~step]
+        late[moved] = True
+        applied[moved] = out_got[~step]
+        hw[moved] = hw_got[~step]
         # row r applies the force of the command answered (or not) at row r - d + 1
         amb = np.zeros(n, bool)
         k = np.flatnonzero(est) + d - 1
@@ -469,14 +618,12 @@ class HapkitSerial(Driver):
         unknown = self.unknown_force_rows(columns)
         if unknown is not None:
             known &= ~unknown
-        if not (amb.any() or late.any() or (unknown is not None and unknown.any())):
-            return None
         for r in np.flatnonzero(amb):
-            on = float(base.applied[r])
+            on_lo, on_hi = applied[r] - hw[r], applied[r] + hw[r]
             held_lo = held_hi = 0.0
             if r > 0:
                 held_lo, held_hi = applied[r - 1] - hw[r - 1], applied[r - 1] + hw[r - 1]
-            lo, hi = min(on, held_lo), max(on, held_hi)
+            lo, hi = min(on_lo, held_lo), max(on_hi, held_hi)
             applied[r] = 0.5 * (lo + hi)
             hw[r] = 0.5 * (hi - lo)
         return AppliedAccount(applied, base.source, base.tick_delay, base.delay, late, hw,

@@ -407,8 +407,16 @@ class HaplyM3(Driver):
 
     def __init__(self, device_id: int | None = None, resolution: float = 4880.0,
                  direction: int = 0, offset_deg: float = 0.0,
-                 motor_direction: int | None = None) -> None:
+                 motor_direction: int | None = None, torque_levels: int = 256) -> None:
         from hapsim.errors import ConfigError
+        if torque_levels not in (256, 0):
+            raise ConfigError(f"the board's torque levels: 256 (the 12-bit duty written at "
+                              f"the Due's 8 bits, Haply_M3_Firmware_V1_5.h:489, pwm01.h) "
+                              f"or 0 (a board that applies the float as it is), got "
+                              f"{torque_levels!r}", key="torque_levels")
+        #: The board's torque levels (:meth:`output_stage`): 256, or 0 for a board that
+        #: applies the write's float as it is (no output stage).
+        self.torque_levels = int(torque_levels)
         if device_id is None:
             device_id = DEFAULT_ID
         if not 1 <= int(device_id) <= 255:
@@ -503,6 +511,32 @@ class HaplyM3(Driver):
     def applied_force(self, force: float) -> float:
         """The torque the board receives [N m]: clamped, rounded to binary32."""
         return _F.unpack(self.encode_force(force)[2:])[0]
+
+    def output_stage(self, force):
+        """The torque the board's motor gets for the torques sent
+        (:meth:`hapsim.drivers.base.Driver.output_stage`): the write's binary32, clamped,
+        through ``create_torque``'s 12-bit duty written at the Due's 8 bits, truncated
+        (:func:`hapsim.drivers.output_stage.m3_output`; ``Haply_M3_Firmware_V1_5.h``
+        lines 483-491, ``pwm01.h`` ``pwm_write_duty``, ``variant.h`` ``PWM_RESOLUTION``).
+
+        Parameters
+        ----------
+        force : ndarray, shape (n,)
+            Torques sent [N m].
+
+        Returns
+        -------
+        tuple of ndarray
+            ``(out, half_width)`` [N m], shape (n,); the half-width is 0 (exact).
+        """
+        if not self.torque_levels:
+            return None
+        import numpy as np
+
+        from hapsim.drivers.output_stage import m3_output
+        f = np.asarray(force, float)
+        f = np.where(np.isfinite(f), np.clip(f, -MAX_TORQUE, MAX_TORQUE), 0.0)
+        return m3_output(f)
 
     def decoder(self, inertia: float | None = None):
         """A fresh host decoder returning the joint angle [rad] (whole encoder counts),

@@ -142,6 +142,21 @@ class HapkitSerialDevice(Actuated):
     ``clock="lockstep"`` (named, for deterministic tests): one period per command, the
     reply at once.
 
+    Its output, as the sketch's (haphub/WHC2017 ef6028f,
+    ``Hapkit_Kinematics_Simulation.h``, cited ``sim.h:line`` as
+    :mod:`hapsim.drivers.output_stage` does): the rendered ``force`` is turned to the
+    motor pulley's torque ``Tp = rp/rs * rh * force`` (sim.h:191) and ``forceOutput``
+    writes ``(int)(255 * sqrt(|Tp| / 0.0183))`` (sim.h:218-228): 256 levels on a
+    square-root curve, the force cut to the level below
+    (:func:`hapsim.drivers.output_stage.sketch_board_output`), on either clock. On the wall
+    clock the level takes effect :data:`hapsim.drivers.hapkit_serial.RENDER_S` after the
+    handle's read (``analogRead``, the binary32 render and ``analogWrite`` in one branch
+    of ``loop``, ``Hapkit_arduino.ino:111-122``), and the reply leaves after it. The
+    reply's second float is ``Tp`` (``outdata[1] = Tp``, ``Hapkit_arduino.ino:129`` at the
+    head; ``reply="force"``: the rendered force, its copy of 2017-04-07). ``levels=0`` and
+    ``render_s=0`` (named) are a sketch that applies the float at its read, as this board
+    did before.
+
     Parameters
     ----------
     device, rate_hz, excitation, seed
@@ -150,6 +165,13 @@ class HapkitSerialDevice(Actuated):
         The firmware's force clamp [N].
     clock : {"wall", "lockstep"}
         The board's clock (above).
+    levels : {256, 0}
+        The output's levels: 256 (the sketch's ``forceOutput``) or 0 (the float applied).
+    render_s : float, optional
+        Wall clock: the time from the handle's read to the new duty [s], >= 0 (default
+        :data:`hapsim.drivers.hapkit_serial.RENDER_S`; lockstep: none).
+    reply : {"Tp", "force"}
+        What the reply's second float is (above).
 
     Attributes
     ----------
@@ -166,9 +188,23 @@ class HapkitSerialDevice(Actuated):
     REPLY_WIRE_S = 9 * 10 / 57600
 
     def __init__(self, device, rate_hz: float, excitation=None, *, force_limit: float = 2.0,
-                 clock: str = "wall", seed: int = 0) -> None:
+                 clock: str = "wall", seed: int = 0, levels: int = 256,
+                 render_s: float | None = None, reply: str = "Tp") -> None:
         from hapsim.drivers import hapkit_serial as hk
+        from hapsim.errors import ConfigError
+        if levels not in (256, 0):
+            raise ConfigError(f"must be 256 (the sketch's forceOutput) or 0 (the float "
+                              f"applied), got {levels!r}", key="levels")
+        if reply not in ("Tp", "force"):
+            raise ConfigError(f"must be 'Tp' or 'force', got {reply!r}", key="reply")
+        render_s = hk.RENDER_S if render_s is None else float(render_s)
+        if not (math.isfinite(render_s) and render_s >= 0.0):
+            raise ConfigError(f"must be a time >= 0 [s], got {render_s!r}", key="render_s")
         self._hk = hk
+        self.levels = int(levels)
+        self.render_s = render_s
+        self.reply = reply
+        self._rendered: list = []                     # lockstep: rendered, queued
         self._phases: list = []                       # where in its tick each came
         self._ticks: list = []                        # the tick that took each
         super().__init__(device, rate_hz, excitation, force_limit, seed, clock=clock)
@@ -188,13 +224,34 @@ class HapkitSerialDevice(Actuated):
                 out += self._take(t, fn, b)
             return out
         for f in self.decoder.feed(data):
-            self.apply(f)
-            # the sketch replies with the handle it read and the force it applies from
-            # that tick on (as on the wall clock): the queue's head, not the force of the
-            # period just ended
+            # the force rendered (clamped; a corrupted float: 0), through the output stage
+            r = f if math.isfinite(f) else 0.0
+            r = max(-self.limit, min(self.limit, r))
+            self._rendered.append(r)
+            self.apply(self._output(r))
+            # the sketch replies with the handle it read and what it renders from that
+            # tick on (as on the wall clock): the queue's head, not the period's just ended
+            head = self._rendered[-self.delay] if 0 < self.delay <= len(self._rendered) \
+                else (r if self.delay == 0 else 0.0)
+            del self._rendered[:-max(self.delay, 1)]
             out += self._hk.reply_packet(self.decoder.function, self.physics.sample(),
-                                         self.held_from_now())
+                                         self._reply_value(head))
         return out
+
+    def _output(self, force: float) -> float:
+        """The force the motor makes for a rendered ``force`` [N] (class notes)."""
+        if not self.levels:
+            return float(force)
+        from hapsim.drivers.output_stage import sketch_board_output
+        return float(sketch_board_output([force])[0])
+
+    def _reply_value(self, force: float) -> float:
+        """The reply's second float for a rendered ``force`` [N]: its ``Tp`` [N m] (binary32,
+        sim.h:191) or the force itself (``reply="force"``)."""
+        if self.reply == "force":
+            return float(force)
+        from hapsim.drivers.output_stage import sketch_tp
+        return float(sketch_tp([force])[0])
 
     def _take(self, t: float, fn: int, b: float) -> bytes:
         """Wall clock: a command the sketch read, complete at ``t`` [s]: taken at the tick
@@ -208,9 +265,17 @@ class HapkitSerialDevice(Actuated):
         self.wall.run_to(tick)
         x = self.physics.sample()                     # the handle read at the tick
         f = sketch_force(fn, self.decoder.host_function, b, x, self.physics.v)
-        self.apply(f, now=tick)                       # the force from the tick on
-        self.ready_at = tick + self.REPLY_WIRE_S
-        return self._hk.reply_packet(fn, x, self.wall.settles_on())
+        if abs(f) > self.limit:
+            f = math.copysign(self.limit, f)
+            self.clamped += 1
+        # the level from the render's end on (the handle run to the tick: apply's run_to)
+        self.wall.run_to(tick)
+        self.held = self.wall.held
+        self.last_command = f
+        self.applied.append(self._output(f))
+        self.wall.schedule(tick + self.render_s + self.extra_latency_s, self._output(f))
+        self.ready_at = tick + self.render_s + self.REPLY_WIRE_S
+        return self._hk.reply_packet(fn, x, self._reply_value(f))
 
     def idle(self, silent_s: float) -> bytes:
         """The sketch has no silence rule: it holds its force. On the wall clock, a host
@@ -249,7 +314,8 @@ class HapkitSerialDevice(Actuated):
 
 
 def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
-                               phase: float = 0.5):
+                               phase: float = 0.5, levels: int = 256,
+                               render_s: float | None = None):
     """The Hapkit-serial THS closed offline on a simulated clock: the sketch on its own
     1 kHz tick (:class:`HapkitSerialDevice` with ``clock="wall"``, fed the simulated time
     of each command), hapsim's engine as the host; deterministic, no pty, no real time.
@@ -277,6 +343,10 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         The board's true device when it is not the scene's (a hidden mass or friction).
     phase : float
         Where in its tick the host's writes come [fraction of a tick].
+    levels, render_s
+        The board's output levels and render latency (:class:`HapkitSerialDevice`;
+        ``levels=0, render_s=0``, named: a sketch that applies the float at its read, the
+        driver told so: its ``levels`` 0).
 
     Returns
     -------
@@ -288,11 +358,12 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     """
     from hapsim.drivers.hapkit_serial import HapkitSerial
     sc = scene
-    drv = HapkitSerial()
+    drv = HapkitSerial(levels=levels)
     drv.loop_delay = int(sc.device.delay)
     drv.mistimed_seqs = set()
     drv.own_tick = True                        # the sketch keeps its tick (simulated)
-    board = HapkitSerialDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall")
+    board = HapkitSerialDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall",
+                               levels=levels, render_s=render_s)
     dec = drv.decoder()
     T, tick = sc.period, board.TICK_S
     late = dict(read_late or {})

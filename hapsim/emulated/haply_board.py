@@ -55,6 +55,16 @@ class HaplyDevice(Actuated):
         byte of 1 flips its side (the motor's direction pin, the encoder's pins), so
         the host's bytes drive the joint the right way when ``(-1)^(motor byte + encoder
         byte)`` equals it, and as positive feedback otherwise.
+    torque_levels : {256, 0}
+        The motor's torque levels. 256 (the default, the firmware's): ``create_torque``
+        computes a 12-bit duty ``(int)(4095 * |torque| / 0.123)``
+        (``Haply_M3_Firmware_V1_5.h:467-492``, the clamp at ``MAX_TORQUE`` .h:54,
+        485-487) and ``pwm_write_duty`` writes it at the Due's ``PWM_RESOLUTION`` of 8
+        bits (randomvibe's ``pwm01.h:58-66, 110-120``; ArduinoCore-sam
+        ``variants/arduino_due_x/variant.h:229``) on a period of 255 counts: the motor
+        gets ``(duty >> 4) / 255`` of 0.123 N m (within a level of the torque)
+        (:func:`hapsim.drivers.output_stage.m3_output`). 0 (named): the float applied
+        exactly, as this board did before.
 
     Attributes
     ----------
@@ -71,10 +81,15 @@ class HaplyDevice(Actuated):
 
     def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
                  resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
-                 clock: str = "wall") -> None:
+                 clock: str = "wall", torque_levels: int = 256) -> None:
         from hapsim.drivers import haply as hp
         from hapsim.emulated.haply_firmware import CommandDecoder
         from hapsim.errors import ConfigError
+        if torque_levels not in (256, 0):
+            raise ConfigError(f"must be 256 (the firmware's duty at the Due's 8 bits) or 0 "
+                              f"(the float applied), got {torque_levels!r}",
+                              key="torque_levels")
+        self.torque_levels = int(torque_levels)
         if motor_sign not in (1, -1):
             raise ConfigError(f"must be 1 or -1, got {motor_sign!r}", key="motor_sign")
         self.motor_sign = int(motor_sign)
@@ -160,6 +175,10 @@ class HaplyDevice(Actuated):
                 if not math.isfinite(tau):
                     tau = 0.0                     # (the firmware: a NaN duty is 0)
                 tau = max(-self._hp.MAX_TORQUE, min(self._hp.MAX_TORQUE, tau))
+                if self.torque_levels:
+                    # create_torque's 12-bit duty at the Due's 8 bits (class notes)
+                    from hapsim.drivers.output_stage import m3_output
+                    tau = float(m3_output([tau])[0][0])
                 if dec.motor_direction[0]:
                     tau = -tau
                 tau *= self.motor_sign
@@ -180,7 +199,7 @@ class HaplyDevice(Actuated):
 
 
 def haply_offline_loop(scene, n: int, *, write_late=None, device=None,
-                       resolution: float = 4880.0):
+                       resolution: float = 4880.0, torque_levels: int = 256):
     """The Haply M3 THS closed offline on a simulated clock: the board on its own time
     (:class:`HaplyDevice` with ``clock="wall"``, fed the simulated time of each write),
     hapsim's engine as the host; deterministic, no pty, no real time.
@@ -207,6 +226,8 @@ def haply_offline_loop(scene, n: int, *, write_late=None, device=None,
         The board's true joint when it is not the scene's (a hidden inertia).
     resolution : float, optional
         The encoder's counts per revolution (the set-up's and the board's).
+    torque_levels : {256, 0}
+        The board's torque levels (:class:`HaplyDevice`; 0, named: the float applied).
 
     Returns
     -------
@@ -225,7 +246,7 @@ def haply_offline_loop(scene, n: int, *, write_late=None, device=None,
     drv.loop_delay = int(sc.device.delay)
     drv.own_clock = True                       # the board keeps its time (simulated)
     board = HaplyDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall",
-                        resolution=drv.resolution)
+                        resolution=drv.resolution, torque_levels=torque_levels)
     now = [0.0]
     dec = drv.decoder()
     T = sc.period

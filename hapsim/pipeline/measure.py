@@ -59,6 +59,12 @@ def contact_replay(scene: Scene, cols: dict, skipped=None):
 def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> dict:
     """Step 5: identify the free response logged at the start and compare it.
 
+    A driver's board that renders some time after its read, known within bounds
+    (``prep.pred["render_latency_s"]``, :func:`hapsim.pipeline.render_latency.
+    timed_prediction`): the measurement is made with the loop modelled at the latency
+    within the bounds at which the measured and predicted felt damping agree
+    (:func:`hapsim.pipeline.render_latency.latency_search`), ``prep.pred`` updated to it.
+
     The whole record while it fits in memory; the head once the ring has gone round.
 
     Parameters
@@ -86,7 +92,23 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
         scene's contacts leave no closed stretch long enough: :func:`contact_verdict`).
     """
-    scene, dev, pred, targets = prep.scene, prep.scene.device, prep.pred, prep.targets
+    if prep.pred.get("render_latency_s") and prep.model_scene is not None:
+        from hapsim.pipeline.render_latency import latency_search
+        return latency_search(prep, lambda p, final: _identify_at(
+            p, tel, hello, driver, searching=not final))
+    return _identify_at(prep, tel, hello, driver)
+
+
+def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
+                 searching: bool = False) -> dict:
+    """:func:`identify_run` with the loop modelled as ``prep`` states it
+    (:attr:`PreparedRun.model`: a driver's render latency in its delay). ``searching``:
+    a measurement of :func:`hapsim.pipeline.render_latency.latency_search`'s search, the
+    review of a "differs" on a board's unseen holds left out (a test of the record that
+    the run makes once, at the latency found: made at each latency tried, it had as many
+    chances to explain a device that differs away)."""
+    scene = prep.model
+    dev, pred, targets = scene.device, prep.pred, prep.targets
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
@@ -298,7 +320,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
             f"{measured['link_k_unc']:.3g}, b +-{measured['link_b_unc']:.3g}); rerun "
             "with the board in lockstep to measure the loop")
     review = measured.pop("_unseen", None)
-    if review is not None and measured.get("within") is False:
+    if review is not None and measured.get("within") is False and not searching:
         # a board on its own tick: the "differs" stands only where the predicted loop,
         # broken where its unseen holds may have struck, does not explain the record
         from hapsim.pipeline.unseen_review import review_differs

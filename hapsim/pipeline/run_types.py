@@ -41,6 +41,11 @@ class PreparedRun:
         Telemetry head (identification window) and ring [samples].
     base_dir : str or None
         Directory of the scene file (profiles are relative to it).
+    model_scene : Scene or None
+        The scene the loop is predicted and measured with when it is not ``scene``: a
+        driver's board that renders a command after it read the handle adds that latency
+        to the delay (:func:`hapsim.pipeline.render_latency.timed_prediction`); None:
+        ``scene``.
     """
 
     scene: Scene
@@ -52,6 +57,13 @@ class PreparedRun:
     n_window: int
     n_ring: int
     base_dir: str | None
+    model_scene: Scene | None = None
+
+    @property
+    def model(self) -> Scene:
+        """The scene the loop is predicted and measured with (:attr:`model_scene`, else
+        :attr:`scene`)."""
+        return self.scene if self.model_scene is None else self.model_scene
 
 
 @dataclass

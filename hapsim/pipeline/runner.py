@@ -38,6 +38,7 @@ import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
+from hapsim.pipeline.render_latency import timed_prediction
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
@@ -101,9 +102,15 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
                           "real-time run needs d >= 1 (or --lockstep; a driver's board "
                           "such as the FireFader's takes d < 1 from its own timing)",
                           file=scene.path, key="device.delay")
-    pred = predict(scene)
+    # a board that renders after its read (its driver's render latency, as configured):
+    # the loop's delay is the scene's and that; a lockstep board has no time of its own
+    drv_lat = None
+    if opts.driver is not None and not opts.lockstep:
+        from hapsim.drivers import get_driver
+        drv_lat = get_driver(opts.driver, **(opts.driver_options or {}))
+    model, pred = timed_prediction(scene, drv_lat)
     if pred["stable"] is False and not opts.allow_unstable:
-        raise refusal(scene, pred)
+        raise refusal(model, pred)
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
@@ -117,7 +124,7 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     n_window = max(int(round(window * scene.rate_hz)), 1)
     n_ring = max(int(round(RING_SECONDS * scene.rate_hz)), 1)
     return PreparedRun(scene, targets, pred, exc_end, window, n_samples, n_window, n_ring,
-                       base_dir)
+                       base_dir, None if model is scene else model)
 
 
 def _check_size(scene: Scene, duration: float, window: float, asked: bool,
