@@ -364,7 +364,7 @@ class Resynchronising:
         the host closes in its own (translation-invariant: the measurement's stretches, cut
         at each re-synchronisation's ``seq`` gap, fit their own initial states), so the
         sum of these bounds is what the joint's real position may differ from the host's
-        readings by (:func:`hapsim.pipeline.runner.timing_verdict`).
+        readings by (:func:`hapsim.pipeline.measure.timing_verdict`).
 
         Parameters
         ----------

@@ -42,7 +42,8 @@ from hapsim.pipeline.render_latency import timed_prediction
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
-from hapsim.pipeline.measure import identify_run
+from hapsim.pipeline.measure import (LATE_SHARE_MAX, identify_run,  # noqa: F401
+                                     timing_verdict)
 from hapsim.emulated.mock import MockDevice
 from hapsim.pipeline.options import RunOptions
 from hapsim.host.realtime import RealtimePriority
@@ -585,12 +586,6 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
             "writer_error": wi.get("error")}
 
 
-#: A driver's run (host-clocked) whose host missed its deadline in more than this share
-#: of its ticks is not the THS the prediction describes: the device held older forces for
-#: varying times (a late or stalled host), so its record does not state the felt pair.
-LATE_SHARE_MAX = 0.02
-
-
 def _workspace(tel, config) -> tuple[float, float]:
     """The host's largest reading's magnitude over the run and its position bound [m or
     rad] (:func:`timing_verdict`); a ring that went round has rows no longer in memory:
@@ -601,70 +596,6 @@ def _workspace(tel, config) -> tuple[float, float]:
         return (bound if tel.wrapped else 0.0), bound
     xs = np.abs(np.asarray(tel.columns()["position"], float))
     return float(np.nanmax(xs, initial=0.0)), bound
-
-
-def timing_verdict(measured: dict, res, link: dict, *, wall: bool = True,
-                   workspace: tuple[float, float] | None = None) -> None:
-    """Withdraw a driver's run's verdict when its timing or its link leaves the record
-    outside the THS (in place): more than :data:`LATE_SHARE_MAX` of the ticks late by a
-    period or more (``res.overruns``), or re-synchronisations whose frame errors may have
-    taken the device out of its workspace. The verdict becomes ``not measurable`` with
-    the reason; the fit stays in the record for who wants to see it.
-
-    A re-synchronisation sets the board's count to the host's estimate of the angle, so
-    the board's frame moves by that estimate's error, at most the transport's
-    ``frame_bound`` summed over the run
-    (:meth:`hapsim.drivers.resync.Resynchronising._frame_error_bound`). The host closes
-    its loop in its own frame, and the law there does not depend on where that frame
-    sits (a spring's rest moves with it, in the joint's real frame): the record is cut
-    at each re-synchronisation (``seq`` skips), and each stretch is a free response of
-    the same loop from its own initial state, so a frame's error does not enter the fit
-    (issue 29: 80 lossy runs of a matching joint on the simulated clock, 0 to 4
-    re-synchronisations, all within; 60 of a joint 30 % heavier, none within,
-    ``tests/test_haply_lossy_verdict.py``). What it does move is the joint's real
-    position: up to the summed bound from the host's readings, and a joint beyond its
-    workspace (the run's position bound: its end stops, the hand's reach) is not the THS.
-    Before, a fixed count (more than two) withdrew it whatever they cost.
-
-    Parameters
-    ----------
-    measured : dict
-        :func:`hapsim.pipeline.measure.identify_run`'s result.
-    res : hapsim.host.loop_types.LoopResult
-        The loop's counters (``overruns``, ``samples``).
-    link : dict
-        The driver transport's ``stats`` (``resyncs``, ``frame_bound`` [m or rad]; a
-        transport without it: an unbounded frame).
-    wall : bool
-        The device kept its own time (not a lockstep run, where the host paces the device:
-        lateness costs nothing and a re-synchronised board has not moved meanwhile).
-    workspace : (float, float), optional
-        The host's largest reading's magnitude and the run's position bound [m or rad];
-        None: no workspace stated, the frame's errors not checked.
-    """
-    if not wall:
-        return
-    ticks = max(int(res.samples), 1)
-    late = int(getattr(res, "overruns", 0) or 0)
-    resyncs = int(link.get("resyncs", 0))
-    why = []
-    if late > LATE_SHARE_MAX * ticks:
-        why.append(f"the host missed its deadline in {late} of {ticks} ticks "
-                   f"({100.0 * late / ticks:.1f} % > {100 * LATE_SHARE_MAX:g} %): the device "
-                   f"held older forces for varying times, so the record is not the THS; "
-                   f"rerun on a quieter machine, at a lower rate, or with --lockstep")
-    if resyncs and workspace is not None:
-        bound = float(link.get("frame_bound", math.inf))
-        reading, limit = (float(v) for v in workspace)
-        if not reading + bound <= limit:
-            why.append(f"the board was re-synchronised {resyncs} times, each setting its "
-                       f"count to an estimate: the device may be {bound:.4g} from the host's "
-                       f"readings (largest {reading:.4g}), beyond the workspace's {limit:.4g}")
-    if not why or "k" not in measured:
-        return
-    measured["within"] = False
-    measured["comparable"] = False
-    measured["verdict"] = "not measurable: " + "; ".join(why)
 
 
 def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dict:
