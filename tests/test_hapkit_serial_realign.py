@@ -49,7 +49,7 @@ M, B0 = 0.1, 0.3             # the paddle [kg], its friction [N s/m]
 K, BV = 50.0, 0.2            # the virtual spring [N/m] and damper [N s/m]
 
 
-from test_haply_silence import SimClock  # noqa: E402  (same directory)
+from test_haply_silence import SimClock, host_command  # noqa: E402  (same directory)
 
 
 class Sketch:
@@ -183,7 +183,6 @@ def _run(monkeypatch, lose=(), n_ticks=375):
     """Arm at 250 Hz and close the loop ``n_ticks`` host ticks (the host loop's order: a
     FORCE per new STATE, estimated ticks, else the last force again); returns the
     transport, the port, the sketch and the host's commands (encoded) in order."""
-    from hapsim.host.host_clock import ESTIMATED_MAX
     from hapsim.drivers import tick_align
     clock = SimClock()
     monkeypatch.setattr(tp, "time", clock)
@@ -206,22 +205,7 @@ def _run(monkeypatch, lose=(), n_ticks=375):
     for k in range(n_ticks):
         clock.t = max(clock.t, t0 + k * T)
         states = [m for m in tr.receive(0.0) if isinstance(m, fp.State)]
-        if states and states[-1].seq != used:
-            x = states[-1].position[0]
-            used, run_est = states[-1].seq, 0
-            tr.send(fp.Force(used, (force(x),)))
-            xs.append(x)
-        elif tr.overdue() and run_est < ESTIMATED_MAX:
-            x = tr.estimate(st, used + 1, 1)
-            if x == x:
-                run_est += 1
-                used = st.seq
-                tr.send(fp.Force(used, (force(x),)))
-                xs.append(x)
-            else:
-                tr.hold()
-        else:
-            tr.hold()
+        used, run_est = host_command(tr, states, st, used, run_est, force, xs)
     sketch.run_to(clock.t)
     return tr, port, sketch
 

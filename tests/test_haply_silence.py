@@ -154,6 +154,31 @@ class StarvedBoardPort:
         self.is_open = False
 
 
+def host_command(tr, states, st, used: int, run_est: int, force, xs: list) -> tuple:
+    """One host tick's command (module notes): the force from the newest STATE if it is
+    new, else from the transport's estimate while the link is overdue (up to
+    ``ESTIMATED_MAX`` in a row), else ``hold``; the position used appended to ``xs``.
+    Returns the new ``(used, run_est)``."""
+    from hapsim.host.host_clock import ESTIMATED_MAX
+    if states and states[-1].seq != used:
+        x = states[-1].position[0]
+        used, run_est = states[-1].seq, 0
+        tr.send(fp.Force(used, (force(x),)))
+        xs.append(x)
+    elif tr.overdue() and run_est < ESTIMATED_MAX:
+        x = tr.estimate(st, used + 1, 1)
+        if x == x:
+            run_est += 1
+            used = st.seq
+            tr.send(fp.Force(used, (force(x),)))
+            xs.append(x)
+        else:
+            tr.hold()
+    else:
+        tr.hold()
+    return used, run_est
+
+
 def _windows(rng, n_ticks, lo_ms=1.0, hi_ms=40.0):
     """1 to 10 starved windows of ``lo_ms``..``hi_ms`` [ms] in the run's ticks after its
     first 50, each read woken 0 to 3 ms after it ends (a reply made before it leaves at
@@ -182,7 +207,6 @@ def _run(monkeypatch, seed, windows, corrupt=(), n_ticks=N_TICKS, rearm=None,
     defaults), then its recovery's STOP and CONFIG. Returns the transport, the port,
     the board, the plain commands written per tick and the host's newest fresh sample [us] at each
     write (by write index)."""
-    from hapsim.host.host_clock import ESTIMATED_MAX
     clock = SimClock()
     monkeypatch.setattr(tp, "time", clock)
     drv = get_driver("haply", offset_deg=math.degrees(X0))
@@ -232,22 +256,7 @@ def _run(monkeypatch, seed, windows, corrupt=(), n_ticks=N_TICKS, rearm=None,
             last_new = clock.t
         for i in range(before, before + 8):
             fresh[i] = newest
-        if states and states[-1].seq != used:
-            x = states[-1].position[0]
-            used, run_est = states[-1].seq, 0
-            tr.send(fp.Force(used, (force(x),)))
-            xs.append(x)
-        elif tr.overdue() and run_est < ESTIMATED_MAX:
-            x = tr.estimate(st, used + 1, 1)
-            if x == x:
-                run_est += 1
-                used = st.seq
-                tr.send(fp.Force(used, (force(x),)))
-                xs.append(x)
-            else:
-                tr.hold()
-        else:
-            tr.hold()
+        used, run_est = host_command(tr, states, st, used, run_est, force, xs)
         # plain commands written this tick (a re-synchronisation's bytes, read as its
         # evidence came in, are one more command, counted apart)
         per_tick.append(sum(len(d) <= 6 for _, d in port.written[before:]))

@@ -336,15 +336,22 @@ def _poll(board: Board, master: int) -> None:
         board._take_host_bytes(data, board.real())
 
 
-def serve(firmware, board_args: dict, plant: Plant, args, extra_truth) -> int:
+def seeded_phase(seed: int, salt: int) -> float:
+    """A sensor grid's phase in [0, 1) [counts], seeded by the board's ``--seed`` and a
+    board's own ``salt`` (two boards of one seed do not share it)."""
+    import numpy as np
+    return float(np.random.default_rng(seed + salt).random())
+
+
+def serve(firmware, baud, plant: Plant, args, extra_truth) -> int:
     """Run ``firmware(board)`` on a fresh pty until SIGTERM/SIGINT, then write the truth.
 
     Parameters
     ----------
     firmware : callable
         ``firmware(board) -> generator`` (module notes).
-    board_args : dict
-        :class:`Board`'s keyword arguments other than the master.
+    baud : float or None
+        :class:`Board`'s ``baud`` (None: a USB link's); its loss and seed are ``args``'.
     plant : Plant
         The handle, its time measured from the board's start.
     args : argparse.Namespace
@@ -366,7 +373,8 @@ def serve(firmware, board_args: dict, plant: Plant, args, extra_truth) -> int:
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
     sched = _realtime(args.rt_priority)
-    board = Board(master, **board_args)
+    board = Board(master, baud=baud, drop_rx=args.drop_rx, drop_tx=args.drop_tx,
+                  seed=args.seed)
     board.plant = plant
     if args.ready:
         with open(args.ready, "w") as fh:

@@ -207,10 +207,7 @@ def main(argv=None) -> int:
                            "current_us": args.current_us, "pot_us": args.pot_us,
                            "adc_phase": args.adc_phase, "touch": args.touch}}
 
-    return serve(lambda board: firmware(board, st), {"baud": BAUD, "drop_rx": args.drop_rx,
-                                                     "drop_tx": args.drop_tx,
-                                                     "seed": args.seed},
-                 plant, args, truth)
+    return serve(lambda board: firmware(board, st), BAUD, plant, args, truth)
 
 
 if __name__ == "__main__":

@@ -61,7 +61,7 @@ import struct
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from board_core import Plant, common_arguments, f32, serve  # noqa: E402
+from board_core import Plant, common_arguments, f32, seeded_phase, serve  # noqa: E402
 
 BAUD = 57600
 RS, RP, RH = 0.073152, 0.004191, 0.075      # sim.h:38-40
@@ -212,8 +212,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     args.board_name = "hapkit-whc2017"
     if args.phase is None:
-        import numpy as np
-        args.phase = float(np.random.default_rng(args.seed + 104729).random())
+        args.phase = seeded_phase(args.seed, 104729)
     st = SketchState(args)
     plant = Plant(args.mass, args.friction, x0=args.x0,
                   stops=(-args.workspace, args.workspace), reference=0.0)
@@ -226,10 +225,7 @@ def main(argv=None) -> int:
                     "render_us", "count_um", "phase", "force_levels", "function",
                     "reply_second", "workspace")}}
 
-    return serve(lambda board: firmware(board, st), {"baud": BAUD, "drop_rx": args.drop_rx,
-                                                     "drop_tx": args.drop_tx,
-                                                     "seed": args.seed},
-                 plant, args, truth)
+    return serve(lambda board: firmware(board, st), BAUD, plant, args, truth)
 
 
 if __name__ == "__main__":

@@ -67,7 +67,7 @@ import struct
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from board_core import Plant, common_arguments, f32, serve  # noqa: E402
+from board_core import Plant, common_arguments, f32, seeded_phase, serve  # noqa: E402
 
 MAX_TORQUE = 0.123            # .h:54
 PWM_OUTPUT_RESOLUTION = 4095  # .h:55
@@ -302,8 +302,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     args.board_name = "haply-m3-v1.5"
     if args.phase is None:
-        import numpy as np
-        args.phase = float(np.random.default_rng(args.seed + 7919).random())
+        args.phase = seeded_phase(args.seed, 7919)
     st = M3State(args)
     plant = Plant(args.inertia, args.friction, x0=args.x0, reference=0.0)
 
@@ -318,10 +317,7 @@ def main(argv=None) -> int:
                            "motor_sign": args.motor_sign,
                            "torque_levels": args.torque_levels}}
 
-    return serve(lambda board: firmware(board, st), {"baud": None, "drop_rx": args.drop_rx,
-                                                     "drop_tx": args.drop_tx,
-                                                     "seed": args.seed},
-                 plant, args, truth)
+    return serve(lambda board: firmware(board, st), None, plant, args, truth)
 
 
 if __name__ == "__main__":
