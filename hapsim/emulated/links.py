@@ -21,7 +21,8 @@ import firmware_protocol as fp
 from hapsim.errors import DeviceError
 from hapsim.spawn import PtyChild
 
-__all__ = ["InProcessTransport", "EmbeddedMock", "SimTransport", "BoardLink"]
+__all__ = ["InProcessTransport", "EmbeddedMock", "SimTransport", "BoardLink",
+           "LockstepBoardLink"]
 
 
 class InProcessTransport:
@@ -422,3 +423,36 @@ class BoardLink:
         b = bytes(self.out[:n])
         del self.out[:n]
         return b
+
+    def reset_input_buffer(self) -> None:
+        """Drop what the board sent and the host has not read."""
+        self.out.clear()
+
+    def flush(self) -> None:
+        """Nothing waits to be written (each write is taken at once)."""
+
+
+class LockstepBoardLink(BoardLink):
+    """The emulated FireFader in-process on its lockstep clock, as
+    :func:`hapsim.pipeline.faders_run.record_faders`'s serial port: each write is one tick
+    of the board (asked for by name: deterministic, no pty), the host's silences told to
+    it (``idle``).
+
+    Parameters
+    ----------
+    dev : hapsim.emulated.firefader_board.FireFaderDevice
+        Made with ``clock="lockstep"``.
+    """
+
+    def __init__(self, dev) -> None:
+        super().__init__(dev)
+        self.dev = dev
+
+    def write(self, data) -> int:
+        """Feed one write to the board: one tick; its record waits to be read."""
+        self.out += self.dev.feed(bytes(data), writes=[b"", bytes(data)])
+        return len(data)
+
+    def idle(self, s: float) -> None:
+        """The host silent for ``s`` [s] (the board's silence rule counts it)."""
+        self.dev.idle(s)

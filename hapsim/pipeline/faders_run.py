@@ -67,6 +67,7 @@ import numpy as np
 
 from hapsim.analysis.write_holds import HOLD_CUT_PERIODS
 from hapsim.errors import ConfigError, DeviceError
+from hapsim.emulated.links import LockstepBoardLink  # noqa: F401  (re-exported)
 
 __all__ = ["WORKSPACE_M", "LATE_STOP_S", "CUT_PERIODS", "FADERS_TAKES", "FADER_AMPLITUDE",
            "faders_refusal", "record_faders", "departures", "usable_rows", "measure_faders",
@@ -559,48 +560,6 @@ def _decimated_wire(scene, chk, diffs, use, mass, bounds, D: int, Nd: int) -> di
             out["directions"][q] = [a + b for a, b in zip(out["directions"][q],
                                                           w["directions"][q])]
     return out
-
-
-class LockstepBoardLink:
-    """The emulated FireFader in-process on its lockstep clock, as :func:`record_faders`'s
-    serial port: each write is one tick of the board (asked for by name: deterministic,
-    no pty), the host's silences told to it (``idle``).
-
-    Parameters
-    ----------
-    dev : hapsim.emulated.firefader_board.FireFaderDevice
-        Made with ``clock="lockstep"``.
-    """
-
-    def __init__(self, dev) -> None:
-        self.dev = dev
-        self.buf = bytearray()
-
-    def write(self, data: bytes) -> None:
-        """Feed one write to the board: one tick; its record waits to be read."""
-        self.buf += self.dev.feed(bytes(data), writes=[b"", bytes(data)])
-
-    def idle(self, s: float) -> None:
-        """The host silent for ``s`` [s] (the board's silence rule counts it)."""
-        self.dev.idle(s)
-
-    @property
-    def in_waiting(self) -> int:
-        """Bytes the board sent and the host has not read."""
-        return len(self.buf)
-
-    def read(self, n: int) -> bytes:
-        """Up to ``n`` bytes of what the board sent."""
-        out = bytes(self.buf[:n])
-        del self.buf[:n]
-        return out
-
-    def reset_input_buffer(self) -> None:
-        """Drop what the board sent and the host has not read."""
-        self.buf.clear()
-
-    def flush(self) -> None:
-        """Nothing waits to be written (each write is taken at once)."""
 
 
 def faders_feasibility(scene, amplitude: float, samples: int, chk=None) -> dict:
