@@ -5,7 +5,7 @@ Usage::
 
     nice python tools/driver_timing.py [--drivers haply haply2 firefader hapkit-serial falcon]
                                        [--seeds 1 2 ... 10] [--loss 0 0.005] [--hogs 2]
-                                       [--duration 1.5] [--falcon-scene PATH]
+                                       [--duration S] [--falcon-scene PATH]
                                        [--starve P LO_MS HI_MS] [--json PATH]
     python tools/driver_timing.py --resummarize PATH    # the summary again from the runs
 
@@ -36,7 +36,8 @@ hook), as a board process behind CPU-bound processes, a USB hub or a descheduled
 reader is; no byte is lost by it (``board_silences``: their number and the longest).
 
 ``--host-stall MS`` (the 1-D drivers): this process, the host, is stopped once for ``MS``
-ms (``SIGSTOP``, then ``SIGCONT`` from a child) at a seeded moment 1 to 1 + duration/2 s
+ms (``SIGSTOP``, then ``SIGCONT`` from a child) at a seeded moment 1 to 1 + duration/2 s (the duration 1 s
+when the run's own)
 after the run starts: the host loop, its reader and everything else here stop together,
 as a descheduled or swapped host does; the board's process runs on, holding the last
 force as its firmware does (a watchdog or none), and the run shows what the host meets
@@ -115,7 +116,7 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
     if stall_ms:
         # the loop is armed ~0.5-1 s after run_scene starts (imports done, the mock's
         # start-up, the handshake): the stall falls inside the run's first second or so
-        at_s = float(np.random.default_rng(seed).uniform(1.0, 1.0 + 0.5 * duration))
+        at_s = float(np.random.default_rng(seed).uniform(1.0, 1.0 + 0.5 * (duration or 1.0)))
         staller = _stall_this_process(float(stall_ms), at_s)
     if starve:
         faults.update(slow=float(starve[0]),
@@ -376,7 +377,9 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=list(range(1, 11)))
     p.add_argument("--loss", nargs="+", type=float, default=[0.0, 1 / 200])
     p.add_argument("--hogs", type=int, default=2, help="CPU-bound processes beside (2)")
-    p.add_argument("--duration", type=float, default=1.5, help="1-D runs [s]")
+    p.add_argument("--duration", type=float, default=None,
+                   help="1-D runs [s] (default: the run's own, as 'hapsim run' designs it: "
+                        "at least 1 s, ten cycles of the predicted oscillation)")
     p.add_argument("--rt-priority", type=int, default=10, metavar="N",
                    help="SCHED_FIFO priority of the host loops (and the boards' processes) "
                         "where the OS permits it: 10, as 'hapsim run' takes by default; 0 "

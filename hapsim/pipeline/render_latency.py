@@ -122,7 +122,8 @@ def timed_prediction(scene, driver) -> tuple:
         ``k_spread`` and ``b_spread`` (the largest departure of the felt k [N/m] and b
         [N s/m] over the range from the middle's, over :data:`SPREAD_POINTS` latencies:
         how much the latency can move the prediction, for the report; the verdict
-        searches the latency instead, :func:`latency_search`).
+        searches the latency instead, :func:`latency_search`; none where the loop at the
+        middle is unstable: it has no felt pair, and the run refuses it).
 
     Raises
     ------
@@ -138,7 +139,8 @@ def timed_prediction(scene, driver) -> tuple:
     model = timed_scene(scene, mid)
     pred = predict(model)
     ks, bs = [], []
-    for r in np.linspace(lo, hi, SPREAD_POINTS):
+    # an unstable loop (refused, or run with allow_unstable) has no felt pair to spread
+    for r in np.linspace(lo, hi, SPREAD_POINTS) if pred.get("stable") is not False else ():
         p = predict(timed_scene(scene, float(r)))
         if p.get("k") is None or pred.get("k") is None:
             continue
