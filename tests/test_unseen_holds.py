@@ -161,3 +161,37 @@ def test_with_no_hold_the_measurement_is_unchanged(seed, tmp_path):
     assert m.keys() == plain.keys()
     for q in ("k", "b", "k_unc", "b_unc", "samples_used"):
         assert m[q] == plain[q], q
+
+
+
+@pytest.mark.parametrize("seed", range(40, 48))
+def test_lost_replies_are_not_taken_for_holds(seed, tmp_path):
+    """Random paddles with 2 % to 6 % of their replies lost (the rows stepped through with
+    an extrapolated position, as a lossy link leaves them), and on odd seeds the random
+    unseen holds too: the search finds at most one hold more than the board took (the
+    estimated rows' errors, through the loop, are nuisances it projects off: before, 5 of
+    these 8 seeds failed, two records cut into stretches too short to measure, two with
+    11 and 18 holds found, and "differs" said of the matching paddle in one; on the wall
+    clock 2 of 10 lossy Hapkit-serial runs were "not measurable" so), the matching paddle is never
+    "differs" (within; or, with holds, not measurable with its reason), and one with 30 %
+    more mass still differs."""
+    prep, n, late = _random_case(seed, tmp_path)
+    late = late if seed % 2 else {}
+    rng = np.random.default_rng(1000 + seed)
+    lost = {int(j) for j in rng.choice(np.arange(8, n - 2),
+                                       size=int(rng.uniform(0.02, 0.06) * n), replace=False)}
+    cols, drv, board = hapkit_serial_offline_loop(prep.scene, n, read_late=late,
+                                                  lost_replies=lost)
+    m = _measure(prep, cols, drv)
+    info = (m.get("verdict"), m.get("error"), m.get("unseen_holds"), sorted(late),
+            m.get("cycles"))
+    assert m.get("unseen_holds", 0) <= board.tick_arrivals["off_period"] + 1, info
+    assert not str(m.get("verdict")).startswith("measured differs"), info
+    assert m.get("within") is True or (late and "k" not in m), info
+    dev = prep.scene.device
+    cols, drv, _ = hapkit_serial_offline_loop(
+        prep.scene, n, read_late=late, lost_replies=lost,
+        device=dataclasses.replace(dev, mass=1.3 * dev.mass))
+    m = _measure(prep, cols, drv)
+    assert str(m.get("verdict")).startswith("measured differs"), (
+        m.get("verdict"), m.get("error"), m.get("unseen_holds"))

@@ -315,7 +315,7 @@ class HapkitSerialDevice(Actuated):
 
 def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
                                phase: float = 0.5, levels: int = 256,
-                               render_s: float | None = None):
+                               render_s: float | None = None, lost_replies=()):
     """The Hapkit-serial THS closed offline on a simulated clock: the sketch on its own
     1 kHz tick (:class:`HapkitSerialDevice` with ``clock="wall"``, fed the simulated time
     of each command), hapsim's engine as the host; deterministic, no pty, no real time.
@@ -347,6 +347,11 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         The board's output levels and render latency (:class:`HapkitSerialDevice`;
         ``levels=0, render_s=0``, named: a sketch that applies the float at its read, the
         driver told so: its ``levels`` 0).
+    lost_replies : collection of int, optional
+        Commands whose reply the host never reads (a lossy link's): the board took the
+        command, the host steps that row with the position extrapolated from the two rows
+        before (:mod:`hapsim.host.host_clock`'s estimate) and flags it
+        ``FLAG_ESTIMATED``.
 
     Returns
     -------
@@ -368,9 +373,21 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     T, tick = sc.period, board.TICK_S
     late = dict(read_late or {})
 
+    lost = {int(j) for j in lost_replies}
+    seen: list = []
+
     def command(j: int, f: float) -> float:
         now = j * T + (phase + float(late.get(j, 0.0))) * tick
-        return dec.feed(board.feed(drv.encode_force(f), now))[-1]
+        x = dec.feed(board.feed(drv.encode_force(f), now))[-1]
+        if j in lost and len(seen) >= 2:
+            x = 2.0 * seen[-1] - seen[-2]            # the reply never read: the estimate
+        seen.append(x)
+        return x
 
     cols = offline_record(sc, drv, command, n, lambda k: k * T)
+    if lost:
+        from hapsim.drivers.base import FLAG_ESTIMATED
+        for j in lost:
+            if 2 <= j < n:
+                cols["flags"][j] |= FLAG_ESTIMATED
     return cols, drv, board
