@@ -81,7 +81,8 @@ def _device_file(path: str, scene_path: str, options: dict) -> None:
 
 class Staller(threading.Thread):
     """Stops the host's process ``n`` times for 6-60 ms at seeded moments of its loop
-    (from the line that says the loop closes); records what it did."""
+    (from the line that says the loop closes, within ``duration`` [s] of it: the run's
+    own length is at least 1 s); records what it did."""
 
     def __init__(self, proc, n: int, duration: float, seed: int, stderr_lines) -> None:
         super().__init__(daemon=True)
@@ -168,7 +169,8 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
         row["error"] = "board did not start: " + (board.stderr.read() or "")[-500:]
         return row
     hcmd = [sys.executable, "-m", "hapsim", "run", scene, "--driver", driver, "--port", link,
-            "--duration", str(args.duration), "--json"]
+            *(["--duration", str(args.duration)] if args.duration is not None else []),
+            "--json"]
     if args.identify:
         hcmd = [sys.executable, "-m", "hapsim", "identify", "--driver", driver, "--port",
                 link, "--json", *IDENTIFY[driver]]
@@ -190,7 +192,7 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
         reader.start()
         staller = None
         if "stall" in condition:
-            staller = Staller(proc, args.stalls, args.duration, seed, lines)
+            staller = Staller(proc, args.stalls, args.duration or 1.0, seed, lines)
             staller.start()
         try:
             rc = proc.wait(timeout=args.timeout)
@@ -363,7 +365,9 @@ def main(argv=None) -> int:
                    choices=["clean", "loss", "stall", "lossstall"])
     p.add_argument("--seeds", nargs="+", type=int, default=list(range(1, 11)))
     p.add_argument("--hogs", type=int, default=2)
-    p.add_argument("--duration", type=float, default=1.5)
+    p.add_argument("--duration", type=float, default=None,
+                   help="hapsim run's --duration [s] (default: none given, the run's own "
+                        "length, as a user's run)")
     p.add_argument("--stalls", type=int, default=3, help="host stalls a 'stall' run")
     p.add_argument("--timeout", type=float, default=90.0, help="a run's hang limit [s]")
     p.add_argument("--board-priority", type=int, default=20)
