@@ -75,7 +75,7 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
         " write_timeout=1.0)",
         f"wd, why = start_watchdog({port!r}, drv.write_bytes((0.0, 0.0)), HOLD_BOUND_S,"
         f" robust=watchdog_robust(drv, sc) if {robust!r} else None)",
-        "print(wd._proc.pid, flush=True)",
+        "print(wd._proc.pid, wd._page.fd, flush=True)",
         f"fd = os.open({port!r}, os.O_WRONLY | os.O_NOCTTY)",
         "n = [0]",
         "stopped = [False]",
@@ -103,6 +103,16 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
         "print('not stopped', flush=True)"])
 
 
+def _watchdog_page(pid: int, fd: int):
+    """The watchdog's shared page (:class:`hapsim.drivers.torque_watchdog._Page`), through
+    its host's file descriptor (``/proc``; the file itself is unlinked), or None."""
+    from hapsim.drivers.torque_watchdog import _Page
+    try:
+        return _Page(os.open(f"/proc/{pid}/fd/{fd}", os.O_RDWR))
+    except OSError:
+        return None
+
+
 def _faulted_host(action: str, robust: bool = True, at: int = 305):
     """The emulated 2DIY (its own clock) and a host process (:func:`_host_code`) that
     writes the stray byte at its ``at``-th tick and is killed or stopped; a stopped host
@@ -119,7 +129,9 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
         host = subprocess.Popen([sys.executable, "-c", _host_code(child.port, robust, at,
                                                                   action)],
                                 stdout=subprocess.PIPE, text=True, start_new_session=True)
-        wd_pid = int(host.stdout.readline())
+        wd_pid, page_fd = map(int, host.stdout.readline().split())
+        # the watchdog's page, opened here while its host lives: its oversleep read after
+        page = _watchdog_page(host.pid, page_fd)
         if action.startswith("stop"):
             end = time.monotonic() + 30.0
             while time.monotonic() < end:       # (until it has stopped itself)
@@ -139,6 +151,8 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
         rep = child.report(5.0)
         if rep is not None and len(last) >= 2:
             rep["host_silent_s"] = max(int(last[1]) - int(last[0]), 0) * 1e-9
+        if rep is not None and page is not None:
+            rep["watchdog_latency_s"] = max(LATENCY_S, page.get("overslept_ns") * 1e-9)
     finally:
         if host is not None and host.poll() is None:
             os.killpg(host.pid, signal.SIGKILL)
@@ -162,10 +176,11 @@ def test_a_2diy_whose_parser_lost_its_motors_is_zeroed_when_its_host_dies_or_sto
     # the dead host's: its silence before its death (descheduled between its last write
     # and the kill: no evidence read, the zero command alone at the bound) and its death
     # noticed within a check; the stopped one's (stopped once it had read the evidence):
-    # the silence's bound and a check (LATENCY_S, test_host_watchdog's allowance, covers
-    # the latency)
+    # the silence's bound and a check; and the watchdog's wake-up latency
+    # (test_host_watchdog's LATENCY_S, or what the watchdog measured of its own when
+    # more: under the suite's load a hold of 48 ms once passed the 42 ms that allowed)
     bound = (rep.get("host_silent_s", 0.0) + CHECK_S if action == "kill"
-             else HOLD_BOUND_S + CHECK_S) + LATENCY_S
+             else HOLD_BOUND_S + CHECK_S) + rep["watchdog_latency_s"]
     assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
         rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
 
@@ -181,13 +196,13 @@ def test_a_lossy_2diy_link_stopped_in_the_bytes_that_lost_its_place_gets_the_rob
     rep, gone = _faulted_host("stop at once")
     assert rep is not None and gone, (rep, gone)
     assert rep["held_at_end"] == 0.0, rep
-    bound = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + LATENCY_S
+    bound = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + rep["watchdog_latency_s"]
     assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
         rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
     # (the zero command came first and did nothing: a hold past the longest the zero
     # command, taken, would have left, the bound, a check, the latency and the board's
     # lateness)
-    assert rep["longest_hold_s"] > (HOLD_BOUND_S + CHECK_S + LATENCY_S
+    assert rep["longest_hold_s"] > (HOLD_BOUND_S + CHECK_S + rep["watchdog_latency_s"]
                                     + rep["longest_gap_s"]), rep
 
 
@@ -204,7 +219,8 @@ def test_a_clean_2diy_link_stopped_in_its_first_lost_byte_is_zeroed_when_the_hos
     # held through the stop, or (a host on a loaded machine that had taken the link for
     # lossy: a swallowed write's marker, a damaged reply) zeroed by the silence's robust
     # write at ROBUST_AFTER bounds, as on a lossy link; nothing in between
-    lossy = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + LATENCY_S + ROBUST_S + rep["longest_gap_s"]
+    lossy = (ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + rep["watchdog_latency_s"] + ROBUST_S
+             + rep["longest_gap_s"])
     assert rep["longest_hold_s"] >= 0.4 or rep["longest_hold_s"] <= lossy, (
         rep["longest_hold_s"], lossy)
 

@@ -91,7 +91,7 @@ __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report", "watchdog_text
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired_ns", "fired_for", "quit",
                                   "longest_ns", "ready", "rt", "holding", "failed",
                                   "suspect", "counts", "wrote_bits", "angle",
-                                  "robust_for"))}
+                                  "robust_for", "overslept_ns"))}
 _SIZE = 8 * len(_F)
 _F32 = struct.Struct("<f")
 #: The sinks a watchdog writes to besides a device file it opens by path, each an
@@ -394,12 +394,16 @@ class TorqueWatchdog:
             next check), ``longest_s`` (the longest host silence the
             watchdog saw before a write [s], 0 without one: the stated bound's measured
             part), ``bound_s``, ``check_s``, ``rt_priority`` (granted; 0: none),
-            ``robust`` (of the writes, those that were the robust one).
+            ``robust`` (of the writes, those that were the robust one), ``overslept_s``
+            (its largest wake-up past a check's end [s]: how late its own scheduling
+            made it, beside ``check_s`` in the bound it keeps).
         """
         p = self._page
         c = p.get("counts")
         return {"fired": c >> 32, "failed": p.get("failed"), "robust": c & 0xFFFFFFFF,
-                "longest_s": p.get("longest_ns") * 1e-9, "bound_s": self.bound_s, "check_s": self.check_s, "rt_priority": self.rt}
+                "longest_s": p.get("longest_ns") * 1e-9, "bound_s": self.bound_s,
+                "check_s": self.check_s, "rt_priority": self.rt,
+                "overslept_s": p.get("overslept_ns") * 1e-9}
 
     def _kill(self) -> None:
         """End the watchdog process: its loop sees ``quit`` within a check; ``SIGTERM``
@@ -654,7 +658,13 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
         return bool(page.get("armed") and (page.get("holding")
                                            or (robust and page.get("suspect"))))
     while not stop and not page.get("quit") and os.getppid() == parent:
+        t_sleep = time.monotonic_ns()
         time.sleep(check)
+        # how late its own scheduling woke it (before the parent's death is seen: a
+        # dying host's write is as late as this)
+        over = time.monotonic_ns() - t_sleep - bound_ns // 4
+        if over > page.get("overslept_ns"):
+            page.set("overslept_ns", over)
         if rest:
             rest = finish(0.0)              # (before anything else)
             continue
