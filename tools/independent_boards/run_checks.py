@@ -214,14 +214,16 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
         board.wait(timeout=20)
     except subprocess.TimeoutExpired:
         board.kill()
-    row.update(exit_code=rc, hung=hung, stderr_tail="".join(lines[-4:])[-800:])
+    # (the run's directory named, not its machine path: the JSON is committed)
+    row.update(exit_code=rc, hung=hung,
+               stderr_tail="".join(lines[-4:])[-800:].replace(tmp, "<RUN_DIR>"))
     if staller is not None:
         row["stalls"] = staller.done
     try:
         truth = json.load(open(truth_path))
     except (OSError, ValueError) as exc:
         truth = {}
-        row["truth_error"] = str(exc)
+        row["truth_error"] = str(exc).replace(tmp, "<RUN_DIR>")
     try:
         run = json.load(open(out_path))
     except (OSError, ValueError) as exc:
