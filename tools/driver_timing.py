@@ -506,6 +506,13 @@ def normalize(rows):
     return rows
 
 
+#: The verdicts every summary counts, 0 where none was said (the docs name them whether or
+#: not a run said them): the 1-D runs' and the n-D felt matrices'.
+VERDICTS = ("measured = predicted within the stated uncertainty",
+            "measured differs from predicted by more than the stated uncertainty",
+            "within", "partly within", "not measurable", "differs")
+
+
 def summarize(rows):
     """Per driver and loss: runs, safety stops, runs with a re-synchronisation, the most
     re-synchronisations, the largest excursion, verdicts counted, errors.
@@ -524,7 +531,7 @@ def summarize(rows):
         s = out.setdefault(f"{r['driver']} {r['loss']:g}", {
             "runs": 0, "safety_stops": 0, "runs_resynced": 0, "resyncs_max": 0,
             "excursion_true_max": None, "excursion_host_max": None,
-            "longest_hold_s_max": None, "verdicts": {},
+            "longest_hold_s_max": None, "verdicts": dict.fromkeys(VERDICTS, 0),
             "errors": 0, "clock": r.get("clock")})
         s["runs"] += 1
         s["safety_stops"] += bool(r.get("safety_stop"))

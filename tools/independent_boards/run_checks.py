@@ -139,6 +139,21 @@ def true_pair(driver: str, truth: dict, run: dict) -> tuple:
     return float(r.k), float(r.b), d
 
 
+def _commit(root: str) -> str:
+    """The commit of the hapsim the runs ran (``git rev-parse --short HEAD`` in ``root``),
+    "+ changes" when its tree differs from it; "unknown" outside a checkout (an export)."""
+    try:
+        head = subprocess.run(["git", "-C", root, "rev-parse", "--short=8", "HEAD"],
+                              capture_output=True, text=True, timeout=10)
+        if head.returncode != 0:
+            return "unknown"
+        dirty = subprocess.run(["git", "-C", root, "status", "--porcelain", "--",
+                                "hapsim"], capture_output=True, text=True, timeout=10)
+        return head.stdout.strip() + (" + changes" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
 def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
     """One board and one ``hapsim run`` (module notes); the row."""
     script, scene, bopts = BOARDS[driver]
@@ -421,6 +436,7 @@ def main(argv=None) -> int:
     sys.path.insert(0, os.path.dirname(HERE))
     from provenance import command_line   # tools/: portable paths in committed files
     doc = {"command": command_line(__file__, argv),
+           "hapsim_commit": _commit(args.hapsim_root or ROOT),
            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
            "load_before": load0, "load_after": os.getloadavg()[0], "cpus": os.cpu_count(),
            "rows": rows, "summary": summary}
