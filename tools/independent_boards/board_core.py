@@ -43,8 +43,15 @@ _F32 = struct.Struct("<f")
 
 
 def f32(x: float) -> float:
-    """``x`` rounded to IEEE-754 binary32 (what a ``float`` of the firmware holds)."""
-    return _F32.unpack(_F32.pack(float(x)))[0]
+    """``x`` rounded to IEEE-754 binary32 (what a ``float`` of the firmware holds): beyond
+    its range, +-inf, as the board's FPU rounds a ``double`` there (a garbled set-up's
+    resolution of 1e-40 made a count of 360 c / res overflow; Python's ``struct`` raises
+    instead, and the model's process died mid-run)."""
+    x = float(x)
+    try:
+        return _F32.unpack(_F32.pack(x))[0]
+    except OverflowError:
+        return math.copysign(math.inf, x)
 
 
 class Plant:

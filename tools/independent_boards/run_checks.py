@@ -139,6 +139,15 @@ def true_pair(driver: str, truth: dict, run: dict) -> tuple:
     return float(r.k), float(r.b), d
 
 
+def _tail(path: str, n: int = 500) -> str:
+    """The last ``n`` characters of a text file ("" if it cannot be read)."""
+    try:
+        with open(path, errors="replace") as fh:
+            return fh.read()[-n:]
+    except OSError:
+        return ""
+
+
 def _commit(root: str) -> str:
     """The commit of the hapsim the runs ran (``git rev-parse --short HEAD`` in ``root``),
     "+ changes" when its tree differs from it; "unknown" outside a checkout (an export)."""
@@ -172,8 +181,11 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
            "--drop-tx", str(loss), "--rt-priority", str(args.board_priority), *bopts]
     for e in extra:
         cmd += e
-    board = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                             text=True)
+    # the board's messages in a file of the run's directory (a pipe nobody reads would
+    # stop a board that writes more than its buffer), read back when its truth is missing
+    board_log = os.path.join(tmp, f"{driver}-{condition}-{seed}.board.txt")
+    with open(board_log, "w") as log:
+        board = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log, text=True)
     t_end = time.monotonic() + 20
     while not os.path.exists(ready) and time.monotonic() < t_end and board.poll() is None:
         time.sleep(0.01)
@@ -181,7 +193,7 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
            "board_opts": args.board_opt.get(driver, [])}
     if not os.path.exists(ready):
         board.kill()
-        row["error"] = "board did not start: " + (board.stderr.read() or "")[-500:]
+        row["error"] = "board did not start: " + _tail(board_log)
         return row
     hcmd = [sys.executable, "-m", "hapsim", "run", scene, "--driver", driver, "--port", link,
             *(["--duration", str(args.duration)] if args.duration is not None else []),
@@ -239,6 +251,8 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
     except (OSError, ValueError) as exc:
         truth = {}
         row["truth_error"] = str(exc).replace(tmp, "<RUN_DIR>")
+        row["board_exit"] = board.returncode
+        row["board_tail"] = _tail(board_log).replace(tmp, "<RUN_DIR>")
     try:
         run = json.load(open(out_path))
     except (OSError, ValueError) as exc:
@@ -248,7 +262,9 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
         _fill_identify(row, run, truth)
     else:
         _fill(row, driver, run, truth)
-    return row
+    # (the run's directory named, not its machine path, in every field: committed JSON)
+    return {k: v.replace(tmp, "<RUN_DIR>") if isinstance(v, str) else v
+            for k, v in row.items()}
 
 
 def _fill_identify(row: dict, rep: dict, truth: dict) -> None:
