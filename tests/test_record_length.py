@@ -103,6 +103,7 @@ def test_the_shipped_fader_is_measured_as_predicted_at_its_default_length():
     ten = int(round((10.0 / prep.pred["f0_hz"]) * prep.scene.rate_hz))
     cols, drv, _ = firefader_offline_loop(prep.scene, ten)
     short, full = (_measure(prep, cols, drv, n) for n in (prep.n_window, ten))
-    # measured: 0.12 and 0.58 of the stated uncertainty
+    # measured 0.12 of the stated uncertainty (deterministic, offline), margin 1.7
     assert abs(short["k"] - prep.pred["k"]) <= 0.2 * short["k_unc"], short
+    # measured 0.58, margin 1.45 (the bias the tail adds: the change's reason)
     assert full["k"] - prep.pred["k"] >= 0.4 * full["k_unc"], full
