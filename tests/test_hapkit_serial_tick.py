@@ -357,6 +357,9 @@ def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):
     rep = _run(1)
     loop, m = rep["loop"], rep["measured"]
     assert loop["driver"]["tick_aligned"], loop["driver"].get("tick_probe")
-    assert str(m.get("verdict")).startswith("measured differs"), m.get("verdict")
+    assert str(m.get("verdict")).startswith("measured differs"), (
+        m.get("verdict"), {q: m.get(q) for q in (
+            "b", "b_unc", "k", "k_unc", "samples_used", "unseen_holds", "prediction_test",
+            "estimated_samples", "render_latency_s", "cycles")}, rep["predicted"].get("b"))
     assert m["b"] - rep["predicted"]["b"] > m["b_unc"], (m["b"], rep["predicted"]["b"],
                                                          m["b_unc"])

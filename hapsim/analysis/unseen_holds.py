@@ -334,7 +334,7 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
     dF = np.zeros(x.size)
     dF[2:] = f[:-2] - f[1:-1]
     cS, cH, cSH = (np.concatenate([[0.0], np.cumsum(q)]) for q in (S * S, H * H, S * H))
-    stretches = []
+    stretches, scales = [], []
     for rows, (r, Q) in zip(fit["rows"], _stretch_fits(x, fit)):
         if rows.size == 0:
             continue
@@ -342,11 +342,14 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         # the stretches leave each a share along its own): else a signature the fit
         # would take almost whole matches that share at every stretch's first rows
         un = None
+        plain = r - Q @ (Q.T @ r)          # (off the fit's own columns only: its scale)
         if unread is not None:
             un = np.asarray(unread, bool)[rows]
             r = np.where(un, 0.0, r)
+            plain = np.where(un, 0.0, plain)
             Q = _with_unread(Q, rows, unread, S, H, lead)
         r = r - Q @ (Q.T @ r)
+        scales.append(plain)
         # the candidates: the stretch's rows and the ``lead`` rows before it (a hold there
         # reaches into the stretch by its inputs still in flight), the residual 0 there
         p = min(int(lead), int(rows[0]))
@@ -373,7 +376,16 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
     if unread is not None:
         allr = np.concatenate([st[1][st[3]:][~np.asarray(unread, bool)[st[0][st[3]:]]]
                                for st in stretches])
-    sigma = max(_MAD_SD * float(np.median(np.abs(allr - np.median(allr)))), float(floor))
+    # the residual's scale, off the nuisances and without their projection, the larger:
+    # the projection takes their structure out of the statistics, never lowers the
+    # threshold below what the residual itself has
+    plain = np.concatenate(scales) if scales else np.zeros(0)
+    if unread is not None and plain.size:
+        plain = plain[~np.asarray(unread, bool)[np.concatenate(
+            [np.asarray(rows) for rows in fit["rows"] if np.asarray(rows).size])]]
+    sigma = max(_MAD_SD * float(np.median(np.abs(allr - np.median(allr)))),
+                _MAD_SD * float(np.median(np.abs(plain - np.median(plain))))
+                if plain.size else 0.0, float(floor))
     thr = float(norm.isf(false_alarm / (2.0 * n_test * len(taus))))
     out.update(sigma=sigma, threshold=thr)
     if not sigma > 0:
