@@ -346,7 +346,7 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         if unread is not None:
             un = np.asarray(unread, bool)[rows]
             r = np.where(un, 0.0, r)
-            plain = np.where(un, 0.0, plain)
+            plain = plain[~un]
             Q = _with_unread(Q, rows, unread, S, H, lead)
         r = r - Q @ (Q.T @ r)
         scales.append(plain)
@@ -380,9 +380,6 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
     # the projection takes their structure out of the statistics, never lowers the
     # threshold below what the residual itself has
     plain = np.concatenate(scales) if scales else np.zeros(0)
-    if unread is not None and plain.size:
-        plain = plain[~np.asarray(unread, bool)[np.concatenate(
-            [np.asarray(rows) for rows in fit["rows"] if np.asarray(rows).size])]]
     sigma = max(_MAD_SD * float(np.median(np.abs(allr - np.median(allr)))),
                 _MAD_SD * float(np.median(np.abs(plain - np.median(plain))))
                 if plain.size else 0.0, float(floor))

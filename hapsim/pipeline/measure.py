@@ -21,7 +21,7 @@ from hapsim.host.telemetry import FLAG_ESTIMATED, Telemetry
 from hapsim.errors import ConfigError
 from hapsim.scene import Scene
 
-__all__ = ["identify_run", "contact_replay", "measure_record", "MEASURE_KEYS",
+__all__ = ["identify_run", "sensor_step", "contact_replay", "measure_record", "MEASURE_KEYS",
            "timing_verdict", "LATE_SHARE_MAX"]
 
 #: What the page gets of a measurement (:func:`measure_record`).
@@ -100,6 +100,33 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     return _identify_at(prep, tel, hello, driver)
 
 
+def sensor_step(device, hello=None, driver=None) -> float:
+    """The position sensor's step ``q`` [m] a run's record is read with: the device's
+    ``position_resolution``, else the device's HELLO ``position_scale``, else the
+    driver's own count (a driver's positions are its wire's counts, FireFader 0.39 mm,
+    whether or not a HELLO relayed it: an offline record has none; without it the
+    sensor's share of the stated uncertainty was 0); 0 when none is known.
+
+    Parameters
+    ----------
+    device : hapsim.scene.Device
+    hello : firmware_protocol.Hello, optional
+    driver : hapsim.drivers.base.Driver, optional
+
+    Returns
+    -------
+    float
+        ``q`` >= 0 [m].
+    """
+    quantum = float(device.position_resolution or 0.0)
+    if not quantum and hello is not None and math.isfinite(hello.position_scale):
+        quantum = max(float(hello.position_scale), 0.0)
+    if not quantum and driver is not None:
+        ds = float(getattr(driver, "position_scale", 0.0) or 0.0)
+        quantum = ds if math.isfinite(ds) and ds > 0 else 0.0
+    return quantum
+
+
 def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                  searching: bool = False) -> dict:
     """:func:`identify_run` with the loop modelled as ``prep`` states it
@@ -114,15 +141,7 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
     measured = {"error": "not identified"}
     late_info = {}
-    quantum = float(dev.position_resolution or 0.0)
-    if not quantum and hello is not None and math.isfinite(hello.position_scale):
-        quantum = max(float(hello.position_scale), 0.0)
-    if not quantum and driver is not None:
-        # a driver's positions are its wire's counts (FireFader: 0.39 mm): the step is the
-        # driver's own, whether or not a HELLO relayed it (an offline record has none);
-        # without it the sensor's share of the stated uncertainty was 0
-        ds = float(getattr(driver, "position_scale", 0.0) or 0.0)
-        quantum = ds if math.isfinite(ds) and ds > 0 else 0.0
+    quantum = sensor_step(dev, hello, driver)
     if pred["order"]:
         start = int(math.ceil(prep.exc_end / T - 1e-9)) + math.ceil(float(dev.delay)) + 3
         if cols["seq"].size:

@@ -147,12 +147,11 @@ def _informative_s(scene: Scene, pred: dict, driver) -> float:
     (ten cycles) and once said "differs" beside two CPU-bound processes.
     """
     from hapsim.analysis.identify import MIN_QUANTA
-    q = float(scene.device.position_resolution or 0.0)
-    if not q > 0 and driver is not None:
-        q = float(getattr(driver, "position_scale", 0.0) or 0.0)
+    from hapsim.pipeline.measure import sensor_step
+    q = sensor_step(scene.device, None, driver)
     x0 = abs(float(scene.excitation.x0))
     f0, zeta = pred.get("f0_hz"), pred.get("damping_ratio")
-    if not (q > 0 and math.isfinite(q) and x0 > MIN_QUANTA * q and f0 and zeta
+    if not (q > 0 and x0 > MIN_QUANTA * q and f0 and zeta
             and 0 < zeta < 1):
         return math.inf
     sigma = 2.0 * math.pi * float(f0) * float(zeta)
