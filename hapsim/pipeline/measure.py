@@ -8,6 +8,7 @@ against the prediction, with the notes on why the two may differ."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -137,156 +138,12 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
     chances to explain a device that differs away)."""
     scene = prep.model
     dev, pred, targets = scene.device, prep.pred, prep.targets
-    T = scene.period
-    cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
-    measured = {"error": "not identified"}
-    late_info = {}
-    quantum = sensor_step(dev, hello, driver)
-    if pred["order"]:
-        start = int(math.ceil(prep.exc_end / T - 1e-9)) + math.ceil(float(dev.delay)) + 3
-        if cols["seq"].size:
-            start += int(cols["seq"][0])
-        offset = has_offset(scene)
-        poles, felt = predicted_poles(scene)
-        response = None
-        if quantum > 0 or dev.noise > 0:
-            from hapsim.analysis.error_response import sensor_error_response
-            try:
-                response = sensor_error_response(scene, int(cols["seq"].size))
-            except ConfigError:
-                response = None
-        # the skipped STATEs the loop stepped the scene with (a backlog), kept beside the
-        # rows: replayed too, so a backlog does not end what the replay knows
-        skipped = tel.skipped() if hasattr(tel, "skipped") else None
-        put_back = 0
-        if skipped is not None and skipped[0].size:
-            # and they are samples of the device: put back in the record as the rows they
-            # would have been (their law forces replayed), a backlog leaves no gap in seq
-            from hapsim.pipeline.contact_replay import fill_skipped
-            filled = fill_skipped(scene, cols, skipped, tel.skipped_ticks(),
-                                  int(math.ceil(float(dev.delay))),
-                                  bool(scene.safety.passivity_controller))
-            if filled is not None:
-                put_back = int(filled[0]["seq"].size - cols["seq"].size)
-                cols, skipped = filled
-        replay = contact_replay(scene, cols, skipped)
-        from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
-        from hapsim.host.telemetry import FLAG_CLAMPED
-        computed = None
-        if np.any(cols["flags"] & FLAG_CLAMPED) and not scene.safety.passivity_controller:
-            # the host's clamp at the force limit: a known input (the law's force
-            # replayed from the logged positions), taken out with the late ticks'
-            from hapsim.pipeline.contact_replay import computed_forces
-            # (an empty record replays as none)
-            computed = computed_forces(
-                scene, cols, skipped=skipped if skipped is not None and skipped[0].size
-                else None)
-        # rows the host clamped at the force limit whose law force the replay cannot give
-        # (skipped STATEs past the skipped STATEs' record: their positions, which the law
-        # stepped through, are not kept;
-        # a live change; the passivity controller): the force the device held there is
-        # the clamped one, not the linear loop's, an input the account does not know. Left
-        # out, the record cut there: the stretch after them is a free response from its
-        # own initial state (the clamped forces still in flight are part of it; the fit
-        # drops each stretch's first delay + 2 rows), so the measurement stays exact
-        clamp_unknown = (cols["flags"] & FLAG_CLAMPED) != 0 if computed is None else None
-        position, late, late_info = late_accounted(
-            scene, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
-            computed=computed)
-        # rows whose applied force the driver's account cannot name at all (an unframed
-        # board's parser out of step: hapsim.drivers.base.Driver.unknown_force_rows, the
-        # account's known False: what identify's fit leaves out too), cut as those
-        unknown = late_info.pop("_unknown_rows", None)
-        if unknown is not None:
-            clamp_unknown = unknown if clamp_unknown is None else clamp_unknown | unknown
-        # rows whose force a board on its own tick held a tick longer or shorter than the
-        # period (a write near the tick's boundary, or late by more than half a tick:
-        # hapsim.drivers.base.Driver.mistimed_rows), cut as those
-        rows_of = getattr(driver, "mistimed_rows", None)
-        mistimed = None if rows_of is None else rows_of(cols)
-        if mistimed is not None:
-            clamp_unknown = mistimed if clamp_unknown is None else clamp_unknown | mistimed
-        # a board on its own clock that holds each force from its write's arrival: the
-        # holds' known departures from a period (the host's write times) corrected, what
-        # the correction leaves in the stated uncertainty, the holds far off cut
-        holds = _write_holds(scene, cols, driver, quantum)
-        if holds is not None:
-            position = position - holds[0]["motion"]
-            cut = holds[0]["cut"]
-            clamp_unknown = cut if clamp_unknown is None else clamp_unknown | cut
-        wire = wire_errors(scene, cols, start, driver)
-        if holds is not None:
-            wire = wire + holds[0]["wire"]
-        hw = late_info.pop("_force_half_width", None)
-        lfb = late_info.pop("_late_force_bound", None)
-        late_bounds = None if lfb is None else []
-        if lfb is not None and np.any(lfb > 0):
-            # the late ticks' accounted forces, wrong by at most the disturbance taken out:
-            # their worst case through the fit, apart (a side decided on b adds it)
-            from hapsim.analysis.error_response import force_error_response
-            late_bounds = [(lfb, force_error_response(scene, int(cols["seq"].size)))]
-        bounds = []
-        if hw is not None and np.any(hw > 0):
-            # the forces the account cannot name (a command whose answer never came: sent
-            # or the one before), bounded at their rows, through the loop's force
-            # response: their worst case is in the stated uncertainty
-            from hapsim.analysis.error_response import force_error_response
-            bounds.append((hw, force_error_response(scene, int(cols["seq"].size))))
-        if "flags" in cols and np.any(cols["flags"] & FLAG_ESTIMATED):
-            # a driver's missing replies: the positions the loop stepped through them with
-            # are extrapolations, wrong by at most what the device can have done meanwhile
-            from hapsim.analysis.measurement import estimated_bounds
-            if response is None:
-                from hapsim.analysis.error_response import sensor_error_response
-                try:
-                    response = sensor_error_response(scene, int(cols["seq"].size))
-                except ConfigError:
-                    response = None
-            if response is not None:
-                bounds.append((estimated_bounds(
-                    cols, T, *device_body(dev), quantum, dev.noise,
-                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
-                    coulomb=dev.coulomb), response))
-        exclude = ((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
-                   else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown)
-        if holds is not None:
-            bounds += holds[0]["bounds"]
-
-        def fitted(ex, fit=None):
-            return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
-                            start, offset=offset, late=late,
-                            skip=math.ceil(float(dev.delay)) + 2, predicted=poles,
-                            felt=felt, quantum=quantum, noise=dev.noise,
-                            sensor_response=response,
-                            closed=None if replay is None else replay.closed, exclude=ex,
-                            wire=wire, bounds=bounds or None, late_bounds=late_bounds,
-                            fit=fit)
-        if getattr(driver, "own_tick", False) and float(getattr(driver, "tick_s", 0.0)) > 0:
-            # a board on its own tick and clock: the holds it mistimed that the host did
-            # not see, found in the record and cut as the marked ones
-            # (hapsim.analysis.unseen_holds); a lockstep mock has no tick to mistime
-            # rows with an error the stated uncertainty bounds already (an estimated
-            # position, a force the account cannot name or a late tick's): no hold there
-            unread = (cols["flags"] & FLAG_ESTIMATED) != 0
-            for b in (hw, lfb):
-                if b is not None:
-                    unread = unread | (np.asarray(b, float) > 0)
-            measured = _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum,
-                                         driver, unread, poles)
-        else:
-            measured = fitted(exclude)
-        if holds is not None and "k" in measured:
-            _link_check(prep.pred, measured, fitted, exclude, bounds, holds)
-        if mistimed is not None:
-            measured["mistimed_rows"] = int(np.count_nonzero(mistimed))
-        if replay is not None:
-            contact_verdict(measured, replay, cols["seq"], start, T)
-        if measured.get("first_seq") is not None and cols["seq"].size:
-            # the identified stretch's first row of the run (live changes are journaled
-            # by row: hapsim.audio.journal.revise_measurement)
-            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
-        if put_back:
-            measured["skipped_put_back"] = put_back   # rows of skipped STATEs measured too
+    measured, late_info, cols, known = _fit_record(prep, tel, hello, driver)
+    if known and not searching and "k" in measured:
+        # the known inputs were taken out through the predicted loop: again through the
+        # loop the record measured (hapsim.pipeline.loop_refit)
+        measured = _through_loop(prep, tel, hello, driver, measured)
+    measured.pop("_hold_rows", None)
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
         notes.append("the scene has contacts: the prediction takes them engaged, so only the "
@@ -356,6 +213,213 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
     return measured
 
 
+def _through_loop(prep: PreparedRun, tel: Telemetry, hello, driver, measured: dict) -> dict:
+    """:func:`_identify_at`'s measurement with its known inputs taken out through the loop
+    it measures (:func:`hapsim.pipeline.loop_refit.through_measured_loop`).
+
+    A board on its own tick (a search for the holds it mistimed unseen): the fixed point
+    is found with the holds the search found through the predicted loop cut as they are
+    (a hold "found" where that loop's correction left its own error is no hold, and its
+    cut loses rows, never biases: 2-9 such on records that held none), the search is made
+    again through the loop found, and where it finds other holds the fixed point is found
+    again with those cut.
+    """
+    from hapsim.pipeline.loop_refit import through_measured_loop
+    scene = prep.model
+    rows = measured.get("_hold_rows")
+
+    def fit(d, given):
+        return _fit_record(prep, tel, hello, driver, loop_device=d, unseen=given)[0]
+
+    at = through_measured_loop(scene, measured, lambda d: fit(d, rows))
+    got = at.get("loop_refit", {}).get("device")
+    if rows is None or "k" not in at or got is None:
+        return at
+    found = dataclasses.replace(scene.device, mass=got[0], friction=got[1])
+    searched = fit(found, None)
+    again = searched.get("_hold_rows", ([], []))
+    if "k" not in searched:
+        return searched
+    if sorted(again[0]) == sorted(rows[0]):
+        return at
+    return through_measured_loop(scene, searched, lambda d: fit(d, again), start=found)
+
+def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
+                loop_device=None, unseen=None):
+    """:func:`_identify_at`'s fit of the record, before its verdict.
+
+    ``loop_device``: the device of the loop the known inputs (late ticks, an output
+    stage, a board's write holds) and the errors' responses are taken through
+    (:mod:`hapsim.pipeline.loop_refit`); default the model's. The law's replays, the
+    fit's starting poles and the mass the felt pair is expressed with stay the model's.
+    ``unseen``: a board on its own tick, the holds to cut without a search
+    (:func:`_cut_unseen_holds`' ``given``); default: searched.
+
+    Returns
+    -------
+    (dict, dict, dict, bool)
+        The measurement, the late ticks' report (:func:`late_accounted`), the telemetry
+        columns, and whether a known input was taken out through the loop (the record
+        measured is not the record logged).
+    """
+    scene = prep.model
+    dev, pred = scene.device, prep.pred
+    loop = scene if loop_device is None else dataclasses.replace(scene, device=loop_device)
+    known = False
+    T = scene.period
+    cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
+    measured = {"error": "not identified"}
+    late_info = {}
+    quantum = sensor_step(dev, hello, driver)
+    if pred["order"]:
+        start = int(math.ceil(prep.exc_end / T - 1e-9)) + math.ceil(float(dev.delay)) + 3
+        if cols["seq"].size:
+            start += int(cols["seq"][0])
+        offset = has_offset(scene)
+        poles, felt = predicted_poles(scene)
+        response = None
+        if quantum > 0 or dev.noise > 0:
+            from hapsim.analysis.error_response import sensor_error_response
+            try:
+                response = sensor_error_response(loop, int(cols["seq"].size))
+            except ConfigError:
+                response = None
+        # the skipped STATEs the loop stepped the scene with (a backlog), kept beside the
+        # rows: replayed too, so a backlog does not end what the replay knows
+        skipped = tel.skipped() if hasattr(tel, "skipped") else None
+        put_back = 0
+        if skipped is not None and skipped[0].size:
+            # and they are samples of the device: put back in the record as the rows they
+            # would have been (their law forces replayed), a backlog leaves no gap in seq
+            from hapsim.pipeline.contact_replay import fill_skipped
+            filled = fill_skipped(scene, cols, skipped, tel.skipped_ticks(),
+                                  int(math.ceil(float(dev.delay))),
+                                  bool(scene.safety.passivity_controller))
+            if filled is not None:
+                put_back = int(filled[0]["seq"].size - cols["seq"].size)
+                cols, skipped = filled
+        replay = contact_replay(scene, cols, skipped)
+        from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
+        from hapsim.host.telemetry import FLAG_CLAMPED
+        computed = None
+        if np.any(cols["flags"] & FLAG_CLAMPED) and not scene.safety.passivity_controller:
+            # the host's clamp at the force limit: a known input (the law's force
+            # replayed from the logged positions), taken out with the late ticks'
+            from hapsim.pipeline.contact_replay import computed_forces
+            # (an empty record replays as none)
+            computed = computed_forces(
+                scene, cols, skipped=skipped if skipped is not None and skipped[0].size
+                else None)
+        # rows the host clamped at the force limit whose law force the replay cannot give
+        # (skipped STATEs past the skipped STATEs' record: their positions, which the law
+        # stepped through, are not kept;
+        # a live change; the passivity controller): the force the device held there is
+        # the clamped one, not the linear loop's, an input the account does not know. Left
+        # out, the record cut there: the stretch after them is a free response from its
+        # own initial state (the clamped forces still in flight are part of it; the fit
+        # drops each stretch's first delay + 2 rows), so the measurement stays exact
+        clamp_unknown = (cols["flags"] & FLAG_CLAMPED) != 0 if computed is None else None
+        position, late, late_info = late_accounted(
+            loop, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
+            computed=computed)
+        # rows whose applied force the driver's account cannot name at all (an unframed
+        # board's parser out of step: hapsim.drivers.base.Driver.unknown_force_rows, the
+        # account's known False: what identify's fit leaves out too), cut as those
+        unknown = late_info.pop("_unknown_rows", None)
+        if unknown is not None:
+            clamp_unknown = unknown if clamp_unknown is None else clamp_unknown | unknown
+        # rows whose force a board on its own tick held a tick longer or shorter than the
+        # period (a write near the tick's boundary, or late by more than half a tick:
+        # hapsim.drivers.base.Driver.mistimed_rows), cut as those
+        rows_of = getattr(driver, "mistimed_rows", None)
+        mistimed = None if rows_of is None else rows_of(cols)
+        if mistimed is not None:
+            clamp_unknown = mistimed if clamp_unknown is None else clamp_unknown | mistimed
+        # a board on its own clock that holds each force from its write's arrival: the
+        # holds' known departures from a period (the host's write times) corrected, what
+        # the correction leaves in the stated uncertainty, the holds far off cut
+        holds = _write_holds(loop, cols, driver, quantum)
+        if holds is not None:
+            position = position - holds[0]["motion"]
+            cut = holds[0]["cut"]
+            clamp_unknown = cut if clamp_unknown is None else clamp_unknown | cut
+        wire = wire_errors(loop, cols, start, driver)
+        if holds is not None:
+            wire = wire + holds[0]["wire"]
+        hw = late_info.pop("_force_half_width", None)
+        lfb = late_info.pop("_late_force_bound", None)
+        late_bounds = None if lfb is None else []
+        if lfb is not None and np.any(lfb > 0):
+            # the late ticks' accounted forces, wrong by at most the disturbance taken out:
+            # their worst case through the fit, apart (a side decided on b adds it)
+            from hapsim.analysis.error_response import force_error_response
+            late_bounds = [(lfb, force_error_response(loop, int(cols["seq"].size)))]
+        bounds = []
+        if hw is not None and np.any(hw > 0):
+            # the forces the account cannot name (a command whose answer never came: sent
+            # or the one before), bounded at their rows, through the loop's force
+            # response: their worst case is in the stated uncertainty
+            from hapsim.analysis.error_response import force_error_response
+            bounds.append((hw, force_error_response(loop, int(cols["seq"].size))))
+        if "flags" in cols and np.any(cols["flags"] & FLAG_ESTIMATED):
+            # a driver's missing replies: the positions the loop stepped through them with
+            # are extrapolations, wrong by at most what the device can have done meanwhile
+            from hapsim.analysis.measurement import estimated_bounds
+            if response is None:
+                from hapsim.analysis.error_response import sensor_error_response
+                try:
+                    response = sensor_error_response(loop, int(cols["seq"].size))
+                except ConfigError:
+                    response = None
+            if response is not None:
+                bounds.append((estimated_bounds(
+                    cols, T, *device_body(dev), quantum, dev.noise,
+                    float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
+                    coulomb=dev.coulomb), response))
+        exclude = ((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
+                   else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown)
+        if holds is not None:
+            bounds += holds[0]["bounds"]
+
+        def fitted(ex, fit=None):
+            return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
+                            start, offset=offset, late=late,
+                            skip=math.ceil(float(dev.delay)) + 2, predicted=poles,
+                            felt=felt, quantum=quantum, noise=dev.noise,
+                            sensor_response=response,
+                            closed=None if replay is None else replay.closed, exclude=ex,
+                            wire=wire, bounds=bounds or None, late_bounds=late_bounds,
+                            fit=fit)
+        if getattr(driver, "own_tick", False) and float(getattr(driver, "tick_s", 0.0)) > 0:
+            # a board on its own tick and clock: the holds it mistimed that the host did
+            # not see, found in the record and cut as the marked ones
+            # (hapsim.analysis.unseen_holds); a lockstep mock has no tick to mistime
+            # rows with an error the stated uncertainty bounds already (an estimated
+            # position, a force the account cannot name or a late tick's): no hold there
+            unread = (cols["flags"] & FLAG_ESTIMATED) != 0
+            for b in (hw, lfb):
+                if b is not None:
+                    unread = unread | (np.asarray(b, float) > 0)
+            measured = _cut_unseen_holds(loop, fitted, exclude, position, cols, quantum,
+                                         driver, unread, poles, given=unseen)
+        else:
+            measured = fitted(exclude)
+        if holds is not None and "k" in measured:
+            _link_check(prep.pred, measured, fitted, exclude, bounds, holds)
+        if mistimed is not None:
+            measured["mistimed_rows"] = int(np.count_nonzero(mistimed))
+        if replay is not None:
+            contact_verdict(measured, replay, cols["seq"], start, T)
+        if measured.get("first_seq") is not None and cols["seq"].size:
+            # the identified stretch's first row of the run (live changes are journaled
+            # by row: hapsim.audio.journal.revise_measurement)
+            measured["first_row"] = int(measured["first_seq"] - cols["seq"][0])
+        if put_back:
+            measured["skipped_put_back"] = put_back   # rows of skipped STATEs measured too
+        known = not np.array_equal(position, cols["position"])
+    return measured, late_info, cols, known
+
+
 def _write_holds(scene, cols: dict, driver, quantum: float):
     """The host's write timing of a run whose board holds each force from its write's
     arrival, on its own clock (:attr:`hapsim.drivers.base.Driver.holds_from_write`,
@@ -421,7 +485,7 @@ def _link_check(pred, measured, fitted, exclude, bounds, holds) -> None:
 
 
 def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
-                      unread, poles) -> dict:
+                      unread, poles, given=None) -> dict:
     """:func:`identify_run`'s fit of a board on its own tick, with the holds it mistimed
     that no host saw cut out (:func:`hapsim.analysis.unseen_holds.find_unseen_holds`).
 
@@ -454,6 +518,9 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
     poles : array_like of complex
         The predicted closed-loop poles (for a "differs"'s review,
         :func:`hapsim.pipeline.unseen_review.review_differs`).
+    given : (list of int, list of float), optional
+        Holds found before (rows, mistimings [s]: a measurement's ``_hold_rows``), cut
+        without a search (:mod:`hapsim.pipeline.loop_refit`'s fits at other loops).
 
     Returns
     -------
@@ -463,7 +530,8 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
         at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], whole ticks:
         positive, taken late); ``_unseen``, what a "differs"'s review needs
         (:func:`hapsim.pipeline.unseen_review.review_differs`' ``state``), popped by
-        :func:`identify_run`.
+        :func:`identify_run`; ``_hold_rows``, the rows and mistimings cut (``given``'s
+        form).
     """
     from hapsim.analysis.error_response import force_error_response, sensor_error_response
     from hapsim.analysis.identify import sensor_sd
@@ -474,24 +542,33 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
     tick = float(driver.tick_s)
     per = max(int(round(scene.period / tick)) - 1, 1)
     tried = [s * k * tick for k in range(1, per + 1) for s in (1, -1)]
-    fit: dict = {}
-    measured = fitted(exclude, fit)
-    if not fit:                        # no variable projection: an exact record, or none
-        measured["unseen_holds"] = 0
-        return measured
-    try:
-        S, H = sensor_error_response(scene, n), force_error_response(scene, n)
-    except ConfigError:
-        measured["unseen_holds"] = 0
-        return measured
     x = np.asarray(position, float)
     pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
     floor = math.hypot(sensor_sd(quantum, scene.device.noise),
                        pr * float(np.max(np.abs(x))) / math.sqrt(3.0) if n else 0.0)
-    rows, taus = [], []
-    ex = np.asarray(exclude, bool).copy()
-    last = (fit, ex.copy(), measured)
-    for _ in range(MAX_PASSES):
+    fit: dict = {}
+    if given is not None:
+        # the holds a search made before (at another loop), cut as they are
+        rows, taus = [int(j) for j in given[0]], [float(t) for t in given[1]]
+        ex = np.asarray(exclude, bool) | hold_rows(n, rows)
+        measured = fitted(ex, fit)
+        last = (fit, ex, measured)
+        passes = 0
+    else:
+        measured = fitted(exclude, fit)
+        if not fit:                    # no variable projection: an exact record, or none
+            measured["unseen_holds"] = 0
+            measured["_hold_rows"] = ([], [])
+            return measured
+        rows, taus = [], []
+        ex = np.asarray(exclude, bool).copy()
+        last = (fit, ex.copy(), measured)
+        passes = MAX_PASSES
+    try:
+        S, H = sensor_error_response(scene, n), force_error_response(scene, n)
+    except ConfigError:
+        passes = 0
+    for _ in range(passes):
         got = find_unseen_holds(x, cols["force"], fit, scene.period, S, H, tried,
                                 floor=floor, lead=math.ceil(float(scene.device.delay)) + 3,
                                 unread=unread)
@@ -510,7 +587,8 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
             break
         last = (fit, ex.copy(), measured)
     measured["unseen_holds"] = len(rows)
-    if last[2] is measured and "k" in measured:
+    measured["_hold_rows"] = (list(rows), list(taus))
+    if last[2] is measured and "k" in measured and last[0]:
         measured["_unseen"] = {
             "fitted": fitted, "fit": last[0], "exclude": last[1], "position": x,
             "poles": poles, "floor": floor,
