@@ -22,13 +22,14 @@ are taken out through a loop whose felt pair is ``p`` (the device's mass and fri
 chosen so: :func:`device_at_pair`, the rest of the scene kept), ``p0`` the prediction and
 ``M0 = M(p0)`` the first measurement. The loop the record measures is the ``p*`` with
 ``M(p*) = p*``. To first order ``M(p) = M0 + A (p - p0)``, with ``A = dM/dp`` taken by two
-finite differences, so ``p* = p0 + (I - A)^-1 (M0 - p0)``, and a chord step
-``p <- p + (I - A)^-1 (M(p) - p)`` more while ``M(p)`` and ``p`` differ by more than
-:data:`SETTLED` of the stated uncertainty (Kelley, *Iterative Methods for Linear and
-Nonlinear Equations*, SIAM 1995, Sec. 5.4, the chord method). The measurement at ``p*``
-is the run's, and its stated half-widths carry the fixed point's own gain: an error
-``e`` of the fit at a fixed loop moves ``p*`` by ``(I - A)^-1 e``, so the half-widths
-are taken through ``|(I - A)^-1|`` (row sums: the worst case over their box). A record
+finite differences (secant slopes over the departure ``M0 - p0``), so the first step is
+``p = p0 + (I - A)^-1 (M0 - p0)``, and Broyden's steps on ``F(p) = M(p) - p`` follow
+while ``M(p)`` and ``p`` differ by more than :data:`SETTLED` of the stated uncertainty
+(Kelley, *Iterative Methods for Linear and Nonlinear Equations*, SIAM 1995, Sec. 7.2).
+The measurement at ``p*`` is the run's, and its stated half-widths carry the fixed
+point's own gain: an error ``e`` of the fit at a fixed loop moves ``p*`` by
+``(I - A)^-1 e``, with ``A`` taken again at ``p*``, so the half-widths are taken through
+``|(I - A)^-1|`` (row sums: the worst case over their box). A record
 whose measurement follows the loop it is corrected with as fast as the loop itself
 (``|det(I - A)|`` below :data:`SINGULAR`) cannot tell the two apart and is not measurable.
 """
@@ -49,7 +50,7 @@ __all__ = ["SETTLED", "SINGULAR", "MAX_PASSES", "pair_of", "device_at_pair",
 SETTLED = 0.1
 #: ``|det(I - A)|`` below which the record cannot tell the loop from its correction.
 SINGULAR = 0.05
-#: Chord steps after the first solve.
+#: Broyden steps after the first two.
 MAX_PASSES = 3
 
 
@@ -74,9 +75,10 @@ def pair_of(scene, mass: float):
         _, felt = predicted_poles(scene)
     except Exception:                       # a loop the analysis cannot build
         return None
-    if felt is None or felt == 0:
+    if felt is None or felt == 0:             # (z = 0: a delay line's pole, no pair)
         return None
-    s = cmath.log(complex(felt)) / scene.period
+    from hapsim.analysis.ths import continuous_poles
+    s = complex(continuous_poles(complex(felt), scene.period))
     return np.array([mass * abs(s) ** 2, -2.0 * mass * s.real])
 
 
@@ -112,10 +114,11 @@ def device_at_pair(scene, pair, mass: float, start=None):
     dev = start if start is not None else scene.device
     x = np.array([float(dev.mass), float(dev.friction)])
 
+    from hapsim.analysis.prediction import predicted_poles
+
     def felt(v):
         if not v[0] > 0:
             return None
-        from hapsim.analysis.prediction import predicted_poles
         try:           # (a scene refuses a negative friction: no such device)
             sc = dataclasses.replace(scene, device=dataclasses.replace(
                 dev, mass=float(v[0]), friction=float(v[1])))
@@ -185,8 +188,9 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
         known inputs were taken through), ``moved`` (k, b: how far the fixed point is
         from the first measurement) and ``first_unc`` (the first measurement's
         half-widths, which the fixed point settles to :data:`SETTLED` of); or, when the record cannot tell the loop from its
-        correction, no pair and ``error``; unchanged, with ``loop_refit.error``, when no
-        loop renders the pairs the search needs.
+        correction, when no device renders the pairs the search needs or no fixed point
+        is found, no pair and ``error`` (never the first measurement, which the predicted
+        loop pulled toward the prediction).
     """
     from hapsim.analysis.network import device_body
     mass = device_body(scene.device)[0]

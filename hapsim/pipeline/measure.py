@@ -244,6 +244,7 @@ def _through_loop(prep: PreparedRun, tel: Telemetry, hello, driver, measured: di
         return at
     return through_measured_loop(scene, searched, lambda d: fit(d, again), start=found)
 
+
 def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                 loop_device=None, unseen=None):
     """:func:`_identify_at`'s fit of the record, before its verdict.
