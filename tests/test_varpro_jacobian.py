@@ -1,6 +1,7 @@
-"""The variable projection's Jacobian in closed form (hapsim.analysis.identify._jacobian,
-issue 31 item 2: string.yaml's felt-pair fit formed it by finite differences, one least
-squares per parameter, 26 CPU-s a fit) against an independent derivative: the complex step
+"""The variable projection's residual and Jacobian in closed form, compiled
+(hapsim.kernels.varpro through hapsim.analysis.identify._compiled; issue 31 item 2:
+string.yaml's felt-pair fit formed the Jacobian by finite differences, one least squares
+per parameter, 26 CPU-s a fit) against an independent derivative: the complex step
 (Squire & Trapp, "Using complex variables to estimate derivatives of real functions", SIAM
 Review 40(1), 1998) of the projected residual written here from its definition, the model's
 columns evaluated at complex parameters and the linear coefficients from the normal
@@ -72,7 +73,7 @@ def test_jacobian_is_the_complex_step_derivative(case):
     y, spec = _record(rng, case["pairs"], case["n"], case.get("real"), case.get("offset", 0.0))
     offset, lens = "offset" in case, case.get("lens")
     theta = ident._theta(spec)
-    J = ident._jacobian(spec, theta, y, offset, lens)
+    J = ident._compiled("jacobian", spec, theta, y, offset, lens)
     assert J.shape == (y.size, theta.size)
     h = 1e-30
     Jcs = np.empty_like(J)
@@ -81,7 +82,8 @@ def test_jacobian_is_the_complex_step_derivative(case):
         th[k] += 1j * h
         Jcs[:, k] = _residual(spec, th, y, offset, lens).imag / h
     # the residual the Jacobian belongs to is the one the fit minimises
-    r = ident._solve(spec, theta, y, offset, lens, derivatives=False)[1]
+    r = ident._compiled("residual", spec, theta, y, offset, lens)
+    r_np = ident._solve(spec, theta, y, offset, lens, derivatives=False)[1]   # numpy's
     r_ne = _residual(spec, theta.astype(complex), y, offset, lens).real
     # forward error <= condition x backward error (Higham Sec. 1.6): the normal equations
     # solve with the basis' condition squared (Higham Sec. 20.4), every entry an inner
@@ -91,6 +93,7 @@ def test_jacobian_is_the_complex_step_derivative(case):
     tol = rel_tol(y.size, cond * cond)
     assert np.linalg.norm(J - Jcs) <= tol * np.linalg.norm(Jcs), (cond, tol)
     assert np.linalg.norm(r - r_ne) <= tol * np.linalg.norm(y), (cond, tol)
+    assert np.linalg.norm(r - r_np) <= tol * np.linalg.norm(y), (cond, tol)
     # the test can tell: Kaufman's approximation (the first term alone) is off here,
     # where the start leaves a residual
     kaufman = []
@@ -101,3 +104,18 @@ def test_jacobian_is_the_complex_step_derivative(case):
         kaufman.append(Dc - phi @ np.linalg.lstsq(phi, Dc, rcond=None)[0])
     off = np.linalg.norm(np.concatenate(kaufman) - Jcs) / np.linalg.norm(Jcs)
     assert off > 1e3 * tol, (off, tol)
+
+
+def test_a_record_that_is_not_finite_is_refused_as_lstsq_refuses_it():
+    """A column past the float range (a pole far outside the unit circle) or a record
+    with a NaN: LinAlgError, as numpy.linalg.lstsq raises (the fit then keeps its start)."""
+    rng = np.random.default_rng(5)
+    y, spec = _record(rng, 1, 200)
+    theta = ident._theta(spec)
+    for which in ("residual", "jacobian"):
+        with pytest.raises(np.linalg.LinAlgError):
+            ident._compiled(which, spec, np.array([-5.0, theta[1]]), y, False)
+        bad = y.copy()
+        bad[7] = np.nan
+        with pytest.raises(np.linalg.LinAlgError):
+            ident._compiled(which, spec, theta, bad, False)

@@ -91,29 +91,16 @@ def _spec(poles) -> list:
     return out
 
 
-def _basis(spec, theta, n, offset: bool, derivatives: bool = True, cache=None):
-    """Model columns Phi (n, p) and their derivatives per nonlinear parameter.
-
-    ``derivatives=False``: the derivatives are not formed (``dcols`` is None), as the
-    residual alone needs. ``cache``: a :class:`_ColumnCache` that keeps each mode's
-    columns by its parameters; a mode whose parameters it holds is not computed again
-    (the finite-difference Jacobian of :func:`_varpro` moves one parameter at a time:
-    every other mode's columns are those of the call before). The columns are the same
-    arrays either way, bit for bit: the cache only skips recomputing them.
-    """
+def _basis(spec, theta, n, offset: bool, derivatives: bool = True):
+    """Model columns Phi (n, p) and their derivatives per nonlinear parameter
+    (``derivatives=False``: ``dcols`` is None, as the residual alone needs)."""
     t = np.arange(n, dtype=float)
     cols, dcols, i = [], [], 0
     for kind, *_ in spec:
         if kind == "pair":
             a, w = theta[i], theta[i + 1]
-            key = (n, float(a).hex(), float(w).hex())      # the bits: -0.0 is not 0.0
-            got = cache.get(key) if cache is not None else None
-            if got is None:
-                e = np.exp(-a * t)
-                got = (e * np.cos(w * t), e * np.sin(w * t))
-                if cache is not None:
-                    cache.put(key, got)
-            c, s = got
+            e = np.exp(-a * t)
+            c, s = e * np.cos(w * t), e * np.sin(w * t)
             cols += [c, s]
             if derivatives:
                 # d/da and d/dw of c and s
@@ -122,13 +109,7 @@ def _basis(spec, theta, n, offset: bool, derivatives: bool = True, cache=None):
             i += 2
         else:
             p = theta[i]
-            key = (n, float(p).hex())
-            got = cache.get(key) if cache is not None else None
-            if got is None:
-                got = (np.power(p, t),)
-                if cache is not None:
-                    cache.put(key, got)
-            cols.append(got[0])
+            cols.append(np.power(p, t))
             if derivatives:
                 dp = np.zeros(n)
                 if p != 0:
@@ -138,28 +119,6 @@ def _basis(spec, theta, n, offset: bool, derivatives: bool = True, cache=None):
     if offset:
         cols.append(np.ones(n))
     return np.column_stack(cols), (dcols if derivatives else None)
-
-
-class _ColumnCache:
-    """The most recently used modes' columns of :func:`_basis`, at most ``size`` of them
-    (a least-recently-used dictionary: the memory stays that of a few bases)."""
-
-    def __init__(self, size: int):
-        from collections import OrderedDict
-        self.size = max(int(size), 1)
-        self._d = OrderedDict()
-
-    def get(self, key):
-        got = self._d.get(key)
-        if got is not None:
-            self._d.move_to_end(key)
-        return got
-
-    def put(self, key, value):
-        self._d[key] = value
-        self._d.move_to_end(key)
-        while len(self._d) > self.size:
-            self._d.popitem(last=False)
 
 
 def _theta(spec) -> np.ndarray:
@@ -176,16 +135,16 @@ def _bounds(n: int, lens) -> list:
     return [(int(a), int(b)) for a, b in zip(e[:-1], e[1:])]
 
 
-def _solve(spec, theta, y, offset, lens=None, derivatives=True, cache=None):
+def _solve(spec, theta, y, offset, lens=None, derivatives=True):
     """Fit the linear coefficients of each stretch (its own initial condition) for the
     poles ``theta``; ``(blocks, r)`` with ``blocks`` a list of ``(phi, dcols, c)`` per
-    stretch and ``r`` the residual of the whole record (``derivatives``, ``cache``: as
+    stretch and ``r`` the residual of the whole record (``derivatives``: as
     :func:`_basis`)."""
     blocks, res = [], []
     for a, b in _bounds(y.size, lens):
         yb = y[a:b]
         with np.errstate(over="ignore", invalid="ignore"):
-            phi, dcols = _basis(spec, theta, yb.size, offset, derivatives, cache)
+            phi, dcols = _basis(spec, theta, yb.size, offset, derivatives)
         if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(yb))):
             # a trial pole growing past the float range: what lstsq raises on it, without
             # LAPACK first printing its complaint on stdout (into a --json report)
@@ -196,93 +155,50 @@ def _solve(spec, theta, y, offset, lens=None, derivatives=True, cache=None):
     return blocks, np.concatenate(res) if res else np.zeros(0)
 
 
-def _jacobian(spec, theta, y, offset, lens=None, cache=None):
-    """Jacobian of :func:`_solve`'s residual in the nonlinear parameters, in closed form.
-
-    For one stretch, with ``Phi`` its model columns, ``c = Phi^+ y`` and ``r = Phi c - y``
-    (the residual of the linear fit, ``-P_perp y``), the derivative in parameter ``k`` is
-    (Golub & Pereyra, "The differentiation of pseudo-inverses and nonlinear least squares
-    problems whose variables separate", SIAM J. Numer. Anal. 10(2), 1973: the derivative
-    of the projector, ``d(Phi Phi^+) = P_perp dPhi Phi^+ + (P_perp dPhi Phi^+)^T`` for
-    ``Phi`` of full column rank)::
-
-        dr/dtheta_k = P_perp D_k c - (Phi^+)^T D_k^T r,     D_k = dPhi/dtheta_k
-
-    ``P_perp = I - U U^T`` and ``(Phi^+)^T = U S^-1 V^T`` from the thin SVD of ``Phi``
-    (rank cut as ``np.linalg.lstsq(..., rcond=None)``: singular values under
-    ``eps * max(shape) * s_max`` are dropped). The rows of the stretches one after the
-    other, as the residual's. Its first term alone is Kaufman's approximation ("A variable
-    projection method for solving separable nonlinear least squares problems", BIT 15,
-    1975); the second keeps the Gauss-Newton step right far from the solution, where the
-    residual is large (a start at the spectrum's peak).
-
-    Parameters
-    ----------
-    spec : list
-        The modes, as :func:`_spec` gives them.
-    theta : ndarray of float, shape (p,)
-        The nonlinear parameters (:func:`_theta`'s order).
-    y : ndarray of float, shape (n,)
-        The record (the stretches of ``lens`` one after the other).
-    offset : bool
-        A constant column in every stretch.
-    lens, cache
-        As :func:`_solve`.
-
-    Returns
-    -------
-    ndarray of float, shape (n, p)
+def _compiled(which, spec, theta, y, offset, lens=None):
+    """The projected residual (``which`` "residual", shape (n,)) or its Jacobian
+    ("jacobian", shape (n, p)) at ``theta``, compiled
+    (:mod:`hapsim.kernels.varpro`; :func:`_solve`'s mathematics: Golub & Pereyra 1973).
 
     Raises
     ------
     numpy.linalg.LinAlgError
         A column or the record not finite (what ``lstsq`` raises on it).
     """
-    rows = []
-    for a, b in _bounds(y.size, lens):
-        yb = y[a:b]
-        with np.errstate(over="ignore", invalid="ignore"):
-            phi, dcols = _basis(spec, theta, yb.size, offset, True, cache)
-        if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(yb))):
-            raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
-        U, S, Vt = np.linalg.svd(phi, full_matrices=False)
-        keep = S > np.finfo(float).eps * max(phi.shape) * S[0]
-        U, S, Vt = U[:, keep], S[keep], Vt[keep]
-        c = Vt.T @ ((U.T @ yb) / S)
-        r = phi @ c - yb
-        Dc = np.empty((phi.shape[0], theta.size))          # D_k c, column k
-        Dr = np.zeros((phi.shape[1], theta.size))           # D_k^T r, column k
-        for k, parts in enumerate(dcols):
-            Dc[:, k] = sum(c[col] * d for col, d in parts)
-            for col, d in parts:
-                Dr[col, k] = d @ r
-        rows.append(Dc - U @ (U.T @ Dc) - U @ ((Vt @ Dr) / S[:, None]))
-    return np.concatenate(rows) if rows else np.zeros((0, theta.size))
+    from hapsim.kernels.varpro import projected_jacobian, projected_residual
+    y = np.ascontiguousarray(y, dtype=float)
+    kinds = np.array([0 if s[0] == "pair" else 1 for s in spec], dtype=np.int64)
+    se = np.array(_bounds(y.size, lens), dtype=np.int64).reshape(-1, 2)
+    th = np.ascontiguousarray(theta, dtype=float)
+    if which == "residual":
+        out, kernel = np.empty(y.size), projected_residual
+    else:
+        out, kernel = np.empty((y.size, th.size)), projected_jacobian
+    if not kernel(kinds, th, y, np.ascontiguousarray(se[:, 0]),
+                  np.ascontiguousarray(se[:, 1]), bool(offset), out):
+        raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
+    return out
 
 
 def _varpro(spec, y, offset, lens=None):
     """Refine the poles of ``spec`` on ``y`` by variable projection; (spec, cost).
 
-    Levenberg-Marquardt on the projected residual with its Jacobian in closed form
-    (:func:`_jacobian`): one SVD per iteration, where a finite-difference Jacobian solved
-    the least squares once per parameter (~100 for string.yaml's 51 modes: 26 CPU-s a
-    measurement, ~2 s since: two starts, 0.3 and 1.5 s).
+    Levenberg-Marquardt on the projected residual with its Jacobian in closed form, both
+    compiled (:func:`_compiled`): one SVD per stretch and evaluation, where a
+    finite-difference Jacobian solved the least squares once per parameter (~100 for
+    string.yaml's 51 modes: 26 CPU-s a measurement).
     """
     from scipy.optimize import least_squares
 
     theta0 = _theta(spec)
     scale = float(np.max(np.abs(y))) or 1.0
-    ys = y / scale
-
-    # each mode's columns kept between the residual at a point and its Jacobian there
-    # (and while a step moves few modes; the same bits either: test_varpro_column_cache)
-    cache = _ColumnCache(4 * len(spec) * len(_bounds(y.size, lens)) + 8)
+    ys = np.asarray(y, dtype=float) / scale
 
     def res(th):
-        return _solve(spec, th, ys, offset, lens, derivatives=False, cache=cache)[1]
+        return _compiled("residual", spec, th, ys, offset, lens)
 
     def jac(th):
-        return _jacobian(spec, th, ys, offset, lens, cache)
+        return _compiled("jacobian", spec, th, ys, offset, lens)
 
     try:
         sol = least_squares(res, theta0, jac=jac, method="lm", x_scale="jac", xtol=1e-14,
