@@ -87,11 +87,13 @@ __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report", "watchdog_text
 #: writes made and the robust ones among them, read by the host in one load), wrote_bits
 #: (the float32 bits the last robust write carried), angle (written by the host: 0, or
 #: ``1 << 32 | bits``, its last angle read, which a long silence's robust write carries)
-#: and robust_for (the host write whose silence had its robust write).
+#: robust_for (the host write whose silence had its robust write), overslept_ns (its
+#: largest wake-up past a check's end) and acted_ns (its longest time from a wake-up to
+#: the write it then made: its own descheduling after waking, a dying host's write too).
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired_ns", "fired_for", "quit",
                                   "longest_ns", "ready", "rt", "holding", "failed",
                                   "suspect", "counts", "wrote_bits", "angle",
-                                  "robust_for", "overslept_ns"))}
+                                  "robust_for", "overslept_ns", "acted_ns"))}
 _SIZE = 8 * len(_F)
 _F32 = struct.Struct("<f")
 #: The sinks a watchdog writes to besides a device file it opens by path, each an
@@ -396,14 +398,17 @@ class TorqueWatchdog:
             part), ``bound_s``, ``check_s``, ``rt_priority`` (granted; 0: none),
             ``robust`` (of the writes, those that were the robust one), ``overslept_s``
             (its largest wake-up past a check's end [s]: how late its own scheduling
-            made it, beside ``check_s`` in the bound it keeps).
+            made it, beside ``check_s`` in the bound it keeps), ``acted_s`` (its longest
+            time from a wake-up to the write it made then [s], the dying host's write
+            included).
         """
         p = self._page
         c = p.get("counts")
         return {"fired": c >> 32, "failed": p.get("failed"), "robust": c & 0xFFFFFFFF,
                 "longest_s": p.get("longest_ns") * 1e-9, "bound_s": self.bound_s,
                 "check_s": self.check_s, "rt_priority": self.rt,
-                "overslept_s": p.get("overslept_ns") * 1e-9}
+                "overslept_s": p.get("overslept_ns") * 1e-9,
+                "acted_s": p.get("acted_ns") * 1e-9}
 
     def _kill(self) -> None:
         """End the watchdog process: its loop sees ``quit`` within a check; ``SIGTERM``
@@ -657,12 +662,19 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
         """Armed, with a force held or a board that may have lost its place."""
         return bool(page.get("armed") and (page.get("holding")
                                            or (robust and page.get("suspect"))))
+    def acted(woke: int) -> None:
+        """Note the time from a wake-up to the write about to start."""
+        took = time.monotonic_ns() - woke
+        if took > page.get("acted_ns"):
+            page.set("acted_ns", took)
+    woke = time.monotonic_ns()
     while not stop and not page.get("quit") and os.getppid() == parent:
         t_sleep = time.monotonic_ns()
         time.sleep(check)
         # how late its own scheduling woke it (before the parent's death is seen: a
         # dying host's write is as late as this)
-        over = time.monotonic_ns() - t_sleep - bound_ns // 4
+        woke = time.monotonic_ns()
+        over = woke - t_sleep - bound_ns // 4
         if over > page.get("overslept_ns"):
             page.set("overslept_ns", over)
         if rest:
@@ -692,6 +704,7 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
             page.set("robust_for", beat)
             page.set("wrote_bits", bits)
         page.set("counts", page.get("counts") + (1 << 32) + rob)  # (the host reads this)
+        acted(woke)
         try:
             rest = write(out)
         except OSError:
@@ -712,7 +725,9 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
         # notes): the host may have died in the bytes that lost the board its place,
         # with no evidence read
         try:
-            write(data(False, dying=True)[0], 1.0)  # (a full buffer waited for, 1 s at most)
+            out = data(False, dying=True)[0]
+            acted(woke)
+            write(out, 1.0)                 # (a full buffer waited for, 1 s at most)
         except OSError:
             pass
 
