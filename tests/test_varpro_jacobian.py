@@ -1,5 +1,5 @@
 """The variable projection's residual and Jacobian in closed form, compiled
-(hapsim.kernels.varpro through hapsim.analysis.identify._compiled; issue 31 item 2:
+(hapsim.kernels.varpro.projected through hapsim.analysis.identify._compiled; issue 31 item 2:
 string.yaml's felt-pair fit formed the Jacobian by finite differences, one least squares
 per parameter, 26 CPU-s a fit) against an independent derivative: the complex step
 (Squire & Trapp, "Using complex variables to estimate derivatives of real functions", SIAM

@@ -158,26 +158,25 @@ def _solve(spec, theta, y, offset, lens=None, derivatives=True):
 def _compiled(which, spec, theta, y, offset, lens=None):
     """The projected residual (``which`` "residual", shape (n,)) or its Jacobian
     ("jacobian", shape (n, p)) at ``theta``, compiled
-    (:mod:`hapsim.kernels.varpro`; :func:`_solve`'s mathematics: Golub & Pereyra 1973).
+    (:func:`hapsim.kernels.varpro.projected`; :func:`_solve`'s mathematics: Golub &
+    Pereyra 1973).
 
     Raises
     ------
     numpy.linalg.LinAlgError
         A column or the record not finite (what ``lstsq`` raises on it).
     """
-    from hapsim.kernels.varpro import projected_jacobian, projected_residual
+    from hapsim.kernels.varpro import projected
     y = np.ascontiguousarray(y, dtype=float)
     kinds = np.array([0 if s[0] == "pair" else 1 for s in spec], dtype=np.int64)
     se = np.array(_bounds(y.size, lens), dtype=np.int64).reshape(-1, 2)
     th = np.ascontiguousarray(theta, dtype=float)
-    if which == "residual":
-        out, kernel = np.empty(y.size), projected_residual
-    else:
-        out, kernel = np.empty((y.size, th.size)), projected_jacobian
-    if not kernel(kinds, th, y, np.ascontiguousarray(se[:, 0]),
-                  np.ascontiguousarray(se[:, 1]), bool(offset), out):
+    jac = which == "jacobian"
+    out = np.empty((y.size, th.size if jac else 1))
+    if not projected(kinds, th, y, np.ascontiguousarray(se[:, 0]),
+                     np.ascontiguousarray(se[:, 1]), bool(offset), jac, out):
         raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
-    return out
+    return out if jac else out[:, 0]
 
 
 def _varpro(spec, y, offset, lens=None):

@@ -24,7 +24,7 @@ import math
 import numba as nb
 import numpy as np
 
-__all__ = ["projected_residual", "projected_jacobian"]
+__all__ = ["projected"]
 
 _jit = nb.njit(cache=True, nogil=True)
 #: The binary64 machine epsilon (numpy.finfo(float).eps).
@@ -70,8 +70,10 @@ def _columns(kinds, theta, L, offset):
 
 @_jit
 def _fit(phi, y):
-    """Thin SVD of ``phi`` cut as ``numpy.linalg.lstsq(rcond=None)``: ``(U, S, Vt, c, r)``
-    with ``c`` the least-squares coefficients and ``r = phi c - y``."""
+    """Thin SVD of ``phi`` cut as ``numpy.linalg.lstsq(rcond=None)``: ``(U, S, Vt, keep,
+    c, r)`` with the first ``keep`` singular triplets kept, ``c`` the least-squares
+    coefficients and ``r = phi c - y`` (plain loops: small matrices, and one compiled
+    form whatever the layouts)."""
     U, S, Vt = np.linalg.svd(phi, full_matrices=False)
     L, ncol = phi.shape
     cut = _EPS * max(L, ncol) * S[0]
@@ -79,18 +81,31 @@ def _fit(phi, y):
     for s in S:
         if s > cut:
             keep += 1
-    U = np.ascontiguousarray(U[:, :keep])
-    S = S[:keep].copy()
-    Vt = np.ascontiguousarray(Vt[:keep])
-    uy = (U.T @ y) / S
-    c = Vt.T @ uy
-    r = phi @ c - y
-    return U, S, Vt, c, r
+    uy = np.zeros(keep)
+    for k in range(keep):
+        acc = 0.0
+        for n in range(L):
+            acc += U[n, k] * y[n]
+        uy[k] = acc / S[k]
+    c = np.zeros(ncol)
+    for j in range(ncol):
+        acc = 0.0
+        for k in range(keep):
+            acc += Vt[k, j] * uy[k]
+        c[j] = acc
+    r = np.empty(L)
+    for n in range(L):
+        acc = 0.0
+        for j in range(ncol):
+            acc += phi[n, j] * c[j]
+        r[n] = acc - y[n]
+    return U, S, Vt, keep, c, r
 
 
 @_jit
-def projected_residual(kinds, theta, y, starts, ends, offset, out):
-    """The projected residual ``Phi c - y`` of every stretch, one after the other.
+def projected(kinds, theta, y, starts, ends, offset, jacobian, out):
+    """The projected residual ``Phi c - y`` of every stretch, one after the other, or its
+    Jacobian in ``theta`` in closed form (module notes): one kernel, compiled once.
 
     Parameters
     ----------
@@ -104,8 +119,10 @@ def projected_residual(kinds, theta, y, starts, ends, offset, out):
         Each stretch's samples ``starts[j] <= i < ends[j]``.
     offset : bool
         A constant column in every stretch.
-    out : ndarray of float64, shape (n,)
-        Out: the residual.
+    jacobian : bool
+        False: the residual, into ``out[:, 0]``; True: the Jacobian, into ``out``.
+    out : ndarray of float64, shape (n, 1) or (n, p)
+        Out.
 
     Returns
     -------
@@ -113,49 +130,22 @@ def projected_residual(kinds, theta, y, starts, ends, offset, out):
         False where a column or the record is not finite (``out`` then undefined): what
         ``numpy.linalg.lstsq`` refuses.
     """
-    for s in range(starts.size):
-        a, b = starts[s], ends[s]
-        yb = np.ascontiguousarray(y[a:b])
-        phi, ok = _columns(kinds, theta, b - a, offset)
-        if not ok:
-            return False
-        for v in yb:
-            if not math.isfinite(v):
-                return False
-        r = _fit(phi, yb)[4]
-        out[a:b] = r
-    return True
-
-
-@_jit
-def projected_jacobian(kinds, theta, y, starts, ends, offset, out):
-    """The Jacobian of :func:`projected_residual` in ``theta``, in closed form (module
-    notes), every stretch's rows one after the other.
-
-    Parameters
-    ----------
-    kinds, theta, y, starts, ends, offset
-        As :func:`projected_residual`.
-    out : ndarray of float64, shape (n, p)
-        Out: the Jacobian.
-
-    Returns
-    -------
-    bool
-        As :func:`projected_residual`.
-    """
     p = theta.size
     for s in range(starts.size):
         a, b = starts[s], ends[s]
         L = b - a
-        yb = np.ascontiguousarray(y[a:b])
+        yb = y[a:b]
         phi, ok = _columns(kinds, theta, L, offset)
         if not ok:
             return False
         for v in yb:
             if not math.isfinite(v):
                 return False
-        U, S, Vt, c, r = _fit(phi, yb)
+        U, S, Vt, keep, c, r = _fit(phi, yb)
+        if not jacobian:
+            for n in range(L):
+                out[a + n, 0] = r[n]
+            continue
         ncol = phi.shape[1]
         Dc = np.zeros((L, p))            # D_k c, column k
         Dr = np.zeros((ncol, p))         # D_k^T r, column k
@@ -186,10 +176,22 @@ def projected_jacobian(kinds, theta, y, starts, ends, offset, out):
                     Dr[j, i] += d * r[n]
                 i += 1
                 j += 1
-        UtDc = U.T @ Dc
-        VDr = Vt @ Dr
-        for k in range(S.size):
+        # Dc - U (U' Dc) - U (S^-1 Vt Dr): the projector's complement and the
+        # pseudo-inverse's transpose
+        W = np.zeros((keep, p))
+        for k in range(keep):
             for m in range(p):
-                VDr[k, m] /= S[k]
-        out[a:b] = Dc - U @ UtDc - U @ VDr
+                acc = 0.0
+                for n in range(L):
+                    acc += U[n, k] * Dc[n, m]
+                acc2 = 0.0
+                for jj in range(ncol):
+                    acc2 += Vt[k, jj] * Dr[jj, m]
+                W[k, m] = acc + acc2 / S[k]
+        for n in range(L):
+            for m in range(p):
+                acc = 0.0
+                for k in range(keep):
+                    acc += U[n, k] * W[k, m]
+                out[a + n, m] = Dc[n, m] - acc
     return True
