@@ -25,7 +25,10 @@ import dataclasses
 import numpy as np
 import pytest
 
+from hapsim.analysis.prediction import predict
+from hapsim.drivers.hapkit_serial import RENDER_S
 from hapsim.emulated.hapkit_serial_board import hapkit_serial_offline_loop
+from hapsim.pipeline.render_latency import timed_scene
 from test_unseen_holds import _measure, _random_case   # same directory (prepend mode)
 
 pytestmark = pytest.mark.xdist_group("test_unseen_holds")
@@ -42,7 +45,8 @@ def _cut(cols, drv, seed):
 @pytest.mark.parametrize("seed", range(8))
 def test_a_device_that_differs_is_never_within_wherever_the_host_cut(seed, tmp_path):
     """A paddle with 0.3 N s/m of friction the scene does not state (even seeds) or 30 %
-    more mass (odd ones): "differs" or not measurable, never "within", and the cut record
+    more mass (odd ones): "differs" or not measurable, never "within"; the board's own
+    loop's felt pair inside the stated half-widths of both records; and the cut record
     measures the pair the uncut record does, within the two records' stated half-widths
     and the fixed point's own settling (:data:`hapsim.pipeline.loop_refit.SETTLED` of the
     first measurements' half-widths, each way)."""
@@ -58,6 +62,18 @@ def test_a_device_that_differs_is_never_within_wherever_the_host_cut(seed, tmp_p
                                                     "error", "loop_refit")}
     assert not str(cut.get("verdict")).startswith("measured = predicted"), info
     assert "k" in whole, info
+    # what is felt: the board's own loop (its render latency, RENDER_S), its pole's pair
+    # stated with the scene's mass as the measurement states it (k = m |s|^2, b = -2 m
+    # Re s), inside the stated half-widths whatever latency the search picked (before
+    # they were widened to the latency's bounds: up to ~100 half-widths off, the fixed
+    # point's b at the picked latency, on these records)
+    truth = predict(timed_scene(dataclasses.replace(prep.scene, device=wrong), RENDER_S))
+    for m in (whole, cut):
+        if "k" not in m:
+            continue
+        for q in ("k", "b"):
+            felt = truth[q] * dev.mass / wrong.mass
+            assert abs(m[q] - felt) <= m[f"{q}_interval"], (q, felt, info)
     if "k" not in cut:                  # not measurable, with its reason
         assert cut.get("error"), info
         return
