@@ -481,7 +481,9 @@ def test_m3_host_silence_without_the_watchdog_holds_the_torque(monkeypatch):
     monkeypatch.setattr(tw, "start_watchdog", lambda *a, **k: (None, "off for the test"))
     rep, board, _ = _m3_run(SILENCE_S)
     assert rep["watchdog"] == {"running": False, "why": "off for the test"}
-    assert board["longest_hold_s"] >= SILENCE_S
+    # the whole silence, less how late the board took the write it held (its own
+    # lateness, as in the other controls: under the suite's load this one failed once)
+    assert board["longest_hold_s"] >= SILENCE_S - board["longest_gap_s"], board
 
 
 def _2diy_run(monkeypatch, silence_s: float, at_tick: int = 30, stray: bytes = b"",
