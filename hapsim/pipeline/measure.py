@@ -22,7 +22,7 @@ from hapsim.host.telemetry import FLAG_ESTIMATED, Telemetry
 from hapsim.errors import ConfigError
 from hapsim.scene import Scene
 
-__all__ = ["identify_run", "sensor_step", "contact_replay", "measure_record", "MEASURE_KEYS",
+__all__ = ["identify_run", "sensor_step", "informative_s", "contact_replay", "measure_record", "MEASURE_KEYS",
            "timing_verdict", "LATE_SHARE_MAX"]
 
 #: What the page gets of a measurement (:func:`measure_record`).
@@ -101,6 +101,70 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     return _identify_at(prep, tel, hello, driver)
 
 
+def informative_s(scene: Scene, pred: dict, driver) -> float:
+    """How long the predicted free response from the scene's start ``x0`` stays worth
+    measuring when the position sensor has a step ``q`` (:func:`sensor_step`): until its
+    envelope ``x0 exp(-sigma t)`` falls below the level a measurement counts cycles above
+    (:data:`hapsim.analysis.identify.MIN_QUANTA` steps), and one cycle more.
+
+    Below that level the record spans a few steps and its quantisation error follows the
+    signal instead of averaging out (the quantisation theorem's conditions fail: Widrow &
+    Kollar, *Quantization Noise*, 2008, ch. 4-5): it adds no cycle to the measurement and
+    biases the fit. Measured on ``configs/firefader.yaml`` (0.39 mm counts, a start of
+    15 mm): the felt k of one record fitted over its first 1.5, 2, 2.5, 3 and 3.6 s was
+    15.121, 15.146, 15.181, 15.200, 15.213 N/m against 15.153 predicted, stated +-0.07-0.08,
+    its cycles above the level 4.06, 4.40, 4.41, 4.41, 4.41. The default run records this
+    long (:func:`hapsim.pipeline.runner.prepare_run`) and a longer record is measured over
+    this much (:func:`_fit_record`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    pred : dict
+        The prediction: ``f0_hz`` [Hz] and ``damping_ratio`` of the felt pair.
+    driver : hapsim.drivers.base.Driver or None
+
+    Returns
+    -------
+    float
+        Seconds from the free response's start [s]; ``inf`` without a step, a start above
+        the level or a decay.
+    """
+    from hapsim.analysis.identify import MIN_QUANTA
+    q = sensor_step(scene.device, None, driver)
+    x0 = abs(float(scene.excitation.x0))
+    f0, zeta = pred.get("f0_hz"), pred.get("damping_ratio")
+    if not (q > 0 and x0 > MIN_QUANTA * q and f0 and zeta and 0 < zeta < 1):
+        return math.inf
+    sigma = 2.0 * math.pi * float(f0) * float(zeta)
+    return math.log(x0 / (MIN_QUANTA * q)) / sigma + 1.0 / float(f0)
+
+
+def _informative_head(prep: PreparedRun, cols: dict, driver) -> tuple:
+    """A record's rows worth measuring: ``(cols, dropped)``, its rows up to
+    :func:`informative_s` after the free response's start (the scene's own prediction, the
+    same whatever latency the loop is modelled with) or the default record's length
+    (``prep.window``), the longer; ``dropped`` the rows left out (0: the record
+    unchanged). A run's ``--duration`` longer than that is logged whole; the tail below
+    the sensor's level only biased the fit (a user's ``--duration 3.6`` on
+    ``configs/firefader.yaml`` measured k 15.213 +-0.08 N/m of a fader whose 15.153 the
+    default record measures)."""
+    from hapsim.analysis.prediction import predict
+    n = int(cols["seq"].size)
+    if n == 0:
+        return cols, 0
+    keep_s = prep.exc_end + informative_s(prep.scene, predict(prep.scene), driver)
+    if not math.isfinite(keep_s):
+        return cols, 0
+    keep_s = max(keep_s, prep.window)           # (the default record: measured whole)
+    last = int(cols["seq"][0]) + max(int(round(keep_s / prep.scene.period)), 1)
+    m = int(np.searchsorted(np.asarray(cols["seq"]), last, side="left"))
+    if m >= n:
+        return cols, 0
+    return {k: (v[:m] if isinstance(v, np.ndarray) and v.shape[:1] == (n,) else v)
+            for k, v in cols.items()}, n - m
+
+
 def sensor_step(device, hello=None, driver=None) -> float:
     """The position sensor's step ``q`` [m] a run's record is read with: the device's
     ``position_resolution``, else the device's HELLO ``position_scale``, else the
@@ -170,6 +234,13 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                      f"uncertainty covers the worst case of their error (k +-"
                      f"{measured.get('k_bound_rows', 0.0):.3g}, b +-"
                      f"{measured.get('b_bound_rows', 0.0):.3g} of it)")
+    tail = measured.get("tail_left_out", 0)
+    if tail and "k" in measured:
+        from hapsim.analysis.identify import MIN_QUANTA
+        notes.append(f"the record's last {tail} samples were left out: the predicted "
+                     f"oscillation there is below {MIN_QUANTA:g} sensor steps, where "
+                     f"the sensor's rounding follows the signal and biases the fit "
+                     f"(informative_s; the telemetry keeps them)")
     n_unseen = measured.get("unseen_holds", 0)
     if n_unseen:
         notes.append(f"{n_unseen} holds the board took off the period, which the host "
@@ -269,6 +340,7 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
     known = False
     T = scene.period
     cols = tel.columns((0, min(tel.n, tel.head))) if tel.wrapped else tel.columns()
+    tail = 0
     measured = {"error": "not identified"}
     late_info = {}
     quantum = sensor_step(dev, hello, driver)
@@ -299,6 +371,9 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
             if filled is not None:
                 put_back = int(filled[0]["seq"].size - cols["seq"].size)
                 cols, skipped = filled
+        if skipped is None or not skipped[0].size:
+            # (a skipped STATE not put back names its row: the record kept whole then)
+            cols, tail = _informative_head(prep, cols, driver)
         replay = contact_replay(scene, cols, skipped)
         from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
         from hapsim.host.telemetry import FLAG_CLAMPED
@@ -418,6 +493,8 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         if put_back:
             measured["skipped_put_back"] = put_back   # rows of skipped STATEs measured too
         known = not np.array_equal(position, cols["position"])
+    if tail:
+        measured["tail_left_out"] = tail
     return measured, late_info, cols, known
 
 

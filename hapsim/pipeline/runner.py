@@ -42,7 +42,7 @@ from hapsim.pipeline.render_latency import timed_prediction
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
-from hapsim.pipeline.measure import (LATE_SHARE_MAX, identify_run,  # noqa: F401
+from hapsim.pipeline.measure import (LATE_SHARE_MAX, identify_run, informative_s,  # noqa: F401
                                      timing_verdict)
 from hapsim.emulated.mock import MockDevice
 from hapsim.pipeline.options import RunOptions
@@ -118,7 +118,7 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     # identification window: the free response at the start (what the default run is)
     window = DEFAULT_DURATION
     if pred.get("f0_hz"):
-        window = max(window, exc_end + min(10.0 / pred["f0_hz"], _informative_s(
+        window = max(window, exc_end + min(10.0 / pred["f0_hz"], informative_s(
             scene, pred, drv_lat)))
     duration = window if opts.duration is None else opts.duration
     _check_size(scene, duration, window, opts.duration is not None, opts.rate_hz is not None)
@@ -127,35 +127,6 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     n_ring = max(int(round(RING_SECONDS * scene.rate_hz)), 1)
     return PreparedRun(scene, targets, pred, exc_end, window, n_samples, n_window, n_ring,
                        base_dir, None if model is scene else model)
-
-
-def _informative_s(scene: Scene, pred: dict, driver) -> float:
-    """How long the predicted free response from the scene's start ``x0`` stays worth
-    recording when the position sensor has a step ``q`` (the scene's
-    ``position_resolution``, or the driver's count): until its envelope
-    ``x0 exp(-sigma t)`` falls below the level a measurement counts cycles above
-    (:data:`hapsim.analysis.identify.MIN_QUANTA` steps), and one cycle more; inf without
-    a step, a start or a decay.
-
-    Below that level the record spans a few steps and its quantisation error follows the
-    signal instead of averaging out (the quantisation theorem's conditions fail: Widrow &
-    Kollar, *Quantization Noise*, 2008, ch. 4-5): it adds no cycle to the measurement and
-    biases the fit. Measured on ``configs/firefader.yaml`` (0.39 mm counts, a start of
-    15 mm): the felt k of one record fitted over its first 1.5, 2, 2.5, 3 and 3.6 s was
-    15.121, 15.146, 15.181, 15.200, 15.213 N/m against 15.153 predicted, stated +-0.07-0.08,
-    its cycles above the level 4.06, 4.40, 4.41, 4.41, 4.41; the default run took 3.6 s
-    (ten cycles) and once said "differs" beside two CPU-bound processes.
-    """
-    from hapsim.analysis.identify import MIN_QUANTA
-    from hapsim.pipeline.measure import sensor_step
-    q = sensor_step(scene.device, None, driver)
-    x0 = abs(float(scene.excitation.x0))
-    f0, zeta = pred.get("f0_hz"), pred.get("damping_ratio")
-    if not (q > 0 and x0 > MIN_QUANTA * q and f0 and zeta
-            and 0 < zeta < 1):
-        return math.inf
-    sigma = 2.0 * math.pi * float(f0) * float(zeta)
-    return math.log(x0 / (MIN_QUANTA * q)) / sigma + 1.0 / float(f0)
 
 
 def _check_size(scene: Scene, duration: float, window: float, asked: bool,
