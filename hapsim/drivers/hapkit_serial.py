@@ -102,7 +102,10 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
   the sketch takes each command on its own 1 kHz tick: the host's period must be a
     whole number of ticks (250, 200, 166.7, ... Hz), and the host times its writes in
     the middle of a tick, measured at the first arming (a board whose crystal drifts from
-    the host's clock walks that phase by its drift times the run's length)"""
+    the host's clock walks that phase by its drift times the run's length); the
+    firmware's Timer1 tick is 0.992 ms, which the host does not model: its phase walks
+    0.032 tick a period at 250 Hz and the probe may find no boundary (writes unaligned,
+    the report's tick_probe says so)"""
 
 
 def command_packet(force: float, function: int = HOST_FORCE_FUNCTION,
