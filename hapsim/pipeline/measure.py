@@ -97,7 +97,7 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
     if prep.pred.get("render_latency_s") and prep.model_scene is not None:
         from hapsim.pipeline.render_latency import latency_search
         return latency_search(prep, lambda p, final: _identify_at(
-            p, tel, hello, driver, searching=not final))
+            p, tel, hello, driver, searching=not final, review=final is True))
     return _identify_at(prep, tel, hello, driver)
 
 
@@ -193,13 +193,16 @@ def sensor_step(device, hello=None, driver=None) -> float:
 
 
 def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
-                 searching: bool = False) -> dict:
+                 searching: bool = False, review: bool = True) -> dict:
     """:func:`identify_run` with the loop modelled as ``prep`` states it
     (:attr:`PreparedRun.model`: a driver's render latency in its delay). ``searching``:
     a measurement of :func:`hapsim.pipeline.render_latency.latency_search`'s search, the
     review of a "differs" on a board's unseen holds left out (a test of the record that
     the run makes once, at the latency found: made at each latency tried, it had as many
-    chances to explain a device that differs away)."""
+    chances to explain a device that differs away), and the known inputs taken out
+    through the predicted loop. ``review`` False: the loop the record measures found
+    (not ``searching``), the review left out (the pair at a latency's bound, whose
+    verdict is not the run's)."""
     scene = prep.model
     dev, pred, targets = scene.device, prep.pred, prep.targets
     measured, late_info, cols, known = _fit_record(prep, tel, hello, driver)
@@ -267,8 +270,9 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
             f"by up to {LINK_JITTER_S * 1e6:.0f} us between writes could make (k +-"
             f"{measured['link_k_unc']:.3g}, b +-{measured['link_b_unc']:.3g}); rerun "
             "with the board in lockstep to measure the loop")
-    review = measured.pop("_unseen", None)
-    if review is not None and measured.get("within") is False and not searching:
+    review_differs_too, review = review, measured.pop("_unseen", None)
+    if (review is not None and measured.get("within") is False and not searching
+            and review_differs_too):
         # a board on its own tick: the "differs" stands only where the predicted loop,
         # broken where its unseen holds may have struck, does not explain the record
         from hapsim.pipeline.unseen_review import review_differs
