@@ -22,8 +22,8 @@ from hapsim.host.telemetry import FLAG_ESTIMATED, Telemetry
 from hapsim.errors import ConfigError
 from hapsim.scene import Scene
 
-__all__ = ["identify_run", "sensor_step", "informative_s", "contact_replay", "measure_record", "MEASURE_KEYS",
-           "timing_verdict", "LATE_SHARE_MAX"]
+__all__ = ["identify_run", "sensor_step", "informative_s", "contact_replay",
+           "measure_record", "MEASURE_KEYS", "timing_verdict", "LATE_SHARE_MAX"]
 
 #: What the page gets of a measurement (:func:`measure_record`).
 MEASURE_KEYS = ("k", "b", "k_unc", "b_unc", "verdict", "within", "comparable", "reason",
@@ -108,14 +108,10 @@ def informative_s(scene: Scene, pred: dict, driver) -> float:
     (:data:`hapsim.analysis.identify.MIN_QUANTA` steps), and one cycle more.
 
     Below that level the record spans a few steps and its quantisation error follows the
-    signal instead of averaging out (the quantisation theorem's conditions fail: Widrow &
-    Kollar, *Quantization Noise*, 2008, ch. 4-5): it adds no cycle to the measurement and
-    biases the fit. Measured on ``configs/firefader.yaml`` (0.39 mm counts, a start of
-    15 mm): the felt k of one record fitted over its first 1.5, 2, 2.5, 3 and 3.6 s was
-    15.121, 15.146, 15.181, 15.200, 15.213 N/m against 15.153 predicted, stated +-0.07-0.08,
-    its cycles above the level 4.06, 4.40, 4.41, 4.41, 4.41. The default run records this
-    long (:func:`hapsim.pipeline.runner.prepare_run`) and a longer record is measured over
-    this much (:func:`_fit_record`).
+    signal (Widrow & Kollar, *Quantization Noise*, 2008, ch. 4-5): no cycle more, a bias
+    (``configs/firefader.yaml``: k 15.121-15.213 N/m fitted over 1.5-3.6 s against 15.153,
+    docs/drivers.md, "The default record length"). The default run records this long
+    (:func:`hapsim.pipeline.runner.prepare_run`), a longer record is measured over it.
 
     Parameters
     ----------
@@ -145,10 +141,8 @@ def _informative_head(prep: PreparedRun, cols: dict, driver) -> tuple:
     :func:`informative_s` after the free response's start (the scene's own prediction, the
     same whatever latency the loop is modelled with) or the default record's length
     (``prep.window``), the longer; ``dropped`` the rows left out (0: the record
-    unchanged). A run's ``--duration`` longer than that is logged whole; the tail below
-    the sensor's level only biased the fit (a user's ``--duration 3.6`` on
-    ``configs/firefader.yaml`` measured k 15.213 +-0.08 N/m of a fader whose 15.153 the
-    default record measures)."""
+    unchanged). A run's ``--duration`` longer than that is logged whole: the tail below
+    the sensor's level only biased the fit (:func:`informative_s`)."""
     from hapsim.analysis.prediction import predict
     n = int(cols["seq"].size)
     if n == 0:
