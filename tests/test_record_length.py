@@ -48,18 +48,12 @@ excitation:
 
 def _measure(prep, cols, drv, rows, trim=True):
     """The measurement of the record's first ``rows``; ``trim=False``: with its tail
-    below the sensor's level (``informative_s`` made infinite: the code before)."""
-    import hapsim.pipeline.measure as measure
+    below the sensor's level (``informative_s`` infinite: the code before)."""
     c = {k: v[:rows] for k, v in cols.items()}
     tel = types.SimpleNamespace(wrapped=False, n=rows, head=rows, columns=lambda *a: c)
-    kept = measure.informative_s
-    if not trim:
-        measure.informative_s = lambda *a: float("inf")
-    try:
-        return identify_run(dataclasses.replace(prep, pred=dict(prep.pred)), tel, None,
-                            driver=drv)
-    finally:
-        measure.informative_s = kept
+    return identify_run(dataclasses.replace(prep, pred=dict(prep.pred),
+                                            informative_s=None if trim else float("inf")),
+                        tel, None, driver=drv)
 
 
 def _case(seed, tmp_path):

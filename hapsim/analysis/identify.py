@@ -155,11 +155,20 @@ def _solve(spec, theta, y, offset, lens=None, derivatives=True):
     return blocks, np.concatenate(res) if res else np.zeros(0)
 
 
-def _compiled(which, spec, theta, y, offset, lens=None):
+def _layout(spec, n: int, lens=None) -> tuple:
+    """The kernel's description of the modes and stretches: ``(kinds, starts, ends)``
+    (:func:`hapsim.kernels.varpro.projected`)."""
+    kinds = np.array([0 if s[0] == "pair" else 1 for s in spec], dtype=np.int64)
+    se = np.array(_bounds(n, lens), dtype=np.int64).reshape(-1, 2)
+    return kinds, np.ascontiguousarray(se[:, 0]), np.ascontiguousarray(se[:, 1])
+
+
+def _compiled(which, spec, theta, y, offset, lens=None, layout=None):
     """The projected residual (``which`` "residual", shape (n,)) or its Jacobian
     ("jacobian", shape (n, p)) at ``theta``, compiled
     (:func:`hapsim.kernels.varpro.projected`; :func:`_solve`'s mathematics: Golub &
-    Pereyra 1973).
+    Pereyra 1973). ``layout``: :func:`_layout`'s, made once by a caller that evaluates
+    many ``theta`` (``y`` then contiguous float64).
 
     Raises
     ------
@@ -167,14 +176,14 @@ def _compiled(which, spec, theta, y, offset, lens=None):
         A column or the record not finite (what ``lstsq`` raises on it).
     """
     from hapsim.kernels.varpro import projected
-    y = np.ascontiguousarray(y, dtype=float)
-    kinds = np.array([0 if s[0] == "pair" else 1 for s in spec], dtype=np.int64)
-    se = np.array(_bounds(y.size, lens), dtype=np.int64).reshape(-1, 2)
+    if layout is None:
+        y = np.ascontiguousarray(y, dtype=float)
+        layout = _layout(spec, y.size, lens)
+    kinds, starts, ends = layout
     th = np.ascontiguousarray(theta, dtype=float)
     jac = which == "jacobian"
     out = np.empty((y.size, th.size if jac else 1))
-    if not projected(kinds, th, y, np.ascontiguousarray(se[:, 0]),
-                     np.ascontiguousarray(se[:, 1]), bool(offset), jac, out):
+    if not projected(kinds, th, y, starts, ends, bool(offset), jac, out):
         raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
     return out if jac else out[:, 0]
 
@@ -191,13 +200,14 @@ def _varpro(spec, y, offset, lens=None):
 
     theta0 = _theta(spec)
     scale = float(np.max(np.abs(y))) or 1.0
-    ys = np.asarray(y, dtype=float) / scale
+    ys = np.ascontiguousarray(np.asarray(y, dtype=float) / scale)
+    layout = _layout(spec, ys.size, lens)
 
     def res(th):
-        return _compiled("residual", spec, th, ys, offset, lens)
+        return _compiled("residual", spec, th, ys, offset, layout=layout)
 
     def jac(th):
-        return _compiled("jacobian", spec, th, ys, offset, lens)
+        return _compiled("jacobian", spec, th, ys, offset, layout=layout)
 
     try:
         sol = least_squares(res, theta0, jac=jac, method="lm", x_scale="jac", xtol=1e-14,

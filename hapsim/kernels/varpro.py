@@ -6,8 +6,9 @@ The model of one stretch of ``L`` samples, ``t = 0 .. L-1``: columns ``e^(-a t) 
 pole (``kinds`` 1, parameter ``p``), and a constant column with ``offset``; the linear
 coefficients ``c`` of each stretch are eliminated by least squares (its own initial
 condition). :mod:`hapsim.analysis.identify` refines the poles with these (Levenberg-Marquardt
-in ``scipy.optimize.least_squares``); its Python ``_solve`` and ``_jacobian`` are the same
-mathematics on numpy (``tests/test_varpro_kernel.py`` compares them).
+in ``scipy.optimize.least_squares``); its Python ``_solve`` is the residual's mathematics
+on numpy (``tests/test_varpro_jacobian.py`` compares the two, and this Jacobian with the
+complex step).
 
 The least squares is taken through the thin SVD with ``numpy.linalg.lstsq``'s default
 cut-off (singular values under ``eps * max(L, columns) * s_max`` dropped); the Jacobian

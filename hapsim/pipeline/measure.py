@@ -16,7 +16,7 @@ import numpy as np
 from hapsim.analysis.measurement import (contact_verdict, identify, late_accounted,
                                           relative_error, verdict, wire_errors)
 from hapsim.analysis.network import device_body
-from hapsim.analysis.prediction import has_offset, predicted_poles
+from hapsim.analysis.prediction import has_offset, predict, predicted_poles
 from hapsim.pipeline.run_types import PreparedRun
 from hapsim.host.telemetry import FLAG_ESTIMATED, Telemetry
 from hapsim.errors import ConfigError
@@ -94,6 +94,10 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         ``first_open_sample``, ``open_contact``, ``closed_samples`` and ``needed``, when a
         scene's contacts leave no closed stretch long enough: :func:`contact_verdict`).
     """
+    if prep.informative_s is None:
+        # (once: every fit of the search and of the fixed point measures the same head)
+        prep = dataclasses.replace(prep, informative_s=informative_s(
+            prep.scene, predict(prep.scene), driver))
     if prep.pred.get("render_latency_s") and prep.model_scene is not None:
         from hapsim.pipeline.render_latency import latency_search
         return latency_search(prep, lambda p, final: _identify_at(
@@ -136,18 +140,17 @@ def informative_s(scene: Scene, pred: dict, driver) -> float:
     return math.log(x0 / (MIN_QUANTA * q)) / sigma + 1.0 / float(f0)
 
 
-def _informative_head(prep: PreparedRun, cols: dict, driver) -> tuple:
+def _informative_head(prep: PreparedRun, cols: dict) -> tuple:
     """A record's rows worth measuring: ``(cols, dropped)``, its rows up to
-    :func:`informative_s` after the free response's start (the scene's own prediction, the
-    same whatever latency the loop is modelled with) or the default record's length
+    ``prep.informative_s`` after the free response's start (the scene's own prediction,
+    the same whatever latency the loop is modelled with) or the default record's length
     (``prep.window``), the longer; ``dropped`` the rows left out (0: the record
     unchanged). A run's ``--duration`` longer than that is logged whole: the tail below
     the sensor's level only biased the fit (:func:`informative_s`)."""
-    from hapsim.analysis.prediction import predict
     n = int(cols["seq"].size)
     if n == 0:
         return cols, 0
-    keep_s = prep.exc_end + informative_s(prep.scene, predict(prep.scene), driver)
+    keep_s = prep.exc_end + prep.informative_s        # (set by identify_run)
     if not math.isfinite(keep_s):
         return cols, 0
     keep_s = max(keep_s, prep.window)           # (the default record: measured whole)
@@ -371,7 +374,7 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                 cols, skipped = filled
         if skipped is None or not skipped[0].size:
             # (a skipped STATE not put back names its row: the record kept whole then)
-            cols, tail = _informative_head(prep, cols, driver)
+            cols, tail = _informative_head(prep, cols)
         replay = contact_replay(scene, cols, skipped)
         from hapsim.host.telemetry import FLAG_LOST, FLAG_RAMP
         from hapsim.host.telemetry import FLAG_CLAMPED

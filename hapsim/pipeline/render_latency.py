@@ -314,6 +314,7 @@ def _latency_spread(prep, m: dict, p: dict, r: float, bounds, measure_at) -> Non
     from hapsim.analysis.prediction import predict
     if "k" not in m or m.get("k_interval") is None:
         return
+    at = {"k_interval": m["k_interval"], "b_interval": m["b_interval"]}
     lo, hi = bounds
     far = lo if abs(r - lo) >= abs(hi - r) else hi
     near = hi if far == lo else lo
@@ -321,9 +322,7 @@ def _latency_spread(prep, m: dict, p: dict, r: float, bounds, measure_at) -> Non
     me = measure_at(dataclasses.replace(prep, model_scene=model, pred=predict(model)),
                     "spread")
     if "k" not in me or me.get("k_interval") is None:
-        m["latency_spread"] = {"at_latency": {"k_interval": m["k_interval"],
-                                              "b_interval": m["b_interval"]},
-                               "ends": [], "not_measured_s": [far]}
+        m["latency_spread"] = {"at_latency": at, "ends": [], "not_measured_s": [far]}
         m["latency_spread_note"] = (
             "the device differs and its latency is not known within the bounds; the pair "
             "could not be measured at its bound: the half-widths are those of the latency "
@@ -342,9 +341,7 @@ def _latency_spread(prep, m: dict, p: dict, r: float, bounds, measure_at) -> Non
                                        for e in ends))
     db = max(float(m["b_interval"]), *(abs(e["b"] - m["b"]) + float(e["b_interval"])
                                        for e in ends))
-    m["latency_spread"] = {"at_latency": {"k_interval": m["k_interval"],
-                                          "b_interval": m["b_interval"]},
-                           "ends": ends, "not_measured_s": []}
+    m["latency_spread"] = {"at_latency": at, "ends": ends, "not_measured_s": []}
     m["k_unc"], m["b_unc"] = max(float(m["k_unc"]), dk), max(float(m["b_unc"]), db)
     note = m.get("interval_note")
     verdict(p, m)

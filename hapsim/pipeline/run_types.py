@@ -46,6 +46,10 @@ class PreparedRun:
         driver's board that renders a command after it read the handle adds that latency
         to the delay (:func:`hapsim.pipeline.render_latency.timed_prediction`); None:
         ``scene``.
+    informative_s : float or None
+        How long after the excitation the record is measured when longer
+        (:func:`hapsim.pipeline.measure.informative_s`) [s]; None until a measurement
+        computes it (once: :func:`hapsim.pipeline.measure.identify_run`).
     """
 
     scene: Scene
@@ -58,6 +62,7 @@ class PreparedRun:
     n_ring: int
     base_dir: str | None
     model_scene: Scene | None = None
+    informative_s: float | None = None
 
     @property
     def model(self) -> Scene:
