@@ -42,9 +42,9 @@ from hapsim.drivers import get_driver
 from hapsim.drivers import transport as tp
 
 BYTE_S = 10 / 57600          # one byte on the wire [s]
-TICK_S = 1e-3                # the sketch's tick (the driver's tick_s)
+TICK_S = 62 * 256 / 16e6     # the sketch's Timer1 tick, 0.992 ms (the driver's tick_s)
 TIMEOUT_S = 1.0 / 64         # readBytes' 1000 ms of a 64-times-fast millis() [s]
-T = 0.004                    # the host's period: 250 Hz
+T = 4 * TICK_S               # the host's period: 4 ticks, 252.016 Hz
 M, B0 = 0.1, 0.3             # the paddle [kg], its friction [N s/m]
 K, BV = 50.0, 0.2            # the virtual spring [N/m] and damper [N s/m]
 
@@ -180,7 +180,7 @@ class SketchPort:
 
 
 def _run(monkeypatch, lose=(), n_ticks=375):
-    """Arm at 250 Hz and close the loop ``n_ticks`` host ticks (the host loop's order: a
+    """Arm at 252.016 Hz (4 ticks) and close the loop ``n_ticks`` host ticks (the host loop's order: a
     FORCE per new STATE, estimated ticks, else the last force again); returns the
     transport, the port, the sketch and the host's commands (encoded) in order."""
     from hapsim.drivers import tick_align
@@ -193,7 +193,7 @@ def _run(monkeypatch, lose=(), n_ticks=375):
     sketch = Sketch()
     port = SketchPort(clock, sketch, lose)
     tr._ser = port
-    tr.send(fp.Config(250.0, 5000, 10.0))
+    tr.send(fp.Config(1.0 / T, 5000, 10.0))
     t0 = clock.t = math.ceil(clock.t / T) * T + T
     used, run_est, xs = -1, 0, []
     st = types.SimpleNamespace(seq=0, time_us=0, status=0, force_seq=0)

@@ -1,9 +1,9 @@
-"""The Hapkit sketch takes commands on its own 1 kHz tick: the host writes in its middle.
+"""The Hapkit sketch takes commands on its own 0.992 ms tick: the host writes in its middle.
 
 The sketch reads the handle and applies a command's force at its first tick after the
 command has come (:class:`hapsim.emulated.driver_mock.HapkitSerialDevice`). A host whose
 writes come near a tick's boundary has them taken at one tick or the next by its jitter:
-sample intervals of 3 and 5 ms in a loop modelled at 4 ms. Where the host's writes fell
+sample intervals of 3 and 5 ticks in a loop modelled at 4. Where the host's writes fell
 was an accident of its latency at the arming (its first deadline is a third of a period
 after the arming's reply): beside two CPU-bound processes one run in 20 had 77 % of its
 commands within a tenth of a tick of the boundary. The transport now measures the
@@ -31,7 +31,9 @@ from hapsim.drivers.tick_align import TICK_PROBES
 from hapsim.drivers.transport import DriverTransport
 from hapsim.errors import ConfigError
 
-TICK_NS = 1_000_000
+#: The sketch's Timer1 tick [ns] (62 counts of 16 us: 0.992 ms, hk.FIRMWARE_TICK_S).
+TICK_NS = 992_000
+assert TICK_NS == round(hk.FIRMWARE_TICK_S * 1e9)
 #: The reply's 9 bytes at 57600 baud [ns] (the sketch's reply leaves at its tick).
 WIRE_NS = 9 * 10 * 10**9 // 57600
 
@@ -153,7 +155,7 @@ def test_the_probe_finds_the_boundary_and_the_writes_come_mid_tick(monkeypatch, 
     a real board's ticks are exact whatever the host's load). An eighth is far inside
     what the alignment needs: the writes are put half a tick from the boundary and
     re-centred only within 0.15 of a tick of it. Then 60 writes the host makes at
-    a 4 ms period at that boundary (the worst phase its latency can give it; the test
+    a period of 4 ticks at that boundary (the worst phase its latency can give it; the test
     process's own lateness measured over 20 writes and taken off), jittered by +-50 us:
     unaligned, their median arrival is within 0.15 tick of the boundary (asserted: the
     test's board is a real tick and the writes are at its jump); aligned, the median
@@ -207,7 +209,7 @@ def test_the_probe_finds_the_boundary_and_the_writes_come_mid_tick(monkeypatch, 
 def test_writes_the_host_made_a_tick_late_are_marked_and_cut(monkeypatch, phase_us,
                                                              transit_us):
     """On the simulated board's tick (its truth: the tick that took each command), the
-    aligned writes of a 4 ms period, one in ten made late by 0.6-0.9 of a tick by the host
+    aligned writes of a 4-tick period, one in ten made late by 0.6-0.9 of a tick by the host
     (its own lateness, which it sees): every write the board took at another number of
     ticks after the one before than the period's is marked (``mistimed``), and so is the
     write after it; no write taken at the period's tick both before and after is marked
@@ -250,16 +252,29 @@ def test_writes_the_host_made_a_tick_late_are_marked_and_cut(monkeypatch, phase_
 
 
 def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
-    """The sketch samples and applies forces on its 1 ms ticks: 300 Hz would sample at 3,
-    3 and 4 ms intervals (another loop than the one modelled), so it is refused with the
-    nearest rates that hold; periods of whole ticks within the link's limit pass."""
+    """The sketch samples and applies forces on its 0.992 ms ticks: 250 Hz would sample 4
+    ticks apart and 5 once in 31 periods, 300 Hz at 3, 3 and 4 ticks (another loop than
+    the one modelled), so they are refused with the nearest rates that hold; periods of
+    whole ticks within the link's limit pass, written exactly or to six figures (252.016
+    Hz: 2.6e-5 of a tick off, inside the driver's 1e-4)."""
     drv = hk.HapkitSerial()
-    for rate in (250.0, 200.0, 1000.0 / 6, 125.0, 1.0):
+    tick = hk.FIRMWARE_TICK_S
+    for n in (4, 5, 6, 8, 1008):
+        drv.check_rate(1.0 / (n * tick))
+        assert drv.period_ticks(1.0 / (n * tick)) == n
+    for rate, n in ((252.016, 4), (201.613, 5), (168.011, 6)):
         drv.check_rate(rate)
-    with pytest.raises(ConfigError, match=r"no whole number.*nearest: 250 Hz"):
+        assert drv.period_ticks(rate) == n
+    assert drv.native_rate_hz == pytest.approx(252.016, abs=1e-3)
+    with pytest.raises(ConfigError, match=r"no whole number.*nearest: 252\.016 Hz, 201\.613 Hz"):
+        drv.check_rate(250.0)
+    with pytest.raises(ConfigError, match=r"no whole number.*nearest: 252\.016 Hz$"):
         drv.check_rate(300.0)
     with pytest.raises(ConfigError, match="no whole number"):
-        drv.check_rate(240.0)
+        drv.check_rate(1.0)
+    # 2e-4 of a tick off: a walk the aligned writes would re-centre every 1,750 periods
+    with pytest.raises(ConfigError, match="no whole number"):
+        drv.check_rate(1.0 / (4.0002 * tick))
     with pytest.raises(ConfigError, match="cannot be held"):
         drv.check_rate(500.0)
 

@@ -324,7 +324,8 @@ def _board(name: str, seed: int = 0):
         return HaplyDevice(dev, 1000.0, Excitation(), clock="wall"), get_driver("haply"), 1e3
     if name == "hapkit-serial":
         dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=2.0)
-        return HapkitSerialDevice(dev, 250.0, Excitation(), seed=seed), get_driver(name), 250.0
+        rate = get_driver(name).native_rate_hz          # 4 of the sketch's ticks
+        return HapkitSerialDevice(dev, rate, Excitation(), seed=seed), get_driver(name), rate
     dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=0.38)
     drv = get_driver("firefader")
     drv.arming_records = 0                  # (its enable's ramp: not this test's)

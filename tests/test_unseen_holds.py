@@ -73,7 +73,7 @@ def _random_case(seed: int, tmp_path):
         m = float(rng.uniform(0.05, 0.15))
         K = float(rng.uniform(60.0, 150.0))
         x0 = min(float(rng.uniform(0.005, 0.015)), 1.5 / K)      # within the 2 N limit
-        path.write_text(YAML.format(rate=float(rng.choice([250.0, 200.0])), K=K,
+        path.write_text(YAML.format(rate=float(rng.choice([252.016, 201.613])), K=K,
                                     B=float(rng.uniform(0.0, 0.3)), m=m,
                                     b0=float(rng.uniform(0.05, 0.4)), x0=x0))
         try:

@@ -17,7 +17,10 @@ mass, 0.3 N s/m or 0.03 N of Coulomb friction the scene does not state: 40, 40 a
 "differs" before and after (the other 2 Coulomb paddles stop within 1.3 cycles: "not
 identified" with that reason, before and after). Those figures are of a board that applies
 the float at its read (:data:`IDEAL`); the property test below runs the sketch's board (its
-256 levels, its render latency, which the run searches within its bounds).
+256 levels, its render latency, which the run searches within its bounds). Those seeds
+were drawn at 250 and 200 Hz on a 1 ms tick; on the sketch's own 0.992 ms tick, at the
+rates of 4 and 5 of its ticks, seeds 0-59 without the review said "differs" of 8 and 42
+(the review: within, 7 and 8 breaks), within of the other 58.
 """
 
 from __future__ import annotations
@@ -35,10 +38,11 @@ from test_unseen_holds import _measure, _random_case
 
 pytestmark = pytest.mark.xdist_group("test_unseen_verdict")
 
-#: Two of the matching paddles of :func:`_holds` that main said "differs" of (module notes).
-MAIN_DIFFERS = (8, 24)
-#: The property test's seeds: a window holding main's two wrong verdicts.
-SEEDS = tuple(range(6, 26, 2)) + (8, 24)
+#: Two of the matching paddles of :func:`_holds` that the fit without the review says
+#: "differs" of (module notes).
+MAIN_DIFFERS = (8, 42)
+#: The property test's seeds: a window holding one of those two.
+SEEDS = tuple(range(6, 26, 2))
 
 
 def _holds(seed: int, prep, n: int) -> dict:

@@ -140,7 +140,7 @@ def test_firefader_silence_zeroes_the_force_at_the_instant_its_polls_run_out():
 
 @pytest.mark.parametrize("seed", range(4))
 def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
-    """The sketch takes a command at the 1 kHz tick after it came (its own clock), reads
+    """The sketch takes a command at the 0.992 ms tick after it came (its own clock), reads
     the handle there and applies the force's level (its sqrt output, 256 levels) from its
     render's end, :data:`hapsim.drivers.hapkit_serial.RENDER_S` after the read, and its
     reply (the force's ``Tp``) leaves the 9 bytes' wire time after that; over a host pause
@@ -149,13 +149,14 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     from hapsim.drivers.output_stage import sketch_board_output, sketch_tp
     rng = np.random.default_rng(seed)
     m, b = rng.uniform(0.05, 0.3), rng.uniform(0.0, 1.0)
-    dev = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), 250.0,
+    tk, rate = hk.FIRMWARE_TICK_S, hk.HapkitSerial.native_rate_hz     # 4 ticks a period
+    dev = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), rate,
                              Excitation())
     drv = hk.HapkitSerial()
-    now = rng.uniform(0.0, 1e-3) + 0.01
+    now = rng.uniform(0.0, tk) + 0.01
     f1 = float(np.float32(rng.uniform(-1, 1)))          # binary32 on the wire
     rep = hk.ReplyDecoder().feed(dev.feed(drv.encode_force(f1), now=now))
-    tick = (math.floor(now / 1e-3) + 1) * 1e-3
+    tick = (math.floor(now / tk) + 1) * tk
     # the device's sum and this one, of the same three terms in any order: each within
     # sum_tol (Higham (4.4)), so the two within twice it (measured 0 on both targets)
     terms = [tick, hk.RENDER_S, 9 * 10 / 57600]
@@ -166,15 +167,15 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     pause = rng.uniform(20e-3, 200e-3)
     now2 = now + pause
     rep = hk.ReplyDecoder().feed(dev.feed(drv.encode_force(0.0), now=now2))
-    tick2 = (math.floor(now2 / 1e-3) + 1) * 1e-3
+    tick2 = (math.floor(now2 / tk) + 1) * tk
     x, v = _held(0.0, 0.0, m, b, level, tick2 - tick - hk.RENDER_S)
     assert rep[-1][0] == pytest.approx(x, rel=2.0 ** -23 + _tol(1.0, 60))
-    # lockstep (named) would have moved it one period (4 ms) whatever the pause
-    lock = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), 250.0,
+    # lockstep (named) would have moved it one period (4 ticks) whatever the pause
+    lock = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), rate,
                               Excitation(), clock="lockstep")
     lock.feed(drv.encode_force(f1))
     lock.feed(drv.encode_force(0.0))
-    assert abs(lock.physics.x - _held(0.0, 0.0, m, b, level, 4e-3)[0]) <= _tol(x, 2)
+    assert abs(lock.physics.x - _held(0.0, 0.0, m, b, level, 1.0 / rate)[0]) <= _tol(x, 2)
     assert abs(x) > 2 * abs(lock.physics.x)
 
 

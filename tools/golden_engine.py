@@ -37,6 +37,10 @@ SCENES = ("audio_string.yaml", "felt_wall.yaml", "firefader.yaml", "first_wall.y
           "hand_wall.yaml", "hapkit.yaml", "hapkit_serial.yaml", "haply.yaml",
           "oscillator.yaml", "string.yaml", "wall.yaml",
           "pantograph_wall.yaml", "delta_sphere.yaml", "delta_mesh.yaml", "membrane.yaml")
+#: The rate [Hz] a record was written at, where the shipped scene's rate changed since (the
+#: scene changed, not the engine): ``hapkit_serial.yaml`` went from 250 Hz to 252.016 Hz
+#: (4 of the Hapkit sketch's 0.992 ms ticks) in stop 57.
+RECORDED_RATE_HZ = {"hapkit_serial.yaml": 250.0}
 #: Samples of each run [-].
 SAMPLES = 300
 #: Positions stored every this many samples [-].
@@ -96,6 +100,8 @@ def load(name: str):
     if scene_dimension(path) > 1:
         return load_scene_nd(path)
     scene = load_scene(path)
+    if name in RECORDED_RATE_HZ:
+        scene = scene.with_rate(RECORDED_RATE_HZ[name])
     if scene.unresolved_targets:
         scene = apply_targets(scene)[0]
     return scene

@@ -418,6 +418,22 @@ class Driver:
         rt = self.round_trip_s()
         return 1.0 / rt if rt > 0 else math.inf
 
+    def board_rate_hz(self, rate_hz: float) -> float:
+        """The rate the board really runs a loop asked for at ``rate_hz`` at [Hz]: the same,
+        for a board with no tick of its own (a board that takes commands on its own tick,
+        the Hapkit sketch, overrides it: a whole number of its ticks).
+
+        Parameters
+        ----------
+        rate_hz : float
+            The scene's rate [Hz].
+
+        Returns
+        -------
+        float
+        """
+        return float(rate_hz)
+
     def check_rate(self, rate_hz: float) -> None:
         """Refuse a rate the device cannot hold: its period must hold one command and its
         answer (:meth:`round_trip_s`), or answers come a period late and are taken for the

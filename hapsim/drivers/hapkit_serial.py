@@ -81,6 +81,9 @@ RENDER_S = 0.45e-3
 #: prescaler (``Hapkit_arduino.h:62-68``): 62 counts of 16 us, 0.992 ms (its comment,
 #: ``Hapkit_arduino.h:59-60``: "0.992ms period equals 1.008kHz").
 FIRMWARE_TICK_S = 62 * 256 / 16e6
+#: How far from a whole number of ticks a host period may be [ticks]
+#: (:meth:`HapkitSerial.period_ticks`).
+PERIOD_TICKS_TOL = 1e-4
 #: Header byte: type 1 (read encoder data / command) << 4 | motor 1 (Board.format_header).
 HEADER = (1 << 4) | 0x01
 _FF = struct.Struct("<ff")
@@ -92,20 +95,18 @@ MAX_FORCE = 100.0
 LIMITS = """\
 Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch framing):
   host-clocked only: the sketch answers each 10-byte command with one 9-byte reply on
-    its next 1 kHz tick and has no sequence numbers: the loop runs on the host's clock
+    its next 0.992 ms tick and has no sequence numbers: the loop runs on the host's clock
     and the delay d cannot be measured (the scene's device.delay is taken as given)
   no start byte, no checksum: the decoders realign on the fixed bytes and plausible
     floats; a corrupted float byte is a wrong force or position
   the stock sketch renders its own environments: the firmware must apply the second
     float as the handle force for function code 255 (see docs/devices.md)
   57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz
-  the sketch takes each command on its own 1 kHz tick: the host's period must be a
-    whole number of ticks (250, 200, 166.7, ... Hz), and the host times its writes in
-    the middle of a tick, measured at the first arming (a board whose crystal drifts from
-    the host's clock walks that phase by its drift times the run's length); the
-    firmware's Timer1 tick is 0.992 ms, which the host does not model: its phase walks
-    0.032 tick a period at 250 Hz and the probe may find no boundary (writes unaligned,
-    the report's tick_probe says so)"""
+  the sketch takes each command on its own Timer1 tick of 0.992 ms (1.008 kHz): the
+    host's period must be a whole number of ticks (252.016, 201.613, 168.011, ... Hz;
+    250 Hz is refused, its samples would be 4 and 5 ticks apart), and the host times its
+    writes in the middle of a tick, measured at the first arming (a board whose crystal
+    drifts from the host's clock walks that phase by its drift times the run's length)"""
 
 
 def command_packet(force: float, function: int = HOST_FORCE_FUNCTION,
@@ -254,20 +255,21 @@ class HapkitSerial(Driver):
     baud = 57600
     rtscts = False
     #: The highest rate the driver takes (:meth:`check_rate`): a whole number of the
-    #: sketch's ticks (4 ms) whose period holds a command and its answer at 57600 baud
-    native_rate_hz = 250.0
+    #: sketch's ticks (4 x 0.992 ms) whose period holds a command and its answer at 57600
+    #: baud (3.3 ms)
+    native_rate_hz = 1.0 / (4 * FIRMWARE_TICK_S)
     device_id = 0x48415053           # "HAPS"
     position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
     force_rel = 2.0 ** -24
     position_scale = 0.0             # float32 on the wire: the firmware's resolution
     force_scale = 0.0
     limits = LIMITS
-    #: The sketch's control tick [s]: a command is taken at the tick after it has come,
-    #: the handle read and the force applied there
-    #: (:class:`hapsim.emulated.driver_mock.HapkitSerialDevice`). The transport measures
-    #: where its writes fall in that tick at arming and writes in its middle
+    #: The sketch's control tick [s] (:data:`FIRMWARE_TICK_S`, 0.992 ms): a command is
+    #: taken at the tick after it has come, the handle read and the force applied there
+    #: (:class:`hapsim.emulated.hapkit_serial_board.HapkitSerialDevice`). The transport
+    #: measures where its writes fall in that tick at arming and writes in its middle
     #: (:meth:`hapsim.drivers.tick_align.TickAligned.tick_phase`).
-    tick_s = 1e-3
+    tick_s = FIRMWARE_TICK_S
     answering_firmware = "WHC2017 Hapkit sketch layout (one reply per command)"
     #: The sketch reads a command as a header byte and nine more, no framing
     #: (:data:`SKETCH_READ_TIMEOUT_S`): a host byte lost puts every later command out of
@@ -372,13 +374,60 @@ class HapkitSerial(Driver):
         """The force the command carries [N]: clamped, rounded to binary32."""
         return _FF.unpack(self.encode_force(force)[2:])[1]
 
+    def period_ticks(self, rate_hz: float) -> int | None:
+        """The host's period at ``rate_hz`` in whole :attr:`tick_s`, or None when it is no
+        whole number of them.
+
+        Whole within :data:`PERIOD_TICKS_TOL` of a tick: a period off a whole number by
+        ``e`` ticks walks the host's writes ``e`` of a tick a period through the board's
+        tick, which the aligned writes follow and re-centre once the walk reaches 0.35 of
+        a tick (:attr:`hapsim.drivers.tick_align.TickAligned.BAND`): at most once in 3,500
+        periods, 14 s at 252 Hz, as a board whose crystal is 25 ppm off the host's clock.
+        A rate written to six figures (252.016 Hz: 2e-5 of a tick off) is whole.
+
+        Parameters
+        ----------
+        rate_hz : float
+            The host's rate [Hz], > 0.
+
+        Returns
+        -------
+        int or None
+        """
+        ticks = 1.0 / (float(rate_hz) * self.tick_s)
+        n = int(round(ticks))
+        return n if n >= 1 and abs(ticks - n) <= PERIOD_TICKS_TOL else None
+
+    def board_rate_hz(self, rate_hz: float) -> float:
+        """The rate of a whole number of the sketch's ticks that ``rate_hz`` stands for
+        (:meth:`period_ticks`: 252.016 Hz is 4 ticks, 252.0161290... Hz), else
+        ``rate_hz`` (which :meth:`check_rate` refuses). The loop is modelled and run at
+        the board's period: a period 2.6e-5 of a tick off (the rate written to six
+        figures) made a matching paddle's exact record say "differs"
+        (``tests/test_unseen_holds.py``'s seed 0: the latency search ran off to 0.19 ms
+        and the prediction there, b 0.093 N s/m, was far from the 0.0708 measured; on the
+        board's own period the record gave its own loop's pair to 1e-8).
+
+        Parameters
+        ----------
+        rate_hz : float
+            The scene's rate [Hz].
+
+        Returns
+        -------
+        float
+        """
+        n = self.period_ticks(rate_hz)
+        return float(rate_hz) if n is None else 1.0 / (n * self.tick_s)
+
     def check_rate(self, rate_hz: float) -> None:
         """Refuse a rate the sketch cannot hold (:meth:`Driver.check_rate`: a command and
         its reply must fit in a period), or whose period is no whole number of its
-        :attr:`tick_s`: the board reads the handle and applies a force only on its ticks,
-        so such a period is sampled at intervals of whole ticks that alternate (at 300 Hz:
-        3, 3 and 4 ms), not the period the loop is modelled with, and the measurement
-        would compare another loop with the prediction.
+        :attr:`tick_s` (:meth:`period_ticks`): the board reads the handle and applies a
+        force only on its ticks, so such a period is sampled at intervals of whole ticks
+        that alternate (at 250 Hz on the sketch's 0.992 ms: 4 ticks, and 5 once in 31
+        periods; at 300 Hz: 3, 3 and 4 ticks), not the period the loop is modelled with,
+        and the measurement would compare another loop with the prediction.
 
         Parameters
         ----------
@@ -392,17 +441,19 @@ class HapkitSerial(Driver):
             ticks (the message names the nearest rates that are).
         """
         super().check_rate(rate_hz)
-        ticks = 1.0 / (float(rate_hz) * self.tick_s)
-        if abs(ticks - round(ticks)) > 1e-9 * ticks or round(ticks) < 1:
+        if self.period_ticks(rate_hz) is None:
             from hapsim.errors import ConfigError
+            ticks = 1.0 / (float(rate_hz) * self.tick_s)
             lo, hi = math.floor(ticks), math.ceil(ticks)
-            near = [f"{1.0 / (t * self.tick_s):g} Hz" for t in (hi, lo)
-                    if t >= 1 and 1.0 / (t * self.tick_s) <= self.max_rate_hz()]
+            ok = [1.0 / (t * self.tick_s) for t in (lo, hi) if t >= 1]
+            near = [f"{r:.3f} Hz" for r in sorted(ok, key=lambda r: abs(r - rate_hz))
+                    if r <= self.max_rate_hz()]
             raise ConfigError(
                 f"{self.name}: {rate_hz:g} Hz is no whole number of the sketch's "
-                f"{self.tick_s * 1e3:g} ms ticks (the board samples and applies forces on "
-                f"them: its intervals would alternate, not the loop modelled); nearest: "
-                f"{', '.join(near) or 'none'}", key="rate_hz")
+                f"{self.tick_s * 1e3:g} ms ticks (Timer1, Hapkit_arduino.h:59-68; the "
+                f"board samples and applies forces on them: its intervals would "
+                f"alternate, not the loop modelled); nearest: {', '.join(near) or 'none'}",
+                key="rate_hz")
 
     def realign_bytes(self, frames) -> bytes:
         """The bytes that put the sketch back in step, from the replies it sent out of step
@@ -478,7 +529,7 @@ class HapkitSerial(Driver):
 
     def round_trip_s(self) -> float:
         """A 10-byte command and its 9-byte reply at 57600 baud, 10 bits a byte [s]
-        (3.3 ms; the sketch's 1 kHz tick adds up to 1 ms more, not counted)."""
+        (3.3 ms; the sketch's tick adds up to 0.992 ms more, not counted)."""
         return (10 + 9) * 10 / self.baud
 
     def decoder(self):

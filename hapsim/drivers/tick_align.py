@@ -1,4 +1,4 @@
-"""A board that takes commands on its own tick (the Hapkit sketch's 1 ms): where the host's
+"""A board that takes commands on its own tick (the Hapkit sketch's 0.992 ms): where the host's
 writes fall in that tick, measured at the first arming, and the writes delayed into its
 middle from then on (:class:`TickAligned`, a base of
 :class:`hapsim.drivers.transport.DriverTransport`).

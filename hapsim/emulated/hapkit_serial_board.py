@@ -1,5 +1,5 @@
 """A Hapkit running the WHC2017 sketch with the host-force function, byte for byte: the
-command taken at the sketch's next 1 ms tick, the handle read and the force applied there,
+command taken at the sketch's next 0.992 ms tick, the handle read and the force applied there,
 driving the handle's physics (:class:`hapsim.emulated.actuated.Actuated`); served on a pty
 by :func:`hapsim.emulated.driver_mock.serve`.
 """
@@ -126,7 +126,7 @@ class HapkitSerialDevice(Actuated):
     """A Hapkit running the WHC2017 sketch with the host-force function: its handle is the
     mock device's moving mass.
 
-    Its time, ``clock="wall"`` (the default): the sketch runs a fixed 1 kHz tick on its
+    Its time, ``clock="wall"`` (the default): the sketch runs a fixed 0.992 ms tick on its
     own clock (:data:`TICK_S`, from power-on: the board's time 0) and answers each
     command on the tick after it has come, with one 9-byte reply (the driver's reading of
     ``Hapkit_arduino.ino`` and ``Board.java``: :mod:`hapsim.drivers.hapkit_serial`, whose
@@ -182,8 +182,10 @@ class HapkitSerialDevice(Actuated):
         it then).
     """
 
-    #: The sketch's control tick [s] (1 kHz).
-    TICK_S = 1e-3
+    #: The sketch's control tick [s]: Timer1 reloaded to 65474 at 16 MHz / 256, 62 counts
+    #: of 16 us, 0.992 ms (:data:`hapsim.drivers.hapkit_serial.FIRMWARE_TICK_S`,
+    #: ``Hapkit_arduino.h:59-68``), on the host's clock (no crystal drift).
+    TICK_S = 62 * 256 / 16e6
     #: A 9-byte reply's time on the wire at 57600 baud, 10 bits a byte [s].
     REPLY_WIRE_S = 9 * 10 / 57600
 
@@ -303,7 +305,7 @@ class HapkitSerialDevice(Actuated):
         near = sum(1 for p in ph if p < 0.1 or p > 0.9)
         per = self.physics.period / self.TICK_S
         off = []
-        if abs(per - round(per)) < 1e-6:
+        if abs(per - round(per)) <= self._hk.PERIOD_TICKS_TOL:
             per = int(round(per))
             t = self._ticks
             off = [i for i in range(1, len(t))
@@ -317,7 +319,7 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
                                phase: float = 0.5, levels: int = 256,
                                render_s: float | None = None, lost_replies=()):
     """The Hapkit-serial THS closed offline on a simulated clock: the sketch on its own
-    1 kHz tick (:class:`HapkitSerialDevice` with ``clock="wall"``, fed the simulated time
+    0.992 ms tick (:class:`HapkitSerialDevice` with ``clock="wall"``, fed the simulated time
     of each command), hapsim's engine as the host; deterministic, no pty, no real time.
 
     The host loop's arithmetic: row ``k`` is the reply to command ``k`` (the handle read

@@ -134,6 +134,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     if not (math.isfinite(duration) and duration > 0):
         raise ConfigError(f"must be a positive number of seconds, got {duration!r}",
                           key="--duration")
+    if driver not in (None, DEFAULT):
+        from hapsim.drivers import get_driver
+        # a board on its own tick runs whole ticks (Driver.board_rate_hz)
+        rate_hz = get_driver(driver, **(driver_options or {})).board_rate_hz(rate_hz)
     n = max(int(round(duration * rate_hz)), 1)
     plan = excitation_plan(n, rate_hz, force_limit, envelope, max_delay=max_delay, seed=seed)
     if transport is None:

@@ -89,7 +89,15 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     UnstableConfigError
         A target not renderable, or an unstable loop without ``allow_unstable``.
     """
-    scene, targets = prepare_scene(scene, opts.rate_hz)
+    rate_hz = opts.rate_hz
+    if opts.driver is not None:
+        # the board's own rate: a board on its own tick runs whole ticks (the Hapkit
+        # sketch's 4 x 0.992 ms for 252.016 Hz), and the loop is modelled at that period
+        from hapsim.drivers import get_driver
+        asked = scene.rate_hz if rate_hz is None else rate_hz
+        board = get_driver(opts.driver, **(opts.driver_options or {})).board_rate_hz(asked)
+        rate_hz = rate_hz if board == asked else board
+    scene, targets = prepare_scene(scene, rate_hz)
     dev = scene.device
     if dev.delay == 0 and not opts.lockstep:
         raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
