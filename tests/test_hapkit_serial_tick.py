@@ -279,6 +279,24 @@ def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
         drv.check_rate(500.0)
 
 
+def test_the_loop_is_modelled_and_run_at_the_boards_own_period():
+    """``configs/hapkit_serial.yaml`` says 252.016 Hz: the run's scene (its prediction, its
+    engine, its host loop) takes 4 of the sketch's ticks exactly, as the board does; at the
+    six-figure rate a matching paddle's exact record said "differs" (the driver's
+    ``board_rate_hz``). A framed device (no tick of its own) keeps the scene's rate."""
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
+    from hapsim.scene import load_scene
+    sc = load_scene("configs/hapkit_serial.yaml")
+    assert sc.rate_hz == 252.016
+    prep = prepare_run(sc, RunOptions(driver="hapkit-serial", handle_signals=False))
+    assert prep.scene.period == 4 * hk.FIRMWARE_TICK_S
+    prep = prepare_run(sc, RunOptions(driver="hapkit-serial", handle_signals=False,
+                                      rate_hz=201.613))
+    assert prep.scene.period == 5 * hk.FIRMWARE_TICK_S
+    assert prepare_run(sc, RunOptions(handle_signals=False)).scene.rate_hz == 252.016
+
+
 # ------------------------------------------------------------------ real time, loaded
 
 def _burn(until: float) -> None:
