@@ -275,8 +275,11 @@ def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
     # 2e-4 of a tick off: a walk the aligned writes would re-centre every 1,750 periods
     with pytest.raises(ConfigError, match="no whole number"):
         drv.check_rate(1.0 / (4.0002 * tick))
-    with pytest.raises(ConfigError, match="cannot be held"):
+    with pytest.raises(ConfigError, match=r"cannot be held.*252\.016 Hz \(4 of"):
         drv.check_rate(500.0)
+    # 3 ticks (336 Hz) is a whole number, but shorter than a command and its reply
+    with pytest.raises(ConfigError, match=r"cannot be held.*252\.016 Hz \(4 of"):
+        drv.check_rate(1.0 / (3 * tick))
 
 
 def test_the_loop_is_modelled_and_run_at_the_boards_own_period():

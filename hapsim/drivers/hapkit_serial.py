@@ -437,17 +437,27 @@ class HapkitSerial(Driver):
         Raises
         ------
         ConfigError
-            The rate is above :meth:`max_rate_hz`, or its period is not a whole number of
-            ticks (the message names the nearest rates that are).
+            The rate's period is shorter than the round trip (the message names the
+            highest rate of whole ticks that holds it: 252.016 Hz, not the round trip's
+            303 Hz, which is no whole number of ticks), or its period is not a whole
+            number of ticks (the message names the nearest rates that are).
         """
-        super().check_rate(rate_hz)
-        if self.period_ticks(rate_hz) is None:
-            from hapsim.errors import ConfigError
+        from hapsim.errors import ConfigError
+        rt = self.round_trip_s()
+        least = max(math.ceil(rt / self.tick_s - PERIOD_TICKS_TOL), 1)
+        n = self.period_ticks(rate_hz)
+        if float(rate_hz) * rt > 1.0 or (n is not None and n < least):
+            raise ConfigError(
+                f"{self.name}: {rate_hz:g} Hz cannot be held: {self.rate_reason()}; the "
+                f"highest rate this device can hold is {1.0 / (least * self.tick_s):.3f} "
+                f"Hz ({least} of the sketch's {self.tick_s * 1e3:g} ms ticks)",
+                key="rate_hz")
+        if n is None:
             ticks = 1.0 / (float(rate_hz) * self.tick_s)
             lo, hi = math.floor(ticks), math.ceil(ticks)
             ok = [1.0 / (t * self.tick_s) for t in (lo, hi) if t >= 1]
             near = [f"{r:.3f} Hz" for r in sorted(ok, key=lambda r: abs(r - rate_hz))
-                    if r <= self.max_rate_hz()]
+                    if r * rt <= 1.0]
             raise ConfigError(
                 f"{self.name}: {rate_hz:g} Hz is no whole number of the sketch's "
                 f"{self.tick_s * 1e3:g} ms ticks (Timer1, Hapkit_arduino.h:59-68; the "
