@@ -391,8 +391,10 @@ def test_hapkit_serial_closed_loop_through_its_mock():
     tests/test_wallclock.py, is within its stated uncertainty)."""
     from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
+    # the sketch reading the handle exactly (count_m 0, named): the wire's arithmetic alone
     rep = run_scene(load_scene("configs/hapkit_serial.yaml"), driver="hapkit-serial",
-                    lockstep=True, handle_signals=False, rt_priority=0)
+                    lockstep=True, handle_signals=False, rt_priority=0,
+                    driver_options={"count_m": 0.0})
     meas, pred = rep["measured"], rep["predicted"]
     # measured 1.8e-10 relative (generic 1.8e-10), margin 5600
     assert meas["k"] == pytest.approx(pred["k"], rel=1e-6)

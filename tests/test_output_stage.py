@@ -291,3 +291,43 @@ def test_the_haply_scene_on_the_m3_board_is_within():
     from hapsim.scene import load_scene
     _wall_runs_within("configs/haply.yaml", "haply",
                       _truth(load_scene("configs/haply.yaml"), 0.0))
+
+
+def test_the_sketch_reads_the_handle_in_whole_counts_and_the_driver_states_them():
+    """The sketch's position is ``rh (m updatedPos + b)``: whole counts of 17.19 um at the
+    handle (``Hapkit_Kinematics_Simulation.h:130-138``, its calibration ``m`` at sim.h:23,
+    ``rh`` at :38-40). The emulated board replies with whole counts (to the reply's
+    binary32), a scene's own resolution kept; the driver states the count as the sensor
+    step the measurement takes (a host stall's record against the independent sketch
+    said "differs" of a matching paddle with the step unstated); 0 is a sketch that reads
+    the handle exactly, and a negative step is refused."""
+    from hapsim.drivers import hapkit_serial as hk
+    from hapsim.emulated.hapkit_serial_board import HapkitSerialDevice
+    from hapsim.errors import ConfigError
+    from hapsim.scene import Device, Excitation
+    q = hk.SKETCH_COUNT_M
+    assert q == 0.075 * 0.0002292
+    drv = hk.HapkitSerial()
+    assert drv.position_scale == q and drv.mock_hardware() == {"count_m": q}
+    assert hk.HapkitSerial(count_m=0.0).position_scale == 0.0
+    with pytest.raises(ConfigError, match="count_m"):
+        hk.HapkitSerial(count_m=-1e-6)
+    rng = np.random.default_rng(3)
+    dev = Device(mass=0.1, friction=0.3, delay=1, force_limit=2.0)
+    for count, want in ((None, q), (0.0, 0.0), (None, 5e-6)):
+        d = dataclasses.replace(dev, position_resolution=5e-6) if want == 5e-6 else dev
+        board = HapkitSerialDevice(d, drv.native_rate_hz, Excitation(x0=0.01), count_m=count)
+        xs, now = [], 0.0
+        for _ in range(60):
+            now += 4 * hk.FIRMWARE_TICK_S
+            f = float(rng.uniform(-1.0, 1.0))
+            xs.append(hk.ReplyDecoder().feed(board.feed(drv.encode_force(f), now=now))[-1][0])
+        x = np.asarray(xs)
+        if want:
+            # whole counts, to the reply's binary32 (half an ulp of |x| relative)
+            n = x / want
+            assert np.all(np.abs(n - np.round(n)) <= 2.0 ** -24 * np.abs(n) + 1e-12), n
+            assert len(np.unique(np.round(n))) > 5             # it moved
+        else:
+            n = x / q                                           # read exactly: between counts
+            assert np.any(np.abs(n - np.round(n)) > 1e-3)

@@ -150,8 +150,9 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     rng = np.random.default_rng(seed)
     m, b = rng.uniform(0.05, 0.3), rng.uniform(0.0, 1.0)
     tk, rate = hk.FIRMWARE_TICK_S, hk.HapkitSerial.native_rate_hz     # 4 ticks a period
+    # the handle read exactly (count_m 0, named): the closed form's position
     dev = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), rate,
-                             Excitation())
+                             Excitation(), count_m=0.0)
     drv = hk.HapkitSerial()
     now = rng.uniform(0.0, tk) + 0.01
     f1 = float(np.float32(rng.uniform(-1, 1)))          # binary32 on the wire
@@ -172,7 +173,7 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     assert rep[-1][0] == pytest.approx(x, rel=2.0 ** -23 + _tol(1.0, 60))
     # lockstep (named) would have moved it one period (4 ticks) whatever the pause
     lock = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), rate,
-                              Excitation(), clock="lockstep")
+                              Excitation(), clock="lockstep", count_m=0.0)
     lock.feed(drv.encode_force(f1))
     lock.feed(drv.encode_force(0.0))
     assert abs(lock.physics.x - _held(0.0, 0.0, m, b, level, 1.0 / rate)[0]) <= _tol(x, 2)

@@ -10,14 +10,20 @@ from hapsim.scene import load_scene
 from tolerance import rel_tol
 
 
-def test_exact_hapkit_serial_run_is_within_its_float32_wire(capsys):
+def test_exact_hapkit_serial_run_is_within_its_float32_wire(capsys, tmp_path):
     """``run configs/hapkit_serial.yaml --driver hapkit-serial --lockstep`` (lockstep by
-    name: exact but for the float32 fields): the error (~2e-8 on b) is inside the stated
-    uncertainty, which names the wire (it stated 0.0000 and "differs"); stdout is one JSON
-    object, exit 0."""
+    name: exact but for the float32 fields; the sketch reading the handle exactly,
+    ``protocol_options: {count_m: 0}``, named): the error (~2e-8 on b) is inside the
+    stated uncertainty, which names the wire (it stated 0.0000 and "differs"); stdout is
+    one JSON object, exit 0."""
+    import yaml
+
     from hapsim.cli import main
-    code = main(["run", "configs/hapkit_serial.yaml", "--driver", "hapkit-serial",
-                 "--lockstep", "--json"])
+    doc = yaml.safe_load(open("configs/hapkit_serial.yaml"))
+    doc["device"]["protocol_options"] = {"count_m": 0.0}
+    scene = tmp_path / "hapkit_serial_exact.yaml"
+    scene.write_text(yaml.safe_dump(doc))
+    code = main(["run", str(scene), "--driver", "hapkit-serial", "--lockstep", "--json"])
     out = capsys.readouterr().out
     assert code == 0
     rep = json.loads(out)                    # stdout: one JSON object

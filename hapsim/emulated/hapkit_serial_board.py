@@ -172,6 +172,12 @@ class HapkitSerialDevice(Actuated):
         :data:`hapsim.drivers.hapkit_serial.RENDER_S`; lockstep: none).
     reply : {"Tp", "force"}
         What the reply's second float is (above).
+    count_m : float, optional
+        The sketch's position step at the handle [m], >= 0 (default
+        :data:`hapsim.drivers.hapkit_serial.SKETCH_COUNT_M`, 17.19 um: ``xh = rh (m
+        updatedPos + b)``, ``Hapkit_Kinematics_Simulation.h:130-138``, counted from the
+        power-up pose at 0; 0: the handle read exactly). A device stating its own
+        ``position_resolution`` keeps it.
 
     Attributes
     ----------
@@ -191,9 +197,19 @@ class HapkitSerialDevice(Actuated):
 
     def __init__(self, device, rate_hz: float, excitation=None, *, force_limit: float = 2.0,
                  clock: str = "wall", seed: int = 0, levels: int = 256,
-                 render_s: float | None = None, reply: str = "Tp") -> None:
+                 render_s: float | None = None, reply: str = "Tp",
+                 count_m: float | None = None) -> None:
+        import dataclasses
+
         from hapsim.drivers import hapkit_serial as hk
         from hapsim.errors import ConfigError
+        count_m = hk.SKETCH_COUNT_M if count_m is None else float(count_m)
+        if not (math.isfinite(count_m) and count_m >= 0):
+            raise ConfigError(f"must be a step [m] >= 0, got {count_m!r}", key="count_m")
+        if count_m > 0 and not float(getattr(device, "position_resolution", 0.0) or 0.0):
+            # the sketch's reading, a whole number of counts (MockPhysics.sample rounds)
+            device = dataclasses.replace(device, position_resolution=count_m)
+        self.count_m = count_m
         if levels not in (256, 0):
             raise ConfigError(f"must be 256 (the sketch's forceOutput) or 0 (the float "
                               f"applied), got {levels!r}", key="levels")
@@ -317,7 +333,8 @@ class HapkitSerialDevice(Actuated):
 
 def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
                                phase: float = 0.5, levels: int = 256,
-                               render_s: float | None = None, lost_replies=()):
+                               render_s: float | None = None, lost_replies=(),
+                               count_m: float = 0.0):
     """The Hapkit-serial THS closed offline on a simulated clock: the sketch on its own
     0.992 ms tick (:class:`HapkitSerialDevice` with ``clock="wall"``, fed the simulated time
     of each command), hapsim's engine as the host; deterministic, no pty, no real time.
@@ -349,6 +366,10 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         The board's output levels and render latency (:class:`HapkitSerialDevice`;
         ``levels=0, render_s=0``, named: a sketch that applies the float at its read, the
         driver told so: its ``levels`` 0).
+    count_m : float
+        The board's position step [m] and the driver's (:class:`HapkitSerialDevice`'s
+        ``count_m``); 0 (the default here): read exactly, the exact records the offline
+        tests compare to round-off.
     lost_replies : collection of int, optional
         Commands whose reply the host never reads (a lossy link's): the board took the
         command, the host steps that row with the position extrapolated from the two rows
@@ -365,12 +386,12 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     """
     from hapsim.drivers.hapkit_serial import HapkitSerial
     sc = scene
-    drv = HapkitSerial(levels=levels)
+    drv = HapkitSerial(levels=levels, count_m=count_m)
     drv.loop_delay = int(sc.device.delay)
     drv.mistimed_seqs = set()
     drv.own_tick = True                        # the sketch keeps its tick (simulated)
     board = HapkitSerialDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall",
-                               levels=levels, render_s=render_s)
+                               levels=levels, render_s=render_s, count_m=count_m)
     dec = drv.decoder()
     T, tick = sc.period, board.TICK_S
     late = dict(read_late or {})
