@@ -108,6 +108,8 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
   the stock sketch renders its own environments: the firmware must apply the second
     float as the handle force for function code 255 (see docs/devices.md)
   57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz
+  the sketch's position is whole counts of its sensor, 17.19 um at the handle with its
+    published calibration (protocol option count_m: a paddle calibrated for itself)
   the sketch takes each command on its own Timer1 tick of 0.992 ms (1.008 kHz): the
     host's period must be a whole number of ticks (252.016, 201.613, 168.011, ... Hz;
     250 Hz is refused, its samples would be 4 and 5 ticks apart), and the host times its
