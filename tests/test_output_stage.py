@@ -324,9 +324,11 @@ def test_the_sketch_reads_the_handle_in_whole_counts_and_the_driver_states_them(
             xs.append(hk.ReplyDecoder().feed(board.feed(drv.encode_force(f), now=now))[-1][0])
         x = np.asarray(xs)
         if want:
-            # whole counts, to the reply's binary32 (half an ulp of |x| relative)
+            # whole counts, to the reply's binary32: the bound derived from its round-off,
+            # half an ulp (2^-24 of |x|), and the float64 product N q and quotient x / q
+            # (2^-53 each)
             n = x / want
-            assert np.all(np.abs(n - np.round(n)) <= 2.0 ** -24 * np.abs(n) + 1e-12), n
+            assert np.all(np.abs(n - np.round(n)) <= (2.0 ** -24 + 2.0 ** -51) * np.abs(n)), n
             assert len(np.unique(np.round(n))) > 5             # it moved
         else:
             n = x / q                                           # read exactly: between counts
