@@ -39,7 +39,8 @@ from hapsim.drivers.base import FLAG_ESTIMATED, AlignedDecoder, Driver, MappedDe
 
 __all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
            "ReplyDecoder", "ReplyLog", "CommandDecoder", "SKETCH_READ_TIMEOUT_S",
-           "SHIFT_SIGNATURE", "SKETCH_COUNT_M", "FIRMWARE_TICK_S", "PERIOD_TICKS_TOL"]
+           "SHIFT_SIGNATURE", "SKETCH_COUNT_M", "FIRMWARE_TICK_S", "PERIOD_TICKS_TOL",
+           "whole_ticks"]
 
 HOST_FORCE_FUNCTION = 255
 #: How long the sketch's ``Serial.readBytes`` waits for each byte of a command [s]: the
@@ -87,6 +88,15 @@ FIRMWARE_TICK_S = 62 * 256 / 16e6
 #: ``m = 0.0002292`` rad a count (sim.h:23) and handle radius ``rh = 0.075`` m (sim.h:38-40):
 #: 17.19 um. Each paddle is calibrated for itself (the driver's ``count_m``).
 SKETCH_COUNT_M = 0.075 * 0.0002292
+
+
+def whole_ticks(period_s: float, tick_s: float = FIRMWARE_TICK_S) -> int | None:
+    """``period_s`` in whole ``tick_s`` [s], or None when it is no whole number of them
+    within :data:`PERIOD_TICKS_TOL` of a tick (:meth:`HapkitSerial.period_ticks`)."""
+    ticks = float(period_s) / float(tick_s)
+    n = int(round(ticks))
+    return n if n >= 1 and abs(ticks - n) <= PERIOD_TICKS_TOL else None
+
 #: How far from a whole number of ticks a host period may be [ticks]
 #: (:meth:`HapkitSerial.period_ticks`).
 PERIOD_TICKS_TOL = 1e-4
@@ -423,9 +433,7 @@ class HapkitSerial(Driver):
         -------
         int or None
         """
-        ticks = 1.0 / (float(rate_hz) * self.tick_s)
-        n = int(round(ticks))
-        return n if n >= 1 and abs(ticks - n) <= PERIOD_TICKS_TOL else None
+        return whole_ticks(1.0 / float(rate_hz), self.tick_s)
 
     def board_rate_hz(self, rate_hz: float) -> float:
         """The rate of a whole number of the sketch's ticks that ``rate_hz`` stands for

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 
+from hapsim.drivers.hapkit_serial import FIRMWARE_TICK_S, whole_ticks
 from hapsim.emulated.actuated import Actuated, offline_record
 
 __all__ = ["HapkitSerialDevice", "SketchReader", "hapkit_serial_offline_loop"]
@@ -191,7 +192,7 @@ class HapkitSerialDevice(Actuated):
     #: The sketch's control tick [s]: Timer1 reloaded to 65474 at 16 MHz / 256, 62 counts
     #: of 16 us, 0.992 ms (:data:`hapsim.drivers.hapkit_serial.FIRMWARE_TICK_S`,
     #: ``Hapkit_arduino.h:59-68``), on the host's clock (no crystal drift).
-    TICK_S = 62 * 256 / 16e6
+    TICK_S = FIRMWARE_TICK_S
     #: A 9-byte reply's time on the wire at 57600 baud, 10 bits a byte [s].
     REPLY_WIRE_S = 9 * 10 / 57600
 
@@ -319,10 +320,9 @@ class HapkitSerialDevice(Actuated):
         first 1000 of them (their index among the commands)."""
         ph = sorted(self._phases)
         near = sum(1 for p in ph if p < 0.1 or p > 0.9)
-        per = self.physics.period / self.TICK_S
+        per = whole_ticks(self.physics.period, self.TICK_S)
         off = []
-        if abs(per - round(per)) <= self._hk.PERIOD_TICKS_TOL:
-            per = int(round(per))
+        if per is not None:
             t = self._ticks
             off = [i for i in range(1, len(t))
                    if t[i] - t[i - 1] != per and t[i] - t[i - 1] <= 2 * per]

@@ -134,10 +134,12 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     if not (math.isfinite(duration) and duration > 0):
         raise ConfigError(f"must be a positive number of seconds, got {duration!r}",
                           key="--duration")
-    if driver not in (None, DEFAULT):
+    use_driver = driver not in (None, DEFAULT)
+    if use_driver:
         from hapsim.drivers import get_driver
+        drv = get_driver(driver, **(driver_options or {}))
         # a board on its own tick runs whole ticks (Driver.board_rate_hz)
-        rate_hz = get_driver(driver, **(driver_options or {})).board_rate_hz(rate_hz)
+        rate_hz = drv.board_rate_hz(rate_hz)
     n = max(int(round(duration * rate_hz)), 1)
     plan = excitation_plan(n, rate_hz, force_limit, envelope, max_delay=max_delay, seed=seed)
     if transport is None:
@@ -153,10 +155,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             old[s] = signal.signal(s, lambda signum, frame: stop.request(signum))
     embedded = None
     lock = lockstep or transport == "inprocess"
-    use_driver = driver not in (None, DEFAULT)
     if use_driver:
-        from hapsim.drivers import get_driver
-        drv = get_driver(driver, **(driver_options or {}))
         drv.check_rate(rate_hz)             # a rate the device cannot hold is refused
         lock = lock or port is None
     # on the wall clock the device holds its force through a stall of this host: the

@@ -226,25 +226,25 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
         out["loop_refit"] = {"passes": passes, **info}
         return out
 
-    why: list = []                  # the last fit through a loop that measured nothing
+    why = ""                        # the last fit through a loop that measured nothing
 
     def at(p):
         """The measurement through the loop of pair ``p``, or None (no such device, or no
         measurement through its loop: its reason kept for the error)."""
-        nonlocal passes
+        nonlocal passes, why
         d = device_at_pair(scene, p, mass, dev)
         if d is None:
             return None
         got = fit_at(d)
         passes += 1
         if "k" not in got:
-            why[:] = [str(got.get("error") or got.get("verdict") or "")]
+            why = str(got.get("error") or got.get("verdict") or "")
             return None
         return d, got
 
     def near(what):
         # the measurement's own reason at the last loop tried, when it gave one
-        return what + (f" (there: {why[0]})" if why and why[0] else "")
+        return what + (f" (there: {why})" if why else "")
 
     def settled(F, m):
         um = np.array([float(m.get("k_unc", 0.0)), float(m.get("b_unc", 0.0))])

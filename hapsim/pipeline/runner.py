@@ -89,13 +89,14 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     UnstableConfigError
         A target not renderable, or an unstable loop without ``allow_unstable``.
     """
-    rate_hz = opts.rate_hz
+    rate_hz, drv = opts.rate_hz, None
     if opts.driver is not None:
         # the board's own rate: a board on its own tick runs whole ticks (the Hapkit
         # sketch's 4 x 0.992 ms for 252.016 Hz), and the loop is modelled at that period
         from hapsim.drivers import get_driver
+        drv = get_driver(opts.driver, **(opts.driver_options or {}))
         asked = scene.rate_hz if rate_hz is None else rate_hz
-        board = get_driver(opts.driver, **(opts.driver_options or {})).board_rate_hz(asked)
+        board = drv.board_rate_hz(asked)
         rate_hz = rate_hz if board == asked else board
     scene, targets = prepare_scene(scene, rate_hz)
     dev = scene.device
@@ -113,10 +114,7 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
                           file=scene.path, key="device.delay")
     # a board that renders after its read (its driver's render latency, as configured):
     # the loop's delay is the scene's and that; a lockstep board has no time of its own
-    drv_lat = None
-    if opts.driver is not None and not opts.lockstep:
-        from hapsim.drivers import get_driver
-        drv_lat = get_driver(opts.driver, **(opts.driver_options or {}))
+    drv_lat = None if opts.lockstep else drv
     model, pred = timed_prediction(scene, drv_lat)
     if pred["stable"] is False and not opts.allow_unstable:
         raise refusal(model, pred)
