@@ -300,6 +300,68 @@ def test_the_loop_is_modelled_and_run_at_the_boards_own_period():
     assert prepare_run(sc, RunOptions(handle_signals=False)).scene.rate_hz == 252.016
 
 
+def test_check_analyses_the_loop_the_board_runs_as_run_predicts_it(tmp_path, capsys):
+    """``hapsim check`` on a scene whose device speaks the sketch's bytes analyses the loop
+    the board runs: 4 whole ticks, and the scene's one period of delay with the render's
+    latency after the read at its bounds' middle. It predicted with the scene's whole
+    delay alone, b 0.2014 N s/m where ``hapsim run`` states 0.1836 before it runs: a user
+    who checked, then ran, saw two predictions 10 % apart.
+
+    Compared with a scene written by hand with that rate and that real delay on hapsim's
+    framed protocol (the delay formed as the run forms it, so the two loops are the same
+    floats, and the felt pairs equal exactly); the run's prediction is of that loop too."""
+    from pathlib import Path
+
+    import yaml
+
+    from hapsim.api import check
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
+    from hapsim.scene import load_scene
+    from inproc import hapsim_main  # same directory (pytest prepend import mode)
+
+    src = Path(__file__).resolve().parents[1] / "configs" / "hapkit_serial.yaml"
+    rep = check(str(src))
+    rate = 1.0 / (4 * hk.FIRMWARE_TICK_S)
+    lo, hi = hk.RENDER_LATENCY_S
+    delay = 1.0 + 0.5 * (lo + hi) / (1.0 / rate)
+    assert rep.rate_hz == rate and rep.board["rate_written_hz"] == 252.016
+    assert rep.board["delay_modelled"] == delay and rep.board["render_latency_s"] == [lo, hi]
+    doc = yaml.safe_load(src.read_text())
+    doc["rate_hz"] = rate
+    doc["device"]["delay"] = delay
+    for key in ("protocol", "protocol_options"):
+        doc["device"].pop(key, None)
+    hand = tmp_path / "by_hand.yaml"
+    hand.write_text(yaml.safe_dump(doc))
+    ref = check(str(hand))
+    assert ref.board is None
+    assert (rep.k, rep.b, rep.spectral_radius) == (ref.k, ref.b, ref.spectral_radius)
+    # the whole delay alone (the check before) is another loop: 10 % more damping
+    doc["device"]["delay"] = 1
+    hand.write_text(yaml.safe_dump(doc))
+    assert check(str(hand)).b > 1.05 * rep.b
+    # the run's prediction is of the same loop: equal to the hand-written scene's
+    # (check and run take the felt pair by two routes, which part at round-off alike for
+    # every scene: compared loop with loop, not route with route)
+    prep = prepare_run(load_scene(str(src)), RunOptions(driver="hapkit-serial",
+                                                        handle_signals=False))
+    doc["device"]["delay"] = delay
+    hand.write_text(yaml.safe_dump(doc))
+    own = prepare_run(load_scene(str(hand)), RunOptions(handle_signals=False))
+    assert (prep.pred["k"], prep.pred["b"]) == (own.pred["k"], own.pred["b"])
+    # 250 Hz is analysed with the latency and said to be refused by the run, with the
+    # rates that hold
+    doc = yaml.safe_load(src.read_text())
+    doc["rate_hz"] = 250
+    bad = tmp_path / "at_250.yaml"
+    bad.write_text(yaml.safe_dump(doc))
+    code, out, _ = hapsim_main(["check", str(bad)])
+    assert code == 0
+    assert "hapsim run refuses this rate" in out and "nearest: 252.016 Hz" in out
+    assert "renders 0.15-0.55 ms after its read" in out
+
+
 # ------------------------------------------------------------------ real time, loaded
 
 def _burn(until: float) -> None:

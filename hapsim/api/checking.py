@@ -53,6 +53,14 @@ class CheckReport(Charted, Report):
     static_k : float or None
         Stiffness a slow push feels at the port [N/m] (virtual masses at rest;
         :func:`hapsim.analysis.virtual_network.static_stiffness`).
+    board : dict or None
+        The timing of the board the scene's ``device.protocol`` names, where it is not the
+        scene's own (:func:`board_timing`): ``protocol``, ``rate_hz`` (the rate the board
+        runs [Hz]), ``render_latency_s`` (the bounds [s] of its render after its read),
+        ``delay_modelled`` [periods] (the scene's delay and the bounds' middle, the delay
+        the loop above is analysed with), ``k_spread`` [N/m] and ``b_spread`` [N s/m] (how
+        far the felt pair moves over the bounds). None: the board runs the scene as it is
+        written (the framed protocol, or a driver with no timing of its own).
 
     Other attributes (not in ``--json``): ``analysis`` (the
     :class:`~hapsim.analysis.scene_check.SceneCheck`), ``calibrated_scene`` (the scene
@@ -77,6 +85,7 @@ class CheckReport(Charted, Report):
     state_names: list
     calibrated: dict
     static_k: float | None
+    board: dict | None = None
 
     @property
     def k(self) -> float:
@@ -137,18 +146,101 @@ def check(scene, progress=None):
         return check_ports(scene)
     if getattr(scene, "dimension", 1) != 1:
         return check_nd(scene, progress) if scene.port is not None else modes_nd(scene)
+    drv, written_hz = protocol_driver(scene), scene.rate_hz
+    if drv is not None:                         # the board's own period (whole ticks)
+        board_rate = drv.board_rate_hz(scene.rate_hz)
+        if board_rate != scene.rate_hz:
+            scene = scene.with_rate(board_rate)
     scene, cals = apply_targets(scene)
     check_size(scene)
-    chk = check_scene(scene)
+    model, board = board_timing(scene, drv, written_hz)
+    chk = check_scene(model)
     dev = scene.device
     d = {"scene": scene.path, "verdict": "stable" if chk.stable else "unstable",
-         "rate_hz": scene.rate_hz,
+         "rate_hz": scene.rate_hz, "board": board,
          "device": None if dev is None else {
              "mass": dev.mass, "friction": dev.friction, "delay": dev.delay,
              "hold": dev.hold, "correction": getattr(dev, "correction", None)},
          "calibrations": [c.to_dict() for c in cals], **chk.to_dict(),
          "static_k": static_stiffness(scene) if chk.has_port else None}
     return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
+
+
+def protocol_driver(scene):
+    """The driver of a 1-D scene's ``device.protocol``, configured with its
+    ``device.protocol_options``, or None.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A loaded 1-D scene.
+
+    Returns
+    -------
+    hapsim.drivers.base.Driver or None
+        None for a scene without a device or on hapsim's framed protocol.
+
+    Raises
+    ------
+    ConfigError
+        Options the driver refuses (its message names the option).
+    """
+    from hapsim.drivers import DEFAULT, get_driver
+    dev = scene.device
+    name = getattr(dev, "protocol", None)
+    if dev is None or name in (None, DEFAULT):
+        return None
+    return get_driver(name, **(getattr(dev, "protocol_options", None) or {}))
+
+
+def board_timing(scene, driver, written_hz=None):
+    """The scene analysed as its board runs it: the loop's delay is the scene's whole
+    periods and the board's render latency after its read, as ``hapsim run`` predicts it.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A calibrated 1-D scene, at the board's own rate (``driver.board_rate_hz``).
+    driver : hapsim.drivers.base.Driver or None
+        :func:`protocol_driver`'s.
+    written_hz : float, optional
+        The rate the scene file states [Hz], where the board runs another (whole ticks).
+
+    Returns
+    -------
+    tuple
+        ``(model, board)``: the scene the loop is analysed with (``scene`` itself without
+        a latency: :func:`hapsim.pipeline.render_latency.timed_prediction`) and the
+        :attr:`CheckReport.board` dict (None where the board runs the scene as written);
+        with ``rate_written_hz`` where the board's rate is not the file's, and
+        ``refused``, the reason the driver refuses the rate (``hapsim run`` stops there),
+        where it does.
+
+    Notes
+    -----
+    The delay is real-valued, modelled exactly (modified z-transform: Jury, *Theory and
+    Application of the z-Transform Method*, 1964; :mod:`hapsim.analysis.subsample`), at the
+    middle of the driver's bounds, as the run states its prediction before it runs
+    (:func:`hapsim.pipeline.render_latency.timed_prediction`).
+    """
+    if driver is None or scene.device is None or scene.port is None:
+        return scene, None
+    from hapsim.pipeline.render_latency import timed_prediction
+    model, pred = timed_prediction(scene, driver)
+    board = {"protocol": scene.device.protocol, "rate_hz": scene.rate_hz}
+    moved = written_hz is not None and written_hz != scene.rate_hz
+    if moved:
+        board["rate_written_hz"] = float(written_hz)
+    try:
+        driver.check_rate(scene.rate_hz)
+    except ConfigError as e:
+        board["refused"] = str(e)
+    if model is scene and "refused" not in board and not moved:
+        return scene, None
+    for key in ("render_latency_s", "delay_modelled", "k_spread", "b_spread"):
+        if key in pred:
+            board[key] = pred[key]
+    return model, board
 
 
 @dataclasses.dataclass(frozen=True)

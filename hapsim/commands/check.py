@@ -29,6 +29,12 @@ device mass, the felt stiffness is k = m |s|^2 and the felt damping b = -2 m Re(
 virtual damping, as deformed by sampling and delay; Florens, Voda & Urma). The other
 poles are the parasitic modes.
 
+A scene whose device speaks a board's own protocol (device.protocol) is checked as that
+board runs it: at the rate of its own ticks (the Hapkit sketch's whole 0.992 ms ticks), and
+with the delay its render after the read adds (the Hapkit sketch: 0.15-0.55 ms, analysed
+at the middle, as hapsim run states its prediction); a line says so, with how far the felt
+(k, b) move over the latency's bounds (--json: board).
+
 Links given as a felt target {k, b} (a spring_damper between the port and a ground) are
 first calibrated: the virtual (K, B) that puts the closed-loop pair on the target is
 computed for the device alone, then the whole scene is checked with it.
@@ -108,6 +114,26 @@ def _object_mode(k: float, static: float, scene) -> bool:
     return not (0.5 * static <= k <= 2.0 * static)
 
 
+def _print_board(bd: dict) -> None:
+    """The lines on the timing of the board the scene's ``device.protocol`` names
+    (:func:`hapsim.api.checking.board_timing`)."""
+    name = bd["protocol"]
+    if "rate_written_hz" in bd:
+        print(f"board ({name}): runs at {bd['rate_hz']:.9g} Hz, the whole ticks the "
+              f"file's {bd['rate_written_hz']:g} Hz stands for; the loop is analysed there")
+    if "render_latency_s" in bd:
+        lo, hi = (1e3 * v for v in bd["render_latency_s"])
+        line = (f"board ({name}): renders {lo:g}-{hi:g} ms after its read, so the loop's "
+                f"delay is d = {bd['delay_modelled']:.6g} periods at the middle (as hapsim "
+                f"run predicts; it searches the latency in its measurement)")
+        if "k_spread" in bd:
+            line += (f"; over the bounds the felt k moves by up to {bd['k_spread']:.3g} N/m "
+                     f"and b by {bd['b_spread']:.3g} N s/m")
+        print(line)
+    if "refused" in bd:
+        print(f"board ({name}): hapsim run refuses this rate: {bd['refused']}")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``hapsim check``.
 
@@ -179,6 +205,8 @@ def run(args: argparse.Namespace) -> int:
                   + (f", stiffness to ground {h.stiffness}" if h.stiffness else ""))
         if getattr(dv, "correction", None) is not None:
             print(f"correction: {dv.correction}")
+        if rep.board is not None:
+            _print_board(rep.board)
     else:
         print("no port: the virtual network alone is checked (no device in the loop)")
     for c in cals:
