@@ -197,6 +197,8 @@ def one_run(driver: str, condition: str, seed: int, args, tmp: str) -> dict:
         return row
     hcmd = [sys.executable, "-m", "hapsim", "run", scene, "--driver", driver, "--port", link,
             *(["--duration", str(args.duration)] if args.duration is not None else []),
+            *(["--telemetry", os.path.join(args.keep, f"{driver}-{condition}-{seed}.npz")]
+              if args.telemetry and args.keep else []),
             "--json"]
     if args.identify:
         hcmd = [sys.executable, "-m", "hapsim", "identify", "--driver", driver, "--port",
@@ -312,6 +314,8 @@ def _fill(row: dict, driver: str, run: dict, truth: dict) -> None:
         watchdog={k: (dl.get("watchdog") or {}).get(k) for k in ("fired", "robust",
                                                                    "longest_s")},
         workspace=(lp.get("safety") or {}).get("position_limit"),
+        tick_probe=dl.get("tick_probe"),
+        reason=run.get("reason") if not m.get("verdict") else None,
     )
     if truth:
         ref = truth.get("first_frame_zero") or 0.0
@@ -416,6 +420,9 @@ def main(argv=None) -> int:
     p.add_argument("--hapsim-root",
                    help="run the hapsim of this source tree (its configs too), e.g. an "
                         "export of an older commit, for a before/after table")
+    p.add_argument("--telemetry", action="store_true",
+                   help="with --keep: each run's record there too (hapsim run --telemetry "
+                        "DRIVER-CONDITION-SEED.npz), to measure again offline")
     p.add_argument("--keep", help="keep the boards' truth logs and the runs' JSON in this "
                                   "directory (default: a temporary one, removed)")
     args = p.parse_args(argv)
