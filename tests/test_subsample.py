@@ -460,8 +460,8 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
             sc = load_scene(str(path))
             if sc.device is None or sc.port is None or sc.device.delay % 1:
                 continue          # (firefader.yaml states its real delay, 0.725)
-            from hapsim.api.checking import protocol_driver
-            if getattr(protocol_driver(sc), "render_latency_s", None) is not None:
+            from hapsim.drivers import device_driver
+            if getattr(device_driver(sc.device), "render_latency_s", None) is not None:
                 continue          # (hapkit_serial.yaml: check adds its board's render
                 #                    latency after the read, a fraction of a period)
             lp = LoopModel.from_device(sc.device, sc.rate_hz)

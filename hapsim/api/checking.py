@@ -137,6 +137,7 @@ def check(scene, progress=None):
     from hapsim.analysis.virtual_network import static_stiffness
     from hapsim.analysis.scene_check import check_scene
     from hapsim.analysis.targets import apply_targets
+    from hapsim.drivers import device_driver
 
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)               # in the dimension it declares
@@ -146,7 +147,7 @@ def check(scene, progress=None):
         return check_ports(scene)
     if getattr(scene, "dimension", 1) != 1:
         return check_nd(scene, progress) if scene.port is not None else modes_nd(scene)
-    drv, written_hz = protocol_driver(scene), scene.rate_hz
+    drv, written_hz = device_driver(scene.device), scene.rate_hz
     if drv is not None:                         # the board's own period (whole ticks)
         board_rate = drv.board_rate_hz(scene.rate_hz)
         if board_rate != scene.rate_hz:
@@ -166,33 +167,6 @@ def check(scene, progress=None):
     return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
 
 
-def protocol_driver(scene):
-    """The driver of a 1-D scene's ``device.protocol``, configured with its
-    ``device.protocol_options``, or None.
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        A loaded 1-D scene.
-
-    Returns
-    -------
-    hapsim.drivers.base.Driver or None
-        None for a scene without a device or on hapsim's framed protocol.
-
-    Raises
-    ------
-    ConfigError
-        Options the driver refuses (its message names the option).
-    """
-    from hapsim.drivers import DEFAULT, get_driver
-    dev = scene.device
-    name = getattr(dev, "protocol", None)
-    if dev is None or name in (None, DEFAULT):
-        return None
-    return get_driver(name, **(getattr(dev, "protocol_options", None) or {}))
-
-
 def board_timing(scene, driver, written_hz=None):
     """The scene analysed as its board runs it: the loop's delay is the scene's whole
     periods and the board's render latency after its read, as ``hapsim run`` predicts it.
@@ -202,7 +176,7 @@ def board_timing(scene, driver, written_hz=None):
     scene : hapsim.scene.Scene
         A calibrated 1-D scene, at the board's own rate (``driver.board_rate_hz``).
     driver : hapsim.drivers.base.Driver or None
-        :func:`protocol_driver`'s.
+        :func:`hapsim.drivers.device_driver`'s.
     written_hz : float, optional
         The rate the scene file states [Hz], where the board runs another (whole ticks).
 

@@ -43,8 +43,8 @@ from hapsim.analysis.integrators import (COST_ORDER, closed_loop_matrix, continu
 from hapsim.errors import ConfigError, UnstableConfigError
 from hapsim.outputs import finite_or_none
 
-__all__ = ["RATES", "LinkAdvice", "Advice", "advise_scene", "felt_pair_error",
-           "felt_matrix_error"]
+__all__ = ["RATES", "LinkAdvice", "Advice", "advise_scene", "board_timing",
+           "felt_pair_error", "felt_matrix_error"]
 
 #: Candidate rates [Hz]: the R10 preferred numbers from 250 Hz to 20 kHz.
 RATES = (250.0, 315.0, 400.0, 500.0, 630.0, 800.0, 1000.0, 1250.0, 1600.0, 2000.0, 2500.0,
@@ -145,6 +145,11 @@ class Advice:
         The criteria used.
     calibrated : dict
         ``{link: (K, B)}`` :meth:`apply` writes (calibrated links at the advised rate).
+    board : dict or None
+        The timing of the board the scene's ``device.protocol`` names, which the advice
+        took (:func:`board_timing`): ``protocol``, ``rates`` (the ladder's rates it
+        holds [Hz]), ``render_latency_s`` (the middle of its render latency's bounds [s],
+        added to the device's delay at each rate); None on hapsim's framed protocol.
     """
 
     ok: bool
@@ -157,6 +162,7 @@ class Advice:
     tolerance: float = 0.01
     margin: float = 0.95
     calibrated: dict = field(default_factory=dict)
+    board: dict | None = None
 
     def apply(self, scene):
         """The scene at the advised rate and integrator, calibrated links written in.
@@ -189,15 +195,16 @@ class Advice:
         -------
         dict
             ``ok``, ``rate_hz`` [Hz], ``integrator``, ``error`` [-], ``spectral_radius``
-            [-], ``reason``, ``tolerance``, ``margin``, and ``links`` (list of
-            :meth:`LinkAdvice.to_dict`).
+            [-], ``reason``, ``tolerance``, ``margin``, ``links`` (list of
+            :meth:`LinkAdvice.to_dict`), ``calibrated`` and ``board``.
         """
         f = finite_or_none
         return {"ok": self.ok, "rate_hz": self.rate_hz, "integrator": self.integrator,
                 "error": f(self.error), "spectral_radius": f(self.spectral_radius),
                 "reason": self.reason, "tolerance": self.tolerance, "margin": self.margin,
                 "links": [lk.to_dict() for lk in self.links],
-                "calibrated": {k: [float(v[0]), float(v[1])] for k, v in self.calibrated.items()}}
+                "calibrated": {k: [float(v[0]), float(v[1])] for k, v in self.calibrated.items()},
+                "board": self.board}
 
 
 def _wanted(lk, b0: float) -> tuple[float, float]:
@@ -211,7 +218,49 @@ def _port_links(scene):
     return [lk for lk in scene.links if port is not None and port.name in (lk.m1, lk.m2)]
 
 
-def _advise_link(scene, lk, tolerance: float, margin: float, rates) -> LinkAdvice:
+def board_timing(scene, rates) -> tuple:
+    """The ladder and the render latency of the board a 1-D scene's ``device.protocol``
+    names: the rates of ``rates`` it holds (:meth:`hapsim.drivers.base.Driver.
+    board_rates`: the Hapkit sketch's whole ticks) and the middle of its render
+    latency's bounds, as ``hapsim run`` and ``check`` predict with it
+    (:func:`hapsim.pipeline.render_latency.timed_prediction`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+    rates : list of float
+        The ladder [Hz], increasing.
+
+    Returns
+    -------
+    tuple
+        ``(rates, latency_s, board)``: the ladder the board holds, the latency [s] added
+        to the device's delay (0 without one, or with an ideal hold, which takes whole
+        delays only) and :attr:`Advice.board` (None on hapsim's framed protocol).
+    """
+    from hapsim.drivers import device_driver
+    drv = device_driver(scene.device)
+    if drv is None:
+        return rates, 0.0, None
+    from hapsim.pipeline.render_latency import render_latency
+    held = drv.board_rates(rates)
+    bounds = render_latency(drv) if scene.device.hold == "zoh" else None
+    lat = 0.0 if bounds is None else 0.5 * (bounds[0] + bounds[1])
+    return held, lat, {"protocol": scene.device.protocol, "rates": held,
+                       "render_latency_s": lat}
+
+
+def _delay(dev, rate_hz: float, latency_s: float):
+    """The device's delay [periods] at ``rate_hz`` with its board's render latency
+    ``latency_s`` [s] added, formed as :func:`hapsim.pipeline.render_latency.timed_scene`
+    forms it (the same floats as ``run`` and ``check``)."""
+    if not latency_s:
+        return dev.delay
+    return float(dev.delay) + float(latency_s) / (1.0 / rate_hz)
+
+
+def _advise_link(scene, lk, tolerance: float, margin: float, rates,
+                 latency_s: float = 0.0) -> LinkAdvice:
     """Lowest rate and cheapest method for one port link, taken against a ground."""
     dev = scene.device
     k, b = _wanted(lk, dev.friction)
@@ -223,7 +272,7 @@ def _advise_link(scene, lk, tolerance: float, margin: float, rates) -> LinkAdvic
     methods = ("calibrated",) if lk.target is not None else \
         (("naive", "calibrated") if to_ground else ("naive",))
     for r in rates:
-        loop = LoopModel(dev.mass, dev.friction, r, dev.delay, dev.hold)
+        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, latency_s), dev.hold)
         for method in methods:
             if method == "naive":
                 K, B = lk.stiffness, lk.damping
@@ -321,11 +370,18 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
     if getattr(scene, "dimension", 1) > 1:
         return _advise_space(scene, tolerance, margin, rates)
     dev = scene.device
-    link_adv = [_advise_link(scene, lk, tolerance, margin, rates) for lk in _port_links(scene)]
+    rates, lat, board = board_timing(scene, rates)
+    if not rates:
+        return Advice(False, None, None, reason=f"the {dev.protocol} board holds none of "
+                      f"the ladder's rates (hapsim run refuses them: its period must hold "
+                      f"a command and its answer, in whole ticks of a board on its own "
+                      f"tick)", tolerance=tolerance, margin=margin, board=board)
+    link_adv = [_advise_link(scene, lk, tolerance, margin, rates, lat)
+                for lk in _port_links(scene)]
     bad = [la for la in link_adv if la.rate_hz is None]
     if bad:
         return Advice(False, None, None, link_adv, reason=f"link {bad[0].link!r}: "
-                      f"{bad[0].reason}", tolerance=tolerance, margin=margin)
+                      f"{bad[0].reason}", tolerance=tolerance, margin=margin, board=board)
     floor = max([la.rate_hz for la in link_adv], default=rates[0])
     has_mass = any(m.kind == "mass" for m in scene.masses)
     schemes = [s for s in COST_ORDER
@@ -339,7 +395,10 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
     last = ""
     for r in [x for x in rates if x >= floor]:
         sc = scene.with_rate(r)
-        loop = LoopModel(dev.mass, dev.friction, r, dev.delay, dev.hold)
+        if lat:
+            sc = dataclasses.replace(sc, device=dataclasses.replace(
+                dev, delay=_delay(dev, r, lat)))
+        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, lat), dev.hold)
         cal = {}
         for la in link_adv:
             lk = scene.link(la.link)
@@ -371,11 +430,12 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
                       f"({k_ref:.6g}, {b_ref:.6g}), error {err:.2g} <= {tolerance:g}; "
                       f"radius {rho:.9g}, stable at gain 1/{margin:g}; {why_i}"
                       + (f"; port links need >= {floor:g} Hz" if link_adv else ""))
-            return Advice(True, r, integ, link_adv, err, rho, reason, tolerance, margin, cal)
+            return Advice(True, r, integ, link_adv, err, rho, reason, tolerance, margin, cal,
+                          board)
     return Advice(False, None, None, link_adv,
                   reason=f"no rate up to {rates[-1]:g} Hz and no integrator keeps the scene "
                          f"within {tolerance:g} and stable with margin {margin:g} (last: {last})",
-                  tolerance=tolerance, margin=margin)
+                  tolerance=tolerance, margin=margin, board=board)
 
 
 def felt_matrix_error(k, b, k_ref, b_ref) -> float:

@@ -82,6 +82,12 @@ def run(args) -> int:
         return 0 if adv.ok else 1
     print(f"scene {scene.path} (now {scene.rate_hz:g} Hz, {scene.integrator}); "
           f"tolerance {args.tolerance:g}, gain margin {args.margin:g}")
+    if adv.board is not None:
+        bd = adv.board
+        lat = (f"; its render {bd['render_latency_s'] * 1e3:g} ms after the read (the "
+               f"middle of its bounds) added to the delay" if bd["render_latency_s"] else "")
+        print(f"  board ({bd['protocol']}): the ladder's rates it holds: "
+              f"{', '.join(f'{r:g}' for r in bd['rates']) or 'none'} Hz{lat}")
     for la in adv.links:
         where = (f"{la.rate_hz:g} Hz, {la.method}, send K = {la.K:.6g} N/m, B = {la.B:.6g} N s/m"
                  if la.rate_hz else "none")

@@ -26,7 +26,7 @@ import importlib
 
 from hapsim.errors import ConfigError
 
-__all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver"]
+__all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver", "device_driver"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,3 +177,32 @@ def get_driver(name: str, **options):
         raise ConfigError(f"unknown driver {name!r}; valid: {', '.join(DRIVERS)} (framed is "
                           "the default transport, not a driver object)", key="--driver")
     return cls(**options)
+
+
+def device_driver(device):
+    """The driver a 1-D scene's device section names (``device.protocol``), configured
+    with its ``device.protocol_options``; None on hapsim's framed protocol.
+
+    What a board does that the scene's numbers do not say is the driver's: its own tick
+    (:meth:`~hapsim.drivers.base.Driver.board_rate_hz`,
+    :meth:`~hapsim.drivers.base.Driver.board_rates`) and its render after its read
+    (``render_latency_s``). ``hapsim check``, ``advise`` and ``run`` take them from here.
+
+    Parameters
+    ----------
+    device : hapsim.scene.Device or None
+        A 1-D scene's device section.
+
+    Returns
+    -------
+    hapsim.drivers.base.Driver or None
+
+    Raises
+    ------
+    ConfigError
+        Options the driver refuses (its message names the option).
+    """
+    name = getattr(device, "protocol", None)
+    if device is None or name in (None, DEFAULT):
+        return None
+    return get_driver(name, **(getattr(device, "protocol_options", None) or {}))

@@ -434,6 +434,31 @@ class Driver:
         """
         return float(rate_hz)
 
+    def board_rates(self, rates) -> list:
+        """The rates a ladder of candidates offers this board: those it holds
+        (:meth:`check_rate`), in the ladder's order (a board on its own tick overrides it:
+        the whole numbers of its ticks within the ladder's span).
+
+        Parameters
+        ----------
+        rates : sequence of float
+            Candidate rates [Hz], increasing (``hapsim advise``'s ladder).
+
+        Returns
+        -------
+        list of float
+            Increasing [Hz]; empty when the board holds none of them.
+        """
+        from hapsim.errors import ConfigError
+        out = []
+        for r in rates:
+            try:
+                self.check_rate(float(r))
+            except ConfigError:
+                continue
+            out.append(float(r))
+        return out
+
     def check_rate(self, rate_hz: float) -> None:
         """Refuse a rate the device cannot hold: its period must hold one command and its
         answer (:meth:`round_trip_s`), or answers come a period late and are taken for the
