@@ -362,6 +362,46 @@ def test_check_analyses_the_loop_the_board_runs_as_run_predicts_it(tmp_path, cap
     assert "renders 0.15-0.55 ms after its read" in out
 
 
+def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
+    """A ``target {k, b}`` link on a scene whose device speaks the sketch's bytes: the
+    (K, B) sent are calibrated for the loop the board runs (its render latency's middle
+    in the delay, where the run states its prediction), so ``check`` and the run's
+    prediction feel the target; calibrated for the scene's whole delay alone (before),
+    configs/hapkit_serial.yaml's (50, 0.5) was predicted 2.8 % off its b. Random paddles,
+    targets and both whole-tick rates, 12 seeded draws. In lockstep (no time of the
+    board's) the whole delay is the loop, and the target is felt there."""
+    import yaml
+
+    from hapsim.api import check
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
+    from hapsim.scene import load_scene
+    from tolerance import measured
+    rng = np.random.default_rng(3)
+    # measured 1.4e-13 relative at most over 30 draws (the calibration's root finders and
+    # two eigenvalue routes), margin 70
+    tol = measured(1.4e-13, 70)
+    for i in range(12):
+        doc = yaml.safe_load(open("configs/hapkit_serial.yaml"))
+        k, b = float(rng.uniform(20, 150)), float(rng.uniform(0.2, 1.5))
+        doc["links"][0] = {**{q: v for q, v in doc["links"][0].items()
+                              if q not in ("stiffness", "damping")},
+                           "target": {"k": k, "b": b}}
+        doc["device"].update(mass=float(rng.uniform(0.05, 0.2)),
+                             friction=float(rng.uniform(0.05, 0.5)))
+        doc["rate_hz"] = float(rng.choice([252.016, 201.613]))
+        path = tmp_path / f"target{i}.yaml"
+        path.write_text(yaml.safe_dump(doc))
+        rep = check(str(path))
+        assert rep.board["delay_modelled"] > 1.0
+        for lock in (False, True):
+            prep = prepare_run(load_scene(str(path)), RunOptions(
+                driver="hapkit-serial", handle_signals=False, lockstep=lock))
+            for kk, bb in ((rep.k, rep.b), (prep.pred["k"], prep.pred["b"])):
+                assert abs(kk - k) <= tol * k and abs(bb - b) <= tol * b, (i, lock, kk, bb)
+            assert prep.scene.device.delay == 1       # the scene's own delay is kept
+
+
 # ------------------------------------------------------------------ real time, loaded
 
 def _burn(until: float) -> None:

@@ -19,7 +19,7 @@ from hapsim.analysis.targets import apply_targets
 from hapsim.errors import ConfigError, UnstableConfigError, dash
 from hapsim.scene import Scene
 
-__all__ = ["prepare_scene", "predict", "predicted_poles", "has_offset", "port_links",
+__all__ = ["prepare_scene", "timed_scene", "predict", "predicted_poles", "has_offset", "port_links",
            "refusal"]
 
 
@@ -82,7 +82,30 @@ def _require_device(scene: Scene):
 
 
 
-def prepare_scene(scene: Scene, rate_hz: float | None = None):
+def timed_scene(scene: Scene, latency_s: float) -> Scene:
+    """The scene with ``latency_s`` [s] added to its device's delay (in periods): the loop
+    of a board that renders that long after its read.
+
+    Parameters
+    ----------
+    scene : Scene
+        A scene with a device (hold ``zoh``: a fractional delay needs it).
+    latency_s : float
+        >= 0 [s].
+
+    Returns
+    -------
+    Scene
+        ``device.delay`` = the scene's + ``latency_s / T``, a real number of periods
+        (modified z-transform: :mod:`hapsim.analysis.subsample`).
+    """
+    import dataclasses
+    dev = scene.device
+    d = float(dev.delay) + float(latency_s) / scene.period
+    return dataclasses.replace(scene, device=dataclasses.replace(dev, delay=d))
+
+
+def prepare_scene(scene: Scene, rate_hz: float | None = None, latency_s: float = 0.0):
     """Apply a rate override and calibrate every ``target`` link.
 
     Parameters
@@ -91,6 +114,11 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None):
         Validated scene with a port and a device.
     rate_hz : float, optional
         Rate override [Hz].
+    latency_s : float, optional
+        A board's render latency after its read [s] (the middle of its driver's bounds:
+        :func:`hapsim.pipeline.render_latency.latency_middle`): the targets are calibrated
+        for the loop with it in the delay (:func:`timed_scene`), the loop the board runs;
+        the scene returned keeps its own device (its delay as written).
 
     Returns
     -------
@@ -111,7 +139,12 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None):
     if rate_hz is not None:
         scene = scene.with_rate(rate_hz)
     _require_device(scene)
-    scene, cals = apply_targets(scene)
+    if latency_s:
+        import dataclasses
+        timed, cals = apply_targets(timed_scene(scene, latency_s))
+        scene = dataclasses.replace(timed, device=scene.device)
+    else:
+        scene, cals = apply_targets(scene)
     return scene, [c.to_dict() for c in cals]
 
 

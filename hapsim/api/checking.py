@@ -136,6 +136,7 @@ def check(scene, progress=None):
     from hapsim.analysis.network import check_size
     from hapsim.analysis.virtual_network import static_stiffness
     from hapsim.analysis.scene_check import check_scene
+    from hapsim.analysis.prediction import timed_scene
     from hapsim.analysis.targets import apply_targets
     from hapsim.drivers import device_driver
 
@@ -152,7 +153,15 @@ def check(scene, progress=None):
         board_rate = drv.board_rate_hz(scene.rate_hz)
         if board_rate != scene.rate_hz:
             scene = scene.with_rate(board_rate)
-    scene, cals = apply_targets(scene)
+    from hapsim.pipeline.render_latency import latency_middle
+    lat = latency_middle(scene, drv) if scene.port is not None else 0.0
+    if lat:
+        # the targets calibrated for the loop the board runs, as hapsim run's
+        # (hapsim.analysis.prediction.prepare_scene); the scene keeps its own delay
+        timed, cals = apply_targets(timed_scene(scene, lat))
+        scene = dataclasses.replace(timed, device=scene.device)
+    else:
+        scene, cals = apply_targets(scene)
     check_size(scene)
     model, board = board_timing(scene, drv, written_hz)
     chk = check_scene(model)

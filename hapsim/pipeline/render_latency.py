@@ -39,7 +39,9 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["render_latency", "timed_scene", "timed_prediction", "latency_search",
+from hapsim.analysis.prediction import timed_scene
+
+__all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction", "latency_search",
            "SPREAD_POINTS", "REFINE_STEPS", "GOLDEN_STEPS"]
 
 #: Latencies tried over a driver's range (ends included): for the prediction's spread
@@ -81,23 +83,25 @@ def render_latency(driver) -> tuple | None:
     return (lo, hi) if 0.0 <= lo <= hi else None
 
 
-def timed_scene(scene, latency_s: float):
-    """The scene with ``latency_s`` [s] added to its device's delay (in periods).
+def latency_middle(scene, driver) -> float:
+    """The render latency [s] a run states its prediction at: the middle of the driver's
+    bounds (:func:`render_latency`), 0 where the loop takes none (no driver, bounds of 0,
+    no device, or a hold other than ``zoh``, which takes whole delays only).
 
     Parameters
     ----------
     scene : hapsim.scene.Scene
-        A scene with a device (hold ``zoh``: a fractional delay needs it).
-    latency_s : float
-        >= 0 [s].
+    driver : type or hapsim.drivers.base.Driver or None
 
     Returns
     -------
-    hapsim.scene.Scene
+    float
+        >= 0 [s].
     """
-    dev = scene.device
-    d = float(dev.delay) + float(latency_s) / scene.period
-    return dataclasses.replace(scene, device=dataclasses.replace(dev, delay=d))
+    rng = render_latency(driver)
+    if rng is None or rng[1] == 0.0 or scene.device is None or scene.device.hold != "zoh":
+        return 0.0
+    return 0.5 * (rng[0] + rng[1])
 
 
 def timed_prediction(scene, driver) -> tuple:
@@ -131,11 +135,10 @@ def timed_prediction(scene, driver) -> tuple:
         The scene cannot be analysed (no port or device).
     """
     from hapsim.analysis.prediction import predict
-    rng = render_latency(driver)
-    if rng is None or rng[1] == 0.0 or scene.device is None or scene.device.hold != "zoh":
+    mid = latency_middle(scene, driver)
+    if not mid:
         return scene, predict(scene)
-    lo, hi = rng
-    mid = 0.5 * (lo + hi)
+    lo, hi = render_latency(driver)
     model = timed_scene(scene, mid)
     pred = predict(model)
     ks, bs = [], []

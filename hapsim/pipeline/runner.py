@@ -38,7 +38,7 @@ import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
-from hapsim.pipeline.render_latency import timed_prediction
+from hapsim.pipeline.render_latency import latency_middle, timed_prediction
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
@@ -98,7 +98,14 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         asked = scene.rate_hz if rate_hz is None else rate_hz
         board = drv.board_rate_hz(asked)
         rate_hz = rate_hz if board == asked else board
-    scene, targets = prepare_scene(scene, rate_hz)
+    # a board that renders after its read (its driver's render latency, as configured):
+    # the loop's delay is the scene's and that; a lockstep board has no time of its own.
+    # The targets are calibrated for that loop (at the latency's middle, where the
+    # prediction is stated), the one the board runs
+    drv_lat = None if opts.lockstep else drv
+    lat = 0.0 if scene.device is None else latency_middle(
+        scene if rate_hz is None else scene.with_rate(rate_hz), drv_lat)
+    scene, targets = prepare_scene(scene, rate_hz, latency_s=lat)
     dev = scene.device
     if dev.delay == 0 and not opts.lockstep:
         raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
@@ -112,9 +119,6 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
                           "real-time run needs d >= 1 (or --lockstep; a driver's board "
                           "such as the FireFader's takes d < 1 from its own timing)",
                           file=scene.path, key="device.delay")
-    # a board that renders after its read (its driver's render latency, as configured):
-    # the loop's delay is the scene's and that; a lockstep board has no time of its own
-    drv_lat = None if opts.lockstep else drv
     model, pred = timed_prediction(scene, drv_lat)
     if pred["stable"] is False and not opts.allow_unstable:
         raise refusal(model, pred)
