@@ -242,10 +242,9 @@ def board_timing(scene, rates) -> tuple:
     drv = device_driver(scene.device)
     if drv is None:
         return rates, 0.0, None
-    from hapsim.pipeline.render_latency import render_latency
+    from hapsim.pipeline.render_latency import latency_middle
     held = drv.board_rates(rates)
-    bounds = render_latency(drv) if scene.device.hold == "zoh" else None
-    lat = 0.0 if bounds is None else 0.5 * (bounds[0] + bounds[1])
+    lat = latency_middle(scene, drv)
     return held, lat, {"protocol": scene.device.protocol, "rates": held,
                        "render_latency_s": lat}
 
