@@ -59,8 +59,13 @@ class CheckReport(Charted, Report):
         runs [Hz]), ``render_latency_s`` (the bounds [s] of its render after its read),
         ``delay_modelled`` [periods] (the scene's delay and the bounds' middle, the delay
         the loop above is analysed with), ``k_spread`` [N/m] and ``b_spread`` [N s/m] (how
-        far the felt pair moves over the bounds). None: the board runs the scene as it is
-        written (the framed protocol, or a driver with no timing of its own).
+        far the felt pair moves over the bounds); ``unstable_latency_s`` [s] and
+        ``unstable_spectral_radius`` where the loop is stable at the middle but not at
+        that latency of the bounds (then ``stable`` is False and ``verdict``
+        "unstable": the board may render that late); ``rate_written_hz`` where the
+        board's rate is not the file's, ``refused`` where ``hapsim run`` refuses the
+        rate. None: the board runs the scene as it is written (the framed protocol, or a
+        driver with no timing of its own).
 
     Other attributes (not in ``--json``): ``analysis`` (the
     :class:`~hapsim.analysis.scene_check.SceneCheck`), ``calibrated_scene`` (the scene
@@ -136,10 +141,6 @@ def check(scene, progress=None):
     from hapsim.analysis.network import check_size
     from hapsim.analysis.virtual_network import static_stiffness
     from hapsim.analysis.scene_check import check_scene
-    from hapsim.analysis.prediction import timed_scene
-    from hapsim.analysis.targets import apply_targets
-    from hapsim.drivers import device_driver
-
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)               # in the dimension it declares
     from hapsim.scene import ScenePorts
@@ -148,12 +149,62 @@ def check(scene, progress=None):
         return check_ports(scene)
     if getattr(scene, "dimension", 1) != 1:
         return check_nd(scene, progress) if scene.port is not None else modes_nd(scene)
+    scene, cals, model, board = board_loop(scene)
+    check_size(scene)
+    chk = check_scene(model)
+    dev = scene.device
+    # stable at the latency's middle but not over the board's whole range: unstable
+    stable = chk.stable and (board or {}).get("unstable_latency_s") is None
+    d = {"scene": scene.path, "verdict": "stable" if stable else "unstable",
+         "rate_hz": scene.rate_hz, "board": board,
+         "device": None if dev is None else {
+             "mass": dev.mass, "friction": dev.friction, "delay": dev.delay,
+             "hold": dev.hold, "correction": getattr(dev, "correction", None)},
+         "calibrations": [c.to_dict() for c in cals], **chk.to_dict(),
+         "static_k": static_stiffness(scene) if chk.has_port else None}
+    d["stable"] = stable
+    return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
+
+
+def board_loop(scene) -> tuple:
+    """A 1-D scene as the board its ``device.protocol`` names runs it: at the board's own
+    rate (whole ticks: :meth:`hapsim.drivers.base.Driver.board_rate_hz`), its targets
+    calibrated for the loop with the board's render latency after its read in the delay
+    (the bounds' middle), as ``hapsim run`` states its prediction
+    (:func:`hapsim.pipeline.runner.prepare_run`). ``check`` and ``stability --scene``
+    analyse this loop.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A loaded 1-D scene.
+
+    Returns
+    -------
+    tuple
+        ``(scene, calibrations, model, board)``: the scene at the board's rate with its
+        targets calibrated and its own device (delay as written), the
+        :class:`~hapsim.analysis.targets.TargetCalibration` list, the scene the loop is
+        analysed with (``scene`` with the latency in its delay, or ``scene`` itself) and
+        :attr:`CheckReport.board` (None on hapsim's framed protocol or where the board runs
+        the scene as written).
+
+    Raises
+    ------
+    ConfigError
+        Driver options the driver refuses.
+    UnrenderableTargetError
+        A target the device cannot render in that loop.
+    """
+    from hapsim.analysis.prediction import timed_scene
+    from hapsim.analysis.targets import apply_targets
+    from hapsim.drivers import device_driver
+    from hapsim.pipeline.render_latency import latency_middle
     drv, written_hz = device_driver(scene.device), scene.rate_hz
     if drv is not None:                         # the board's own period (whole ticks)
         board_rate = drv.board_rate_hz(scene.rate_hz)
         if board_rate != scene.rate_hz:
             scene = scene.with_rate(board_rate)
-    from hapsim.pipeline.render_latency import latency_middle
     lat = latency_middle(scene, drv) if scene.port is not None else 0.0
     if lat:
         # the targets calibrated for the loop the board runs, as hapsim run's
@@ -162,18 +213,8 @@ def check(scene, progress=None):
         scene = dataclasses.replace(timed, device=scene.device)
     else:
         scene, cals = apply_targets(scene)
-    check_size(scene)
     model, board = board_timing(scene, drv, written_hz)
-    chk = check_scene(model)
-    dev = scene.device
-    d = {"scene": scene.path, "verdict": "stable" if chk.stable else "unstable",
-         "rate_hz": scene.rate_hz, "board": board,
-         "device": None if dev is None else {
-             "mass": dev.mass, "friction": dev.friction, "delay": dev.delay,
-             "hold": dev.hold, "correction": getattr(dev, "correction", None)},
-         "calibrations": [c.to_dict() for c in cals], **chk.to_dict(),
-         "static_k": static_stiffness(scene) if chk.has_port else None}
-    return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
+    return scene, cals, model, board
 
 
 def board_timing(scene, driver, written_hz=None):
@@ -220,7 +261,8 @@ def board_timing(scene, driver, written_hz=None):
         board["refused"] = str(e)
     if model is scene and "refused" not in board and not moved:
         return scene, None
-    for key in ("render_latency_s", "delay_modelled", "k_spread", "b_spread"):
+    for key in ("render_latency_s", "delay_modelled", "k_spread", "b_spread",
+                "unstable_latency_s", "unstable_spectral_radius"):
         if key in pred:
             board[key] = pred[key]
     return model, board

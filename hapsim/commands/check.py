@@ -114,9 +114,15 @@ def _object_mode(k: float, static: float, scene) -> bool:
     return not (0.5 * static <= k <= 2.0 * static)
 
 
-def _print_board(bd: dict) -> None:
-    """The lines on the timing of the board the scene's ``device.protocol`` names
-    (:func:`hapsim.api.checking.board_timing`)."""
+def print_board(bd: dict) -> None:
+    """Print the lines on the timing of the board a scene's ``device.protocol`` names
+    (:func:`hapsim.api.checking.board_loop`; ``check`` and ``stability --scene``).
+
+    Parameters
+    ----------
+    bd : dict
+        :attr:`hapsim.api.checking.CheckReport.board`.
+    """
     name = bd["protocol"]
     if "rate_written_hz" in bd:
         print(f"board ({name}): runs at {bd['rate_hz']:.9g} Hz, the whole ticks the "
@@ -176,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
     # an unrenderable target raises UnrenderableTargetError: a negative verdict, exit 1
     rep = check(scene)
     chk, scene, cals, static = rep.analysis, rep.calibrated_scene, rep.calibrations_made, rep.static_k
-    ok = chk.stable
+    ok = rep.stable             # (over the board's render latency too: its ``board``)
     verdict = rep.verdict
 
     if args.json:
@@ -206,14 +212,20 @@ def run(args: argparse.Namespace) -> int:
         if getattr(dv, "correction", None) is not None:
             print(f"correction: {dv.correction}")
         if rep.board is not None:
-            _print_board(rep.board)
+            print_board(rep.board)
     else:
         print("no port: the virtual network alone is checked (no device in the loop)")
     for c in cals:
         print(f"target {c.link}: (k, b) = ({c.k:g} N/m, {c.b:g} N s/m) -> "
               f"K = {c.result.K:.6g} N/m, B = {c.result.B:.6g} N s/m; renderable")
     tag = f"{verdict.upper()} with the {chk.integrator} integrator"
-    if chk.stable and chk.marginal:
+    if chk.stable and not ok:
+        bd = rep.board
+        tag += (f": the board may render {bd['unstable_latency_s'] * 1e3:.3g} ms after its "
+                f"read (within its bounds), where the spectral radius is "
+                f"{bd['unstable_spectral_radius']:.9g}; the loop below, at the middle, is "
+                f"stable")
+    if ok and chk.marginal:
         tag += " (marginal: some poles sit on the unit circle and never decay)"
     print(f"verdict: {tag}")
     print(f"spectral radius: {chk.spectral_radius:.12g}  ({len(chk.eigenvalues)} states)")

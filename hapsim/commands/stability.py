@@ -291,14 +291,16 @@ def _run_scene_line(args, scene) -> int:
     """
     from hapsim import api
     from hapsim.analysis.loop import LoopModel
-    from hapsim.analysis.targets import apply_targets
     from hapsim.analysis.virtual_network import link_values
     if args.grid:
         raise ConfigError("a 1-DoF device's mass is the same everywhere: the limit holds "
                           "over its whole travel (a map needs a pantograph or a delta)",
                           key="--grid")
-    scene, _ = apply_targets(scene)
-    dev, port = scene.device, scene.port.name
+    # the loop the board the scene's device.protocol names runs (its rate of whole ticks,
+    # its render latency after the read in the delay), as check and run analyse it
+    from hapsim.api.checking import board_loop
+    scene, _, model, board = board_loop(scene)
+    dev, port = model.device, scene.port.name
     kinds = {m.name: m.kind for m in scene.masses}
     K = B = 0.0
     grounded = True
@@ -309,18 +311,36 @@ def _run_scene_line(args, scene) -> int:
     loop = LoopModel.from_device(dev, scene.rate_hz)
     rep = api.stability(loop, B) if grounded else None
     kmax = None if rep is None else (math.inf if rep.K_max is None else rep.K_max)
+    if board is not None and "render_latency_s" in board and kmax is not None:
+        # the board renders anywhere within its bounds after its read: the limit is the
+        # least over them (the middle's is the loop check and run predict)
+        import numpy as np
+
+        from hapsim.analysis.prediction import timed_scene
+        from hapsim.pipeline.render_latency import SPREAD_POINTS
+        board["K_max_middle"] = None if math.isinf(kmax) else kmax
+        for r in np.linspace(*board["render_latency_s"], SPREAD_POINTS):
+            at = api.stability(LoopModel.from_device(timed_scene(scene, float(r)).device,
+                                                     scene.rate_hz), B)
+            k_at = math.inf if at.K_max is None else at.K_max
+            if k_at < kmax:
+                kmax, rep = k_at, at
+                board["K_max_latency_s"] = float(r)
     d = {"scene": str(args.scene), "dof": 1, "device": "1-DoF", "rate_hz": scene.rate_hz,
          "delay": dev.delay, "port_stiffness": [[K]], "port_damping": [[B]],
          "mass_eigenvalues": [loop.mass], "directions": [[1.0]] if grounded else None,
          "K_max": None if kmax is None else [None if math.isinf(kmax) else kmax],
          "port_stiffness_along": [K] if grounded else None,
-         "stability": None if rep is None else rep.to_dict()}
+         "stability": None if rep is None else rep.to_dict(), "board": board}
     code = 1 if kmax is None or not kmax > 0 else 0
     if args.json:
         print(json.dumps(d))
         return code
     o = sys.stdout
-    print(f"scene: {args.scene}  (1-D, {scene.rate_hz:g} Hz, d={dev.delay})", file=o)
+    print(f"scene: {args.scene}  (1-D, {scene.rate_hz:g} Hz, d={dev.delay:.6g})", file=o)
+    if board is not None:
+        from hapsim.commands.check import print_board
+        print_board(board)
     if kmax is None:
         print("  no limit: a port link ends on a moving mass, so the limit of a "
               "port-to-ground spring says nothing about what is felt", file=o)
@@ -329,6 +349,10 @@ def _run_scene_line(args, scene) -> int:
           f"damping B = {B:g} N s/m held):", file=o)
     print(f"    (+1.0000)  mass {loop.mass:.4g} kg  K_max = {fmt(kmax)} N/m   (the "
           f"scene's port stiffness: {K:.6g} N/m; {rep.K_max_method})", file=o)
+    if board is not None and "K_max_latency_s" in board:
+        print(f"    the least over the board's render latency, at "
+              f"{board['K_max_latency_s'] * 1e3:.3g} ms after its read (at the middle: "
+              f"{fmt(board['K_max_middle'])} N/m)", file=o)
     return code
 
 

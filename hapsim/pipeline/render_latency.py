@@ -41,7 +41,8 @@ import numpy as np
 
 from hapsim.analysis.prediction import timed_scene
 
-__all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction", "latency_search",
+__all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction",
+           "latency_refusal", "latency_search",
            "SPREAD_POINTS", "REFINE_STEPS", "GOLDEN_STEPS"]
 
 #: Latencies tried over a driver's range (ends included): for the prediction's spread
@@ -127,7 +128,13 @@ def timed_prediction(scene, driver) -> tuple:
         [N s/m] over the range from the middle's, over :data:`SPREAD_POINTS` latencies:
         how much the latency can move the prediction, for the report; the verdict
         searches the latency instead, :func:`latency_search`; none where the loop at the
-        middle is unstable: it has no felt pair, and the run refuses it).
+        middle is unstable: it has no felt pair, and the run refuses it); and, where the
+        loop is stable at the middle but not at some latency of the range (the board may
+        render that late: the run refuses it, ``check`` says unstable),
+        ``unstable_latency_s`` (the latency of the largest spectral radius [s]) and
+        ``unstable_spectral_radius``. The range is taken at :data:`SPREAD_POINTS`
+        latencies, its ends included (a longer delay takes stability away: the end is
+        where it goes first).
 
     Raises
     ------
@@ -141,20 +148,55 @@ def timed_prediction(scene, driver) -> tuple:
     lo, hi = render_latency(driver)
     model = timed_scene(scene, mid)
     pred = predict(model)
-    ks, bs = [], []
+    ks, bs, unstable = [], [], []
     # an unstable loop (refused, or run with allow_unstable) has no felt pair to spread
     for r in np.linspace(lo, hi, SPREAD_POINTS) if pred.get("stable") is not False else ():
         p = predict(timed_scene(scene, float(r)))
+        if p.get("stable") is False:
+            unstable.append((float(p["spectral_radius"]), float(r)))
         if p.get("k") is None or pred.get("k") is None:
             continue
         ks.append(abs(p["k"] - pred["k"]))
         bs.append(abs(p["b"] - pred["b"]))
     pred["render_latency_s"] = [lo, hi]
     pred["delay_modelled"] = float(model.device.delay)
+    if unstable:
+        # stable at the middle, not over the whole range: the board may run this loop
+        pred["unstable_latency_s"] = max(unstable)[1]
+        pred["unstable_spectral_radius"] = max(unstable)[0]
     if ks:
         pred["k_spread"] = float(max(ks))
         pred["b_spread"] = float(max(bs))
     return model, pred
+
+
+def latency_refusal(scene, pred: dict):
+    """The error refusing a loop stable at the middle of its board's render latency but
+    not at the latency :func:`timed_prediction` found unstable (``pred``'s
+    ``unstable_latency_s``): :func:`hapsim.analysis.prediction.refusal` of the loop there,
+    its cause first.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its own delay).
+    pred : dict
+        :func:`timed_prediction`'s, with ``unstable_latency_s`` and ``render_latency_s``.
+
+    Returns
+    -------
+    hapsim.errors.UnstableConfigError
+    """
+    from hapsim.analysis.prediction import predict, refusal
+    from hapsim.errors import UnstableConfigError
+    r = float(pred["unstable_latency_s"])
+    lo, hi = pred["render_latency_s"]
+    at = timed_scene(scene, r)
+    err = refusal(at, predict(at))
+    return UnstableConfigError(
+        f"the board renders {lo * 1e3:g}-{hi * 1e3:g} ms after its read (its driver's "
+        f"bounds), and the loop is stable at the middle but not at {r * 1e3:.3g} ms: "
+        f"{err}", spectral_radius=err.spectral_radius, stiffness_limit=err.stiffness_limit)
 
 
 def latency_search(prep, measure_at) -> dict:

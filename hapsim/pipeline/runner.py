@@ -38,7 +38,8 @@ import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
-from hapsim.pipeline.render_latency import latency_middle, timed_prediction
+from hapsim.pipeline.render_latency import (latency_middle, latency_refusal,
+                                            timed_prediction)
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
@@ -122,6 +123,8 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     model, pred = timed_prediction(scene, drv_lat)
     if pred["stable"] is False and not opts.allow_unstable:
         raise refusal(model, pred)
+    if pred.get("unstable_latency_s") is not None and not opts.allow_unstable:
+        raise latency_refusal(scene, pred)
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
