@@ -313,7 +313,26 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
         assert rep.board["delay_modelled"] == 1.0 + 0.35e-3 / (1.0 / adv.rate_hz)
         # the bound asked for is the advice's own criterion: no numerical tolerance
         assert abs(rep.k - k) / k <= tol and abs(rep.b - b) / b <= tol, (k, b, rep.k, rep.b)
+        # the margin holds where the board may render last (0.55 ms after its read)
+        lk, dv = adv.apply(sc).link("w"), sc.device
+        late = LoopModel(dv.mass, dv.friction, adv.rate_hz, 1.0 + 0.55e-3 * adv.rate_hz)
+        assert render(late, lk.stiffness / 0.95, lk.damping / 0.95).stable
     assert advised >= 15
+    # a spring whose margin holds at the latency's middle, not at its end (any accuracy
+    # allowed: the margin alone decides): not sent as written, but calibrated (more
+    # damping), its margin held at the end; before, sent as written ("naive")
+    from hapsim.api import stability
+    rate = 1.0 / (4 * drv.tick_s)
+    k_mid, k_end = (stability(LoopModel(0.1, 0.3, rate, 1.0 + lat * rate), 0.2 / 0.95).K_max
+                    for lat in (0.35e-3, 0.55e-3))        # the limits at B / margin
+    edge = parse_scene(_BOARD.replace("target: {{k: {k}, b: {b}}}",
+                                      "stiffness: {k}, damping: {b}").format(
+        k=0.95 * 0.5 * (k_mid + k_end), b=0.2, m=0.1, b0=0.3))
+    got = advise_scene(edge, 10.0).links[0]
+    assert got.method == "calibrated", got
+    late = LoopModel(0.1, 0.3, rate, 1.0 + 0.55e-3 * rate)
+    assert render(late, got.K / 0.95, got.B / 0.95).stable
+    assert not render(late, edge.links[0].stiffness / 0.95, 0.2 / 0.95).stable
     # the whole delay alone (the advice before) misses the shipped scene's damping
     from hapsim.scene import load_scene
     shipped = load_scene("configs/hapkit_serial.yaml")

@@ -149,7 +149,9 @@ class Advice:
         The timing of the board the scene's ``device.protocol`` names, which the advice
         took (:func:`board_timing`): ``protocol``, ``rates`` (the ladder's rates it
         holds [Hz]), ``render_latency_s`` (the middle of its render latency's bounds [s],
-        added to the device's delay at each rate); None on hapsim's framed protocol.
+        added to the device's delay at each rate: the felt pair is calibrated there) and
+        ``render_latency_end_s`` (the bounds' end, where the margin's stability is held
+        too); None on hapsim's framed protocol.
     """
 
     ok: bool
@@ -234,19 +236,22 @@ def board_timing(scene, rates) -> tuple:
     Returns
     -------
     tuple
-        ``(rates, latency_s, board)``: the ladder the board holds, the latency [s] added
-        to the device's delay (0 without one, or with an ideal hold, which takes whole
-        delays only) and :attr:`Advice.board` (None on hapsim's framed protocol).
+        ``(rates, latencies, board)``: the ladder the board holds, the latencies [s]
+        added to the device's delay, ``(middle, end)`` of the bounds (``(0, 0)`` without
+        one, or with an ideal hold, which takes whole delays only: the felt pair is
+        calibrated at the middle, the margin's stability held at both, the limit falling
+        with the delay) and :attr:`Advice.board` (None on hapsim's framed protocol).
     """
     from hapsim.drivers import device_driver
     drv = device_driver(scene.device)
     if drv is None:
-        return rates, 0.0, None
-    from hapsim.pipeline.render_latency import latency_middle
+        return rates, (0.0, 0.0), None
+    from hapsim.pipeline.render_latency import latency_middle, render_latency
     held = drv.board_rates(rates)
     lat = latency_middle(scene, drv)
-    return held, lat, {"protocol": scene.device.protocol, "rates": held,
-                       "render_latency_s": lat}
+    end = render_latency(drv)[1] if lat else 0.0
+    return held, (lat, end), {"protocol": scene.device.protocol, "rates": held,
+                              "render_latency_s": lat, "render_latency_end_s": end}
 
 
 def _delay(dev, rate_hz: float, latency_s: float):
@@ -259,7 +264,7 @@ def _delay(dev, rate_hz: float, latency_s: float):
 
 
 def _advise_link(scene, lk, tolerance: float, margin: float, rates,
-                 latency_s: float = 0.0) -> LinkAdvice:
+                 latency_s: tuple = (0.0, 0.0)) -> LinkAdvice:
     """Lowest rate and cheapest method for one port link, taken against a ground."""
     dev = scene.device
     k, b = _wanted(lk, dev.friction)
@@ -271,7 +276,8 @@ def _advise_link(scene, lk, tolerance: float, margin: float, rates,
     methods = ("calibrated",) if lk.target is not None else \
         (("naive", "calibrated") if to_ground else ("naive",))
     for r in rates:
-        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, latency_s), dev.hold)
+        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, latency_s[0]), dev.hold)
+        late = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, latency_s[1]), dev.hold)
         for method in methods:
             if method == "naive":
                 K, B = lk.stiffness, lk.damping
@@ -288,7 +294,8 @@ def _advise_link(scene, lk, tolerance: float, margin: float, rates,
             err = felt_pair_error(res.k, res.b, k, b)
             if err > tolerance and to_ground:
                 continue  # a link to a virtual mass is judged for accuracy with the scene
-            if spectral_radius(loop, K / margin, B / margin) >= 1.0:
+            if spectral_radius(loop, K / margin, B / margin) >= 1.0 or (
+                    latency_s[1] and spectral_radius(late, K / margin, B / margin) >= 1.0):
                 continue
             why = (f"{method} at {r:g} Hz is the first rate of the ladder with felt error "
                    f"{err:.2g} <= {tolerance:g} and stable at (K, B)/{margin:g}; against {against}"
@@ -394,10 +401,13 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
     last = ""
     for r in [x for x in rates if x >= floor]:
         sc = scene.with_rate(r)
-        if lat:
+        late = None
+        if lat[0]:
+            late = dataclasses.replace(sc, device=dataclasses.replace(
+                dev, delay=_delay(dev, r, lat[1])))
             sc = dataclasses.replace(sc, device=dataclasses.replace(
-                dev, delay=_delay(dev, r, lat)))
-        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, lat), dev.hold)
+                dev, delay=_delay(dev, r, lat[0])))
+        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, lat[0]), dev.hold)
         cal = {}
         for la in link_adv:
             lk = scene.link(la.link)
@@ -413,6 +423,9 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
             rho, stable = spectral_radius_of(A)
             _, stable_m = spectral_radius_of(closed_loop_matrix(sc, integ, calibrated=cal,
                                                                 gain=1.0 / margin))
+            if late is not None and stable_m:     # the board may render that late
+                _, stable_m = spectral_radius_of(closed_loop_matrix(
+                    late, integ, calibrated=cal, gain=1.0 / margin))
             if not (stable and stable_m):
                 last = f"{integ} at {r:g} Hz: not stable with margin (radius {rho:.6g})"
                 continue

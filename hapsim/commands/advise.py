@@ -85,7 +85,9 @@ def run(args) -> int:
     if adv.board is not None:
         bd = adv.board
         lat = (f"; its render {bd['render_latency_s'] * 1e3:g} ms after the read (the "
-               f"middle of its bounds) added to the delay" if bd["render_latency_s"] else "")
+               f"middle of its bounds) added to the delay, the margin held at "
+               f"{bd['render_latency_end_s'] * 1e3:g} ms too" if bd["render_latency_s"]
+               else "")
         print(f"  board ({bd['protocol']}): the ladder's rates it holds: "
               f"{', '.join(f'{r:g}' for r in bd['rates']) or 'none'} Hz{lat}")
     for la in adv.links:
