@@ -192,10 +192,11 @@ def board_loop(scene) -> tuple:
     Raises
     ------
     ConfigError
-        Driver options the driver refuses.
+        Driver options the driver refuses; a scene too large to analyse.
     UnrenderableTargetError
         A target the device cannot render in that loop.
     """
+    from hapsim.analysis.network import check_size
     from hapsim.analysis.prediction import timed_scene
     from hapsim.analysis.targets import apply_targets
     from hapsim.drivers import device_driver
@@ -213,6 +214,8 @@ def board_loop(scene) -> tuple:
         scene = dataclasses.replace(timed, device=scene.device)
     else:
         scene, cals = apply_targets(scene)
+    if drv is not None:
+        check_size(scene)       # too large: refused before the board's loops are analysed
     model, board = board_timing(scene, drv, written_hz)
     return scene, cals, model, board
 
