@@ -369,10 +369,11 @@ def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
     prediction feel the target; calibrated for the scene's whole delay alone (before),
     configs/hapkit_serial.yaml's (50, 0.5) was predicted 2.8 % off its b. Random paddles,
     targets and both whole-tick rates, 12 seeded draws. In lockstep (no time of the
-    board's) the whole delay is the loop, and the target is felt there."""
+    board's) the whole delay is the loop, and the target is felt there. ``simulate``
+    sends the run's (K, B)."""
     import yaml
 
-    from hapsim.api import check
+    from hapsim.api import check, simulate
     from hapsim.pipeline.options import RunOptions
     from hapsim.pipeline.runner import prepare_run
     from hapsim.scene import load_scene
@@ -400,6 +401,11 @@ def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
             for kk, bb in ((rep.k, rep.b), (prep.pred["k"], prep.pred["b"])):
                 assert abs(kk - k) <= tol * k and abs(bb - b) <= tol * b, (i, lock, kk, bb)
             assert prep.scene.device.delay == 1       # the scene's own delay is kept
+        # simulate sends the run's (K, B) (no device there: the calibration alone)
+        sim = simulate(str(path), 1).calibrations[0]
+        prep = prepare_run(load_scene(str(path)), RunOptions(driver="hapkit-serial",
+                                                             handle_signals=False))
+        assert (sim["K"], sim["B"]) == (prep.targets[0]["K"], prep.targets[0]["B"])
 
 
 def test_a_loop_unstable_anywhere_in_the_boards_latency_is_refused(tmp_path):

@@ -166,13 +166,13 @@ def check(scene, progress=None):
     return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
 
 
-def board_loop(scene) -> tuple:
-    """A 1-D scene as the board its ``device.protocol`` names runs it: at the board's own
-    rate (whole ticks: :meth:`hapsim.drivers.base.Driver.board_rate_hz`), its targets
-    calibrated for the loop with the board's render latency after its read in the delay
-    (the bounds' middle), as ``hapsim run`` states its prediction
-    (:func:`hapsim.pipeline.runner.prepare_run`). ``check`` and ``stability --scene``
-    analyse this loop.
+def board_scene(scene) -> tuple:
+    """A 1-D scene at the rate the board its ``device.protocol`` names runs (whole ticks:
+    :meth:`hapsim.drivers.base.Driver.board_rate_hz`), its targets calibrated for the loop
+    with the board's render latency after its read in the delay (the bounds' middle), as
+    ``hapsim run`` calibrates them (:func:`hapsim.pipeline.runner.prepare_run`); the
+    scene's own device (delay as written) kept. ``check``, ``stability --scene`` and
+    ``simulate`` take the targets so.
 
     Parameters
     ----------
@@ -182,21 +182,18 @@ def board_loop(scene) -> tuple:
     Returns
     -------
     tuple
-        ``(scene, calibrations, model, board)``: the scene at the board's rate with its
-        targets calibrated and its own device (delay as written), the
-        :class:`~hapsim.analysis.targets.TargetCalibration` list, the scene the loop is
-        analysed with (``scene`` with the latency in its delay, or ``scene`` itself) and
-        :attr:`CheckReport.board` (None on hapsim's framed protocol or where the board runs
-        the scene as written).
+        ``(scene, calibrations, driver, written_hz)``: the scene, the
+        :class:`~hapsim.analysis.targets.TargetCalibration` list, the board's driver
+        (:func:`hapsim.drivers.device_driver`, None on hapsim's framed protocol) and the
+        rate the file states [Hz].
 
     Raises
     ------
     ConfigError
-        Driver options the driver refuses; a scene too large to analyse.
+        Driver options the driver refuses.
     UnrenderableTargetError
         A target the device cannot render in that loop.
     """
-    from hapsim.analysis.network import check_size
     from hapsim.analysis.prediction import timed_scene
     from hapsim.analysis.targets import apply_targets
     from hapsim.drivers import device_driver
@@ -214,6 +211,36 @@ def board_loop(scene) -> tuple:
         scene = dataclasses.replace(timed, device=scene.device)
     else:
         scene, cals = apply_targets(scene)
+    return scene, cals, drv, written_hz
+
+
+def board_loop(scene) -> tuple:
+    """A 1-D scene as the board its ``device.protocol`` names runs it
+    (:func:`board_scene`), and the loop analysed: ``check`` and ``stability --scene``
+    analyse this loop, as ``hapsim run`` states its prediction.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A loaded 1-D scene.
+
+    Returns
+    -------
+    tuple
+        ``(scene, calibrations, model, board)``: :func:`board_scene`'s scene and
+        calibrations, the scene the loop is analysed with (``scene`` with the latency in
+        its delay, or ``scene`` itself) and :attr:`CheckReport.board` (None on hapsim's
+        framed protocol or where the board runs the scene as written).
+
+    Raises
+    ------
+    ConfigError
+        Driver options the driver refuses; a scene too large to analyse.
+    UnrenderableTargetError
+        A target the device cannot render in that loop.
+    """
+    from hapsim.analysis.network import check_size
+    scene, cals, drv, written_hz = board_scene(scene)
     if drv is not None:
         check_size(scene)       # too large: refused before the board's loops are analysed
     model, board = board_timing(scene, drv, written_hz)

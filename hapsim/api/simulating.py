@@ -302,8 +302,9 @@ def line_columns(scene, N: int, record, keys=("record", "steps")):
     Returns
     -------
     (hapsim.scene.Scene, list, list of str)
-        The scene with (K, B) for its targets (:func:`hapsim.analysis.targets.apply_targets`),
-        its calibrations and the recorded masses.
+        The scene with (K, B) for its targets (:func:`hapsim.api.checking.board_scene`:
+        for the loop its board runs, where the device names one), its calibrations and
+        the recorded masses.
 
     Raises
     ------
@@ -316,9 +317,10 @@ def line_columns(scene, N: int, record, keys=("record", "steps")):
     from hapsim.outputs import check_fits
     calibrations = []
     if scene.unresolved_targets:
-        # the one place that turns felt targets into (K, B), as hapsim run and check do
-        from hapsim.analysis.targets import apply_targets
-        scene, calibrations = apply_targets(scene)
+        # felt targets into (K, B) as hapsim run and check take them: for the loop the
+        # board the device.protocol names runs (its rate, its render latency)
+        from hapsim.api.checking import board_scene
+        scene, calibrations, _, _ = board_scene(scene)
     masses = tuple(m.name for m in scene.masses)
     names = list(record) if record else list(masses)
     from hapsim.engine import mass_indices     # numba: after the input's checks
