@@ -461,6 +461,37 @@ def test_a_loop_unstable_anywhere_in_the_boards_latency_is_refused(tmp_path):
             assert abs(got - k_hi) <= 1e-12 * k_hi and code == 0, (got, k_hi)
 
 
+def test_a_hand_family_on_the_board_is_judged_over_its_latency(tmp_path):
+    """``hapsim family`` of a Hapkit-serial scene with a hand (0.05-0.5 kg, grip
+    300-3000 N/m): the family of the loop the board runs, its render latency's middle in
+    the delay, and held stable at the latency's two bounds with the (K, B) the run sends.
+    A spring of 245 N/m: every sampled member stable with the whole delay alone and at
+    the middle (the verdict before: robustly stable), one unstable at 0.55 ms: not
+    robustly stable now, its report the family there; 220 N/m: stable at both bounds.
+    The same scene on hapsim's framed protocol keeps its whole delay (robust)."""
+    import yaml
+
+    from hapsim.api import family
+    doc = yaml.safe_load(open("configs/hapkit_serial.yaml"))
+    doc["device"]["hand"] = {"mass": [0.05, 0.5], "damping": 1.0,
+                             "grip_stiffness": [300, 3000], "grip_damping": 2.0}
+    got = {}
+    for K in (220.0, 245.0):
+        for proto in ("hapkit-serial", "framed"):
+            doc["links"][0]["stiffness"] = K
+            doc["device"]["protocol"] = proto
+            path = tmp_path / f"hand_{proto}_{K:g}.yaml"
+            path.write_text(yaml.safe_dump(doc))
+            got[K, proto] = family(str(path), grid=5, certify=0)
+    assert all(got[K, "framed"].robust for K in (220.0, 245.0))
+    assert "board" not in got[245.0, "framed"].extra
+    ok, edge = got[220.0, "hapkit-serial"], got[245.0, "hapkit-serial"]
+    assert ok.robust and "unstable_latency_s" not in ok.extra["board"]
+    assert ok.extra["board"]["delay_modelled"] == 1.0 + 0.35e-3 / (4 * hk.FIRMWARE_TICK_S)
+    assert not edge.robust and edge.unstable >= 1
+    assert edge.extra["board"]["unstable_latency_s"] == hk.RENDER_LATENCY_S[1]
+
+
 # ------------------------------------------------------------------ real time, loaded
 
 def _burn(until: float) -> None:

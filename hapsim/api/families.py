@@ -135,7 +135,17 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     if correction is not None:
         scene = dataclasses.replace(scene, device=dataclasses.replace(
             scene.device, correction=correction))
+    scene, ends, board = _board_family(scene)
     res = _family(scene, samples, grid=grid, seed=seed, certify=certify)
+    for lat, end in ends if res.robust else ():
+        # the board may render anywhere in its bounds: the family there, the (K, B)
+        # calibrated at the middle sent as they are; an unstable member is the verdict's
+        at = _family(end, samples, grid=grid, seed=seed, certify=certify,
+                     calibrated=res.calibrated)
+        if not at.robust:
+            res, scene = at, end
+            board.update(unstable_latency_s=lat, delay_modelled=float(end.device.delay))
+            break
     rep = res.to_dict()
     if len(res.links) + bool((hand_stiffness(res.members) > 0).any()) >= 2:
         from hapsim.analysis.family import consistency
@@ -158,6 +168,33 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
         verdict = f"robustly stable (certified in {ARITHMETIC})"
     else:
         verdict = f"robustly stable on the samples only ({res.robust_method})"
+    if board is not None:
+        rep["board"] = board
     return FamilyReport.from_dict({"scene": scene.path, "verdict": verdict,
                                "correction": getattr(scene.device, "correction", None),
                                **rep}, analysis=res)
+
+
+def _board_family(scene) -> tuple:
+    """The family's scene as the board its ``device.protocol`` names runs it: at the
+    board's rate, the render latency's middle in the delay (``hapsim check``'s loop,
+    :func:`hapsim.api.checking.board_loop`), and the scenes at the latency's two bounds
+    the robust verdict holds too; ``(scene, ((latency [s], scene), ...), board)``, the
+    ``board`` dict None (and no bounds) on hapsim's framed protocol."""
+    from hapsim.analysis.prediction import timed_scene
+    from hapsim.drivers import device_driver
+    from hapsim.pipeline.render_latency import latency_middle, render_latency
+    drv = device_driver(scene.device)
+    if drv is None:
+        return scene, (), None
+    rate = drv.board_rate_hz(scene.rate_hz)
+    if rate != scene.rate_hz:
+        scene = scene.with_rate(rate)
+    mid = latency_middle(scene, drv)
+    if not mid:
+        return scene, (), {"protocol": scene.device.protocol, "rate_hz": scene.rate_hz}
+    lo, hi = render_latency(drv)
+    timed = timed_scene(scene, mid)
+    return timed, tuple((lat, timed_scene(scene, lat)) for lat in (lo, hi)), {
+        "protocol": scene.device.protocol, "rate_hz": scene.rate_hz,
+        "render_latency_s": [lo, hi], "delay_modelled": float(timed.device.delay)}

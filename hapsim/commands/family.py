@@ -214,6 +214,15 @@ def run(args: argparse.Namespace) -> int:
     if getattr(scene.device, "correction", None) is not None:
         from hapsim.analysis.corrections import Correction
         print("correction: " + Correction.from_dict(scene.device.correction).label())
+    bd = rep.get("board")
+    if bd is not None and "render_latency_s" in bd:
+        lo, hi = (1e3 * v for v in bd["render_latency_s"])
+        at = bd.get("unstable_latency_s")
+        print(f"board ({bd['protocol']}, {bd['rate_hz']:.9g} Hz): renders {lo:g}-{hi:g} ms "
+              f"after its read; the family is analysed with d = {bd['delay_modelled']:.6g} "
+              + (f"periods, at {at * 1e3:g} ms, where it is not robustly stable (at the "
+                 f"middle it is)" if at is not None else
+                 "periods (the middle) and held stable at both bounds"))
     for name, (K, B) in rep["calibrated"].items():
         print(f"target {name}: calibrated on the nominal member: K = {K:.6g} N/m, "
               f"B = {B:.6g} N s/m")
