@@ -166,6 +166,35 @@ def check(scene, progress=None):
     return CheckReport.from_dict(d, analysis=chk, calibrated_scene=scene, calibrations_made=cals)
 
 
+def at_board_rate(scene) -> tuple:
+    """A 1-D scene at the rate the board its ``device.protocol`` names runs (a board on
+    its own tick: whole ticks, :meth:`hapsim.drivers.base.Driver.board_rate_hz`), and
+    that board's driver (:func:`hapsim.drivers.device_driver`; None on hapsim's framed
+    protocol, the scene then as it is).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+
+    Returns
+    -------
+    tuple
+        ``(scene, driver)``.
+
+    Raises
+    ------
+    ConfigError
+        Driver options the driver refuses.
+    """
+    from hapsim.drivers import device_driver
+    drv = device_driver(scene.device)
+    if drv is not None:
+        rate = drv.board_rate_hz(scene.rate_hz)
+        if rate != scene.rate_hz:
+            scene = scene.with_rate(rate)
+    return scene, drv
+
+
 def board_scene(scene) -> tuple:
     """A 1-D scene at the rate the board its ``device.protocol`` names runs (whole ticks:
     :meth:`hapsim.drivers.base.Driver.board_rate_hz`), its targets calibrated for the loop
@@ -196,13 +225,9 @@ def board_scene(scene) -> tuple:
     """
     from hapsim.analysis.prediction import timed_scene
     from hapsim.analysis.targets import apply_targets
-    from hapsim.drivers import device_driver
     from hapsim.pipeline.render_latency import latency_middle
-    drv, written_hz = device_driver(scene.device), scene.rate_hz
-    if drv is not None:                         # the board's own period (whole ticks)
-        board_rate = drv.board_rate_hz(scene.rate_hz)
-        if board_rate != scene.rate_hz:
-            scene = scene.with_rate(board_rate)
+    written_hz = scene.rate_hz
+    scene, drv = at_board_rate(scene)
     lat = latency_middle(scene, drv) if scene.port is not None else 0.0
     if lat:
         # the targets calibrated for the loop the board runs, as hapsim run's

@@ -182,14 +182,11 @@ def _board_family(scene) -> tuple:
     the robust verdict holds too; ``(scene, ((latency [s], scene), ...), board)``, the
     ``board`` dict None (and no bounds) on hapsim's framed protocol."""
     from hapsim.analysis.prediction import timed_scene
-    from hapsim.drivers import device_driver
+    from hapsim.api.checking import at_board_rate
     from hapsim.pipeline.render_latency import latency_middle, render_latency
-    drv = device_driver(scene.device)
+    scene, drv = at_board_rate(scene)
     if drv is None:
         return scene, (), None
-    rate = drv.board_rate_hz(scene.rate_hz)
-    if rate != scene.rate_hz:
-        scene = scene.with_rate(rate)
     mid = latency_middle(scene, drv)
     if not mid:
         return scene, (), {"protocol": scene.device.protocol, "rate_hz": scene.rate_hz}
