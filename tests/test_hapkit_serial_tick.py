@@ -452,6 +452,9 @@ def test_a_loop_unstable_anywhere_in_the_boards_latency_is_refused(tmp_path):
                 assert rep.board["unstable_latency_s"] == hi
                 with pytest.raises(UnstableConfigError, match="not at 0.55 ms"):
                     prepare_run(load_scene(str(path)), opts)
+            code, out, _ = hapsim_main(["check", str(path)])
+            assert code == (0 if stable else 1)
+            assert ("the board may render 0.55 ms after its read" in out) is not stable
             code, out, _ = hapsim_main(["stability", "--scene", str(path), "--json"])
             got = json.loads(out)["K_max"][0]
             # the same limit by the scene's route and the loop's: measured equal over 30
