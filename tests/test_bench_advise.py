@@ -291,7 +291,7 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
     middle, as ``run`` and ``check`` predict): ``check`` of the advised scene within the
     advice's tolerance of the target, over random paddles and targets (20 seeded draws).
     Calibrated with the scene's whole delay (the advice before), configs/hapkit_serial.
-    yaml's spring was felt 2.8 % off its b, beyond the 1 % asked for."""
+    yaml's spring was felt 3.5 % off its b (0.4823 N s/m), beyond the 1 % asked for."""
     from hapsim.api import check
     from hapsim.drivers import get_driver
     drv = get_driver("hapkit-serial")
@@ -340,7 +340,7 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
                                                                     protocol="framed"))
     old = advise_scene(plain, tol)
     rep = check(old.apply(shipped))
-    assert abs(rep.b - 0.5) / 0.5 > tol, rep.b
+    assert abs(rep.b - 0.5) / 0.5 > 3 * tol, rep.b        # measured 3.5 %
 
 
 def test_run_auto_on_the_shipped_hapkit_scene_runs_the_advised_rate():

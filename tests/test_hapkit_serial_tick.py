@@ -367,8 +367,8 @@ def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
     (K, B) sent are calibrated for the loop the board runs (its render latency's middle
     in the delay, where the run states its prediction), so ``check`` and the run's
     prediction feel the target; calibrated for the scene's whole delay alone (before),
-    configs/hapkit_serial.yaml's (50, 0.5) was predicted 2.8 % off its b. Random paddles,
-    targets and both whole-tick rates, 12 seeded draws. In lockstep (no time of the
+    configs/hapkit_serial.yaml's (50, 0.5) was predicted 3.5 % off its b (0.4823 N s/m).
+    Random paddles, targets and both whole-tick rates, 12 seeded draws. In lockstep (no time of the
     board's) the whole delay is the loop, and the target is felt there. ``simulate``
     sends the run's (K, B)."""
     import yaml
