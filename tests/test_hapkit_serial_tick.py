@@ -607,3 +607,36 @@ def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):
             "estimated_samples", "render_latency_s", "cycles")}, rep["predicted"].get("b"))
     assert m["b"] - rep["predicted"]["b"] > m["b_unc"], (m["b"], rep["predicted"]["b"],
                                                          m["b_unc"])
+
+
+def test_a_live_change_is_judged_over_the_boards_latency():
+    """``run --osc`` on a board that renders after its read: the live controller judges a
+    change over the latency's bounds, as the run's refusal does. A stiffness between the
+    limit at 0.55 ms (76.47 N/m on the shipped paddle, B = 0.2 N s/m) and the middle's
+    (78.90) is refused, naming the latency (before: the whole delay alone was checked,
+    its limit 83.55, and it was taken); one below is accepted; a felt target is
+    calibrated with the middle in the delay, as the run's. In the calling thread."""
+    from hapsim.audio.control import Controller
+    from hapsim.engine import Engine
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
+    from hapsim.scene import load_scene
+    prep = prepare_run(load_scene("configs/hapkit_serial.yaml"),
+                       RunOptions(driver="hapkit-serial", handle_signals=False))
+    lo, hi = prep.pred["render_latency_s"]
+    ctl = Controller(prep.scene, Engine(prep.scene), ramp_s=0.01, background=False,
+                     latency=(0.5 * (lo + hi), hi))
+    try:
+        ok, why = ctl.request("/hapsim/link/stiffness", "spring", 77.5)
+        assert not ok and "0.55 ms after its read" in why, why
+        ok, got = ctl.request("/hapsim/link/stiffness", "spring", 75.0)
+        assert ok, got
+        ok, got = ctl.request("/hapsim/link/target", "spring", 50.0, 0.5)
+        assert ok, got
+        # measured 1.4e-13 relative at most (the calibration's root finders, two
+        # eigenvalue routes; the target test above), margin 70
+        from tolerance import measured
+        assert abs(got[1] - 50.0) <= measured(1.4e-13, 70) * 50.0
+        assert abs(got[2] - 0.5) <= measured(1.4e-13, 70) * 0.5, got
+    finally:
+        ctl.close()

@@ -83,6 +83,12 @@ class Controller:
         GIL against the haptic loop and the sound callback (a descheduled holder stalled
         both: hundreds of starved frames, the sound server dropping the client). False:
         in the calling thread (tests, small scenes).
+    latency : (float, float), optional
+        A board that renders after its read (``hapsim run``'s driver: the Hapkit sketch's
+        0.15-0.55 ms): the middle of its bounds and their end [s]. The felt pair is
+        predicted, and a target calibrated, with the middle in the delay (as the run
+        predicts and calibrates); a change must also be stable with the end in it (the
+        limit falls with the delay: where the board may render last). Default none.
 
     Attributes
     ----------
@@ -97,8 +103,9 @@ class Controller:
     """
 
     def __init__(self, scene, engine, live=None, ramp_s: float = 0.05,
-                 background: bool = True) -> None:
+                 background: bool = True, latency: tuple = (0.0, 0.0)) -> None:
         self.scene = scene
+        self.latency = (float(latency[0]), float(latency[1]))
         self.engine = engine
         self.live = live
         self.ramp_s = float(ramp_s)
@@ -175,9 +182,12 @@ class Controller:
         self._rebasing = threading.Thread(target=work, name="hapsim-rebase", daemon=True)
         self._rebasing.start()
 
-    def _predict(self, scene) -> dict:
-        from hapsim.analysis.prediction import predict
-        return self.analyst.call(predict, scene)
+    def _predict(self, scene, at: int = 0) -> dict:
+        """The prediction of ``scene``'s loop, with :attr:`latency`'s middle (``at`` 0)
+        or end (1) in its delay."""
+        from hapsim.analysis.prediction import predict, timed_scene
+        lat = self.latency[at]
+        return self.analyst.call(predict, timed_scene(scene, lat) if lat else scene)
 
     def close(self) -> None:
         """Stop the analysis process (pending work is dropped)."""
@@ -226,12 +236,19 @@ class Controller:
         if not pred["stable"]:
             raise Refused(f"the {self.what} would be unstable (spectral radius "
                            f"{pred['spectral_radius']:.6g} > 1)")
+        if self.latency[1]:
+            p = self._predict(new_scene, 1)
+            if not p["stable"]:
+                raise Refused(f"the {self.what} would be unstable where the board renders "
+                              f"{self.latency[1] * 1e3:.3g} ms after its read (spectral "
+                              f"radius {p['spectral_radius']:.6g} > 1)")
         for a in (0.25, 0.5, 0.75):
             mid = self.blend(old_scene, new_scene, a)
-            p = self._predict(mid)
-            if not p["stable"]:
-                raise Refused(f"the ramp passes through an unstable loop at {a:.0%} "
-                               f"(spectral radius {p['spectral_radius']:.6g})")
+            for at in (0, 1) if self.latency[1] else (0,):
+                p = self._predict(mid, at)
+                if not p["stable"]:
+                    raise Refused(f"the ramp passes through an unstable loop at {a:.0%} "
+                                   f"(spectral radius {p['spectral_radius']:.6g})")
         return pred
 
     def request(self, address: str, *args) -> tuple[bool, str | tuple]:
@@ -380,7 +397,13 @@ class Controller:
                                          damping=math.nan, calibrated=False)
                 new = dataclasses.replace(sc, links=tuple(tl if x.name == name else x
                                                           for x in sc.links))
-                new, _ = apply_targets(new)
+                if self.latency[0]:
+                    # calibrated for the loop the board runs, as the run's targets
+                    from hapsim.analysis.prediction import timed_scene
+                    timed, _ = apply_targets(timed_scene(new, self.latency[0]))
+                    new = dataclasses.replace(timed, device=new.device)
+                else:
+                    new, _ = apply_targets(new)
             else:
                 if what == "stiffness":
                     K, B = numbers(args[1:], 1, "K", address)[0], lk.damping
@@ -617,7 +640,7 @@ class ControllerND(Controller):
         self.unmeasured = ("a 2-D or 3-D play does not identify the felt matrices "
                            "(hapsim run --lockstep measures them)")
 
-    def _predict(self, scene) -> dict:
+    def _predict(self, scene, at: int = 0) -> dict:
         return self.analyst.call(predict_nd, scene)
 
     def felt_reply(self) -> tuple:

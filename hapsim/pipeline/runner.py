@@ -550,7 +550,10 @@ def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOpt
 
     from hapsim.audio.osc import serve_osc
 
-    ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp)
+    # a board that renders after its read: the changes judged over its latency's bounds
+    lat = prep.pred.get("render_latency_s")
+    ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp,
+                     latency=(0.5 * (lat[0] + lat[1]), lat[1]) if lat else (0.0, 0.0))
     ctl.events = loop.result.events             # journaled with the telemetry (.hst)
     ctl.sample_of = lambda: conn.tel.n
     loop.poll = lambda: ctl.poll(loop.engine)
