@@ -631,12 +631,13 @@ def test_a_live_change_is_judged_over_the_boards_latency():
         assert not ok and "0.55 ms after its read" in why, why
         ok, got = ctl.request("/hapsim/link/stiffness", "spring", 75.0)
         assert ok, got
-        ok, got = ctl.request("/hapsim/link/target", "spring", 50.0, 0.5)
+        k, b = 50.0, 0.5
+        ok, got = ctl.request("/hapsim/link/target", "spring", k, b)
         assert ok, got
         from tolerance import measured
         # measured 1.4e-13 relative at most (the calibration's root finders, two
         # eigenvalue routes; the target test above), margin 70
         tol = measured(1.4e-13, 70)
-        assert abs(got[1] - 50.0) <= tol * 50.0 and abs(got[2] - 0.5) <= tol * 0.5, got
+        assert abs(got[1] - k) <= tol * k and abs(got[2] - b) <= tol * b, got
     finally:
         ctl.close()
