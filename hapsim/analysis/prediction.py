@@ -11,6 +11,7 @@ the OSC controller alike; nothing here runs a loop.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -19,8 +20,8 @@ from hapsim.analysis.targets import apply_targets
 from hapsim.errors import ConfigError, UnstableConfigError, dash
 from hapsim.scene import Scene
 
-__all__ = ["prepare_scene", "timed_scene", "predict", "predicted_poles", "has_offset", "port_links",
-           "refusal"]
+__all__ = ["prepare_scene", "timed_scene", "predict", "predicted_poles", "has_offset",
+           "port_links", "refusal"]
 
 
 _ZERO_POLE = 1e-9
@@ -99,7 +100,6 @@ def timed_scene(scene: Scene, latency_s: float) -> Scene:
         ``device.delay`` = the scene's + ``latency_s / T``, a real number of periods
         (modified z-transform: :mod:`hapsim.analysis.subsample`).
     """
-    import dataclasses
     dev = scene.device
     d = float(dev.delay) + float(latency_s) / scene.period
     return dataclasses.replace(scene, device=dataclasses.replace(dev, delay=d))
@@ -140,7 +140,6 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None, latency_s: float =
         scene = scene.with_rate(rate_hz)
     _require_device(scene)
     if latency_s:
-        import dataclasses
         timed, cals = apply_targets(timed_scene(scene, latency_s))
         scene = dataclasses.replace(timed, device=scene.device)
     else:

@@ -104,9 +104,8 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     # The targets are calibrated for that loop (at the latency's middle, where the
     # prediction is stated), the one the board runs
     drv_lat = None if opts.lockstep else drv
-    lat = 0.0 if scene.device is None else latency_middle(
-        scene if rate_hz is None else scene.with_rate(rate_hz), drv_lat)
-    scene, targets = prepare_scene(scene, rate_hz, latency_s=lat)
+    scene, targets = prepare_scene(scene, rate_hz,
+                                   latency_s=latency_middle(scene, drv_lat))
     dev = scene.device
     if dev.delay == 0 and not opts.lockstep:
         raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
