@@ -537,14 +537,19 @@ def _run(seed: int, **kw) -> dict:
 def test_on_the_boards_own_clock_beside_two_hogs_the_writes_are_mid_tick(two_cpu_hogs, seed):
     """The THS through the sketch's bytes on the board's own clock, two CPU-bound
     processes running (SCHED_FIFO 10 where the OS permits, as ``hapsim run``): the
-    transport found the board's tick at the arming and its commands came mid-tick -- at
-    most 20 % within a tenth of a tick of the boundary (the board's own count), what
-    writes at a uniformly random phase give (2 x 0.1 of a tick): a loaded machine's late
-    writes scatter the phase toward that (measured 0.3-4 % here beside two hogs and a load
-    of 4, 12 % under the whole suite's load once), a write systematically at the boundary
-    passes it (77 % in the unaligned run it was written for) -- and the verdict is not "differs"
-    (within, or not measurable with its reason after a safety stop on the host's own
-    lateness). Seed 6 is the table's run that said "differs" (docs/driver_timing.json)."""
+    transport found the board's tick at the arming and its commands came away from the
+    boundary -- their median arrival phase (the board's own count) within 0.1-0.9 of a
+    tick, and so at most half of them within a tenth of a tick of the boundary. The bound
+    is the aligner's design, derived: it re-centres the writes once their running mean
+    phase leaves 0.15-0.85 of a tick (``TickAligned.BAND``), and the median may lag the
+    mean by the jitter's asymmetry (0.05 allowed). Writes systematically at the boundary,
+    the class the aligner exists for, break both (median ~0, 77 % near the boundary in the
+    unaligned run it was written for). Measured: 0.3-4 % near beside two hogs and a load
+    of 4, 12 % under the whole suite's load once, and 21 % (median phase 0.81, inside the
+    band) in a fresh-clone CI run, against a bound of 20 % (what writes at a uniformly
+    random phase give) this test held before. The verdict is not "differs" (within, or
+    not measurable with its reason after a safety stop on the host's own lateness). Seed
+    6 is the table's run that said "differs" (docs/driver_timing.json)."""
     assert all(p.is_alive() for p in two_cpu_hogs)
     rep = _run(seed)
     loop, m = rep["loop"], rep["measured"]
@@ -561,7 +566,9 @@ def test_on_the_boards_own_clock_beside_two_hogs_the_writes_are_mid_tick(two_cpu
         # the one stop allowed: the host's own lateness (a loaded machine), zero torque
         assert "the host was" in loop["stop_reason"], info
         return
-    assert arr["near_boundary"] <= 0.2 * arr["commands"], info
+    # the band's bound, derived (docstring): the median inside 0.1-0.9 of a tick
+    assert 0.1 <= arr["median_phase"] <= 0.9, info
+    assert arr["near_boundary"] <= 0.5 * arr["commands"], info
     # within, or not measurable with its reason (the run's own reading of the measurement,
     # an error included: the unseen holds cut can leave too few cycles on a loaded machine
     # -- 30 holds off the period in one run beside the hogs and a helper's work)
