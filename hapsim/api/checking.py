@@ -259,10 +259,8 @@ def board_loop(scene) -> tuple:
 
     Raises
     ------
-    ConfigError
-        Driver options the driver refuses; a scene too large to analyse.
-    UnrenderableTargetError
-        A target the device cannot render in that loop.
+    ConfigError, UnrenderableTargetError
+        As :func:`board_scene`; a scene too large to analyse.
     """
     from hapsim.analysis.network import check_size
     scene, cals, drv, written_hz = board_scene(scene)

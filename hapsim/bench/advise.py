@@ -254,13 +254,14 @@ def board_timing(scene, rates) -> tuple:
                               "render_latency_s": lat, "render_latency_end_s": end}
 
 
-def _delay(dev, rate_hz: float, latency_s: float):
+def _delay(scene, rate_hz: float, latency_s: float):
     """The device's delay [periods] at ``rate_hz`` with its board's render latency
-    ``latency_s`` [s] added, formed as :func:`hapsim.pipeline.render_latency.timed_scene`
-    forms it (the same floats as ``run`` and ``check``)."""
+    ``latency_s`` [s] added (:func:`hapsim.analysis.prediction.timed_scene`: the same
+    floats as ``run`` and ``check``)."""
     if not latency_s:
-        return dev.delay
-    return float(dev.delay) + float(latency_s) / (1.0 / rate_hz)
+        return scene.device.delay
+    from hapsim.analysis.prediction import timed_scene
+    return timed_scene(scene.with_rate(rate_hz), latency_s).device.delay
 
 
 def _advise_link(scene, lk, tolerance: float, margin: float, rates,
@@ -276,8 +277,8 @@ def _advise_link(scene, lk, tolerance: float, margin: float, rates,
     methods = ("calibrated",) if lk.target is not None else \
         (("naive", "calibrated") if to_ground else ("naive",))
     for r in rates:
-        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, latency_s[0]), dev.hold)
-        late = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, latency_s[1]), dev.hold)
+        loop = LoopModel(dev.mass, dev.friction, r, _delay(scene, r, latency_s[0]), dev.hold)
+        late = LoopModel(dev.mass, dev.friction, r, _delay(scene, r, latency_s[1]), dev.hold)
         for method in methods:
             if method == "naive":
                 K, B = lk.stiffness, lk.damping
@@ -404,10 +405,10 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
         late = None
         if lat[0]:
             late = dataclasses.replace(sc, device=dataclasses.replace(
-                dev, delay=_delay(dev, r, lat[1])))
+                dev, delay=_delay(scene, r, lat[1])))
             sc = dataclasses.replace(sc, device=dataclasses.replace(
-                dev, delay=_delay(dev, r, lat[0])))
-        loop = LoopModel(dev.mass, dev.friction, r, _delay(dev, r, lat[0]), dev.hold)
+                dev, delay=_delay(scene, r, lat[0])))
+        loop = LoopModel(dev.mass, dev.friction, r, _delay(scene, r, lat[0]), dev.hold)
         cal = {}
         for la in link_adv:
             lk = scene.link(la.link)

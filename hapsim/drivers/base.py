@@ -434,10 +434,15 @@ class Driver:
         """
         return float(rate_hz)
 
+    def rate_candidates(self, rates) -> list:
+        """The rates a ladder's span offers this board, increasing [Hz]: the ladder's own
+        (a board on its own tick overrides it: the whole numbers of its ticks within the
+        span). :meth:`board_rates` keeps those it holds."""
+        return [float(r) for r in rates]
+
     def board_rates(self, rates) -> list:
-        """The rates a ladder of candidates offers this board: those it holds
-        (:meth:`check_rate`), in the ladder's order (a board on its own tick overrides it:
-        the whole numbers of its ticks within the ladder's span).
+        """The rates a ladder of candidates offers this board (:meth:`rate_candidates`)
+        that it holds (:meth:`check_rate`), increasing.
 
         Parameters
         ----------
@@ -451,7 +456,7 @@ class Driver:
         """
         from hapsim.errors import ConfigError
         out = []
-        for r in rates:
+        for r in self.rate_candidates(rates):
             try:
                 self.check_rate(float(r))
             except ConfigError:

@@ -457,12 +457,13 @@ class HapkitSerial(Driver):
         n = self.period_ticks(rate_hz)
         return float(rate_hz) if n is None else 1.0 / (n * self.tick_s)
 
-    def board_rates(self, rates) -> list:
-        """The rates of whole ticks within the ladder's span that the sketch holds
-        (:meth:`check_rate`), increasing: ``1 / (n tick)`` for whole ``n`` from the
-        lowest rate of ``rates`` (less :data:`PERIOD_TICKS_TOL` of a tick) to the highest.
-        The ladder's own rates are mostly no whole number of ticks (250 Hz is 4.03), which
-        :meth:`check_rate` refuses; from 250 Hz up the sketch offers 252.016 Hz alone.
+    def rate_candidates(self, rates) -> list:
+        """The rates of whole ticks within the ladder's span, increasing: ``1 / (n tick)``
+        for whole ``n`` from the lowest rate of ``rates`` (less :data:`PERIOD_TICKS_TOL` of
+        a tick) to the highest. The ladder's own rates are mostly no whole number of ticks
+        (250 Hz is 4.03), which :meth:`check_rate` refuses; of these
+        :meth:`~hapsim.drivers.base.Driver.board_rates` keeps those the link holds: from
+        250 Hz up the sketch offers 252.016 Hz alone.
 
         Parameters
         ----------
@@ -474,19 +475,10 @@ class HapkitSerial(Driver):
         list of float
             Increasing [Hz].
         """
-        from hapsim.errors import ConfigError
         lo, hi = min(float(r) for r in rates), max(float(r) for r in rates)
         most = math.floor(1.0 / (lo * self.tick_s) + PERIOD_TICKS_TOL)
         least = max(math.ceil(1.0 / (hi * self.tick_s) - PERIOD_TICKS_TOL), 1)
-        out = []
-        for n in range(most, least - 1, -1):
-            r = 1.0 / (n * self.tick_s)
-            try:
-                self.check_rate(r)
-            except ConfigError:
-                continue
-            out.append(r)
-        return out
+        return [1.0 / (n * self.tick_s) for n in range(most, least - 1, -1)]
 
     def check_rate(self, rate_hz: float) -> None:
         """Refuse a rate the sketch cannot hold (:meth:`Driver.check_rate`: a command and
