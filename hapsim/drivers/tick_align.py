@@ -6,8 +6,8 @@ middle from then on (:class:`TickAligned`, a base of
 A write near the tick's boundary is taken at one tick or the next by the host's jitter:
 sample intervals of 3 and 5 ms in a loop modelled at 4 ms, which no reply says. The probe
 writes :data:`TICK_PROBES` zero-force commands a fraction of a tick apart and times their
-replies: the write-to-reply time jumps by one tick at the board's boundary, whatever the
-link's latency (docs/drivers.md, "Hapkit-serial: the sketch's tick").
+replies: the write-to-reply time jumps at the board's boundary, whatever the link's
+latency (:func:`fit_tick_jump`; docs/drivers.md, "Hapkit-serial: the sketch's tick").
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import time
 
 from hapsim.errors import DeviceError
 
-__all__ = ["TickAligned", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S", "PROBES_NEEDED",
+__all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S", "PROBES_NEEDED",
            "PROBE_TRIES", "REARM_INTERVAL"]
 
 #: Wait for the first record before the arming command is sent again [s].
@@ -35,6 +35,92 @@ PROBE_QUIET_S = 0.02
 PROBES_NEEDED = 12
 #: Probes of a ticking board's phase tried at an arming before its writes go unaligned.
 PROBE_TRIES = 3
+#: The fit's grids (:func:`fit_tick_jump`): the jump's phase to 1/128 of a tick, the flat
+#: part's width to 1/16.
+JUMP_STEPS = 128
+FLAT_STEPS = 16
+
+
+def fit_tick_jump(q, e, tick) -> dict:
+    """Where a board that samples on its own tick changes the tick it takes a command at:
+    the jump in the write-to-reply time over the write's phase, fitted.
+
+    The Hapkit sketch (haphub/WHC2017 ``Hapkit_arduino.ino:96-135``, ``loop``) reads a
+    command on the first tick of its Timer1 flag with a byte waiting (the header byte
+    complete), waits in ``readBytes`` for the other 9, and samples the handle, renders and
+    replies on the next flag: the tick after the read began, or at once when a tick passed
+    during the read (the flag is one bit). With the command's last byte ``W`` after the
+    first byte's end (9 bytes at 57600 baud: 1.5625 ms, more than a tick ``T``), the sample
+    is ``max(c + W, k + T)`` for the first byte's end ``c`` and the read's tick ``k``: on the
+    tick for ``x = c - (k - T)`` below ``L = 2 T - W`` (0.42 ms), ``W`` after ``c`` above it,
+    and a jump of ``L`` where ``c`` crosses a tick. So the write-to-reply time ``e`` plus the
+    write's phase ``q`` is, with ``x = (q - J) mod T`` the phase after the jump ``J``::
+
+        e + q = C + max(x, L) - T [q < J]
+
+    ``L = T`` is a board that samples on the tick after the whole command (a step of a
+    tick, the model of this probe before); ``L = 0`` one that samples at the command's end
+    (no jump: any phase will do). ``C`` (the link's latency, unknown) is the median, ``J``
+    and ``L`` are searched on grids (:data:`JUMP_STEPS`, :data:`FLAT_STEPS`) for the least
+    sum of absolute deviations, each clipped at half a tick (a late reply moves no jump).
+    Measured on the independent sketch model (docs/drivers.md): 4 of 16 probes more than a
+    quarter tick off the step alone (``L = T``), which is the refusal's threshold; the
+    shape is the firmware's, not a tuning.
+
+    Parameters
+    ----------
+    q : array_like, shape (n,)
+        The writes' phases within a tick, in ``[0, tick)``, any time unit.
+    e : array_like, shape (n,)
+        Their write-to-reply times, the same unit.
+    tick : float
+        The board's tick, the same unit, > 0.
+
+    Returns
+    -------
+    dict
+        ``boundary_us`` (``J``: the jump's phase, in the unit / 1e3: microseconds for
+        nanoseconds given), ``flat_us`` (``L``), ``spread_us`` (the median distance of the
+        probes from the fit), ``outliers`` (probes more than a quarter tick off it),
+        ``probes`` (``n``).
+
+    Raises
+    ------
+    ValueError
+        ``q`` and ``e`` of other lengths, or empty.
+    """
+    import numpy as np
+    q = np.asarray(q, float)
+    e = np.asarray(e, float)
+    if q.shape != e.shape or q.ndim != 1 or q.size == 0:
+        raise ValueError(f"q and e must be two equal non-empty vectors, got {q.shape}, "
+                         f"{e.shape}")
+    v = e + q
+    tk = float(tick)
+    J = np.arange(JUMP_STEPS)[:, None, None] * (tk / JUMP_STEPS)
+    L = np.arange(FLAT_STEPS + 1)[None, :, None] * (tk / FLAT_STEPS)
+    x = (q[None, None, :] - J) % tk
+    m = np.maximum(x, L) - tk * (q[None, None, :] < J)
+    w = v[None, None, :] - m
+    r = np.abs(w - np.median(w, axis=2, keepdims=True))
+    cost = np.minimum(r, tk / 2).sum(axis=2)
+    # the least cost; on a tie the wider flat part (the step), and the middle of the run
+    # of jumps between the same two probes (every jump there fits them alike: a step's
+    # jump lies anywhere between the last probe before it and the first after it)
+    rev = cost[:, ::-1]
+    i, j = np.unravel_index(int(np.argmin(rev)), rev.shape)
+    j = FLAT_STEPS - j
+    tie = cost[:, j] == cost[i, j]
+    lo = hi = 0
+    while lo < JUMP_STEPS - 1 and tie[(i - lo - 1) % JUMP_STEPS]:
+        lo += 1
+    while hi < JUMP_STEPS - 1 - lo and tie[(i + hi + 1) % JUMP_STEPS]:
+        hi += 1
+    jump = ((i + 0.5 * (hi - lo)) % JUMP_STEPS) * (tk / JUMP_STEPS)
+    rb = r[i, j]
+    return {"boundary_us": jump / 1e3, "flat_us": float(L[0, j, 0]) / 1e3,
+            "spread_us": float(np.median(rb)) / 1e3,
+            "outliers": int(np.count_nonzero(rb > tk / 4)), "probes": int(q.size)}
 
 
 class TickAligned:
@@ -104,14 +190,15 @@ class TickAligned:
         middle from then on (a driver whose board takes commands on its own tick:
         ``driver.tick_s``).
 
-        The board takes a command at its first tick after the command has come and its
-        reply leaves then, so the time from a write to its reply, plus the write's phase
-        within a tick, is one constant for writes before the board's boundary (the phase
-        where a command comes just too late for a tick) and that constant plus one tick
-        after it, whatever the link's latency in either direction: a step, located by
-        :data:`TICK_PROBES` zero-force commands written at phases a sixteenth of a tick
-        apart, their replies timed (the step fitted with the least sum of absolute
-        deviations, each clipped at half a tick: a late reply moves no boundary). A
+        The board reads a command at its first tick after the command's first byte has
+        come and samples at the tick after that, or at the command's end when that is
+        later, so the time from a write to its reply, plus the write's phase within a
+        tick, is flat then rising over the tick and jumps back where the first byte
+        comes just too late for a tick (the board's boundary), whatever the link's
+        latency in either direction: a shape located by :data:`TICK_PROBES` zero-force
+        commands written at phases a sixteenth of a tick apart, their replies timed
+        (:func:`fit_tick_jump`: least absolute deviations, each clipped at half a tick:
+        a late reply moves no boundary). A
         write near the boundary is taken at one tick or the next by the jitter of the
         host and the link: a sample interval a tick short or long, another loop than the
         one modelled. The host's phase came from its latency at the arming (its first
@@ -129,8 +216,9 @@ class TickAligned:
         -------
         dict or None
             ``boundary_us`` (the jump's phase after the first probe's write, [us]),
-            ``spread_us`` (the median distance of the probes from the fitted sawtooth),
-            ``outliers`` (probes more than a quarter tick off it), ``probes``; None when
+            ``flat_us`` (the phases after it sampled on the tick, [us]), ``spread_us``
+            (the median distance of the probes from the fit), ``outliers`` (probes more
+            than a quarter tick off it), ``probes`` (:func:`fit_tick_jump`); None when
             the probe could not place the jump (no alignment). Also kept in
             :attr:`tick_probe`.
 
@@ -139,7 +227,6 @@ class TickAligned:
         DeviceError
             The port failed.
         """
-        import numpy as np
         dr = self.driver
         tk = self._tick_ns
         self._write_at = None
@@ -210,27 +297,9 @@ class TickAligned:
         if n < PROBES_NEEDED:
             self.tick_probe = {"probes": n}
             return None
-        order = np.argsort(q)
-        q = np.asarray(q, float)[order]
-        v = np.asarray(e, float)[order] + q
-        best = None
-        for b in range(n):
-            # writes at phases from the b-th (in phase order) on come too late for the
-            # tick the ones before it are taken at: one tick more from write to reply
-            w = v - tk * (np.arange(n) >= b)
-            r = np.abs(w - np.median(w))
-            cost = float(np.sum(np.minimum(r, tk / 2)))
-            if best is None or cost < best[0]:
-                best = (cost, b, r)
-        _, b, r = best
-        # the jump: midway between the last write before it and the first after it
-        jump = 0.5 * ((q[b - 1] if b > 0 else q[-1] - tk) + q[b]) % tk
-        spread = float(np.median(r))
-        outliers = int(np.count_nonzero(r > tk / 4))
-        found = {"boundary_us": float(jump) / 1e3, "spread_us": spread / 1e3,
-                 "outliers": outliers, "probes": n}
+        found = fit_tick_jump(q, e, tk)
         self.tick_probe = found
-        if spread > tk / 8 or outliers > n // 4:
-            return None                     # no clean sawtooth: the phase is not known
-        self._write_at = start + int(jump)
+        if found["spread_us"] * 1e3 > tk / 8 or found["outliers"] > n // 4:
+            return None                     # no clean fit: the phase is not known
+        self._write_at = start + int(round(found["boundary_us"] * 1e3))
         return found
