@@ -20,6 +20,7 @@ a hidden friction the scene does not state is still seen.
 
 from __future__ import annotations
 
+import struct
 import time
 from collections import deque
 
@@ -61,12 +62,16 @@ class TickingPort:
     flag), the reply written ``RENDER_NS`` later and readable ``WIRE_NS`` after that.
     ``arrivals`` keeps each command's arrival phase within its tick [ns after the tick
     before it: the header's end for the sketch, where its jump is] and ``ticks`` the tick
-    it was taken (read) at."""
+    it was taken (read) at. ``numbered``: each reply's position is 1e-4 m times the
+    number of the write it answers (1, 2, ...)."""
 
-    def __init__(self, phase_ns: int, transit_ns: int, sketch: bool = False) -> None:
+    def __init__(self, phase_ns: int, transit_ns: int, sketch: bool = False,
+                 numbered: bool = False) -> None:
         self.phase = int(phase_ns)
         self.transit = int(transit_ns)
         self.sketch = bool(sketch)
+        self.numbered = bool(numbered)
+        self.writes = 0
         self.pending: deque = deque()
         self.rx = bytearray()
         self.arrivals: list = []
@@ -97,7 +102,14 @@ class TickingPort:
             self.arrivals.append((arr - self.phase) % TICK_NS)
             self.ticks.append(k)
             ready = self.phase + k * TICK_NS + WIRE_NS
-        self.pending.append((ready, hk.reply_packet(hk.HOST_FORCE_FUNCTION, 0.01, 0.0)))
+        # the reply's position names the write it answers (1e-4 m a write), the
+        # handle's for a test that does not ask (0.01 m)
+        self.writes += 1
+        x = 1e-4 * self.writes if self.numbered else 0.01
+        # the sketch's reply carries the Tp of the force it rendered (sim.h:191)
+        from hapsim.drivers.output_stage import sketch_tp
+        tp = float(sketch_tp([struct.unpack_from("<f", data, 6)[0]])[0])
+        self.pending.append((ready, hk.reply_packet(hk.HOST_FORCE_FUNCTION, x, tp)))
         return len(data)
 
     def read(self, n: int = 1) -> bytes:
@@ -284,10 +296,58 @@ def test_writes_the_host_made_a_tick_late_are_marked_and_cut(monkeypatch, phase_
     assert np.array_equal(mask, want)
 
 
+def test_a_deadline_is_put_where_its_write_lands_mid_tick(monkeypatch):
+    """After the probe, the host loop's deadline is moved on (by less than a tick) to where
+    a write made at it lands half a tick after the jump found, and the writes' own delay
+    starts again at 0: a write delayed after its deadline left the answer the period less
+    that delay (up to a tick), and the sketch's answer, 3.5-4.3 ms after a write at 4
+    ticks a period, came after the next deadline."""
+    port = TickingPort(300_000, 200_000, sketch=True)
+    tr = _transport(monkeypatch, port)
+    assert tr.tick_phase() is not None, tr.tick_probe
+    tr._delay_ns = 123_000                       # a delay the arming's writes had set
+    for t in np.linspace(10**12, 10**12 + 3 * TICK_NS, 7).astype(np.int64):
+        d = tr.align_deadline(int(t))
+        assert 0 <= d - t < TICK_NS
+        assert (d - tr._write_at) % TICK_NS == TICK_NS // 2 - tr._over_ns
+        assert tr._delay_ns == 0 and tr._phase_z is None
+
+
+@pytest.mark.parametrize("transit_us", [200, 1200])
+def test_an_answer_read_after_the_next_write_is_the_command_before(monkeypatch, transit_us):
+    """A link of 1.2 ms in: the sketch's reply comes 4.8-5.2 ms after its write, a period
+    is 3.97 ms, and it is read at the deadline after the next write. Taken for the newest
+    command (the rule before), every reading was one command off: a loop of one delay
+    more, measured as the scene's. The reply carries the Tp of the force its command
+    rendered (sim.h:191): the host's forces differ, so it names its command, the one
+    before the newest. Each STATE's position names the write it answers (the port's
+    truth): equal to its seq on both links, and the short link's replies (in before the
+    next write) are never shifted."""
+    port = TickingPort(300_000, transit_us * 1000, sketch=True, numbered=True)
+    tr = _transport(monkeypatch, port)
+    tr._armed = True
+    tr._settle = 0
+    tr._answered = tr._cmd = 0
+    tr.stats["read_late"] = 0
+    got = []
+    at = time.monotonic_ns()
+    for j in range(1, 41):
+        wait = at + j * 4 * TICK_NS - time.monotonic_ns()
+        if wait > 0:
+            time.sleep(wait * 1e-9)
+        got += [m for m in tr.receive(0.0) if hasattr(m, "position")]
+        tr._command(tr.driver.encode_force(0.01 * j))
+    assert len(got) >= 30, len(got)
+    for m in got:
+        assert round(m.position[0] / 1e-4) == m.seq, (m.seq, m.position)
+    assert tr.stats["read_late"] == (0 if transit_us == 200 else len(got))
+
+
 def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
     """The sketch samples and applies forces on its 0.992 ms ticks: 250 Hz would sample 4
     ticks apart and 5 once in 31 periods, 300 Hz at 3, 3 and 4 ticks (another loop than
-    the one modelled), so they are refused with the nearest rates that hold; periods of
+    the one modelled), so they are refused with the nearest rates that hold (300 Hz's
+    period is shorter than the round trip, refused for that); periods of
     whole ticks within the link's limit pass, written exactly or to six figures (252.016
     Hz: 2.6e-5 of a tick off, inside the driver's 1e-4)."""
     drv = hk.HapkitSerial()
@@ -301,7 +361,11 @@ def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
     assert drv.native_rate_hz == 1.0 / (4 * tick)       # its HELLO's rate: 4 ticks
     with pytest.raises(ConfigError, match=r"no whole number.*nearest: 252\.016 Hz, 201\.613 Hz"):
         drv.check_rate(250.0)
+    # 3.6 ticks: the nearest whole ticks are 4 and 3, and 3 (2.98 ms) is shorter than the
+    # least round trip (3.45 ms: the wire's 3.30 and the render's least 0.15)
     with pytest.raises(ConfigError, match=r"no whole number.*nearest: 252\.016 Hz$"):
+        drv.check_rate(280.0)
+    with pytest.raises(ConfigError, match=r"300 Hz cannot be held.*3\.45 ms"):
         drv.check_rate(300.0)
     with pytest.raises(ConfigError, match="no whole number"):
         drv.check_rate(1.0)

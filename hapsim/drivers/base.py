@@ -412,6 +412,26 @@ class Driver:
         a link whose wire time is negligible (USB at full speed)."""
         return 0.0
 
+    def least_answer_s(self) -> float:
+        """The least time [s] from a command's write to its answer's last byte that the
+        board's firmware allows (its bytes and the answer's on the wire, its least work),
+        where the board's emulation honours it too: an answer read sooner is not that
+        command's (:meth:`hapsim.drivers.transport.DriverTransport._take`). 0 (the
+        default): not stated, the newest command is taken as answered."""
+        return 0.0
+
+    def answer_names(self, command: bytes, echo) -> bool | None:
+        """Whether an answer whose echo (:meth:`answer_echoes`) is ``echo`` can answer
+        ``command`` (the bytes written); None (the default): the board's answers name no
+        command, the transport's rule of time alone pairs them
+        (:meth:`hapsim.drivers.transport.DriverTransport._take`)."""
+        return None
+
+    def answer_echoes(self, n: int) -> list | None:
+        """What the last ``n`` answers decoded echo of their command (:meth:`answer_names`),
+        in order; None (the default): nothing."""
+        return None
+
     def max_rate_hz(self) -> float:
         """Highest host rate whose period holds a command and its answer [Hz] (inf when
         the link sets no bound)."""

@@ -598,9 +598,41 @@ class HapkitSerial(Driver):
         return ReplyDecoder(self.function)
 
     def round_trip_s(self) -> float:
-        """A 10-byte command and its 9-byte reply at 57600 baud, 10 bits a byte [s]
-        (3.3 ms; the sketch's tick adds up to 0.992 ms more, not counted)."""
-        return (10 + 9) * 10 / self.baud
+        """The least time from a command's first byte to its reply's last [s]: the 10-byte
+        command and the 9-byte reply at 57600 baud, 10 bits a byte, and the render's least
+        latency between them (:data:`RENDER_LATENCY_S`): 3.45 ms. The sketch reads the
+        handle at the command's end or at the tick after its read began, so its tick
+        adds up to 0.42 ms more, not counted (``Hapkit_arduino.ino:96-135``;
+        :func:`hapsim.drivers.tick_align.fit_tick_jump`)."""
+        return (10 + 9) * 10 / self.baud + RENDER_LATENCY_S[0]
+
+    def answer_names(self, command: bytes, echo) -> bool | None:
+        """Whether a reply whose second float is ``echo`` can answer ``command``: the
+        sketch's reply carries the force it rendered from the command read, as the
+        binary32 ``force`` or its ``Tp`` (``Hapkit_arduino.ino:129``, ``sim.h:191``:
+        :func:`hapsim.drivers.output_stage.sketch_tp`), exactly: equal to the command's
+        force or to its ``Tp``. None for bytes that are no command of this driver."""
+        if len(command) != 10 or command[1] != self.function:
+            return None
+        import numpy as np
+
+        from hapsim.drivers.output_stage import sketch_tp
+        f = _FF.unpack_from(command, 2)[1]
+        e = np.float32(echo)
+        return bool(e == np.float32(f) or e == sketch_tp([f])[0])
+
+    def answer_echoes(self, n: int) -> list | None:
+        """The second floats of the last ``n`` replies decoded (:attr:`replies`)."""
+        log = getattr(self, "replies", None)
+        if log is None or log.n < n:
+            return None
+        return [float(v) for v in log.force[log.n - n:log.n]]
+
+    def least_answer_s(self) -> float:
+        """:meth:`round_trip_s`: the sketch's UART takes the command's bytes at the baud
+        rate, and so does the emulated board (:class:`hapsim.emulated.hapkit_serial_board.
+        HapkitSerialDevice`)."""
+        return self.round_trip_s()
 
     def decoder(self):
         """A fresh host decoder returning the handle position [m]; every reply's

@@ -175,6 +175,24 @@ class TickAligned:
             self._over_ns = int(0.9 * self._over_ns + 0.1 * over)
         self._note_tick(time.monotonic_ns())
 
+    def align_deadline(self, deadline_ns: int) -> int:
+        """The host loop's deadline ``deadline_ns`` [monotonic ns] moved on (by less than
+        a tick) to where a write made at it lands in the middle of the board's tick (the
+        aim of :meth:`_wait_for_band`, less how late its sleeps wake): the loop's reads
+        then come a whole period after its writes, the answer's time (a write delayed
+        after its deadline leaves the answer the period less that delay). Unchanged before
+        a probe found the tick (:meth:`tick_phase`)."""
+        if self._write_at is None:
+            return int(deadline_ns)
+        tk = self._tick_ns
+        shift = (tk // 2 - self._over_ns - (int(deadline_ns) - self._write_at)) % tk
+        # the writes' own phase starts again at the middle: no delay of its own (one
+        # set by the arming's writes, made between deadlines, would stay while the writes
+        # it moved stayed in the band, the answer's time short by it)
+        self._phase_z = None
+        self._delay_ns = 0
+        return int(deadline_ns) + int(shift)
+
     def _note_tick(self, t_ns: int) -> None:
         """Where a write at ``t_ns`` falls on the board's tick grid: ``_write_tick`` =
         ``(tick index, near)``, the index counted from the probed boundary and ``near``
@@ -184,6 +202,8 @@ class TickAligned:
         tk = self._tick_ns
         n, ph = divmod(t_ns - self._write_at, tk)
         self._write_tick = (int(n), min(ph, tk - ph) < self.BAND * tk)
+        if len(self._landed) < 100_000:
+            self._landed.append(ph / tk)
 
     def tick_phase(self) -> dict | None:
         """Measure where the host's writes fall in the board's tick, and write in its
@@ -233,6 +253,7 @@ class TickAligned:
         self._phase_z = None
         self._delay_ns = 0
         self._over_ns = 0
+        self._landed = []
         self.tick_probe = None
         k = TICK_PROBES
         # a probe's reply comes within the round trip and a tick; spaced whole ticks and

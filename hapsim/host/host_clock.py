@@ -151,6 +151,15 @@ class HostClock:
         # STATE arrives, so the STATE is in and the FORCE is back before its next tick
         # (ticking in phase with the device would race it every period)
         deadline = mono_ns() + (0 if cfg.lockstep else period_ns // 3)
+        # a board that takes commands on its own tick: the deadlines put where a write
+        # lands mid-tick, so its answer has the whole period to come before the next
+        # deadline (delaying the writes alone left it the period less that delay, up to a
+        # tick: the Hapkit sketch's answer, 3.5-4.3 ms after a write at 4 ticks a period,
+        # came after the next deadline and was read as the next command's)
+        align = (getattr(tr, "align_deadline", None)
+                 if not cfg.lockstep and not virtual else None)
+        if align is not None:
+            deadline = align(deadline)
         while tel.n < n_max and not stop.set:
             remaining = deadline - mono_ns()
             if virtual:
@@ -190,7 +199,7 @@ class HostClock:
                     self._host_late = 1
                     if behind >= STALL_TICKS * period_ns:
                         stalled(int(behind // period_ns))
-                    deadline = mono_ns()
+                    deadline = mono_ns() if align is None else align(mono_ns())
             t_rx = perf()
             if (latest.seq - used_seq) & _U32 >= _HALF or latest.seq == used_seq:
                 # no new sample since the last tick (or only one older than an estimated
