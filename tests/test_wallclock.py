@@ -138,14 +138,33 @@ def test_firefader_silence_zeroes_the_force_at_the_instant_its_polls_run_out():
         assert abs(dev.physics.x - x2) <= _tol(abs(x2) + abs(x0), 60)
 
 
-@pytest.mark.parametrize("seed", range(4))
+def _sketch_read(now: float, tk: float) -> tuple:
+    """When the sketch samples after a command written at ``now`` [s] to an idle board,
+    from its ``loop`` (haphub/WHC2017 ``Hapkit_arduino.ino:96-135``): the header byte
+    comes 10 bits at 57600 baud after the write, the flag's first tick at or after it
+    reads the command, whose 9 more bytes end ``10`` bytes' wire after the write; the
+    next flag (a tick passed during the read: at once) samples. Returns ``(t, terms,
+    on_tick)``: the sample [s], the terms whose sum it is, and whether it is on a tick."""
+    byte = 10 / 57600
+    read_tick = math.ceil((now + byte) / tk) * tk
+    end = [now] + [byte] * 10
+    if sum(end) >= read_tick + tk:
+        return sum(end), end, False
+    return read_tick + tk, [read_tick, tk], True
+
+
+@pytest.mark.parametrize("seed", range(6))
 def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
-    """The sketch takes a command at the 0.992 ms tick after it came (its own clock), reads
-    the handle there and applies the force's level (its sqrt output, 256 levels) from its
-    render's end, :data:`hapsim.drivers.hapkit_serial.RENDER_S` after the read, and its
-    reply (the force's ``Tp``) leaves the 9 bytes' wire time after that; over a host pause
-    (no silence rule) the handle moves as the held level over the real time from the first
-    render to the next tick (closed form)."""
+    """The sketch's ``loop`` reads a command on the first tick its header byte has come by,
+    and reads the handle on the next flag: the tick after, or the command's end when that
+    is later (the 10 bytes' 1.74 ms of wire outlast a tick; the flag is one bit): on the
+    tick for a header coming in the first 0.42 ms after one, at the command's end for the
+    rest (:func:`_sketch_read`; the write's phases here are spread over the tick, seeds
+    0-2 on the tick, 3-5 at the end). It applies the force's level (its sqrt output, 256
+    levels) from its render's end, :data:`hapsim.drivers.hapkit_serial.RENDER_S` after
+    the read, and its reply (the force's ``Tp``) leaves the 9 bytes' wire time after that;
+    over a host pause (no silence rule) the handle moves as the held level over the real
+    time from the first render to the next read (closed form)."""
     from hapsim.drivers.output_stage import sketch_board_output, sketch_tp
     rng = np.random.default_rng(seed)
     m, b = rng.uniform(0.05, 0.3), rng.uniform(0.0, 1.0)
@@ -154,13 +173,19 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     dev = HapkitSerialDevice(Device(mass=m, friction=b, delay=1, force_limit=2.0), rate,
                              Excitation(), count_m=0.0)
     drv = hk.HapkitSerial()
-    now = rng.uniform(0.0, tk) + 0.01
+    byte = 10 / 57600
+    flat = 2 * tk - 9 * byte                          # header phases sampled on the tick
+    # the header's phase after a tick: seeds 0-2 within the flat part, 3-5 past it
+    x = (seed % 3 + rng.uniform(0.1, 0.9)) / 3 * (flat if seed < 3 else tk - flat)
+    x += 0.0 if seed < 3 else flat
+    now = 10 * tk + x - byte
     f1 = float(np.float32(rng.uniform(-1, 1)))          # binary32 on the wire
     rep = hk.ReplyDecoder().feed(dev.feed(drv.encode_force(f1), now=now))
-    tick = (math.floor(now / tk) + 1) * tk
-    # the device's sum and this one, of the same three terms in any order: each within
-    # sum_tol (Higham (4.4)), so the two within twice it (measured 0 on both targets)
-    terms = [tick, hk.RENDER_S, 9 * 10 / 57600]
+    tick, terms, on_tick = _sketch_read(now, tk)
+    assert on_tick == (seed < 3)                      # the branch the phase was drawn for
+    # the device's sum and this one, of the same terms in any order: each within sum_tol
+    # (Higham (4.4)), so the two within twice it
+    terms = terms + [hk.RENDER_S, 9 * 10 / 57600]
     assert dev.ready_at == pytest.approx(sum(terms), abs=2 * sum_tol(terms))
     assert rep[-1][0] == 0.0 and rep[-1][1] == float(sketch_tp([f1])[0])
     level = float(sketch_board_output([f1])[0])
@@ -168,7 +193,7 @@ def test_hapkit_serial_answers_on_its_own_tick_and_holds_its_force(seed):
     pause = rng.uniform(20e-3, 200e-3)
     now2 = now + pause
     rep = hk.ReplyDecoder().feed(dev.feed(drv.encode_force(0.0), now=now2))
-    tick2 = (math.floor(now2 / tk) + 1) * tk
+    tick2 = _sketch_read(now2, tk)[0]
     x, v = _held(0.0, 0.0, m, b, level, tick2 - tick - hk.RENDER_S)
     assert rep[-1][0] == pytest.approx(x, rel=2.0 ** -23 + _tol(1.0, 60))
     # lockstep (named) would have moved it one period (4 ticks) whatever the pause

@@ -5,7 +5,9 @@ A board that takes commands on its own tick (the Hapkit sketch's 1 ms) reads the
 and applies a command's force at its first tick after the command has come. When the
 board itself is late to read a command (a real Hapkit's USB-serial bridge delivers bytes
 in 1 ms frames; the emulated sketch's process is scheduled late under load) it takes it
-``tau`` (a whole number of ticks) after the tick the host timed it for: the reply's
+``tau`` after the tick the host timed it for (whole ticks where it samples on its tick;
+any time where it samples at the command's end, as the sketch does for most phases,
+:func:`mistimings`): the reply's
 position is then read ``tau`` late and the force before held ``tau`` longer. Its reply
 names neither, and the host, which marks only the writes it made late or near the
 probed boundary (:meth:`hapsim.drivers.transport.DriverTransport._note_hold`), cannot
@@ -23,7 +25,7 @@ period; :func:`hapsim.analysis.error_response.force_error_response`). On the emu
 sketch it reproduces a hold's disturbance of the record to a few per cent of its norm
 (tests/test_unseen_holds.py).
 
-:func:`find_unseen_holds` tests every row and every whole number of ticks: the signature
+:func:`find_unseen_holds` tests every row and every mistiming tried: the signature
 taken off the fit's residual must lower its sum of squares by more than the threshold
 (a likelihood-ratio test of "a hold of ``tau`` at row ``j``" against "noise", Kay,
 *Fundamentals of Statistical Signal Processing, Vol. II: Detection Theory*, 1998,
@@ -57,8 +59,8 @@ import math
 
 import numpy as np
 
-__all__ = ["FALSE_ALARM", "MAX_PASSES", "RELATIVE", "fit_residual", "hold_signature",
-           "find_unseen_holds", "hold_rows"]
+__all__ = ["FALSE_ALARM", "MAX_PASSES", "RELATIVE", "HOLD_STEPS", "fit_residual",
+           "hold_signature", "mistimings", "find_unseen_holds", "hold_rows"]
 
 #: Family-wise probability that a record with no unseen hold has a row found (the
 #: Bonferroni threshold over the rows tested, Gaussian tails).
@@ -74,6 +76,8 @@ MAX_PASSES = 16
 #: run with 9 holds; rows near a pair of consecutive holds passed the threshold 25 times
 #: in one search without it).
 RELATIVE = 1.0 / 3.0
+#: Mistimings of a hold tried per board tick (:func:`mistimings`): quarter ticks.
+HOLD_STEPS = 4
 #: MAD to standard deviation for Gaussian errors (1 / Phi^-1(3/4)).
 _MAD_SD = 1.482602218505602
 
@@ -249,6 +253,35 @@ def _correlate(r, k):
     return fftconvolve(r[::-1], kk)[:L][::-1]
 
 
+def mistimings(period: float, tick: float) -> list:
+    """The mistimings a hold is searched at [s]: :data:`HOLD_STEPS` a tick, less than a
+    period either way (a command taken a period late is answered after the next one has
+    gone out: a late reply, which the host sees).
+
+    The Hapkit sketch reads the handle at a command's end for most write phases, not on
+    its tick (``Hapkit_arduino.ino:96-135``; :func:`hapsim.drivers.tick_align.
+    fit_tick_jump`): a command it reads late by a USB frame is sampled that much late, no
+    whole number of ticks. Whole ticks alone left a matching paddle "differs" at read
+    latencies of 0.6-2.5 ticks (tests/test_unseen_verdict.py, seeds 8 and 18).
+
+    Parameters
+    ----------
+    period : float
+        The loop's period T [s].
+    tick : float
+        The board's tick [s], > 0.
+
+    Returns
+    -------
+    list of float
+        ``+-k tick / HOLD_STEPS`` for ``k = 1 .. HOLD_STEPS (round(T / tick) - 1)`` (at
+        least one tick's worth).
+    """
+    per = max(int(round(period / tick)) - 1, 1)
+    return [s * k * tick / HOLD_STEPS for k in range(1, per * HOLD_STEPS + 1)
+            for s in (1, -1)]
+
+
 def find_unseen_holds(position, force, fit: dict, period: float, sensor_response,
                       force_response, taus, *, floor: float = 0.0,
                       false_alarm: float = FALSE_ALARM, max_holds: int | None = None,
@@ -284,8 +317,8 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
     sensor_response, force_response : array_like, shape (>= n,)
         As :func:`hold_signature`.
     taus : sequence of float
-        The mistimings tested [s]: a board on a tick of ``t`` takes a command at one of
-        its ticks, so ``+-t, +-2t, ...``.
+        The mistimings tested [s] (:func:`mistimings`: quarter ticks, as the sketch
+        samples a command read late that much late for most phases).
     floor : float
         The sensor's standard deviation [m] (its quantum, noise and the wire's rounding):
         the least ``sigma``.

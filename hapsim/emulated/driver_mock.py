@@ -20,6 +20,7 @@ import select
 import signal
 import sys
 import time
+from collections import deque
 
 from hapsim.drivers import FAMILIES
 from hapsim.emulated.actuated import Actuated, WallClock
@@ -148,14 +149,22 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     n_read = n_written = 0
     t0 = last = t_idle = time.monotonic()
     streams = getattr(dev, "firmware", "") == "pde"
+    # a board whose receiver takes bytes while its loop works (the sketch's UART
+    # interrupt fills a ring buffer): its answers wait here for their time while this
+    # loop goes on reading, so a byte that comes meanwhile is stamped when it came
+    # (the others' are written after a sleep to their time, nothing read meanwhile)
+    listens = (getattr(dev, "listens_while_answering", False)
+               and getattr(dev, "wall", None) is not None)
+    later: deque = deque()                      # (when [monotonic s], answer bytes)
     gap = 0.0                                   # the longest time this loop did not run
     t_loop = time.monotonic()
     while not (stop and stop()):
-        r, _, _ = select.select([fd], [], [], poll)
+        wait_s = poll if not later else min(poll, max(later[0][0] - time.monotonic(), 0.0))
+        r, _, _ = select.select([fd], [], [], wait_s)
         t_sel = time.monotonic()
         # (beyond select's own wait: an emulator starved by the machine takes its bytes
         # that much late, which a board on its own processor never does)
-        gap = max(gap, t_sel - t_loop - (0.0 if r else poll))
+        gap = max(gap, t_sel - t_loop - (0.0 if r else wait_s))
         out = b""
         if streams and time.monotonic() - t_idle >= poll:
             t_idle = time.monotonic()           # a streaming firmware's pass, asked or not
@@ -165,6 +174,9 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 # (a lockstep device's time is the commands: a silence of the wall clock
                 # is a slow host, not the device's; it counts silent ticks itself)
                 out = dev.idle(time.monotonic() - last)
+                if out and listens:
+                    later.append((t0 + dev.ready_at, out))
+                    out = b""
         else:
             try:
                 data = os.read(fd, 4096)
@@ -191,13 +203,18 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 wait = now + dev.reply_delay_s - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
-            if got and getattr(dev, "wall", None) is not None and hasattr(dev, "ready_at"):
+            if got and listens:
+                later.append((t0 + dev.ready_at, got))
+                got = b""
+            elif got and getattr(dev, "wall", None) is not None and hasattr(dev, "ready_at"):
                 # a board on its own clock answers when its pass has run (after a set-up's
                 # wait, later than the bytes came)
                 wait = t0 + dev.ready_at - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
             out += got
+        while later and later[0][0] <= time.monotonic():
+            out += later.popleft()[1]
         out = fl.tx(out)
         if out and slow_p > 0 and slow_rng.random() < slow_p:
             # the test hook: a slow mock process (its uniform draw only for a range, so a

@@ -1,6 +1,6 @@
-"""A Hapkit running the WHC2017 sketch with the host-force function, byte for byte: the
-command taken at the sketch's next 0.992 ms tick, the handle read and the force applied there,
-driving the handle's physics (:class:`hapsim.emulated.actuated.Actuated`); served on a pty
+"""A Hapkit running the WHC2017 sketch with the host-force function, byte for byte and on its
+own 0.992 ms tick: the sketch's ``loop`` reading a command on a tick, then reading the handle
+and applying the force at the next tick or the command's end, driving the handle's physics (:class:`hapsim.emulated.actuated.Actuated`); served on a pty
 by :func:`hapsim.emulated.driver_mock.serve`.
 """
 
@@ -81,9 +81,23 @@ class SketchReader:
         """The command a ``readBytes`` still waits for, completed by its timeout if the
         host has been silent longer than it by ``now`` [s]; ``[]`` or one command."""
         if self._cur and self.t_last is not None and now - self.t_last > self.timeout_s:
-            self.stats["timeouts"] += 1
-            return [self._finish(self.t_last + self.timeout_s)]
+            return self.time_out()
         return []
+
+    def take(self, byte: int, t: float) -> list:
+        """One byte read at ``t`` [s], the timeout kept by the caller (the sketch's loop,
+        :meth:`HapkitSerialDevice._run`); the command it completes, ``[]`` or one."""
+        self._cur.append(int(byte))
+        self.t_last = float(t)
+        return [self._finish(t)] if len(self._cur) == 10 else []
+
+    def time_out(self) -> list:
+        """``readBytes``' timeout: the command under way completed with the buffer's old
+        bytes at the last byte's time plus :attr:`timeout_s`; ``[]`` when none is."""
+        if not self._cur:
+            return []
+        self.stats["timeouts"] += 1
+        return [self._finish(self.t_last + self.timeout_s)]
 
     def _finish(self, t: float) -> tuple:
         import struct
@@ -128,18 +142,26 @@ class HapkitSerialDevice(Actuated):
     mock device's moving mass.
 
     Its time, ``clock="wall"`` (the default): the sketch runs a fixed 0.992 ms tick on its
-    own clock (:data:`TICK_S`, from power-on: the board's time 0) and answers each
-    command on the tick after it has come, with one 9-byte reply (the driver's reading of
-    ``Hapkit_arduino.ino`` and ``Board.java``: :mod:`hapsim.drivers.hapkit_serial`, whose
-    module notes this follows; the sketch's source is not in this project's reference
-    library, so the order within a tick is taken as the driver states it: the handle read
-    at the tick, the command's force applied from it). The handle is integrated exactly
-    over the real time between ticks that change something (:class:`WallClock`), the
-    force held whatever the host does: the sketch has no silence rule. The reply's last
-    byte leaves the 9 bytes' wire time at 57600 baud (:data:`REPLY_WIRE_S`, 1.56 ms)
-    after its tick. Its loop delay is one host period (the read and the force at the same
-    tick, the force computed from that read one command later), to the tick's grid; a
-    scene stating more delays each force by the rest (:attr:`hapsim.emulated.actuated.Actuated.extra_latency_s`).
+    own clock (:data:`TICK_S`, from power-on: the board's time 0) and its ``loop``
+    (haphub/WHC2017 ``Hapkit_arduino.ino:96-135``, read line by line: :meth:`_run`) takes
+    the tick's one-bit flag and either reads a command (a byte waiting) or samples the
+    handle, renders and replies (none waiting). The host's bytes come one each 10 bits at
+    57600 baud (:data:`BYTE_S`), so a command's read ends 1.56 ms after its first byte,
+    past the next tick: the handle is read at the command's end for a command whose first
+    byte comes up to 0.57 ms before a tick, on the tick after the read's for the rest,
+    and the reply leaves ``render_s`` and the 9 bytes' wire time at 57600 baud
+    (:data:`REPLY_WIRE_S`, 1.56 ms) after the read (measured on the independent sketch
+    model, which reads the same lines: a reply 3.59 ms after the write over the first
+    region; this board, ``render_s`` 0.45 ms, 3.75 ms). Before, this board read the handle
+    on the tick after the command's last byte, with the command's bytes all come at the
+    write: a step of one tick in the write-to-reply time, where the sketch's has a flat
+    part, a ramp and a jump of 0.42 ms, which the host's tick probe took for outliers (4
+    of 16, its refusal threshold). The handle is integrated exactly over the real time
+    between events (:class:`WallClock`), the force held whatever the host does: the
+    sketch has no silence rule. Its loop delay is one host period (the read and the
+    force in one branch, the force computed from that read one command later); a scene
+    stating more delays each force by the rest
+    (:attr:`hapsim.emulated.actuated.Actuated.extra_latency_s`).
     ``clock="lockstep"`` (named, for deterministic tests): one period per command, the
     reply at once.
 
@@ -195,6 +217,15 @@ class HapkitSerialDevice(Actuated):
     TICK_S = FIRMWARE_TICK_S
     #: A 9-byte reply's time on the wire at 57600 baud, 10 bits a byte [s].
     REPLY_WIRE_S = 9 * 10 / 57600
+    #: One byte's time on the wire at 57600 baud [s] (the host's bytes come at this pace).
+    BYTE_S = 10 / 57600
+    #: The sketch's UART takes the host's bytes by interrupt into its ring buffer while
+    #: ``loop`` reads, renders or waits (the Arduino core's ``HardwareSerial``): the pty's
+    #: server reads on while a reply waits for its time
+    #: (:func:`hapsim.emulated.driver_mock.serve`), so a command written meanwhile is
+    #: stamped when it came, not after the reply (a reply 3.75 ms after its write is
+    #: within a tick of the next write at 4 ticks a period).
+    listens_while_answering = True
 
     def __init__(self, device, rate_hz: float, excitation=None, *, force_limit: float = 2.0,
                  clock: str = "wall", seed: int = 0, levels: int = 256,
@@ -226,22 +257,42 @@ class HapkitSerialDevice(Actuated):
         self._rendered: list = []                     # lockstep: rendered, queued
         self._phases: list = []                       # where in its tick each came
         self._ticks: list = []                        # the tick that took each
+        self._sampled: list = []                      # wall: each reply's read [s]
         super().__init__(device, rate_hz, excitation, force_limit, seed, clock=clock)
         # the wall clock's board reads as the sketch does (SketchReader); the lockstep
         # test device, paced by the commands, has no time for its reads' timeout and
         # realigns on the header and function bytes (CommandDecoder)
         self.decoder = SketchReader() if clock == "wall" else hk.CommandDecoder()
         self.ready_at = 0.0
-        self._tick = -1                               # the last tick that took a command
+        # the wall clock's loop (:meth:`_run`): the bytes come and not yet read (when each
+        # has come [s], the byte), when the receive line is free [s], the last tick whose
+        # flag the loop took, when the loop is free [s], a read under way, the last
+        # command read (SketchReader's tuple) and whether its reply is due
+        from collections import deque
+        self._rx: deque = deque()
+        self._rx_free = 0.0
+        self._tick = -1
+        self._loop_t = 0.0
+        self._reading = False
+        self._command = None
+        self._reply_due = False
+        self._fed_at = None                           # the host's last write [s]
 
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
         """Bytes from the host in (at the board's time ``now`` [s], needed on the wall
-        clock), one 9-byte reply per command out."""
-        out = b""
+        clock), the replies out: lockstep one per command; wall clock one per render that
+        follows a read (:meth:`_run`)."""
         if self.wall is not None:
-            for t, fn, _a, b in self.decoder.feed(data, now):
-                out += self._take(t, fn, b)
-            return out
+            if not math.isfinite(now):
+                raise ValueError("a board on the wall clock needs the time of each write")
+            for byte in data:
+                # the UART's receive line: one byte each 10 bits at 57600 baud, after the
+                # byte before (the USB-serial bridge sends a write's bytes back to back)
+                self._rx_free = max(float(now), self._rx_free) + self.BYTE_S
+                self._rx.append((self._rx_free, byte))
+            self._fed_at = float(now)
+            return self._run(float(now))
+        out = b""
         for f in self.decoder.feed(data):
             # the force rendered (clamped; a corrupted float: 0), through the output stage
             r = f if math.isfinite(f) else 0.0
@@ -272,40 +323,122 @@ class HapkitSerialDevice(Actuated):
         from hapsim.drivers.output_stage import sketch_tp
         return float(sketch_tp([force])[0])
 
-    def _take(self, t: float, fn: int, b: float) -> bytes:
-        """Wall clock: a command the sketch read, complete at ``t`` [s]: taken at the tick
-        after it (several in one read: one tick each), the handle read there and the
-        force it renders applied from there; its reply."""
-        k = max(math.floor(t / self.TICK_S) + 1, self._tick + 1)
-        self._phases.append(t / self.TICK_S - math.floor(t / self.TICK_S))
-        self._ticks.append(k)
-        self._tick = k
-        tick = k * self.TICK_S
-        self.wall.run_to(tick)
-        x = self.physics.sample()                     # the handle read at the tick
-        f = sketch_force(fn, self.decoder.host_function, b, x, self.physics.v)
+    def _run(self, now: float) -> bytes:
+        """Wall clock: the sketch's ``loop`` (``Hapkit_arduino.ino:96-135``) run as far as
+        the bytes come by ``now`` [s] decide it; the replies it writes.
+
+        The Timer1 interrupt sets a one-bit flag each tick (``.ino:137-140``); ``loop``
+        takes it, and then either (a byte waiting) reads a command -- the header with
+        ``Serial.read()``, 9 bytes with ``readBytes``, which waits for each up to
+        :data:`hapsim.drivers.hapkit_serial.SKETCH_READ_TIMEOUT_S` (:class:`SketchReader`)
+        -- and nothing else, or (none waiting) samples the handle, renders, and writes a
+        reply if a command was read since the last (``reply``, ``.ino:111-132``). A read
+        ends with the command's last byte, 1.56 ms of wire after its first, more than a
+        tick: the flag a tick set meanwhile is taken at once, so the sample is at the
+        command's end, not at a tick, for a command whose first byte comes less than
+        ``2 T - 1.5625 ms`` (0.57 ms) before a tick, and on the tick after the read's for
+        the rest (the probe's model, :func:`hapsim.drivers.tick_align.fit_tick_jump`). A
+        command whose bytes come while another is read is read next, with no render
+        between: one reply for both.
+
+        The render after a read is decided by the bytes come by then; one after the
+        first time a byte written after ``now`` could come is decided on the bytes written
+        by ``now`` (the emulator cannot see a write not yet made): a byte coming before it
+        would have been read first. A
+        render with no reply due and a force that does not depend on the handle (the
+        host's function, none) changes nothing and is not run.
+        """
+        T = self.TICK_S
+        rd = self.decoder
+        q = self._rx
+        out = b""
+        # what is decided: a byte the host has not yet written comes after this [s]
+        now = max(float(now), self._rx_free) + self.BYTE_S
+        while True:
+            if self._reading:
+                # readBytes: the next byte, or its timeout from when the wait began
+                wait_end = self._loop_t + rd.timeout_s
+                if q and q[0][0] <= wait_end:
+                    t_b, byte = q.popleft()
+                    self._loop_t = max(self._loop_t, t_b)
+                    done = rd.take(byte, self._loop_t)
+                elif q or now > wait_end:
+                    done = rd.time_out()
+                    self._loop_t = wait_end
+                else:
+                    return out                        # waiting for a byte still to come
+                if done:
+                    self._reading = False
+                    self._command = done[-1]
+                    self._reply_due = True
+                continue
+            # the flag: at once if a tick passed since the one taken, else the next tick
+            k = self._tick + 1
+            if self._loop_t >= k * T:
+                k = max(k, math.floor(self._loop_t / T))
+                t = self._loop_t
+            else:
+                t = k * T
+            if q and q[0][0] <= t:
+                # a byte waiting: the header read (Serial.read), then readBytes
+                t_b, byte = q.popleft()
+                self._tick = k
+                self._loop_t = t
+                self._phases.append(t_b / T - math.floor(t_b / T))
+                self._ticks.append(k)
+                rd.take(byte, t)
+                self._reading = True
+                continue
+            fn = self._command[1] if self._command is not None else rd.function
+            live = fn in (1, 2, 3) and fn != rd.host_function
+            if not self._reply_due and not live:
+                # nothing a render changes: the loop idles to the next byte or ``now``
+                until = min(q[0][0], now) if q else now
+                if until <= t:
+                    return out
+                self._tick = max(k, math.floor(until / T))
+                if q and q[0][0] <= self._tick * T:
+                    self._tick -= 1                   # that tick finds the byte
+                continue
+            if t > now and not self._reply_due:
+                return out                            # a render still to come
+            self._tick = k
+            out += self._render(t)
+            self._loop_t = t + self.render_s
+
+    def _render(self, t: float) -> bytes:
+        """Wall clock: the branch with no byte waiting at ``t`` [s]: the handle read, the
+        force the last command's function renders applied ``render_s`` later (plus the
+        scene's delay beyond the board's), and the reply when a command was read since
+        the last one (``.ino:111-132``)."""
+        rd = self.decoder
+        fn, b = (self._command[1], self._command[3]) if self._command is not None \
+            else (rd.function, 0.0)
+        self.wall.run_to(t)
+        x = self.physics.sample()                     # the handle read
+        f = sketch_force(fn, rd.host_function, b, x, self.physics.v)
         if abs(f) > self.limit:
             f = math.copysign(self.limit, f)
             self.clamped += 1
-        # the level from the render's end on (the handle run to the tick: apply's run_to)
-        self.wall.run_to(tick)
         self.held = self.wall.held
         self.last_command = f
+        self.wall.schedule(t + self.render_s + self.extra_latency_s, self._output(f))
+        if not self._reply_due:
+            return b""
+        self._reply_due = False
+        self._sampled.append(t)
         self.applied.append(self._output(f))
-        self.wall.schedule(tick + self.render_s + self.extra_latency_s, self._output(f))
-        self.ready_at = tick + self.render_s + self.REPLY_WIRE_S
+        self.ready_at = t + self.render_s + self.REPLY_WIRE_S
         return self._hk.reply_packet(fn, x, self._reply_value(f))
 
     def idle(self, silent_s: float) -> bytes:
-        """The sketch has no silence rule: it holds its force. On the wall clock, a host
-        silent longer than ``readBytes``' timeout completes the command it waits for
-        (:class:`SketchReader`), which the sketch then takes and answers."""
-        if self.wall is None or self.decoder.t_last is None:
+        """The sketch has no silence rule: it holds its force. On the wall clock its loop
+        runs on to the host's last byte plus ``silent_s`` [s]: a command whose bytes
+        stopped coming is completed by ``readBytes``' timeout (:class:`SketchReader`),
+        then rendered and answered."""
+        if self.wall is None or self._fed_at is None:
             return b""
-        out = b""
-        for t, fn, _a, b in self.decoder.expire(self.decoder.t_last + silent_s):
-            out += self._take(t, fn, b)
-        return out
+        return self._run(self._fed_at + float(silent_s))
 
     @property
     def tick_arrivals(self) -> dict:
@@ -326,7 +459,13 @@ class HapkitSerialDevice(Actuated):
             t = self._ticks
             off = [i for i in range(1, len(t))
                    if t[i] - t[i - 1] != per and t[i] - t[i - 1] <= 2 * per]
+        gaps = sorted(b - a for a, b in zip(self._sampled, self._sampled[1:])
+                      if b - a <= 2.0 * self.physics.period)
+        pct = (lambda f: round(1e3 * gaps[min(int(f * len(gaps)), len(gaps) - 1)], 4)
+               if gaps else None)
         return {"commands": len(ph), "near_boundary": near,
+                "sample_interval_ms": {"p1": pct(0.01), "median": pct(0.5),
+                                       "p99": pct(0.99)},
                 "median_phase": ph[len(ph) // 2] if ph else None,
                 "off_period": len(off), "off_at": off[:1000]}
 

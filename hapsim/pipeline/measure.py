@@ -606,21 +606,18 @@ def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
     dict
         The measurement; with ``unseen_holds`` (how many were cut, 0 if none) and, when
         some were, ``unseen_hold_seqs`` (the ``seq`` of each one's first disturbed row,
-        at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], whole ticks:
-        positive, taken late); ``_unseen``, what a "differs"'s review needs
+        at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], quarter
+        ticks: positive, taken late); ``_unseen``, what a "differs"'s review needs
         (:func:`hapsim.pipeline.unseen_review.review_differs`' ``state``), popped by
         :func:`identify_run`; ``_hold_rows``, the rows and mistimings cut (``given``'s
         form).
     """
     from hapsim.analysis.error_response import force_error_response, sensor_error_response
     from hapsim.analysis.identify import sensor_sd
-    from hapsim.analysis.unseen_holds import MAX_PASSES, find_unseen_holds, hold_rows
+    from hapsim.analysis.unseen_holds import (MAX_PASSES, find_unseen_holds, hold_rows,
+                                              mistimings)
     n = int(cols["seq"].size)
-    # whole ticks, less than a period either way (a command taken a period late is
-    # answered after the next one has gone out: a late reply, which the host sees)
-    tick = float(driver.tick_s)
-    per = max(int(round(scene.period / tick)) - 1, 1)
-    tried = [s * k * tick for k in range(1, per + 1) for s in (1, -1)]
+    tried = mistimings(scene.period, float(driver.tick_s))
     x = np.asarray(position, float)
     pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
     floor = math.hypot(sensor_sd(quantum, scene.device.noise),
