@@ -363,7 +363,8 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
     S = np.asarray(sensor_response, float)
     H = np.asarray(force_response, float)
     taus = [float(t) for t in taus if t]
-    E = [_path_error(x, period, t) for t in taus]        # the position's error per tau
+    E = np.array([_path_error(x, period, t) for t in taus]).reshape(len(taus), x.size)
+    tw = np.asarray(taus, float)[:, None] / period        # the force error's share per tau
     dF = np.zeros(x.size)
     dF[2:] = f[:-2] - f[1:-1]
     cS, cH, cSH = (np.concatenate([[0.0], np.cumsum(q)]) for q in (S * S, H * H, S * H))
@@ -392,8 +393,10 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         norms = (cS[hi] - cS[lo], cSH[hi] - cSH[lo], cH[hi] - cH[lo])
         # what the fit takes of a signature: Q' g = e Q'S_i + w Q'H_i, per column of Q
         Qx = np.vstack([np.zeros((p, Q.shape[1])), Q])
-        QS = np.array([_correlate(Qx[:, c], S) for c in range(Q.shape[1])])
-        QH = np.array([_correlate(Qx[:, c], H) for c in range(Q.shape[1])])
+        QS = np.array([_correlate(Qx[:, c], S) for c in range(Q.shape[1])]).reshape(
+            Q.shape[1], cand.size)
+        QH = np.array([_correlate(Qx[:, c], H) for c in range(Q.shape[1])]).reshape(
+            Q.shape[1], cand.size)
         taken = np.zeros(cand.size, bool)
         if un is not None:
             for k in np.flatnonzero(un) + p:
@@ -426,16 +429,18 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         best = None
         for si, (cand, r, (nss, nsh, nhh), p, taken, _, QS, QH) in enumerate(stretches):
             rs, rh = _correlate(r, S), _correlate(r, H)
-            for ti, t in enumerate(taus):
-                e, w = E[ti][cand], dF[cand] * t / period
-                # the residual lowered by the signature the fit leaves, P g: 2 <r, g>
-                # (r is the fit's residual: <r, P g> = <r, g>) less |P g|^2
-                D = (2 * (e * rs + w * rh) - (e * e * nss + 2 * e * w * nsh + w * w * nhh)
-                     + np.sum((e * QS + w * QH) ** 2, axis=0))
-                D[taken] = -math.inf
-                i = int(np.argmax(D))
-                if best is None or D[i] > best[0]:
-                    best = (float(D[i]), si, i, t, float(e[i]), float(w[i]))
+            # every tau at once, (taus, candidates): e the sensor error, w the force's
+            e, w = E[:, cand], dF[cand][None, :] * tw
+            # the residual lowered by the signature the fit leaves, P g: 2 <r, g> (r is
+            # the fit's residual: <r, P g> = <r, g>) less |P g|^2
+            D = (2 * (e * rs + w * rh) - (e * e * nss + 2 * e * w * nsh + w * w * nhh)
+                 + np.sum((e[:, None, :] * QS + w[:, None, :] * QH) ** 2, axis=1))
+            D[:, taken] = -math.inf
+            # the first best in (tau, row) order, as a loop over the taus would take it
+            ti, i = np.unravel_index(int(np.argmax(D)), D.shape)
+            if best is None or D[ti, i] > best[0]:
+                best = (float(D[ti, i]), si, int(i), taus[ti], float(e[ti, i]),
+                        float(w[ti, i]))
         D, si, i, t, e, w = best
         z = math.sqrt(D) / sigma if D > 0 else 0.0
         if not z > thr or (zs and z < relative * zs[0]):
