@@ -36,7 +36,9 @@ LATE_MAX = 1 << 17
 
 
 class LateReplies:
-    """The transport's record of replies that came late but in order (module notes).
+    """The transport's record of replies that came late but in order (module notes), and
+    the pairing of a reply read after the next write with its own command
+    (:meth:`_answer_shift`).
 
     Attributes
     ----------
@@ -47,10 +49,15 @@ class LateReplies:
 
     def _init_late(self, driver) -> None:
         """Start the record (no allocation per sample afterwards but one dict entry per
-        late reply); ``driver.late_answers`` is the same dict."""
+        late reply); ``driver.late_answers`` is the same dict; the pairing's state."""
         self._est_seq = [-1] * RING
         self.late_answers: dict = {}
         driver.late_answers = self.late_answers
+        # each command's bytes (by seq), and the least time from a write to its answer
+        # [us] (Driver.least_answer_s): what pairs an answer with its command
+        # (_answer_shift)
+        self._sent_bytes = [b""] * RING
+        self._rt_us = int(driver.least_answer_s() * 1e6)
 
     def _mark_estimated(self, seq: int) -> None:
         """The host loop stepped command ``seq`` with an estimated sample."""
@@ -66,3 +73,34 @@ class LateReplies:
             s = first + k
             if self._est_seq[s % RING] == s and len(self.late_answers) < LATE_MAX:
                 self.late_answers[s] = x
+
+    def _answer_shift(self, n: int) -> int:
+        """By how many commands the last of ``n`` answers read now is older than the newest
+        command sent: 1 where it cannot be the newest's, else 0 (the rule: the newest's).
+
+        A board that answers later than the next write (the Hapkit sketch at 4 ticks a
+        period answers 3.5-4.3 ms after a write, a period being 3.97 ms) had every reading
+        taken one command off by the rule alone: a loop of one delay more than the scene's,
+        measured as the scene's. Its answer is the one before the newest where it echoes
+        that command and not the newest (:meth:`Driver.answer_names`: the sketch's reply
+        carries the force it rendered), or, where the echo tells neither (equal forces),
+        where it was read sooner after the newest write than the board can answer any
+        command (:meth:`Driver.least_answer_s`: the bytes of both on the wire, the least
+        render). Counted in ``read_late``."""
+        newest = self._cmd
+        if self._handled is not None or newest <= self._answered:
+            return 0
+        dr = self.driver
+        echo = dr.answer_echoes(n)
+        if echo is not None and newest - 1 > self._answered:
+            now = dr.answer_names(self._sent_bytes[newest % RING], echo[-1])
+            before = dr.answer_names(self._sent_bytes[(newest - 1) % RING], echo[-1])
+            if now is not None and before is not None and now != before:
+                if before:
+                    self.stats["read_late"] += 1
+                return int(before)
+        if (self._rt_us > 0
+                and self._now_us() - self._sent_us[newest % RING] < self._rt_us):
+            self.stats["read_late"] += 1
+            return 1
+        return 0

@@ -193,6 +193,12 @@ class TickAligned:
         self._delay_ns = 0
         return int(deadline_ns) + int(shift)
 
+    def tick_landed_median(self) -> float | None:
+        """Where the writes went, on the host's clock: the median phase after the jump the
+        probe found [fraction of a tick] (the aim: a half); None before any."""
+        landed = sorted(getattr(self, "_landed", ()))
+        return landed[len(landed) // 2] if landed else None
+
     def _note_tick(self, t_ns: int) -> None:
         """Where a write at ``t_ns`` falls on the board's tick grid: ``_write_tick`` =
         ``(tick index, near)``, the index counted from the probed boundary and ``near``

@@ -230,7 +230,6 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         # command ring: host time [us] each command was sent; seq of the newest command
         # sent (-1: none), of the newest answered, the force last commanded
         self._sent_us = [0] * _RING
-        self._sent_bytes = [b""] * _RING     # each command's bytes (_answer_shift)
         self._cmd = -1
         self._answered = -1
         self._force = 0.0
@@ -292,9 +291,6 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                       "rearms": 0, "unprompted_before_arming": 0,
                       "held_zero": 0, "host_stalls": 0, "watchdog_zeroed": 0,
                       "watchdog_replies": 0, "read_late": 0}
-        # the least time from a write to its answer [us] (Driver.least_answer_s): an
-        # answer read sooner is not that write's (_take)
-        self._rt_us = int(driver.least_answer_s() * 1e6)
         self._init_resync()                 # resyncs and their reasons (Resynchronising)
         self._init_watchdog(driver, port, driver.own_clock)   # (host_watchdog)
         self.info = {"kind": f"driver {driver.name}", "port": port, "baud": driver.baud,
@@ -573,37 +569,6 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         self._answered = self._cmd
         self.stats["missing"] += int(ticks)
 
-    def _answer_shift(self, n: int) -> int:
-        """By how many commands the last of ``n`` answers read now is older than the newest
-        command sent: 1 where it cannot be the newest's, else 0 (the rule: the newest's).
-
-        A board that answers later than the next write (the Hapkit sketch at 4 ticks a
-        period answers 3.5-4.3 ms after a write, a period being 3.97 ms) had every reading
-        taken one command off by the rule alone: a loop of one delay more than the scene's,
-        measured as the scene's. Its answer is the one before the newest where it echoes
-        that command and not the newest (:meth:`Driver.answer_names`: the sketch's reply
-        carries the force it rendered), or, where the echo tells neither (equal forces),
-        where it was read sooner after the newest write than the board can answer any
-        command (:meth:`Driver.least_answer_s`: the bytes of both on the wire, the least
-        render). Counted in ``read_late``."""
-        newest = self._cmd
-        if self._handled is not None or newest <= self._answered:
-            return 0
-        dr = self.driver
-        echo = dr.answer_echoes(n)
-        if echo is not None and newest - 1 > self._answered:
-            now = dr.answer_names(self._sent_bytes[newest % _RING], echo[-1])
-            before = dr.answer_names(self._sent_bytes[(newest - 1) % _RING], echo[-1])
-            if now is not None and before is not None and now != before:
-                if before:
-                    self.stats["read_late"] += 1
-                return int(before)
-        if (self._rt_us > 0
-                and self._now_us() - self._sent_us[newest % _RING] < self._rt_us):
-            self.stats["read_late"] += 1
-            return 1
-        return 0
-
     def _take(self, xs: list, out: list) -> None:
         """Records decoded in one read -> STATEs: the last answers the newest command sent,
         the ones before it the commands before that (module notes)."""
@@ -808,10 +773,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         if self._tick_ns and self._handled is None and self._board_T is None:
             st["tick_probe"] = None if self.tick_probe is None else dict(self.tick_probe)
             st["tick_aligned"] = self._write_at is not None
-            landed = sorted(getattr(self, "_landed", ()))
-            # where the aligned writes went, on the host's clock: the median phase after
-            # the jump the probe found [fraction of a tick] (the aim: a half)
-            st["tick_landed_median"] = landed[len(landed) // 2] if landed else None
+            st["tick_landed_median"] = self.tick_landed_median()
         st["decoder"] = dict(self._dec.stats)
         st["firmware"] = (self.driver.streaming_firmware if st["unprompted_before_arming"]
                           else self.driver.answering_firmware if st["records"] else None)
