@@ -20,6 +20,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["identify", "verdict", "contact_verdict", "relative_error", "late_accounted",
+           "aperture_noise",
            "late_force_bound",
            "estimated_bounds",
            "wire_errors"]
@@ -622,6 +623,47 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
         g = last - prev if prev is not None and last > prev else 1
         out[k] = r * (r + g) / 2 * period * period * a + (2 + 2 * r / g) * eps
     return out
+
+
+def aperture_noise(cols: dict, period: float, estimated_flag: int = 32) -> float:
+    """The position error's standard deviation [m] of a board that reads its sensor as
+    late as the host's write comes (the Hapkit sketch for most write phases,
+    ``Hapkit_arduino.ino:96-135``): each reading is off its place on the grid by its
+    write's departure ``delta_k``, an error ``v_k delta_k`` (aperture jitter: Kester,
+    *Data Conversion Handbook*, 2005, sec. 2.4: the error of a sample taken ``dt`` late
+    is the signal's slope times ``dt``), its rms over the readings. ``delta_k`` is the
+    host's write time less the least-squares line of the write times over ``seq`` (a
+    constant latency shifts nothing), 0 under half a microsecond (the time stamps'
+    resolution); ``v_k`` the central difference. The force switched after the reading
+    is as late, an error through the loop ``(omega T)^2`` times smaller (0.8 % on
+    configs/hapkit_serial.yaml): left out.
+
+    Parameters
+    ----------
+    cols : dict of str to ndarray
+        Telemetry columns (``time`` [s], ``position`` [m], ``seq``, ``flags``), shape (n,).
+    period : float
+        Sample period T [s].
+    estimated_flag : int
+        The ``flags`` bit of an estimated row (no reading: left out).
+
+    Returns
+    -------
+    float
+        >= 0 [m]; 0 with fewer than three readings or no time column.
+    """
+    if "time" not in cols:
+        return 0.0
+    read = (np.asarray(cols["flags"]) & estimated_flag) == 0
+    if np.count_nonzero(read) < 3:
+        return 0.0
+    seq = np.asarray(cols["seq"], float)[read]
+    t = np.asarray(cols["time"], float)[read]
+    A = np.column_stack([seq - seq.mean(), np.ones(seq.size)])
+    delta = t - A @ np.linalg.lstsq(A, t, rcond=None)[0]
+    delta[np.abs(delta) < 0.5e-6] = 0.0
+    v = np.gradient(np.asarray(cols["position"], float), period)[read]
+    return float(np.sqrt(np.mean((v * delta) ** 2)))
 
 
 def wire_errors(scene, cols: dict, start: int, driver) -> list:

@@ -333,6 +333,10 @@ class Driver:
     #: The run's board keeps its own clock (set by the run's transport; a lockstep mock,
     #: stepped one period per command, does not).
     own_clock = False
+    #: Whether the board reads its sensor as late as the host's write comes (the Hapkit
+    #: sketch for most write phases): the writes' jitter is its readings' noise
+    #: (:func:`hapsim.analysis.measurement.aperture_noise`).
+    samples_at_write = False
     #: A lockstep mock's time per command [s] (set by the run's transport; None for a
     #: board on its own clock): what its firmware's silence rule counts, not the host's
     #: wall clock, which a loaded host stretches.

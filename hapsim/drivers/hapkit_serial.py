@@ -292,6 +292,10 @@ class HapkitSerial(Driver):
     position_scale = SKETCH_COUNT_M  # the sketch's count (``count_m``), sent as a float32
     force_scale = 0.0
     limits = LIMITS
+    #: The sketch reads the handle at a command's end for the write phases the transport
+    #: aims at (``Hapkit_arduino.ino:96-135``; :func:`hapsim.drivers.tick_align.
+    #: fit_tick_jump`): as late as the host's write (:attr:`Driver.samples_at_write`).
+    samples_at_write = True
     #: The sketch's control tick [s] (:data:`FIRMWARE_TICK_S`, 0.992 ms): a command is
     #: taken at the tick after it has come, the handle read and the force applied there
     #: (:class:`hapsim.emulated.hapkit_serial_board.HapkitSerialDevice`). The transport

@@ -13,8 +13,9 @@ import math
 
 import numpy as np
 
-from hapsim.analysis.measurement import (contact_verdict, identify, late_accounted,
-                                          relative_error, verdict, wire_errors)
+from hapsim.analysis.measurement import (aperture_noise, contact_verdict, identify,
+                                         late_accounted, relative_error, verdict,
+                                         wire_errors)
 from hapsim.analysis.network import device_body
 from hapsim.analysis.prediction import has_offset, predict, predicted_poles
 from hapsim.pipeline.run_types import PreparedRun
@@ -457,12 +458,15 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                    else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown)
         if holds is not None:
             bounds += holds[0]["bounds"]
+        # a board reading as late as the writes come: their jitter is its sensor's noise
+        noise = (math.hypot(dev.noise, aperture_noise(cols, T, FLAG_ESTIMATED))
+                 if getattr(driver, "samples_at_write", False) else dev.noise)
 
         def fitted(ex, fit=None):
             return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
                             start, offset=offset, late=late,
                             skip=math.ceil(float(dev.delay)) + 2, predicted=poles,
-                            felt=felt, quantum=quantum, noise=dev.noise,
+                            felt=felt, quantum=quantum, noise=noise,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed, exclude=ex,
                             wire=wire, bounds=bounds or None, late_bounds=late_bounds,
