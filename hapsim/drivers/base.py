@@ -334,7 +334,8 @@ class Driver:
     #: stepped one period per command, does not).
     own_clock = False
     #: Whether the board reads its sensor as late as the host's write comes (the Hapkit
-    #: sketch for most write phases): the writes' jitter is its readings' noise
+    #: sketch for most write phases): on its own tick (:attr:`own_tick`; a lockstep mock's
+    #: time is the commands'), the writes' jitter is its readings' noise
     #: (:func:`hapsim.analysis.measurement.aperture_noise`).
     samples_at_write = False
     #: A lockstep mock's time per command [s] (set by the run's transport; None for a

@@ -459,8 +459,8 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         if holds is not None:
             bounds += holds[0]["bounds"]
         # a board reading as late as the writes come: their jitter is its sensor's noise
-        noise = (math.hypot(dev.noise, aperture_noise(cols, T, FLAG_ESTIMATED))
-                 if getattr(driver, "samples_at_write", False) else dev.noise)
+        noise = (math.hypot(dev.noise, aperture_noise(cols, T, FLAG_ESTIMATED)) if
+                 getattr(driver, "samples_at_write", False) and driver.own_tick else dev.noise)
 
         def fitted(ex, fit=None):
             return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
