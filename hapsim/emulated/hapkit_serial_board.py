@@ -426,7 +426,8 @@ class HapkitSerialDevice(Actuated):
         if not self._reply_due:
             return b""
         self._reply_due = False
-        self._sampled.append(t)
+        if len(self._sampled) < 100_000:
+            self._sampled.append(t)
         self.applied.append(self._output(f))
         self.ready_at = t + self.render_s + self.REPLY_WIRE_S
         return self._hk.reply_packet(fn, x, self._reply_value(f))
@@ -442,11 +443,14 @@ class HapkitSerialDevice(Actuated):
 
     @property
     def tick_arrivals(self) -> dict:
-        """Where in the sketch's tick the commands came (wall clock), for the host's
-        timing: ``commands``; ``near_boundary``, those within a tenth of a tick of the
-        tick's end or start (a command coming there is taken at one tick or the next by
-        a jitter of 0.1 ms: a sample interval a tick off the host's period);
+        """Where in the sketch's tick the commands' header bytes came (wall clock), for
+        the host's timing: ``commands``; ``near_boundary``, those within a tenth of a tick
+        of the tick's end or start (a header coming there is read at one tick or the next
+        by a jitter of 0.1 ms: the reading 0.42 ms off);
         ``median_phase``, the median arrival phase [fraction of a tick, 0 at a tick];
+        ``sample_interval_ms``, the 1st, 50th and 99th percentiles of the intervals
+        between the replies' readings [ms] (the first 100,000; intervals over two periods,
+        the probes' and an arming's, left out);
         ``off_period``, the commands taken another number of ticks after the one before
         than the period holds (a force held a tick longer or shorter; a gap of more than
         two periods, the probes' and an arming's, not counted), with ``off_at`` the
