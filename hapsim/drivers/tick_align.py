@@ -17,8 +17,8 @@ import time
 
 from hapsim.errors import DeviceError
 
-__all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S", "PROBES_NEEDED",
-           "PROBE_TRIES", "REARM_INTERVAL"]
+__all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S",
+           "PROBES_NEEDED", "PROBE_TRIES", "REARM_INTERVAL", "JUMP_STEPS", "FLAT_STEPS"]
 
 #: Wait for the first record before the arming command is sent again [s].
 REARM_INTERVAL = 0.1
