@@ -426,15 +426,15 @@ class Driver:
         return 0.0
 
     def answer_names(self, command: bytes, echo) -> bool | None:
-        """Whether an answer whose echo (:meth:`answer_echoes`) is ``echo`` can answer
+        """Whether an answer whose echo (:meth:`answer_echo`) is ``echo`` can answer
         ``command`` (the bytes written); None (the default): the board's answers name no
         command, the transport's rule of time alone pairs them
         (:meth:`hapsim.drivers.transport.DriverTransport._take`)."""
         return None
 
-    def answer_echoes(self, n: int) -> list | None:
-        """What the last ``n`` answers decoded echo of their command (:meth:`answer_names`),
-        in order; None (the default): nothing."""
+    def answer_echo(self):
+        """What the last answer decoded echoes of its command (:meth:`answer_names`); None
+        (the default): nothing."""
         return None
 
     def max_rate_hz(self) -> float:

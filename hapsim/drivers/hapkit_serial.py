@@ -103,6 +103,7 @@ PERIOD_TICKS_TOL = 1e-4
 #: Header byte: type 1 (read encoder data / command) << 4 | motor 1 (Board.format_header).
 HEADER = (1 << 4) | 0x01
 _FF = struct.Struct("<ff")
+_F32 = struct.Struct("<f")
 #: Largest plausible handle position [m] (the paddle travels a few centimetres).
 MAX_POSITION = 0.5
 #: Largest plausible force in a reply [N].
@@ -340,6 +341,8 @@ class HapkitSerial(Driver):
         #: The sketch's position step [m] (the HELLO's position scale the host states).
         self.count_m = float(count_m)
         self.position_scale = self.count_m
+        from hapsim.drivers.output_stage import sketch_gearing
+        self._gearing = sketch_gearing()        # binary32 (answer_names)
         if not 0 <= int(function) <= 255:
             raise ConfigError(f"function code must be 0..255, got {function!r}",
                               key="function")
@@ -615,22 +618,23 @@ class HapkitSerial(Driver):
         sketch's reply carries the force it rendered from the command read, as the
         binary32 ``force`` or its ``Tp`` (``Hapkit_arduino.ino:129``, ``sim.h:191``:
         :func:`hapsim.drivers.output_stage.sketch_tp`), exactly: equal to the command's
-        force or to its ``Tp``. None for bytes that are no command of this driver."""
+        force or to its ``Tp``. None for bytes that are no command of this driver.
+
+        Per reply in the host's loop, so no array: ``Tp`` is the binary32 product of the
+        gearing and the force, both binary32, whose exact product (48 bits) the double
+        holds, so one rounding to binary32 gives ``sketch_tp``'s value."""
         if len(command) != 10 or command[1] != self.function:
             return None
-        import numpy as np
+        f = _FF.unpack_from(command, 2)[1]              # binary32 already
+        if echo == f:
+            return True
+        tp = self._gearing * f
+        return abs(tp) < 3.4e38 and echo == _F32.unpack(_F32.pack(tp))[0]
 
-        from hapsim.drivers.output_stage import sketch_tp
-        f = _FF.unpack_from(command, 2)[1]
-        e = np.float32(echo)
-        return bool(e == np.float32(f) or e == sketch_tp([f])[0])
-
-    def answer_echoes(self, n: int) -> list | None:
-        """The second floats of the last ``n`` replies decoded (:attr:`replies`)."""
+    def answer_echo(self):
+        """The second float of the last reply decoded (:attr:`replies`), or None."""
         log = getattr(self, "replies", None)
-        if log is None or log.n < n:
-            return None
-        return [float(v) for v in log.force[log.n - n:log.n]]
+        return None if log is None or log.n == 0 else float(log.force[log.n - 1])
 
     def least_answer_s(self) -> float:
         """:meth:`round_trip_s`: the sketch's UART takes the command's bytes at the baud

@@ -91,10 +91,10 @@ class LateReplies:
         if self._handled is not None or newest <= self._answered:
             return 0
         dr = self.driver
-        echo = dr.answer_echoes(n)
+        echo = dr.answer_echo()
         if echo is not None and newest - 1 > self._answered:
-            now = dr.answer_names(self._sent_bytes[newest % RING], echo[-1])
-            before = dr.answer_names(self._sent_bytes[(newest - 1) % RING], echo[-1])
+            now = dr.answer_names(self._sent_bytes[newest % RING], echo)
+            before = dr.answer_names(self._sent_bytes[(newest - 1) % RING], echo)
             if now is not None and before is not None and now != before:
                 if before:
                     self.stats["read_late"] += 1

@@ -18,7 +18,8 @@ import time
 from hapsim.errors import DeviceError
 
 __all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S",
-           "PROBES_NEEDED", "PROBE_TRIES", "REARM_INTERVAL", "JUMP_STEPS", "FLAT_STEPS"]
+           "PROBES_NEEDED", "PROBE_TRIES", "REARM_INTERVAL", "JUMP_STEPS", "FLAT_STEPS",
+           "LANDED_BINS"]
 
 #: Wait for the first record before the arming command is sent again [s].
 REARM_INTERVAL = 0.1
@@ -35,6 +36,9 @@ PROBE_QUIET_S = 0.02
 PROBES_NEEDED = 12
 #: Probes of a ticking board's phase tried at an arming before its writes go unaligned.
 PROBE_TRIES = 3
+#: The writes' phases counted per write in this many bins of a tick (a histogram: the
+#: loop appends nothing, :meth:`TickAligned.tick_landed_median`).
+LANDED_BINS = 128
 #: The fit's grids (:func:`fit_tick_jump`): the jump's phase to 1/128 of a tick, the flat
 #: part's width to 1/16.
 JUMP_STEPS = 128
@@ -195,9 +199,17 @@ class TickAligned:
 
     def tick_landed_median(self) -> float | None:
         """Where the writes went, on the host's clock: the median phase after the jump the
-        probe found [fraction of a tick] (the aim: a half); None before any."""
-        landed = sorted(getattr(self, "_landed", ()))
-        return landed[len(landed) // 2] if landed else None
+        probe found [fraction of a tick] (the aim: a half), to :data:`LANDED_BINS` of a
+        tick (the middle of its bin); None before any."""
+        bins = getattr(self, "_landed", None)
+        n = sum(bins) if bins else 0
+        if not n:
+            return None
+        seen = 0
+        for i, c in enumerate(bins):
+            seen += c
+            if 2 * seen > n:
+                return (i + 0.5) / LANDED_BINS
 
     def _note_tick(self, t_ns: int) -> None:
         """Where a write at ``t_ns`` falls on the board's tick grid: ``_write_tick`` =
@@ -208,8 +220,7 @@ class TickAligned:
         tk = self._tick_ns
         n, ph = divmod(t_ns - self._write_at, tk)
         self._write_tick = (int(n), min(ph, tk - ph) < self.BAND * tk)
-        if len(self._landed) < 100_000:
-            self._landed.append(ph / tk)
+        self._landed[ph * LANDED_BINS // tk] += 1      # (ints: nothing allocated)
 
     def tick_phase(self) -> dict | None:
         """Measure where the host's writes fall in the board's tick, and write in its
@@ -259,7 +270,7 @@ class TickAligned:
         self._phase_z = None
         self._delay_ns = 0
         self._over_ns = 0
-        self._landed = []
+        self._landed = [0] * LANDED_BINS
         self.tick_probe = None
         k = TICK_PROBES
         # a probe's reply comes within the round trip and a tick; spaced whole ticks and
