@@ -713,6 +713,7 @@ def _transport(robust=0, value=30.0):
     t._wd_angle_s, t._wd_lossy, t._damaged, t._desyncs = -1, False, 0, 0
     t._wd_base = None
     t._sent_us = [0] * RING
+    t._sent_bytes, t._wd_zero = [b""] * RING, b"ZERO"
     for c in range(1, 11):
         t._sent_us[c] = 1_000_000 + 1000 * c
     t._t0, t._cmd, t._answered, t._floor, t._force = 0, 10, 9, 9, 0.1

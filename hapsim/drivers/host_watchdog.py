@@ -63,6 +63,7 @@ class Watched:
         self.watchdog = None
         self._wd_cmds: set = set()
         self._wd_why = None
+        self._wd_zero = b""                 # (its zero command's bytes, once started)
         self._wd_robust = self._wd_suspect = False
         self._wd_angle_s = -1               # (the record whose angle was published)
         self._wd_lossy = False              # (the link has shown it loses bytes)
@@ -75,7 +76,8 @@ class Watched:
             return
         from hapsim.drivers.torque_watchdog import start_watchdog
         robust = robust_stop(driver)
-        self.watchdog, self._wd_why = start_watchdog(port, driver.encode_force(0.0),
+        self._wd_zero = driver.encode_force(0.0)
+        self.watchdog, self._wd_why = start_watchdog(port, self._wd_zero,
                                                      HOLD_BOUND_S, robust=robust)
         self._wd_robust = self.watchdog is not None and robust is not None
 
@@ -90,6 +92,10 @@ class Watched:
         for i, t_ns in enumerate(times):
             self._cmd += 1
             self._sent_us[self._cmd % RING] = (t_ns - self._t0) // 1000
+            # its bytes, which an answer's echo names (late_replies): the zero command,
+            # or a robust write's (no command of the driver's: it names nothing)
+            self._sent_bytes[self._cmd % RING] = (b"" if i >= len(times) - robust
+                                                  else self._wd_zero)
             self._wd_cmds.add(self._cmd)
             self.stats["watchdog_zeroed"] += 1
             self._force = 0.0
@@ -122,6 +128,7 @@ class Watched:
         self._floor = min(self._floor, own - 1)
         self._cmd += 1
         self._sent_us[self._cmd % RING] = self._sent_us[(self._cmd - 1) % RING]
+        self._sent_bytes[self._cmd % RING] = b""      # a number, no write of its own
         self._wd_cmds.add(self._cmd)
         if self._answered < own:            # the host's commands before it: missing
             self.stats["missing"] += own - self._answered

@@ -58,6 +58,9 @@ class LateReplies:
         # (_answer_shift)
         self._sent_bytes = [b""] * RING
         self._rt_us = int(driver.least_answer_s() * 1e6)
+        # the last pairing the echo named (its shift), and the first command after it
+        self._named_shift = 0
+        self._named_at = 0
 
     def _mark_estimated(self, seq: int) -> None:
         """The host loop stepped command ``seq`` with an estimated sample."""
@@ -76,31 +79,55 @@ class LateReplies:
 
     def _answer_shift(self, n: int) -> int:
         """By how many commands the last of ``n`` answers read now is older than the newest
-        command sent: 1 where it cannot be the newest's, else 0 (the rule: the newest's).
+        command sent: 1 where it cannot be the newest's, else 0.
 
         A board that answers later than the next write (the Hapkit sketch at 4 ticks a
-        period answers 3.5-4.3 ms after a write, a period being 3.97 ms) had every reading
-        taken one command off by the rule alone: a loop of one delay more than the scene's,
-        measured as the scene's. Its answer is the one before the newest where it echoes
-        that command and not the newest (:meth:`Driver.answer_names`: the sketch's reply
-        carries the force it rendered), or, where the echo tells neither (equal forces),
-        where it was read sooner after the newest write than the board can answer any
-        command (:meth:`Driver.least_answer_s`: the bytes of both on the wire, the least
-        render). Counted in ``read_late``."""
+        period answers 3.75-4.3 ms after a write, a period being 3.97 ms) had every reading
+        taken one command off by the rule "the last answers the newest" alone: a loop of
+        one delay more than the scene's, measured as the scene's. The evidence, in order:
+
+        1. the echo (:meth:`Driver.answer_names`: the sketch's reply carries the force it
+           rendered): it is the one before the newest's where it names that command and
+           not the newest, the newest's where it names the newest and not the one before
+           -- whatever was paired before. An answer so named for a command already
+           answered shows that a pairing since the last named one took an answer for the
+           command after its own (the rows from there are put in :attr:`mistimed`, cut
+           by the measurement; counted in ``mispaired``): an idle host reads at its
+           deadlines, long after the answer came, and before, one run of equal forces
+           (the excitation's hold) left every later reading one command off while the
+           echo was not asked (the one before the newest taken as answered);
+        2. where the echo tells neither (equal forces): the answer was read sooner after
+           the newest write than the board can answer any command
+           (:meth:`Driver.least_answer_s`: the bytes of both on the wire, the least
+           render): the one before's;
+        3. else, while the command before the newest is unanswered, the last named
+           pairing's shift (the board's answer time is its own: it stays), else 0.
+
+        Counted in ``read_late`` where 1."""
         newest = self._cmd
         if self._handled is not None or newest <= self._answered:
             return 0
         dr = self.driver
         echo = dr.answer_echo()
-        if echo is not None and newest - 1 > self._answered:
+        shift = None
+        if echo is not None and newest >= 1:
             now = dr.answer_names(self._sent_bytes[newest % RING], echo)
             before = dr.answer_names(self._sent_bytes[(newest - 1) % RING], echo)
             if now is not None and before is not None and now != before:
-                if before:
-                    self.stats["read_late"] += 1
-                return int(before)
-        if (self._rt_us > 0
-                and self._now_us() - self._sent_us[newest % RING] < self._rt_us):
+                shift = int(before)
+                self._named_shift = shift
+                if newest - shift <= self._answered:
+                    # an answer for a command taken as answered: the pairings since the
+                    # last named one were one command off
+                    self.stats["mispaired"] += 1
+                    self.mistimed.update(range(self._named_at, self._answered + 1))
+                self._named_at = newest - shift + 1
+        if shift is None:
+            if (self._rt_us > 0
+                    and self._now_us() - self._sent_us[newest % RING] < self._rt_us):
+                shift = 1
+            else:
+                shift = self._named_shift if newest - 1 > self._answered else 0
+        if shift:
             self.stats["read_late"] += 1
-            return 1
-        return 0
+        return shift

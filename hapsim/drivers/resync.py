@@ -340,6 +340,7 @@ class Resynchronising:
         # a measurement does not run across a re-synchronisation
         self._cmd += 1
         self._sent_us[self._cmd % RING] = self._sent_us[(self._cmd - 1) % RING]
+        self._sent_bytes[self._cmd % RING] = b""      # a number, no command: names nothing
         if self._answered < self._cmd - 1:      # the commands before it: missing samples
             self.stats["missing"] += self._cmd - 1 - self._answered
             self._answered = self._cmd - 1

@@ -287,10 +287,9 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         self._desyncs = 0
         self._unreach = 0                   # the decoder's 'unreachable' seen
         self._lone = 0                      # the decoder's 'lone' seen
-        self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0,
-                      "rearms": 0, "unprompted_before_arming": 0,
-                      "held_zero": 0, "host_stalls": 0, "watchdog_zeroed": 0,
-                      "watchdog_replies": 0, "read_late": 0}
+        self.stats = {"commands": 0, "records": 0, "missing": 0, "unprompted": 0, "rearms": 0,
+                      "unprompted_before_arming": 0, "held_zero": 0, "host_stalls": 0,
+                      "watchdog_zeroed": 0, "watchdog_replies": 0, "read_late": 0, "mispaired": 0}
         self._init_resync()                 # resyncs and their reasons (Resynchronising)
         self._init_watchdog(driver, port, driver.own_clock)   # (host_watchdog)
         self.info = {"kind": f"driver {driver.name}", "port": port, "baud": driver.baud,
@@ -566,6 +565,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         for _ in range(int(ticks)):
             self._cmd += 1
             self._sent_us[self._cmd % _RING] = t_us
+            self._sent_bytes[self._cmd % _RING] = b""     # numbers, no writes
         self._answered = self._cmd
         self.stats["missing"] += int(ticks)
 
