@@ -271,7 +271,7 @@ def test_cli_bench_from_json_rederives_capacity_ratios_without_measuring(tmp_pat
                  "--out", str(tmp_path / "missing")]) == 2
 
 
-_BOARD = """rate_hz: 252.016
+_BOARD = """rate_hz: 201.613
 masses:
   - {{name: handle, kind: port}}
   - {{name: wall, kind: ground, x0: 0.0}}
@@ -308,7 +308,7 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
             continue
         advised += 1
         drv.check_rate(adv.rate_hz)                           # the board runs it
-        assert adv.board["rates"] == [1.0 / (4 * drv.tick_s)]
+        assert adv.board["rates"] == [1.0 / (5 * drv.tick_s)]
         rep = check(adv.apply(sc))
         assert rep.board["delay_modelled"] == 1.0 + 0.35e-3 / (1.0 / adv.rate_hz)
         # the bound asked for is the advice's own criterion: no numerical tolerance
@@ -322,7 +322,7 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
     # allowed: the margin alone decides): not sent as written, but calibrated (more
     # damping), its margin held at the end; before, sent as written ("naive")
     from hapsim.api import stability
-    rate = 1.0 / (4 * drv.tick_s)
+    rate = 1.0 / (5 * drv.tick_s)
     k_mid, k_end = (stability(LoopModel(0.1, 0.3, rate, 1.0 + lat * rate), 0.2 / 0.95).K_max
                     for lat in (0.35e-3, 0.55e-3))        # the limits at B / margin
     edge = parse_scene(_BOARD.replace("target: {{k: {k}, b: {b}}}",
@@ -346,7 +346,8 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
 def test_run_auto_on_the_shipped_hapkit_scene_runs_the_advised_rate():
     """``hapsim run --auto`` takes its rate from the advice: on configs/hapkit_serial.yaml
     it took the ladder's 250 Hz and was refused ("250 Hz is no whole number of the
-    sketch's 0.992 ms ticks"); now the board's 252.016 Hz, and the loop is within. In
+    sketch's 0.992 ms ticks"); now the board's highest, 201.613 Hz (5 ticks: the ladder
+    starts above it), and the loop is within. In
     lockstep (the rate is the subject, not the timing)."""
     from inproc import hapsim_main  # same directory (pytest prepend import mode)
     code, out, err = hapsim_main(["run", "configs/hapkit_serial.yaml", "--auto",
@@ -354,4 +355,4 @@ def test_run_auto_on_the_shipped_hapkit_scene_runs_the_advised_rate():
     assert code == 0, err[-2000:]
     rep = json.loads(out)
     assert rep["verdict"] == "within", rep.get("reason")
-    assert rep["loop"]["rate_hz"] == 1.0 / (4 * 62 * 256 / 16e6)
+    assert rep["loop"]["rate_hz"] == 1.0 / (5 * 62 * 256 / 16e6)

@@ -351,9 +351,11 @@ def test_hapkit_serial_hostile_streams():
 
 
 def test_hapkit_serial_config_rate_figure():
-    """configs/hapkit_serial.yaml and the driver's limits say 57600 baud allows at most
-    ~300 Hz: the bytes the driver really sends and the mock really answers per sample, 10
-    bits each on the wire (start, 8 data, stop), at the driver's baud rate."""
+    """configs/hapkit_serial.yaml and the driver's limits say what bounds the rate: the
+    bytes the driver really sends and the mock really answers per sample, 10 bits each on
+    the wire (start, 8 data, stop), at the driver's baud rate, and the sketch's tick and
+    render after them (4.27 ms at the worst write phase): at most 5 of its ticks, 201.613
+    Hz, the rate the scene runs at and the highest the driver takes."""
     import re
     from pathlib import Path
 
@@ -365,23 +367,29 @@ def test_hapkit_serial_config_rate_figure():
     per_sample = len(command) + len(reply)
     # the decoders take exactly these lengths: a sample is one command and one reply
     assert (hs.CommandDecoder.length, hs.ReplyDecoder.length) == (len(command), len(reply))
-    max_rate = drv.baud / (10 * per_sample)
-    said = re.search(r"(\d+) baud \(at most ~(\d+) Hz\)", text)
-    assert int(said.group(1)) == drv.baud
-    # the comment rounds the rate to a round figure ('~300 Hz' for 57600 / 190 = 303.2 Hz,
-    # measured 1.05 % off, margin 4.8): 5 % (15 Hz here) bounds a figure rounded to the
-    # nearest 25 Hz (12.5 / 303.2 = 4.1 %)
-    assert abs(int(said.group(2)) - max_rate) / max_rate < 0.05, (said.group(2), max_rate)
-    limit = re.search(r"(\d+) bytes per sample take ([\d.]+) ms on the wire: at most ~(\d+) Hz",
-                      hs.LIMITS)
-    assert int(limit.group(1)) == per_sample
-    # bound: half the last digit of the one-decimal figure the text prints (3.3 ms for
-    # 3.2986 ms: measured 0.0014 ms)
-    assert float(limit.group(2)) == pytest.approx(1e3 / max_rate, abs=0.05)
-    assert int(limit.group(3)) == int(said.group(2))
-    # a scene faster than the wire allows is not what the shipped one asks
+    wire = 10 * per_sample / drv.baud
+    assert int(re.search(r"(\d+) baud", text).group(1)) == drv.baud
+    said = re.search(r"(\d+) of the sketch's ([\d.]+) ms ticks.*\n.*\(([\d.]+) ms;", text)
+    n, tick_ms, answer_ms = int(said.group(1)), float(said.group(2)), float(said.group(3))
+    # bound: half the last digit of the figures the text prints (0.992 ms for 0.992 ms
+    # exactly; 4.27 ms for 4.2701 ms)
+    assert tick_ms == pytest.approx(drv.tick_s * 1e3, abs=5e-4)
+    assert answer_ms == pytest.approx(drv.latest_answer_s() * 1e3, abs=5e-3)
+    assert drv.latest_answer_s() > wire
+    # n ticks hold the latest answer, n - 1 do not: the highest rate, which the scene runs
+    assert (n - 1) * drv.tick_s < drv.latest_answer_s() <= n * drv.tick_s
     from hapsim.scene import load_scene
-    assert load_scene("configs/hapkit_serial.yaml").rate_hz <= max_rate
+    assert drv.period_ticks(load_scene("configs/hapkit_serial.yaml").rate_hz) == n
+    assert drv.native_rate_hz == 1.0 / (n * drv.tick_s)
+    limit = re.search(r"(\d+) bytes per sample take ([\d.]+) ms on the wire, the sketch's "
+                      r"render and\s+tick up to 1 ms more: at most ([\d.]+) Hz \((\d) ticks\)",
+                      hs.LIMITS)
+    assert int(limit.group(1)) == per_sample and int(limit.group(4)) == n
+    # bound: half the last digit of the one-decimal figure the text prints (3.3 ms for
+    # 3.2986 ms: measured 0.0014 ms); the rate to its six figures (201.613 for 201.6129)
+    assert float(limit.group(2)) == pytest.approx(1e3 * wire, abs=0.05)
+    assert float(limit.group(3)) == pytest.approx(drv.native_rate_hz, abs=5e-4)
+    assert drv.latest_answer_s() - wire <= 1e-3
 
 
 def test_hapkit_serial_closed_loop_through_its_mock():
@@ -577,8 +585,8 @@ def test_firefader_refuses_a_rate_it_cannot_hold():
     text = (Path(__file__).resolve().parent.parent / "configs" / "firefader.yaml").read_text()
     assert "~330 Hz" in text and 330 < 1 / rt < 340 and "rate_hz: 250" in text
     get_driver("haply").check_rate(1000.0)                # USB: no bound
-    # (the round trip allows 303 Hz; the highest rate of whole sketch ticks under it)
-    with pytest.raises(ConfigError, match=r"highest rate.*252\.016 Hz \(4 of the sketch"):
+    # (the latest answer allows 234 Hz; the highest rate of whole sketch ticks under it)
+    with pytest.raises(ConfigError, match=r"highest rate.*201\.613 Hz \(5 of the sketch"):
         get_driver("hapkit-serial").check_rate(400.0)
 
 

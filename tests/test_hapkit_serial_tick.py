@@ -358,60 +358,62 @@ def test_an_answer_read_after_the_next_write_is_the_command_before(monkeypatch, 
 def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
     """The sketch samples and applies forces on its 0.992 ms ticks: 250 Hz would sample 4
     ticks apart and 5 once in 31 periods, 300 Hz at 3, 3 and 4 ticks (another loop than
-    the one modelled), so they are refused with the nearest rates that hold (300 Hz's
-    period is shorter than the round trip, refused for that); periods of
-    whole ticks within the link's limit pass, written exactly or to six figures (252.016
-    Hz: 2.6e-5 of a tick off, inside the driver's 1e-4)."""
+    the one modelled), so they are refused with the nearest rates that hold; a period
+    shorter than the latest answer at any write phase (4.27 ms: both messages on the wire,
+    the render's largest latency and the tick's wait) is refused for that, 4 ticks among
+    them (an idle host's runs at 4 ticks read much of the answers after the next deadline);
+    periods of whole ticks within the link's limit pass, written exactly or to six figures
+    (201.613 Hz: 1.6e-6 of a tick off, inside the driver's 1e-4)."""
     drv = hk.HapkitSerial()
     tick = hk.FIRMWARE_TICK_S
-    for n in (4, 5, 6, 8, 1008):
+    # the bound, from its parts (Hapkit_arduino.ino:96-135, tick_align.fit_tick_jump)
+    wire = 19 * 10 / 57600
+    assert drv.latest_answer_s() == pytest.approx(
+        wire + hk.RENDER_LATENCY_S[1] + 2 * tick - 9 * 10 / 57600, rel=1e-12)
+    for n in (5, 6, 8, 1008):
         drv.check_rate(1.0 / (n * tick))
         assert drv.period_ticks(1.0 / (n * tick)) == n
-    for rate, n in ((252.016, 4), (201.613, 5), (168.011, 6)):
+    for rate, n in ((201.613, 5), (168.011, 6)):
         drv.check_rate(rate)
         assert drv.period_ticks(rate) == n
-    assert drv.native_rate_hz == 1.0 / (4 * tick)       # its HELLO's rate: 4 ticks
-    with pytest.raises(ConfigError, match=r"no whole number.*nearest: 252\.016 Hz, 201\.613 Hz"):
+    assert drv.native_rate_hz == 1.0 / (5 * tick)       # its HELLO's rate: 5 ticks
+    # 250 Hz: 4.03 ticks; 4 cannot hold the answer, so 5 alone is named
+    with pytest.raises(ConfigError, match=r"cannot be held.*4\.27 ms.*201\.613 Hz \(5 of"):
         drv.check_rate(250.0)
-    # 3.6 ticks: the nearest whole ticks are 4 and 3, and 3 (2.98 ms) is shorter than the
-    # least round trip (3.45 ms: the wire's 3.30 and the render's least 0.15)
-    with pytest.raises(ConfigError, match=r"no whole number.*nearest: 252\.016 Hz$"):
-        drv.check_rate(280.0)
-    with pytest.raises(ConfigError, match=r"300 Hz cannot be held.*3\.45 ms"):
-        drv.check_rate(300.0)
+    with pytest.raises(ConfigError, match=r"no whole number.*nearest: 201\.613 Hz, 168\.011 Hz"):
+        drv.check_rate(185.0)
+    with pytest.raises(ConfigError, match=r"252\.016 Hz cannot be held.*4\.27 ms"):
+        drv.check_rate(252.016)
     with pytest.raises(ConfigError, match="no whole number"):
         drv.check_rate(1.0)
     # 2e-4 of a tick off: a walk the aligned writes would re-centre every 1,750 periods
     with pytest.raises(ConfigError, match="no whole number"):
-        drv.check_rate(1.0 / (4.0002 * tick))
-    with pytest.raises(ConfigError, match=r"cannot be held.*252\.016 Hz \(4 of"):
+        drv.check_rate(1.0 / (5.0002 * tick))
+    with pytest.raises(ConfigError, match=r"cannot be held.*201\.613 Hz \(5 of"):
         drv.check_rate(500.0)
-    # 3 ticks (336 Hz) is a whole number, but shorter than a command and its reply
-    with pytest.raises(ConfigError, match=r"cannot be held.*252\.016 Hz \(4 of"):
-        drv.check_rate(1.0 / (3 * tick))
 
 
 def test_the_loop_is_modelled_and_run_at_the_boards_own_period():
-    """``configs/hapkit_serial.yaml`` says 252.016 Hz: the run's scene (its prediction, its
-    engine, its host loop) takes 4 of the sketch's ticks exactly, as the board does; at the
+    """``configs/hapkit_serial.yaml`` says 201.613 Hz: the run's scene (its prediction, its
+    engine, its host loop) takes 5 of the sketch's ticks exactly, as the board does; at the
     six-figure rate a matching paddle's exact record said "differs" (the driver's
     ``board_rate_hz``). A framed device (no tick of its own) keeps the scene's rate."""
     from hapsim.pipeline.options import RunOptions
     from hapsim.pipeline.runner import prepare_run
     from hapsim.scene import load_scene
     sc = load_scene("configs/hapkit_serial.yaml")
-    assert sc.rate_hz == 252.016
+    assert sc.rate_hz == 201.613
     prep = prepare_run(sc, RunOptions(driver="hapkit-serial", handle_signals=False))
-    assert prep.scene.period == 4 * hk.FIRMWARE_TICK_S
-    prep = prepare_run(sc, RunOptions(driver="hapkit-serial", handle_signals=False,
-                                      rate_hz=201.613))
     assert prep.scene.period == 5 * hk.FIRMWARE_TICK_S
-    assert prepare_run(sc, RunOptions(handle_signals=False)).scene.rate_hz == 252.016
+    prep = prepare_run(sc, RunOptions(driver="hapkit-serial", handle_signals=False,
+                                      rate_hz=168.011))
+    assert prep.scene.period == 6 * hk.FIRMWARE_TICK_S
+    assert prepare_run(sc, RunOptions(handle_signals=False)).scene.rate_hz == 201.613
 
 
 def test_check_analyses_the_loop_the_board_runs_as_run_predicts_it(tmp_path, capsys):
     """``hapsim check`` on a scene whose device speaks the sketch's bytes analyses the loop
-    the board runs: 4 whole ticks, and the scene's one period of delay with the render's
+    the board runs: 5 whole ticks, and the scene's one period of delay with the render's
     latency after the read at its bounds' middle. It predicted with the scene's whole
     delay alone, b 0.2014 N s/m where ``hapsim run`` states 0.1836 before it runs: a user
     who checked, then ran, saw two predictions 10 % apart.
@@ -431,10 +433,10 @@ def test_check_analyses_the_loop_the_board_runs_as_run_predicts_it(tmp_path, cap
 
     src = Path(__file__).resolve().parents[1] / "configs" / "hapkit_serial.yaml"
     rep = check(str(src))
-    rate = 1.0 / (4 * hk.FIRMWARE_TICK_S)
+    rate = 1.0 / (5 * hk.FIRMWARE_TICK_S)
     lo, hi = hk.RENDER_LATENCY_S
     delay = 1.0 + 0.5 * (lo + hi) / (1.0 / rate)
-    assert rep.rate_hz == rate and rep.board["rate_written_hz"] == 252.016
+    assert rep.rate_hz == rate and rep.board["rate_written_hz"] == 201.613
     assert rep.board["delay_modelled"] == delay and rep.board["render_latency_s"] == [lo, hi]
     doc = yaml.safe_load(src.read_text())
     doc["rate_hz"] = rate
@@ -467,7 +469,7 @@ def test_check_analyses_the_loop_the_board_runs_as_run_predicts_it(tmp_path, cap
     bad.write_text(yaml.safe_dump(doc))
     code, out, _ = hapsim_main(["check", str(bad)])
     assert code == 0
-    assert "hapsim run refuses this rate" in out and "nearest: 252.016 Hz" in out
+    assert "hapsim run refuses this rate" in out and "can hold is 201.613 Hz" in out
     assert "renders 0.15-0.55 ms after its read" in out
 
 
@@ -476,8 +478,8 @@ def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
     (K, B) sent are calibrated for the loop the board runs (its render latency's middle
     in the delay, where the run states its prediction), so ``check`` and the run's
     prediction feel the target; calibrated for the scene's whole delay alone (before),
-    configs/hapkit_serial.yaml's (50, 0.5) was predicted 3.5 % off its b (0.4823 N s/m).
-    Random paddles, targets and both whole-tick rates, 12 seeded draws. In lockstep (no time of the
+    configs/hapkit_serial.yaml's (50, 0.5) was predicted 3.6 % off its b (0.4820 N s/m).
+    Random paddles, targets and two whole-tick rates the board holds, 12 seeded draws. In lockstep (no time of the
     board's) the whole delay is the loop, and the target is felt there. ``simulate``
     sends the run's (K, B)."""
     import yaml
@@ -499,7 +501,7 @@ def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
                            "target": {"k": k, "b": b}}
         doc["device"].update(mass=float(rng.uniform(0.05, 0.2)),
                              friction=float(rng.uniform(0.05, 0.5)))
-        doc["rate_hz"] = float(rng.choice([252.016, 201.613]))
+        doc["rate_hz"] = float(rng.choice([201.613, 168.011]))
         path = tmp_path / f"target{i}.yaml"
         path.write_text(yaml.safe_dump(doc))
         rep = check(str(path))
@@ -538,7 +540,7 @@ def test_a_loop_unstable_anywhere_in_the_boards_latency_is_refused(tmp_path):
     from hapsim.scene import load_scene
     from inproc import hapsim_main  # same directory (pytest prepend import mode)
     rng = np.random.default_rng(5)
-    rate = 1.0 / (4 * hk.FIRMWARE_TICK_S)
+    rate = 1.0 / (5 * hk.FIRMWARE_TICK_S)
     lo, hi = hk.RENDER_LATENCY_S
     for i in range(6):
         m, b0, B = (float(rng.uniform(0.05, 0.2)), float(rng.uniform(0.05, 0.5)),
@@ -578,9 +580,10 @@ def test_a_hand_family_on_the_board_is_judged_over_its_latency(tmp_path):
     """``hapsim family`` of a Hapkit-serial scene with a hand (0.05-0.5 kg, grip
     300-3000 N/m): the family of the loop the board runs, its render latency's middle in
     the delay, and held stable at the latency's two bounds with the (K, B) the run sends.
-    A spring of 245 N/m: every sampled member stable with the whole delay alone and at
-    the middle (the verdict before: robustly stable), one unstable at 0.55 ms: not
-    robustly stable now, its report the family there; 220 N/m: stable at both bounds.
+    A spring of 197 N/m (at 5 ticks: the members' edge at 0.55 ms lies in 194-195 N/m,
+    at the middle in 199-200): every sampled member stable with the whole delay alone
+    and at the middle (the verdict before: robustly stable), one unstable at 0.55 ms: not
+    robustly stable now, its report the family there; 190 N/m: stable at both bounds.
     The same scene on hapsim's framed protocol keeps its whole delay (robust)."""
     import yaml
 
@@ -589,18 +592,18 @@ def test_a_hand_family_on_the_board_is_judged_over_its_latency(tmp_path):
     doc["device"]["hand"] = {"mass": [0.05, 0.5], "damping": 1.0,
                              "grip_stiffness": [300, 3000], "grip_damping": 2.0}
     got = {}
-    for K in (220.0, 245.0):
+    for K in (190.0, 197.0):
         for proto in ("hapkit-serial", "framed"):
             doc["links"][0]["stiffness"] = K
             doc["device"]["protocol"] = proto
             path = tmp_path / f"hand_{proto}_{K:g}.yaml"
             path.write_text(yaml.safe_dump(doc))
             got[K, proto] = family(str(path), grid=5, certify=0)
-    assert all(got[K, "framed"].robust for K in (220.0, 245.0))
-    assert "board" not in got[245.0, "framed"].extra
-    ok, edge = got[220.0, "hapkit-serial"], got[245.0, "hapkit-serial"]
+    assert all(got[K, "framed"].robust for K in (190.0, 197.0))
+    assert "board" not in got[197.0, "framed"].extra
+    ok, edge = got[190.0, "hapkit-serial"], got[197.0, "hapkit-serial"]
     assert ok.robust and "unstable_latency_s" not in ok.extra["board"]
-    assert ok.extra["board"]["delay_modelled"] == 1.0 + 0.35e-3 / (4 * hk.FIRMWARE_TICK_S)
+    assert ok.extra["board"]["delay_modelled"] == 1.0 + 0.35e-3 / (5 * hk.FIRMWARE_TICK_S)
     assert not edge.robust and edge.unstable >= 1
     assert edge.extra["board"]["unstable_latency_s"] == hk.RENDER_LATENCY_S[1]
 
@@ -729,9 +732,9 @@ def test_on_the_boards_own_clock_a_hidden_friction_is_still_seen(monkeypatch):
 def test_a_live_change_is_judged_over_the_boards_latency():
     """``run --osc`` on a board that renders after its read: the live controller judges a
     change over the latency's bounds, as the run's refusal does. A stiffness between the
-    limit at 0.55 ms (76.47 N/m on the shipped paddle, B = 0.2 N s/m) and the middle's
-    (78.90) is refused, naming the latency (before: the whole delay alone was checked,
-    its limit 83.55, and it was taken); one below is accepted; a felt target is
+    limit at 0.55 ms (62.15 N/m on the shipped paddle at 5 ticks, B = 0.2 N s/m) and the
+    middle's (63.74) is refused, naming the latency (before: the whole delay alone was
+    checked, its limit 66.75, and it was taken); one below is accepted; a felt target is
     calibrated with the middle in the delay, as the run's. In the calling thread."""
     from hapsim.audio.control import Controller
     from hapsim.engine import Engine
@@ -744,9 +747,9 @@ def test_a_live_change_is_judged_over_the_boards_latency():
     ctl = Controller(prep.scene, Engine(prep.scene), ramp_s=0.01, background=False,
                      latency=(0.5 * (lo + hi), hi))
     try:
-        ok, why = ctl.request("/hapsim/link/stiffness", "spring", 77.5)
+        ok, why = ctl.request("/hapsim/link/stiffness", "spring", 63.0)
         assert not ok and "0.55 ms after its read" in why, why
-        ok, got = ctl.request("/hapsim/link/stiffness", "spring", 75.0)
+        ok, got = ctl.request("/hapsim/link/stiffness", "spring", 61.0)
         assert ok, got
         k, b = 50.0, 0.5
         ok, got = ctl.request("/hapsim/link/target", "spring", k, b)

@@ -323,8 +323,11 @@ def _board(name: str, seed: int = 0):
         dev = Device(mass=1e-3, friction=1e-2, delay=1, force_limit=0.12)
         return HaplyDevice(dev, 1000.0, Excitation(), clock="wall"), get_driver("haply"), 1e3
     if name == "hapkit-serial":
-        dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=2.0)
-        rate = get_driver(name).native_rate_hz          # 4 of the sketch's ticks
+        # (a friction that keeps the handle, pushed by up to 1 N for 0.5 s, inside the
+        # driver's plausible 0.5 m: at 0.1 N s/m it ran past it at 5 ticks a period and
+        # its replies were taken for garbled bytes, a re-synchronisation)
+        dev = Device(mass=0.05, friction=2.0, delay=1, force_limit=2.0)
+        rate = get_driver(name).native_rate_hz          # 5 of the sketch's ticks
         return HapkitSerialDevice(dev, rate, Excitation(), seed=seed), get_driver(name), rate
     dev = Device(mass=0.05, friction=0.1, delay=1, force_limit=0.38)
     drv = get_driver("firefader")

@@ -55,7 +55,8 @@ def test_a_slow_lockstep_mock_gives_the_same_record(tmp_path, driver, config, lo
     rep0, r0 = _record(tmp_path, "quiet", driver, config, base)
     rep1, r1 = _record(tmp_path, "slow", driver, config, dict(base, **SLOW))
     n = len(r0["seq"])
-    assert n >= 100 and len(r1["seq"]) == n
+    # (0.4 s of rows at the scene's rate: 81 at the sketch's 201.613 Hz)
+    assert n >= 80 and len(r1["seq"]) == n
     for c in COLUMNS:
         assert np.array_equal(r0[c], r1[c]), (c, np.flatnonzero(r0[c] != r1[c])[:5])
     if lossy:

@@ -102,9 +102,10 @@ def test_the_signature_is_a_holds_disturbance():
     per cent of its norm (the force's error taken as an impulse over the period, the rows
     around the hold interpolated), and five times nearer to it than the signature of the
     quarter ticks either side, a tick early or a period late (so the search, on quarter
-    ticks, finds the hold's own). A read 3 ticks late still has its bytes on the wire
-    (1.74 ms) when the next command is written a period after the first: that one is
-    late too, two holds. The board a sketch that applies the float at its read
+    ticks, finds the hold's own). A read 3 ticks late has its bytes read (2.98 ms and the
+    command's 1.74 ms on the wire) before the next command is written a period (5 ticks,
+    4.96 ms) after the first: one hold. (At 4 ticks, before the rate was bounded by the
+    latest answer, that next command was late too.) The board a sketch that applies the float at its read
     (``levels=0, render_s=0``, named): the signature is the scene's linear loop's, which
     the sketch's levels and render latency are not."""
     from hapsim.analysis.error_response import force_error_response, sensor_error_response
@@ -127,11 +128,14 @@ def test_the_signature_is_a_holds_disturbance():
             base["position"], base["force"], 100, n - 100, prep.scene.period, S, H,
             k * tick)) / np.linalg.norm(d[100:])
             for k in (-1, ticks - 0.25, ticks, ticks + 0.25, 4)}
-        # measured 2.6 %, 2.4 %, 2.3 % and 1.7 % (0.75, 1, 1.25, 2 ticks); margin 1.5
-        assert off[ticks] <= measured(0.026, 1.5), off
-        assert all(off[ticks] < 0.2 * v for k, v in off.items() if k != ticks), off
+        # measured 4.3 %, 4.1 %, 3.8 % and 3.1 % (0.75, 1, 1.25, 2 ticks, at 5 ticks a
+        # period); margin 1.5
+        assert off[ticks] <= measured(0.043, 1.5), off
+        # the nearest other is 4.06 times as far at least (2 ticks' quarter ticks either
+        # side: 0.125 and 0.131 against 0.031), measured; margin 1.35: 3.0 asked
+        assert all(v >= 4.06 / 1.35 * off[ticks] for k, v in off.items() if k != ticks), off
     _, _, board = hapkit_serial_offline_loop(prep.scene, n, read_late={100: 3}, **ideal)
-    assert board.tick_arrivals["off_at"] == [100, 101, 102]
+    assert board.tick_arrivals["off_at"] == [100, 101]
 
 
 @pytest.mark.parametrize("seed", range(16, 32))

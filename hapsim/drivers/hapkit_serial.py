@@ -118,11 +118,12 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
     floats; a corrupted float byte is a wrong force or position
   the stock sketch renders its own environments: the firmware must apply the second
     float as the handle force for function code 255 (see docs/devices.md)
-  57600 baud: 19 bytes per sample take 3.3 ms on the wire: at most ~300 Hz
+  57600 baud: 19 bytes per sample take 3.3 ms on the wire, the sketch's render and
+    tick up to 1 ms more: at most 201.613 Hz (5 ticks)
   the sketch's position is whole counts of its sensor, 17.19 um at the handle with its
     published calibration (protocol option count_m: a paddle calibrated for itself)
   the sketch takes each command on its own Timer1 tick of 0.992 ms (1.008 kHz): the
-    host's period must be a whole number of ticks (252.016, 201.613, 168.011, ... Hz;
+    host's period must be a whole number of ticks (201.613, 168.011, 144.009, ... Hz;
     250 Hz is refused, its samples would be 4 and 5 ticks apart), and the host times its
     writes in the middle of a tick, measured at the first arming (a board whose crystal
     drifts from the host's clock walks that phase by its drift times the run's length)"""
@@ -284,9 +285,9 @@ class HapkitSerial(Driver):
     baud = 57600
     rtscts = False
     #: The highest rate the driver takes (:meth:`check_rate`): a whole number of the
-    #: sketch's ticks (4 x 0.992 ms) whose period holds a command and its answer at 57600
-    #: baud (3.3 ms)
-    native_rate_hz = 1.0 / (4 * FIRMWARE_TICK_S)
+    #: sketch's ticks (5 x 0.992 ms) whose period holds a command and its answer at 57600
+    #: baud at any write phase (:meth:`HapkitSerial.latest_answer_s`, 4.27 ms)
+    native_rate_hz = 1.0 / (5 * FIRMWARE_TICK_S)
     device_id = 0x48415053           # "HAPS"
     position_rel = 2.0 ** -24        # binary32 fields on the wire (round to nearest)
     force_rel = 2.0 ** -24
@@ -469,8 +470,10 @@ class HapkitSerial(Driver):
         for whole ``n`` from the lowest rate of ``rates`` (less :data:`PERIOD_TICKS_TOL` of
         a tick) to the highest. The ladder's own rates are mostly no whole number of ticks
         (250 Hz is 4.03), which :meth:`check_rate` refuses; of these
-        :meth:`~hapsim.drivers.base.Driver.board_rates` keeps those the link holds: from
-        250 Hz up the sketch offers 252.016 Hz alone.
+        :meth:`~hapsim.drivers.base.Driver.board_rates` keeps those the link holds. A
+        ladder that starts above the highest rate the sketch holds (``hapsim advise``'s,
+        250 Hz) spans down to it: the sketch's 201.613 Hz (:attr:`native_rate_hz`) is
+        then its one candidate.
 
         Parameters
         ----------
@@ -483,13 +486,16 @@ class HapkitSerial(Driver):
             Increasing [Hz].
         """
         lo, hi = min(float(r) for r in rates), max(float(r) for r in rates)
+        lo = min(lo, self.native_rate_hz)
         most = math.floor(1.0 / (lo * self.tick_s) + PERIOD_TICKS_TOL)
         least = max(math.ceil(1.0 / (hi * self.tick_s) - PERIOD_TICKS_TOL), 1)
         return [1.0 / (n * self.tick_s) for n in range(most, least - 1, -1)]
 
     def check_rate(self, rate_hz: float) -> None:
         """Refuse a rate the sketch cannot hold (:meth:`Driver.check_rate`: a command and
-        its reply must fit in a period), or whose period is no whole number of its
+        its reply must fit in a period at any write phase, :meth:`latest_answer_s`; at 4
+        ticks, where the least answer fits, answers came after the next deadline for much
+        of an idle host's run and were paired with the next command), or whose period is no whole number of its
         :attr:`tick_s` (:meth:`period_ticks`): the board reads the handle and applies a
         force only on its ticks, so such a period is sampled at intervals of whole ticks
         that alternate (at 250 Hz on the sketch's 0.992 ms: 4 ticks, and 5 once in 31
@@ -504,13 +510,13 @@ class HapkitSerial(Driver):
         Raises
         ------
         ConfigError
-            The rate's period is shorter than the round trip (the message names the
-            highest rate of whole ticks that holds it: 252.016 Hz, not the round trip's
-            303 Hz, which is no whole number of ticks), or its period is not a whole
+            The rate's period is shorter than the latest answer (the message names the
+            highest rate of whole ticks that holds it: 201.613 Hz, 5 ticks, not the
+            answer's 234 Hz, which is no whole number of ticks), or its period is not a whole
             number of ticks (the message names the nearest rates that are).
         """
         from hapsim.errors import ConfigError
-        rt = self.round_trip_s()
+        rt = self.latest_answer_s()
         least = max(math.ceil(rt / self.tick_s - PERIOD_TICKS_TOL), 1)
         n = self.period_ticks(rate_hz)
         if float(rate_hz) * rt > 1.0 or (n is not None and n < least):
@@ -609,9 +615,27 @@ class HapkitSerial(Driver):
         command and the 9-byte reply at 57600 baud, 10 bits a byte, and the render's least
         latency between them (:data:`RENDER_LATENCY_S`): 3.45 ms. The sketch reads the
         handle at the command's end or at the tick after its read began, so its tick
-        adds up to 0.42 ms more, not counted (``Hapkit_arduino.ino:96-135``;
+        adds up to 0.42 ms more (:meth:`latest_answer_s`; ``Hapkit_arduino.ino:96-135``;
         :func:`hapsim.drivers.tick_align.fit_tick_jump`)."""
         return (10 + 9) * 10 / self.baud + RENDER_LATENCY_S[0]
+
+    def latest_answer_s(self) -> float:
+        """The most time from a command's first byte to its reply's last [s], whatever the
+        write's phase on the sketch's tick: both messages' wire time, the render's
+        largest latency (:data:`RENDER_LATENCY_S`) and the tick's wait, ``L = 2 T - W``
+        with ``W`` the 9 bytes after the header (:func:`hapsim.drivers.tick_align.
+        fit_tick_jump`: the handle read on the tick after the read's, 0.42 ms after the
+        command's end at most): 4.27 ms. The emulated board's, swept over a tick's
+        phases at each bound of the render's latency, is 3.87-4.27 ms; its own render,
+        4.17 ms."""
+        return (self.round_trip_s() - RENDER_LATENCY_S[0] + RENDER_LATENCY_S[1]
+                + 2 * self.tick_s - 9 * 10 / self.baud)
+
+    def rate_reason(self) -> str:
+        """Why the highest rate is what it is (:meth:`check_rate`'s message)."""
+        return (f"a command and its reply take up to {self.latest_answer_s() * 1e3:.3g} ms "
+                f"(both on the wire at {self.baud} baud, the sketch's tick and its render "
+                f"at the write's worst phase)")
 
     def answer_names(self, command: bytes, echo) -> bool | None:
         """Whether a reply whose second float is ``echo`` can answer ``command``: the

@@ -93,7 +93,7 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     rate_hz, drv = opts.rate_hz, None
     if opts.driver is not None:
         # the board's own rate: a board on its own tick runs whole ticks (the Hapkit
-        # sketch's 4 x 0.992 ms for 252.016 Hz), and the loop is modelled at that period
+        # sketch's 5 x 0.992 ms for 201.613 Hz), and the loop is modelled at that period
         from hapsim.drivers import get_driver
         drv = get_driver(opts.driver, **(opts.driver_options or {}))
         asked = scene.rate_hz if rate_hz is None else rate_hz

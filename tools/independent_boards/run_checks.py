@@ -59,7 +59,7 @@ IDENTIFY = {
               "--max-delay", "4"],
     "firefader": ["--rate", "250", "--duration", "3", "--force-limit", "0.38", "--envelope",
                   "0.02"],
-    "hapkit-serial": ["--rate", "252.016", "--duration", "3", "--force-limit", "1.0",
+    "hapkit-serial": ["--rate", "201.613", "--duration", "3", "--force-limit", "1.0",
                       "--envelope", "0.02"],
 }
 
