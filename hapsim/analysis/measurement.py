@@ -625,18 +625,25 @@ def estimated_bounds(cols: dict, period: float, mass: float, friction: float,
     return out
 
 
-def aperture_noise(cols: dict, period: float, estimated_flag: int = 32) -> float:
+def aperture_noise(cols: dict, period: float, estimated_flag: int = 32,
+                   use=None, late_flag: int = 1) -> float:
     """The position error's standard deviation [m] of a board that reads its sensor as
     late as the host's write comes (the Hapkit sketch for most write phases,
     ``Hapkit_arduino.ino:96-135``): each reading is off its place on the grid by its
     write's departure ``delta_k``, an error ``v_k delta_k`` (aperture jitter: Kester,
     *Data Conversion Handbook*, 2005, sec. 2.4: the error of a sample taken ``dt`` late
-    is the signal's slope times ``dt``), its rms over the readings. ``delta_k`` is the
-    host's write time less the least-squares line of the write times over ``seq`` (a
-    constant latency shifts nothing), 0 under half a microsecond (the time stamps'
-    resolution); ``v_k`` the central difference. The force switched after the reading
-    is as late, an error through the loop ``(omega T)^2`` times smaller (0.8 % on
-    configs/hapkit_serial.yaml): left out.
+    is the signal's slope times ``dt``), its rms over the readings the fit uses.
+
+    ``delta_k`` is the host's write time less the least-squares line of the write times
+    over ``seq``, one line per run of consecutive ``seq`` with no late tick (a constant
+    latency shifts nothing; a host stall is a gap in ``seq``, or a row the host marked
+    late where it could not skip one, after which the host's deadlines start again where
+    it woke, another grid: one line through a run whose deadlines restarted after stalls
+    made the departures of a throttled CI host milliseconds, and its floor 4 mm; the late
+    row and the next, on neither grid, are left out), the line through the rows used, 0
+    under half a microsecond (the time stamps' resolution); ``v_k`` the central
+    difference. The force switched after the reading is as late, an error through the
+    loop ``(omega T)^2`` times smaller (0.8 % on configs/hapkit_serial.yaml): left out.
 
     Parameters
     ----------
@@ -646,24 +653,46 @@ def aperture_noise(cols: dict, period: float, estimated_flag: int = 32) -> float
         Sample period T [s].
     estimated_flag : int
         The ``flags`` bit of an estimated row (no reading: left out).
+    use : ndarray of bool, shape (n,), optional
+        The rows the fit uses (its window, less the rows it leaves out); None: all. A row
+        cut (a host's late write marked, a hold no host saw) or before the window is no
+        reading of the fit's: its departure is not the fit's noise.
+    late_flag : int
+        The ``flags`` bit of a row the host was late at
+        (:data:`hapsim.host.telemetry.FLAG_LATE`).
 
     Returns
     -------
     float
-        >= 0 [m]; 0 with fewer than three readings or no time column.
+        >= 0 [m]; 0 with no run of three readings used or no time column.
     """
     if "time" not in cols:
         return 0.0
+    seq = np.asarray(cols["seq"], np.int64)
     read = (np.asarray(cols["flags"]) & estimated_flag) == 0
-    if np.count_nonzero(read) < 3:
-        return 0.0
-    seq = np.asarray(cols["seq"], float)[read]
-    t = np.asarray(cols["time"], float)[read]
-    A = np.column_stack([seq - seq.mean(), np.ones(seq.size)])
-    delta = t - A @ np.linalg.lstsq(A, t, rcond=None)[0]
-    delta[np.abs(delta) < 0.5e-6] = 0.0
-    v = np.gradient(np.asarray(cols["position"], float), period)[read]
-    return float(np.sqrt(np.mean((v * delta) ** 2)))
+    used = read if use is None else read & np.asarray(use, bool)
+    t = np.asarray(cols["time"], float)
+    v = np.gradient(np.asarray(cols["position"], float), period)
+    late = (np.asarray(cols["flags"]) & late_flag) != 0
+    # the late row and the one after it (written when the host woke, before its deadline
+    # was put on the tick again) are on neither grid: each a run of its own, left out
+    off = late.copy()
+    off[1:] |= late[:-1]
+    cuts = np.flatnonzero((np.diff(seq) != 1) | off[1:] | off[:-1]) + 1
+    total, count = 0.0, 0
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, seq.size]):
+        u = used[a:b]
+        if np.count_nonzero(u) < 3:
+            continue
+        # the line through the rows used alone (a row cut, late by half a tick or more,
+        # would tilt it)
+        s, tt = seq[a:b][u].astype(float), t[a:b][u]
+        A = np.column_stack([s - s.mean(), np.ones(s.size)])
+        delta = tt - A @ np.linalg.lstsq(A, tt, rcond=None)[0]
+        delta[np.abs(delta) < 0.5e-6] = 0.0
+        total += float(np.sum((v[a:b][u] * delta) ** 2))
+        count += int(s.size)
+    return math.sqrt(total / count) if count else 0.0
 
 
 def wire_errors(scene, cols: dict, start: int, driver) -> list:

@@ -344,8 +344,9 @@ class Driver:
     command_period: float | None = None
 
     def mistimed_rows(self, columns: dict):
-        """Rows whose force was held a tick longer or shorter than the loop's period, left
-        out of the measurement, or None.
+        """Rows whose force was held a tick longer or shorter than the loop's period, or
+        whose reading was found paired with another command, left out of the measurement,
+        or None.
 
         A board that takes commands on its own tick (the Hapkit sketch's 1 ms) takes a
         write near its tick's boundary at one tick or the next, and a write a host made
@@ -357,7 +358,9 @@ class Driver:
         there as at a clamped force it cannot replay (``exclude`` of
         :func:`hapsim.analysis.identify.identify`: each stretch after a cut a free
         response from its own initial state, its first ``d + 2`` rows dropped: the holds
-        in flight).
+        in flight). The transport marks there too the commands whose answers it paired
+        with the command after their own, as an echo later showed
+        (:meth:`hapsim.drivers.late_replies.LateReplies._answer_shift`).
 
         Parameters
         ----------

@@ -400,22 +400,20 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         position, late, late_info = late_accounted(
             loop, cols, hello, driver, restarts=(cols["flags"] & FLAG_LOST) != 0,
             computed=computed)
-        # rows whose applied force the driver's account cannot name at all (an unframed
-        # board's parser out of step: hapsim.drivers.base.Driver.unknown_force_rows, the
-        # account's known False: what identify's fit leaves out too), cut as those
+        # rows whose applied force the driver's account cannot name (an unframed board's
+        # parser out of step: hapsim.drivers.base.Driver.unknown_force_rows), cut as those
         unknown = late_info.pop("_unknown_rows", None)
         if unknown is not None:
             clamp_unknown = unknown if clamp_unknown is None else clamp_unknown | unknown
         # rows whose force a board on its own tick held a tick longer or shorter than the
-        # period (a write near the tick's boundary, or late by more than half a tick:
-        # hapsim.drivers.base.Driver.mistimed_rows), cut as those
+        # period, or whose reading the transport found paired with another command
+        # (hapsim.drivers.base.Driver.mistimed_rows), cut as those
         rows_of = getattr(driver, "mistimed_rows", None)
         mistimed = None if rows_of is None else rows_of(cols)
         if mistimed is not None:
             clamp_unknown = mistimed if clamp_unknown is None else clamp_unknown | mistimed
-        # a board on its own clock that holds each force from its write's arrival: the
-        # holds' known departures from a period (the host's write times) corrected, what
-        # the correction leaves in the stated uncertainty, the holds far off cut
+        # a board on its own clock holding each force from its write's arrival: the holds'
+        # departures from a period corrected (the host's write times), the far ones cut
         holds = _write_holds(loop, cols, driver, quantum)
         if holds is not None:
             position = position - holds[0]["motion"]
@@ -454,13 +452,15 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                     cols, T, *device_body(dev), quantum, dev.noise,
                     float(getattr(driver, "position_rel", 0.0) or 0.0), FLAG_ESTIMATED,
                     coulomb=dev.coulomb), response))
-        exclude = ((cols["flags"] & FLAG_RAMP) != 0 if clamp_unknown is None
-                   else ((cols["flags"] & FLAG_RAMP) != 0) | clamp_unknown)
+        exclude = (cols["flags"] & FLAG_RAMP) != 0
+        exclude = exclude if clamp_unknown is None else exclude | clamp_unknown
         if holds is not None:
             bounds += holds[0]["bounds"]
-        # a board reading as late as the writes come: their jitter is its sensor's noise
-        noise = (math.hypot(dev.noise, aperture_noise(cols, T, FLAG_ESTIMATED)) if
-                 getattr(driver, "samples_at_write", False) and driver.own_tick else dev.noise)
+        # a board reading as late as the writes come: their jitter (on the rows the fit
+        # uses) is its sensor's noise
+        jit = getattr(driver, "samples_at_write", False) and driver.own_tick
+        noise = math.hypot(dev.noise, aperture_noise(
+            cols, T, FLAG_ESTIMATED, (cols["seq"] >= start) & ~exclude) if jit else 0.0)
 
         def fitted(ex, fit=None):
             return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
