@@ -102,8 +102,10 @@ def test_a_stall_s_new_grid_and_the_rows_cut_are_no_jitter(seed):
         cnt += r.size
     want = np.sqrt(num / cnt) if cnt else 0.0
     got = aperture_noise(stalled, T, use=use)
+    # derived bound (docstring): the central difference's error, (omega T)^2 / 6
     assert got == pytest.approx(want, rel=2e-3)
-    # the stalls' offsets are no jitter: without them, the same runs
+    # the stalls' offsets are no jitter: without them, the same runs (the same derived
+    # bound: both take the same differences)
     assert got == pytest.approx(aperture_noise(dict(stalled, time=cols["time"]), T,
                                                use=use), rel=2e-3)
     # and no more than the jitter can make: |v| <= A omega, |delta| <= 80 us less its line

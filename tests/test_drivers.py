@@ -371,9 +371,9 @@ def test_hapkit_serial_config_rate_figure():
     assert int(re.search(r"(\d+) baud", text).group(1)) == drv.baud
     said = re.search(r"(\d+) of the sketch's ([\d.]+) ms ticks.*\n.*\(([\d.]+) ms;", text)
     n, tick_ms, answer_ms = int(said.group(1)), float(said.group(2)), float(said.group(3))
-    # bound: half the last digit of the figures the text prints (0.992 ms for 0.992 ms
-    # exactly; 4.27 ms for 4.2701 ms)
+    # bound: half the last digit of the figure the text prints (0.992 ms: exact)
     assert tick_ms == pytest.approx(drv.tick_s * 1e3, abs=5e-4)
+    # bound: half the last digit of the figure the text prints (4.27 ms for 4.2701 ms)
     assert answer_ms == pytest.approx(drv.latest_answer_s() * 1e3, abs=5e-3)
     assert drv.latest_answer_s() > wire
     # n ticks hold the latest answer, n - 1 do not: the highest rate, which the scene runs
@@ -386,8 +386,9 @@ def test_hapkit_serial_config_rate_figure():
                       hs.LIMITS)
     assert int(limit.group(1)) == per_sample and int(limit.group(4)) == n
     # bound: half the last digit of the one-decimal figure the text prints (3.3 ms for
-    # 3.2986 ms: measured 0.0014 ms); the rate to its six figures (201.613 for 201.6129)
+    # 3.2986 ms: measured 0.0014 ms)
     assert float(limit.group(2)) == pytest.approx(1e3 * wire, abs=0.05)
+    # bound: half the last digit of the rate's six figures (201.613 for 201.6129)
     assert float(limit.group(3)) == pytest.approx(drv.native_rate_hz, abs=5e-4)
     assert drv.latest_answer_s() - wire <= 1e-3
 
