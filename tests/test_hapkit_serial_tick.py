@@ -313,6 +313,45 @@ def test_a_deadline_is_put_where_its_write_lands_mid_tick(monkeypatch):
         assert tr._delay_ns == 0 and tr._phase_z is None
 
 
+@pytest.mark.parametrize("seed", range(8))
+def test_the_write_made_on_waking_from_a_stall_moves_no_write_after_it(monkeypatch, seed):
+    """A host wakes from a stall at a random phase of the tick: its loop puts the next
+    deadline mid-tick (``align_deadline``) and writes the FORCE it owes at once, on no
+    grid; the writes after it come at the aligned deadlines, a period apart. Each of
+    those lands in the middle third of the tick, is not near the boundary, and none but
+    the first (its hold begun by the wake's write: off the period) is marked mistimed.
+    Before, the wake's write was taken for the writes' phase: where it fell outside the
+    band, it set a delay that put the aligned writes near the boundary, each marked and
+    cut until the running mean forgot it (15-20 writes after each stall of a host stopped
+    10 ms in every 100: the shipped scene's records cut to one stretch)."""
+    port = TickingPort(300_000, 200_000, sketch=True)
+    tr = _transport(monkeypatch, port)
+    assert tr.tick_phase() is not None, tr.tick_probe
+    from hapsim.drivers import transport as transport_mod
+    clk = transport_mod.time                     # the simulated clock (_transport)
+    tr._period_ticks = 5
+    period = 5 * TICK_NS
+    cmd = tr.driver.encode_force(0.0)
+    rng = np.random.default_rng(seed)
+    for stall in range(3):
+        clk.sleep(rng.uniform(2, 6) * period * 1e-9)   # the stall, ending anywhere
+        first = stall * 100
+        deadline = tr.align_deadline(clk.monotonic_ns())
+        tr._write_tick = None
+        tr._command(cmd)                         # the FORCE owed, written on waking
+        tr._note_hold(first)
+        for k in range(1, 30):
+            clk.sleep(max(deadline + k * period - clk.monotonic_ns(), 0) * 1e-9)
+            tr._write_tick = None
+            tr._command(cmd)
+            tr._note_hold(first + k)
+            n, near = tr._write_tick
+            ph = (clk.monotonic_ns() - tr._write_at) % TICK_NS / TICK_NS
+            assert not near and 1 / 3 <= ph <= 2 / 3, (stall, k, ph)
+        marked = {s - first for s in tr.mistimed if first <= s < first + 30}
+        assert marked <= {0, 1}, (stall, sorted(marked))
+
+
 @pytest.mark.parametrize("hold", [0, 6])
 @pytest.mark.parametrize("transit_us", [200, 1200])
 def test_an_answer_read_after_the_next_write_is_the_command_before(monkeypatch, transit_us,

@@ -160,6 +160,14 @@ class TickAligned:
         import cmath
         tk = self._tick_ns
         t = time.monotonic_ns()
+        if t < self._aligned_ns:
+            # a write before the deadline the host loop was just put on (the one it makes
+            # when it wakes from a stall, :meth:`align_deadline`) is on no grid of the
+            # writes: taken for their phase, it set a delay that put the aligned writes
+            # after it near the boundary, each marked and cut, until the running mean
+            # forgot it (15-20 writes after each stall on a host stopped 10 ms in 100)
+            self._note_tick(t)
+            return
         ph = (t - self._write_at) % tk               # 0 at the board's boundary
         u = cmath.exp(2j * math.pi * ph / tk)
         z = u if self._phase_z is None else 0.9 * self._phase_z + 0.1 * u
@@ -192,10 +200,12 @@ class TickAligned:
         shift = (tk // 2 - self._over_ns - (int(deadline_ns) - self._write_at)) % tk
         # the writes' own phase starts again at the middle: no delay of its own (one
         # set by the arming's writes, made between deadlines, would stay while the writes
-        # it moved stayed in the band, the answer's time short by it)
+        # it moved stayed in the band, the answer's time short by it); the writes before
+        # the new deadline are on no grid (:meth:`_wait_for_band`)
         self._phase_z = None
         self._delay_ns = 0
-        return int(deadline_ns) + int(shift)
+        self._aligned_ns = int(deadline_ns) + int(shift)
+        return self._aligned_ns
 
     def tick_landed_median(self) -> float | None:
         """Where the writes went, on the host's clock: the median phase after the jump the
@@ -270,6 +280,7 @@ class TickAligned:
         self._phase_z = None
         self._delay_ns = 0
         self._over_ns = 0
+        self._aligned_ns = 0                         # (the last aligned deadline)
         self._landed = [0] * LANDED_BINS
         self.tick_probe = None
         k = TICK_PROBES
