@@ -105,7 +105,8 @@ def test_the_signature_is_a_holds_disturbance():
     ticks, finds the hold's own). A read 3 ticks late has its bytes read (2.98 ms and the
     command's 1.74 ms on the wire) before the next command is written a period (5 ticks,
     4.96 ms) after the first: one hold. (At 4 ticks, before the rate was bounded by the
-    latest answer, that next command was late too.) The board a sketch that applies the float at its read
+    latest answer, that next command was late too.) The board a sketch that applies the
+    float at its read
     (``levels=0, render_s=0``, named): the signature is the scene's linear loop's, which
     the sketch's levels and render latency are not."""
     from hapsim.analysis.error_response import force_error_response, sensor_error_response

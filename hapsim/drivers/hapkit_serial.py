@@ -495,12 +495,13 @@ class HapkitSerial(Driver):
         """Refuse a rate the sketch cannot hold (:meth:`Driver.check_rate`: a command and
         its reply must fit in a period at any write phase, :meth:`latest_answer_s`; at 4
         ticks, where the least answer fits, answers came after the next deadline for much
-        of an idle host's run and were paired with the next command), or whose period is no whole number of its
-        :attr:`tick_s` (:meth:`period_ticks`): the board reads the handle and applies a
-        force only on its ticks, so such a period is sampled at intervals of whole ticks
-        that alternate (at 250 Hz on the sketch's 0.992 ms: 4 ticks, and 5 once in 31
-        periods; at 300 Hz: 3, 3 and 4 ticks), not the period the loop is modelled with,
-        and the measurement would compare another loop with the prediction.
+        of an idle host's run and were paired with the next command), or whose period is
+        no whole number of its :attr:`tick_s` (:meth:`period_ticks`): the board reads the
+        handle and applies a force only on its ticks, so such a period is sampled at
+        intervals of whole ticks that alternate (at 250 Hz on the sketch's 0.992 ms: 4
+        ticks, and 5 once in 31 periods; at 300 Hz: 3, 3 and 4 ticks), not the period the
+        loop is modelled with, and the measurement would compare another loop with the
+        prediction.
 
         Parameters
         ----------
@@ -512,8 +513,8 @@ class HapkitSerial(Driver):
         ConfigError
             The rate's period is shorter than the latest answer (the message names the
             highest rate of whole ticks that holds it: 201.613 Hz, 5 ticks, not the
-            answer's 234 Hz, which is no whole number of ticks), or its period is not a whole
-            number of ticks (the message names the nearest rates that are).
+            answer's 234 Hz, which is no whole number of ticks), or its period is not a
+            whole number of ticks (the message names the nearest rates that are).
         """
         from hapsim.errors import ConfigError
         rt = self.latest_answer_s()

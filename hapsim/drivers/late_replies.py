@@ -120,7 +120,8 @@ class LateReplies:
                     # an answer for a command taken as answered: the pairings since the
                     # last named one were one command off
                     self.stats["mispaired"] += 1
-                    self.mistimed.update(range(self._named_at, self._answered + 1))
+                    self.mistimed.update(range(max(self._named_at, self._answered + 1 - RING),
+                                               self._answered + 1))
                 self._named_at = newest - shift + 1
         if shift is None:
             if (self._rt_us > 0
