@@ -291,7 +291,8 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
     middle, as ``run`` and ``check`` predict): ``check`` of the advised scene within the
     advice's tolerance of the target, over random paddles and targets (20 seeded draws).
     Calibrated with the scene's whole delay (the advice before), configs/hapkit_serial.
-    yaml's spring was felt 3.5 % off its b (0.4823 N s/m), beyond the 1 % asked for."""
+    yaml's spring was felt 2.4 % off its b (0.4877 N s/m; 3.5 % with its 50 N/m spring
+    before), beyond the 1 % asked for."""
     from hapsim.api import check
     from hapsim.drivers import get_driver
     drv = get_driver("hapkit-serial")
@@ -340,7 +341,8 @@ def test_advise_gives_a_rate_the_board_runs_and_the_pair_its_loop_feels():
                                                                     protocol="framed"))
     old = advise_scene(plain, tol)
     rep = check(old.apply(shipped))
-    assert abs(rep.b - 0.5) / 0.5 > 3 * tol, rep.b        # measured 3.5 %
+    # beyond the 1 % asked for: measured 2.45 % (3.5 % with the 50 N/m spring before)
+    assert abs(rep.b - 0.5) / 0.5 > tol, rep.b
 
 
 def test_run_auto_on_the_shipped_hapkit_scene_runs_the_advised_rate():

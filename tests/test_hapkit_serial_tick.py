@@ -519,7 +519,7 @@ def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
     (K, B) sent are calibrated for the loop the board runs (its render latency's middle
     in the delay, where the run states its prediction), so ``check`` and the run's
     prediction feel the target; calibrated for the scene's whole delay alone (before),
-    configs/hapkit_serial.yaml's (50, 0.5) was predicted 3.6 % off its b (0.4820 N s/m).
+    configs/hapkit_serial.yaml's (35, 0.5) was predicted 2.5 % off its b (0.4876 N s/m).
     Random paddles, targets and two whole-tick rates the board holds, 12 seeded draws. In
     lockstep (no time of the
     board's) the whole delay is the loop, and the target is felt there. ``simulate``
