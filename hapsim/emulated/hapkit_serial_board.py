@@ -70,11 +70,7 @@ class SketchReader:
         """
         out = self.expire(now)
         for b in data:
-            self._cur.append(b)
-            if len(self._cur) == 10:
-                out.append(self._finish(now))
-        if data:
-            self.t_last = float(now)
+            out += self.take(b, now)              # (every byte at ``now``: the read's rule)
         return out
 
     def expire(self, now: float) -> list:
