@@ -446,8 +446,10 @@ def test_the_loop_is_modelled_and_run_at_the_boards_own_period():
     assert sc.rate_hz == 201.613
     prep = prepare_run(sc, RunOptions(driver="hapkit-serial", handle_signals=False))
     assert prep.scene.period == 5 * hk.FIRMWARE_TICK_S
+    # at 6 ticks the shipped spring is unstable with its reading a period late (refused,
+    # tests below): the rate is this test's, run past that refusal
     prep = prepare_run(sc, RunOptions(driver="hapkit-serial", handle_signals=False,
-                                      rate_hz=168.011))
+                                      rate_hz=168.011, allow_unstable=True))
     assert prep.scene.period == 6 * hk.FIRMWARE_TICK_S
     assert prepare_run(sc, RunOptions(handle_signals=False)).scene.rate_hz == 201.613
 
@@ -548,28 +550,41 @@ def test_a_target_is_felt_in_the_loop_the_board_runs(tmp_path):
         path.write_text(yaml.safe_dump(doc))
         rep = check(str(path))
         assert rep.board["delay_modelled"] > 1.0
+        # a target the reading a period late makes unstable: check says so, the run
+        # refuses it (the test above); its calibration is this test's, run past that
+        late = "late_reading_unstable" in rep.board
+        assert rep.stable is not late
         for lock in (False, True):
             prep = prepare_run(load_scene(str(path)), RunOptions(
-                driver="hapkit-serial", handle_signals=False, lockstep=lock))
+                driver="hapkit-serial", handle_signals=False, lockstep=lock,
+                allow_unstable=late))
             for kk, bb in ((rep.k, rep.b), (prep.pred["k"], prep.pred["b"])):
                 assert abs(kk - k) <= tol * k and abs(bb - b) <= tol * b, (i, lock, kk, bb)
             assert prep.scene.device.delay == 1       # the scene's own delay is kept
         # simulate sends the run's (K, B) (no device there: the calibration alone)
         sim = simulate(str(path), 1).calibrations[0]
-        prep = prepare_run(load_scene(str(path)), RunOptions(driver="hapkit-serial",
-                                                             handle_signals=False))
+        prep = prepare_run(load_scene(str(path)), RunOptions(
+            driver="hapkit-serial", handle_signals=False, allow_unstable=late))
         assert (sim["K"], sim["B"]) == (prep.targets[0]["K"], prep.targets[0]["B"])
 
 
-def test_a_loop_unstable_anywhere_in_the_boards_latency_is_refused(tmp_path):
+def test_a_loop_unstable_anywhere_in_the_boards_latency_or_a_reading_late_is_refused(
+        tmp_path):
     """The sketch renders 0.15-0.55 ms after its read, where in that range its text does
-    not fix: a loop stable at the middle (where the prediction is stated) but not at the
-    range's end may run away on a board. Random paddles and port damping, 6 seeded draws,
-    the stiffness limits from the loop model itself at the two delays (K_max falls with
-    the delay): a spring between the limit at 0.55 ms and the one at the middle is
-    unstable for ``check`` (exit 1), refused by the run (before: run, stable at the
-    middle), and ``stability --scene`` states the least limit; a spring below the
-    0.55 ms limit is stable for all three."""
+    not fix, and its reply, up to 4.27 ms after the write, is taken a period late by a
+    host that wakes 0.69 ms late (``late_reading_periods`` 1): a loop stable at the middle
+    but not at the range's end, or not with the reading a period late, may run away on a
+    board (a 50 N/m spring at 5 ticks, stable to 1.52 periods, ran the paddle to its
+    0.2 m envelope beside the suite's load). Random paddles and port damping, 6 seeded
+    draws, the stiffness limits from the loop model itself at the three delays (K_max
+    falls with the delay): a spring between the limit at 0.55 ms and the one at the
+    middle, or between the limit a period later and the one at 0.55 ms, is unstable for
+    ``check`` (exit 1, its reason), refused by the run (before: run, stable at the middle;
+    and before this, run at any spring stable at 0.55 ms) but run with
+    ``--allow-unstable`` and on hapsim's framed protocol, whose late samples are known
+    inputs; ``stability --scene`` states the least limit; a spring below the late
+    reading's limit is stable for all three; ``advise``'s (K, B) for the spring as a
+    target, where it finds some, the run takes."""
     import json
 
     import yaml
@@ -581,42 +596,78 @@ def test_a_loop_unstable_anywhere_in_the_boards_latency_is_refused(tmp_path):
     from hapsim.pipeline.runner import prepare_run
     from hapsim.scene import load_scene
     from inproc import hapsim_main  # same directory (pytest prepend import mode)
+    from hapsim.bench.advise import advise_scene
     rng = np.random.default_rng(5)
     rate = 1.0 / (5 * hk.FIRMWARE_TICK_S)
     lo, hi = hk.RENDER_LATENCY_S
+    assert hk.HapkitSerial.late_reading_periods == 1
+    advised = 0
     for i in range(6):
         m, b0, B = (float(rng.uniform(0.05, 0.2)), float(rng.uniform(0.05, 0.5)),
                     float(rng.uniform(0.0, 0.5)))
-        k_mid, at_hi = (stability(LoopModel(m, b0, rate, 1.0 + lat * rate, "zoh"), B)
-                        for lat in (0.5 * (lo + hi), hi))
-        k_mid, k_hi = k_mid.K_max, at_hi.K_max
-        assert k_hi < k_mid
-        for K, stable in ((0.5 * (k_hi + k_mid), False), (0.98 * k_hi, True)):
+        k_mid, at_hi, at_late = (stability(LoopModel(m, b0, rate, d, "zoh"), B) for d in (
+            1.0 + 0.5 * (lo + hi) * rate, 1.0 + hi * rate, 2.0 + hi * rate))
+        k_mid, k_hi, k_late = k_mid.K_max, at_hi.K_max, at_late.K_max
+        assert k_late < k_hi < k_mid
+        for K, why in ((0.5 * (k_hi + k_mid), "latency"), (0.5 * (k_late + k_hi), "late"),
+                       (0.98 * k_late, None)):
             doc = yaml.safe_load(open("configs/hapkit_serial.yaml"))
             doc["links"][0].update(stiffness=K, damping=B)
             doc["device"].update(mass=m, friction=b0)
-            path = tmp_path / f"edge{i}{stable}.yaml"
+            path = tmp_path / f"edge{i}{why}.yaml"
             path.write_text(yaml.safe_dump(doc))
             rep = check(str(path))
-            assert rep.stable is stable and rep.analysis.stable, (i, K, rep.board)
+            assert rep.stable is (why is None) and rep.analysis.stable, (i, K, rep.board)
             opts = RunOptions(driver="hapkit-serial", handle_signals=False)
-            if stable:
+            if why is None:
                 prepare_run(load_scene(str(path)), opts)
             else:
-                assert rep.board["unstable_latency_s"] == hi
-                with pytest.raises(UnstableConfigError, match="not at 0.55 ms"):
+                assert (rep.board.get("unstable_latency_s") == hi) is (why == "latency")
+                assert ("late_reading_unstable" in rep.board) is (why == "late")
+                with pytest.raises(UnstableConfigError, match="not at 0.55 ms" if why ==
+                                   "latency" else "taken 1 period late"):
                     prepare_run(load_scene(str(path)), opts)
+                prepare_run(load_scene(str(path)), RunOptions(
+                    driver="hapkit-serial", handle_signals=False, allow_unstable=True))
+            if why == "late":     # the framed protocol: no late reading, no latency
+                prepare_run(load_scene(str(path)), RunOptions(handle_signals=False))
+                # what advise sends for the spring as a target, the run takes
+                doc["links"][0] = {q: v for q, v in doc["links"][0].items()
+                                   if q not in ("stiffness", "damping")}
+                doc["links"][0]["target"] = {"k": K, "b": B + b0}
+                tpath = tmp_path / f"target{i}.yaml"
+                tpath.write_text(yaml.safe_dump(doc))
+                adv = advise_scene(load_scene(str(tpath)))
+                if adv.ok:
+                    advised += 1
+                    prepare_run(adv.apply(load_scene(str(tpath))), opts)
             code, out, _ = hapsim_main(["check", str(path)])
-            assert code == (0 if stable else 1)
-            assert ("the board may render 0.55 ms after its read" in out) is not stable
+            assert code == (0 if why is None else 1)
+            assert ("the board may render 0.55 ms after its read" in out) is (
+                why == "latency")
+            assert ("takes the board's reply 1 period late" in out) is (why == "late")
             code, out, _ = hapsim_main(["stability", "--scene", str(path), "--json"])
             got = json.loads(out)["K_max"][0]
             # the same limit by the scene's route as by the loop's: inside the loop
             # route's certified bracket (exact arithmetic: no pole on |z| = 1 below it;
             # measured equal over 30 draws, both routes forming the same delay)
-            k_lo, k_up = at_hi.K_max_interval
-            assert k_lo <= got <= k_up and code == 0, (got, at_hi.K_max_interval)
-
+            k_lo, k_up = at_late.K_max_interval
+            assert k_lo <= got <= k_up and code == 0, (got, at_late.K_max_interval)
+    # and over targets on the shipped paddle near the late reading's limit (38.32 N/m at
+    # B = 0.2 N s/m): advise held its margin at the latency's end alone before, and its
+    # (K, B) for (60, 0.3) was refused by the run
+    for k, b in ((40.0, 0.3), (50.0, 0.3), (60.0, 0.3), (60.0, 0.4)):
+        doc = yaml.safe_load(open("configs/hapkit_serial.yaml"))
+        doc["links"][0] = {"name": "spring", "kind": "spring_damper",
+                           "between": ["handle", "wall"], "target": {"k": k, "b": b}}
+        tpath = tmp_path / f"grid{k}_{b}.yaml"
+        tpath.write_text(yaml.safe_dump(doc))
+        adv = advise_scene(load_scene(str(tpath)))
+        if adv.ok:
+            advised += 1
+            prepare_run(adv.apply(load_scene(str(tpath))), RunOptions(
+                driver="hapkit-serial", handle_signals=False))
+    assert advised >= 6, advised
 
 def test_a_hand_family_on_the_board_is_judged_over_its_latency(tmp_path):
     """``hapsim family`` of a Hapkit-serial scene with a hand (0.05-0.5 kg, grip
@@ -777,7 +828,9 @@ def test_a_live_change_is_judged_over_the_boards_latency():
     limit at 0.55 ms (62.15 N/m on the shipped paddle at 5 ticks, B = 0.2 N s/m) and the
     middle's (63.74) is refused, naming the latency (before: the whole delay alone was
     checked, its limit 66.75, and it was taken); one below is accepted; a felt target is
-    calibrated with the middle in the delay, as the run's. In the calling thread."""
+    calibrated with the middle in the delay, as the run's. With the reply taken a period
+    late too (the run's ``late_reading_periods``), a change unstable there is refused. In
+    the calling thread."""
     from hapsim.audio.control import Controller
     from hapsim.engine import Engine
     from hapsim.pipeline.options import RunOptions
@@ -801,5 +854,16 @@ def test_a_live_change_is_judged_over_the_boards_latency():
         # eigenvalue routes; the target test above), margin 70
         tol = measured(1.4e-13, 70)
         assert abs(got[1] - k) <= tol * k and abs(got[2] - b) <= tol * b, got
+    finally:
+        ctl.close()
+    # and with the reply taken a period late (the run's late_reading_periods): the limit
+    # there is 38.32 N/m (B = 0.2 N s/m; tests above): 61 N/m refused, naming it, 37 taken
+    ctl = Controller(prep.scene, Engine(prep.scene), ramp_s=0.01, background=False,
+                     latency=(0.5 * (lo + hi), hi), late_reading_s=prep.scene.period)
+    try:
+        ok, why = ctl.request("/hapsim/link/stiffness", "spring", 61.0)
+        assert not ok and "4.96 ms late" in why, why
+        ok, got = ctl.request("/hapsim/link/stiffness", "spring", 37.0)
+        assert ok, got
     finally:
         ctl.close()

@@ -62,7 +62,12 @@ class CheckReport(Charted, Report):
         far the felt pair moves over the bounds); ``unstable_latency_s`` [s] and
         ``unstable_spectral_radius`` where the loop is stable at the middle but not at
         that latency of the bounds (then ``stable`` is False and ``verdict``
-        "unstable": the board may render that late); ``rate_written_hz`` where the
+        "unstable": the board may render that late); ``late_reading_unstable``
+        (``periods``, ``delay`` [periods], ``spectral_radius``) where the loop is stable
+        at the board's timing but not with its reading taken that many periods late, as a
+        host waking a little late may take it (:func:`hapsim.pipeline.render_latency.
+        late_reading`; then too ``stable`` is False), beside ``late_reading_periods`` (the
+        driver's, where it has some); ``rate_written_hz`` where the
         board's rate is not the file's, ``refused`` where ``hapsim run`` refuses the
         rate. None: the board runs the scene as it is written (the framed protocol, or a
         driver with no timing of its own).
@@ -153,8 +158,10 @@ def check(scene, progress=None):
     check_size(scene)
     chk = check_scene(model)
     dev = scene.device
-    # stable at the latency's middle but not over the board's whole range: unstable
-    stable = chk.stable and (board or {}).get("unstable_latency_s") is None
+    # stable at the latency's middle but not over the board's whole range, or not with
+    # a reading taken late: unstable
+    stable = (chk.stable and (board or {}).get("unstable_latency_s") is None
+              and (board or {}).get("late_reading_unstable") is None)
     d = {"scene": scene.path, "verdict": "stable" if stable else "unstable",
          "rate_hz": scene.rate_hz, "board": board,
          "device": None if dev is None else {
@@ -312,12 +319,15 @@ def board_timing(scene, driver, written_hz=None):
         driver.check_rate(scene.rate_hz)
     except ConfigError as e:
         board["refused"] = str(e)
-    if model is scene and "refused" not in board and not moved:
+    late = int(getattr(driver, "late_reading_periods", 0) or 0)
+    if model is scene and "refused" not in board and not moved and not late:
         return scene, None
     for key in ("render_latency_s", "delay_modelled", "k_spread", "b_spread",
-                "unstable_latency_s", "unstable_spectral_radius"):
+                "unstable_latency_s", "unstable_spectral_radius", "late_reading_unstable"):
         if key in pred:
             board[key] = pred[key]
+    if late:
+        board["late_reading_periods"] = late
     return model, board
 
 

@@ -219,12 +219,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"target {c.link}: (k, b) = ({c.k:g} N/m, {c.b:g} N s/m) -> "
               f"K = {c.result.K:.6g} N/m, B = {c.result.B:.6g} N s/m; renderable")
     tag = f"{verdict.upper()} with the {chk.integrator} integrator"
-    if chk.stable and not ok:
+    if chk.stable and not ok and rep.board.get("unstable_latency_s") is not None:
         bd = rep.board
         tag += (f": the board may render {bd['unstable_latency_s'] * 1e3:.3g} ms after its "
                 f"read (within its bounds), where the spectral radius is "
                 f"{bd['unstable_spectral_radius']:.9g}; the loop below, at the middle, is "
                 f"stable")
+    elif chk.stable and not ok:
+        lr = rep.board["late_reading_unstable"]
+        tag += (f": a host that wakes a little late takes the board's reply "
+                f"{lr['periods']} period{'s' if lr['periods'] != 1 else ''} late, and at a "
+                f"delay of {lr['delay']:.4g} periods the spectral radius is "
+                f"{lr['spectral_radius']:.9g} (hapsim run refuses it); the loop below, at "
+                f"the board's own timing, is stable")
     if ok and chk.marginal:
         tag += " (marginal: some poles sit on the unit circle and never decay)"
     print(f"verdict: {tag}")

@@ -326,6 +326,19 @@ def _run_scene_line(args, scene) -> int:
             if k_at < kmax:
                 kmax, rep = k_at, at
                 board["K_max_latency_s"] = float(r)
+                board["K_max_latency"] = k_at
+    if board is not None and board.get("late_reading_periods") and kmax is not None:
+        # a host that wakes a little late takes the reply that many periods late:
+        # the run refuses a loop unstable so (hapsim.pipeline.render_latency.late_reading)
+        late_s = (board.get("render_latency_s") or [0.0, 0.0])[1] \
+            + board["late_reading_periods"] * scene.period
+        from hapsim.analysis.prediction import timed_scene
+        at = api.stability(LoopModel.from_device(timed_scene(scene, late_s).device,
+                                                 scene.rate_hz), B)
+        k_at = math.inf if at.K_max is None else at.K_max
+        board["K_max_late_reading"] = None if math.isinf(k_at) else k_at
+        if k_at < kmax:
+            kmax, rep = k_at, at
     d = {"scene": str(args.scene), "dof": 1, "device": "1-DoF", "rate_hz": scene.rate_hz,
          "delay": dev.delay, "port_stiffness": [[K]], "port_damping": [[B]],
          "mass_eigenvalues": [loop.mass], "directions": [[1.0]] if grounded else None,
@@ -350,9 +363,14 @@ def _run_scene_line(args, scene) -> int:
     print(f"    (+1.0000)  mass {loop.mass:.4g} kg  K_max = {fmt(kmax)} N/m   (the "
           f"scene's port stiffness: {K:.6g} N/m; {rep.K_max_method})", file=o)
     if board is not None and "K_max_latency_s" in board:
-        print(f"    the least over the board's render latency, at "
-              f"{board['K_max_latency_s'] * 1e3:.3g} ms after its read (at the middle: "
-              f"{fmt(board['K_max_middle'])} N/m)", file=o)
+        print(f"    the least over the board's render latency: {fmt(board['K_max_latency'])} "
+              f"N/m at {board['K_max_latency_s'] * 1e3:.3g} ms after its read (at the "
+              f"middle: {fmt(board['K_max_middle'])} N/m)", file=o)
+    if board is not None and board.get("K_max_late_reading") == kmax:
+        n = board["late_reading_periods"]
+        print(f"    the least with the board's reply taken {n} period{'s' if n != 1 else ''} "
+              f"late, as a host that wakes a little late takes it: {fmt(kmax)} N/m "
+              f"(hapsim run refuses a spring beyond it)", file=o)
     return code
 
 

@@ -338,6 +338,13 @@ class Driver:
     #: time is the commands'), the writes' jitter is its readings' noise
     #: (:func:`hapsim.analysis.measurement.aperture_noise`).
     samples_at_write = False
+    #: Periods by which the host may take the board's reading late while the board runs on
+    #: (its reply can come so near the host's next deadline that a host waking a little
+    #: late steps the loop with the reading before it): a loop that such a late reading
+    #: makes unstable is refused by the run and called unstable by ``check``
+    #: (:func:`hapsim.pipeline.render_latency.timed_prediction`,
+    #: ``late_reading_unstable``). 0: the host takes every reading in its period.
+    late_reading_periods = 0
     #: A lockstep mock's time per command [s] (set by the run's transport; None for a
     #: board on its own clock): what its firmware's silence rule counts, not the host's
     #: wall clock, which a loaded host stretches.

@@ -301,6 +301,15 @@ class HapkitSerial(SketchTiming, Driver):
     #: the scene's whole periods and this much more, within these bounds [s]
     #: (:func:`hapsim.pipeline.render_latency.timed_prediction`).
     render_latency_s = RENDER_LATENCY_S
+    #: The sketch's reply comes up to 4.27 ms after the write (:meth:`latest_answer_s`),
+    #: 0.69 ms before the next deadline at 5 ticks: a host that wakes later than that
+    #: (an idle core's wake-up, a loaded machine) takes it a period late, and until the
+    #: echo pairs it the loop steps with a reading a period old
+    #: (:class:`hapsim.drivers.late_replies.LateReplies`). A 50 N/m spring at 5 ticks,
+    #: stable up to a delay of 1.52 periods, ran the paddle to the 0.2 m envelope beside
+    #: the suite's load so (docs/drivers.md): the loop must hold a period more
+    #: (:attr:`Driver.late_reading_periods`).
+    late_reading_periods = 1
 
     def __init__(self, function: int = HOST_FORCE_FUNCTION, force_limit: float = 2.0,
                  reply: str = "auto", levels: int = 256,

@@ -42,7 +42,7 @@ import numpy as np
 from hapsim.analysis.prediction import timed_scene
 
 __all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction",
-           "latency_refusal", "latency_search",
+           "latency_refusal", "late_reading", "late_reading_refusal", "latency_search",
            "SPREAD_POINTS", "REFINE_STEPS", "GOLDEN_STEPS"]
 
 #: Latencies tried over a driver's range (ends included): for the prediction's spread
@@ -134,7 +134,10 @@ def timed_prediction(scene, driver) -> tuple:
         ``unstable_latency_s`` (the latency of the largest spectral radius [s]) and
         ``unstable_spectral_radius``. The range is taken at :data:`SPREAD_POINTS`
         latencies, its ends included (a longer delay takes stability away: the end is
-        where it goes first).
+        where it goes first). With or without a latency, where the driver's board may
+        have its reading taken late (``late_reading_periods``) and that makes the loop
+        unstable, ``late_reading_unstable`` (:func:`late_reading`: the run refuses it,
+        ``check`` says unstable).
 
     Raises
     ------
@@ -144,7 +147,9 @@ def timed_prediction(scene, driver) -> tuple:
     from hapsim.analysis.prediction import predict
     mid = latency_middle(scene, driver)
     if not mid:
-        return scene, predict(scene)
+        pred = predict(scene)
+        late_reading(scene, driver, pred, 0.0)
+        return scene, pred
     lo, hi = render_latency(driver)
     model = timed_scene(scene, mid)
     pred = predict(model)
@@ -167,7 +172,81 @@ def timed_prediction(scene, driver) -> tuple:
     if ks:
         pred["k_spread"] = float(max(ks))
         pred["b_spread"] = float(max(bs))
+    late_reading(scene, driver, pred, hi)
     return model, pred
+
+
+def late_reading(scene, driver, pred: dict, latest_s: float) -> None:
+    """Whether the loop holds a reading taken late by the host: the scene with its
+    board's latest render (``latest_s``) and the driver's ``late_reading_periods`` more
+    periods in its delay (:attr:`hapsim.drivers.base.Driver.late_reading_periods`).
+
+    A board whose reply can come near the host's next deadline (the Hapkit sketch's,
+    up to 4.27 ms into a 4.96 ms period) has it taken a period late by a host that wakes
+    a little late, and the loop steps with a reading a period old until the echo pairs it
+    (:mod:`hapsim.drivers.late_replies`); a run of such readings is the loop with a
+    delay a period longer, and a loop stable at its own delay but not at that one can run
+    the device away (a 50 N/m spring at 5 ticks, stable up to 1.52 periods, ran the
+    paddle to its 0.2 m envelope beside the suite's load). The delay is a real number
+    of periods, modelled exactly (modified z-transform: Jury, *Theory and Application of
+    the z-Transform Method*, 1964; :mod:`hapsim.analysis.subsample`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its own delay).
+    driver : type or hapsim.drivers.base.Driver or None
+        The run's driver; nothing is checked without ``late_reading_periods`` > 0.
+    pred : dict
+        The prediction of the loop at the board's timing (:func:`timed_prediction`);
+        nothing is checked where it is unstable already (at the latency's middle or at
+        some latency of the range). Where the late reading makes the loop unstable, set
+        ``pred["late_reading_unstable"]``: ``periods`` (the driver's), ``delay`` (the
+        delay the loop was found unstable at [periods]) and ``spectral_radius`` there.
+    latest_s : float
+        The board's latest render after its read [s] (its bounds' end; 0 without).
+    """
+    from hapsim.analysis.prediction import predict
+    n = int(getattr(driver, "late_reading_periods", 0) or 0) if driver is not None else 0
+    if (n <= 0 or scene.device is None or pred.get("stable") is False
+            or pred.get("unstable_latency_s") is not None):
+        return
+    at = timed_scene(scene, float(latest_s) + n * scene.period)
+    p = predict(at)
+    if p.get("stable") is False:
+        pred["late_reading_unstable"] = {"periods": n, "delay": float(at.device.delay),
+                                         "spectral_radius": float(p["spectral_radius"])}
+
+
+def late_reading_refusal(scene, pred: dict):
+    """The error refusing a loop that a reading taken late makes unstable
+    (:func:`late_reading`, ``pred["late_reading_unstable"]``):
+    :func:`hapsim.analysis.prediction.refusal` of the loop at that delay, its cause and
+    the stiffness that would hold it first.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its own delay).
+    pred : dict
+        :func:`timed_prediction`'s, with ``late_reading_unstable``.
+
+    Returns
+    -------
+    hapsim.errors.UnstableConfigError
+    """
+    from hapsim.analysis.prediction import predict, refusal
+    from hapsim.errors import UnstableConfigError
+    lr = pred["late_reading_unstable"]
+    at = dataclasses.replace(scene, device=dataclasses.replace(scene.device,
+                                                               delay=lr["delay"]))
+    err = refusal(at, predict(at))
+    n = lr["periods"]
+    return UnstableConfigError(
+        f"the board's reply can be taken {n} period{'s' if n != 1 else ''} late by a host "
+        f"that wakes a little late (its driver's late_reading_periods), and the loop is "
+        f"stable at the scene's delay but not at {lr['delay']:.4g} periods: {err}",
+        spectral_radius=err.spectral_radius, stiffness_limit=err.stiffness_limit)
 
 
 def latency_refusal(scene, pred: dict):

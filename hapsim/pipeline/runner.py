@@ -38,8 +38,8 @@ import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
-from hapsim.pipeline.render_latency import (latency_middle, latency_refusal,
-                                            timed_prediction)
+from hapsim.pipeline.render_latency import (late_reading_refusal, latency_middle,
+                                            latency_refusal, timed_prediction)
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
@@ -124,6 +124,8 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         raise refusal(model, pred)
     if pred.get("unstable_latency_s") is not None and not opts.allow_unstable:
         raise latency_refusal(scene, pred)
+    if pred.get("late_reading_unstable") is not None and not opts.allow_unstable:
+        raise late_reading_refusal(scene, pred)
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
@@ -551,8 +553,11 @@ def _start_osc(prep: PreparedRun, conn: Connection, loop: HostLoop, opts: RunOpt
 
     # a board that renders after its read: the changes judged over its latency's bounds
     lat = prep.pred.get("render_latency_s")
+    drv = getattr(conn.tr, "driver", None) if opts.driver and not opts.lockstep else None
+    late = getattr(drv, "late_reading_periods", 0) or 0
     ctl = Controller(prep.scene, conn.engine, ramp_s=opts.osc_ramp,
-                     latency=(0.5 * (lat[0] + lat[1]), lat[1]) if lat else (0.0, 0.0))
+                     latency=(0.5 * (lat[0] + lat[1]), lat[1]) if lat else (0.0, 0.0),
+                     late_reading_s=late * prep.scene.period)
     ctl.events = loop.result.events             # journaled with the telemetry (.hst)
     ctl.sample_of = lambda: conn.tel.n
     loop.poll = lambda: ctl.poll(loop.engine)
