@@ -89,6 +89,11 @@ class Controller:
         predicted, and a target calibrated, with the middle in the delay (as the run
         predicts and calibrates); a change must also be stable with the end in it (the
         limit falls with the delay: where the board may render last). Default none.
+    late_reading_s : float, optional
+        The delay [s] a reading taken late adds (``hapsim run``'s driver's
+        ``late_reading_periods`` periods: :func:`hapsim.pipeline.render_latency.
+        late_reading`): a change must also be stable with the latency's end and this in
+        the delay, as the run's loop must be. Default 0.
 
     Attributes
     ----------
@@ -103,9 +108,11 @@ class Controller:
     """
 
     def __init__(self, scene, engine, live=None, ramp_s: float = 0.05,
-                 background: bool = True, latency: tuple = (0.0, 0.0)) -> None:
+                 background: bool = True, latency: tuple = (0.0, 0.0),
+                 late_reading_s: float = 0.0) -> None:
         self.scene = scene
         self.latency = (float(latency[0]), float(latency[1]))
+        self.late_reading_s = float(late_reading_s)
         self.engine = engine
         self.live = live
         self.ramp_s = float(ramp_s)
@@ -184,9 +191,9 @@ class Controller:
 
     def _predict(self, scene, at: int = 0) -> dict:
         """The prediction of ``scene``'s loop, with :attr:`latency`'s middle (``at`` 0)
-        or end (1) in its delay."""
+        or end (1) in its delay, or its end and a reading taken late (2)."""
         from hapsim.analysis.prediction import predict, timed_scene
-        lat = self.latency[at]
+        lat = (*self.latency, self.latency[1] + self.late_reading_s)[at]
         return self.analyst.call(predict, timed_scene(scene, lat) if lat else scene)
 
     def close(self) -> None:
@@ -242,9 +249,17 @@ class Controller:
                 raise Refused(f"the {self.what} would be unstable where the board renders "
                               f"{self.latency[1] * 1e3:.3g} ms after its read (spectral "
                               f"radius {p['spectral_radius']:.6g} > 1)")
+        if self.late_reading_s:
+            p = self._predict(new_scene, 2)
+            if not p["stable"]:
+                raise Refused(f"the {self.what} would be unstable with the board's reply "
+                              f"taken {self.late_reading_s * 1e3:.3g} ms late, as a host "
+                              f"that wakes a little late takes it (spectral radius "
+                              f"{p['spectral_radius']:.6g} > 1)")
+        ends = (0,) + ((1,) if self.latency[1] else ()) + ((2,) if self.late_reading_s else ())
         for a in (0.25, 0.5, 0.75):
             mid = self.blend(old_scene, new_scene, a)
-            for at in (0, 1) if self.latency[1] else (0,):
+            for at in ends:
                 p = self._predict(mid, at)
                 if not p["stable"]:
                     raise Refused(f"the ramp passes through an unstable loop at {a:.0%} "

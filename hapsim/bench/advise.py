@@ -151,7 +151,8 @@ class Advice:
         holds [Hz]), ``render_latency_s`` (the middle of its render latency's bounds [s],
         added to the device's delay at each rate: the felt pair is calibrated there) and
         ``render_latency_end_s`` (the bounds' end, where the margin's stability is held
-        too); None on hapsim's framed protocol.
+        too) and ``late_reading_periods`` (the driver's: the margin is held with that many
+        periods more after the end too); None on hapsim's framed protocol.
     """
 
     ok: bool
@@ -237,10 +238,13 @@ def board_timing(scene, rates) -> tuple:
     -------
     tuple
         ``(rates, latencies, board)``: the ladder the board holds, the latencies [s]
-        added to the device's delay, ``(middle, end)`` of the bounds (``(0, 0)`` without
-        one, or with an ideal hold, which takes whole delays only: the felt pair is
-        calibrated at the middle, the margin's stability held at both, the limit falling
-        with the delay) and :attr:`Advice.board` (None on hapsim's framed protocol).
+        added to the device's delay, ``(middle, end, late)`` of the bounds (``(0, 0, 0)``
+        without one, or with an ideal hold, which takes whole delays only: the felt pair
+        is calibrated at the middle, the margin's stability held at both, the limit
+        falling with the delay; ``late``, the driver's ``late_reading_periods``: the
+        margin is held with that many periods more after the end too, as the run's
+        refusal holds the loop, :func:`hapsim.pipeline.render_latency.late_reading`)
+        and :attr:`Advice.board` (None on hapsim's framed protocol).
     """
     from hapsim.drivers import device_driver
     drv = device_driver(scene.device)
@@ -250,8 +254,10 @@ def board_timing(scene, rates) -> tuple:
     held = drv.board_rates(rates)
     lat = latency_middle(scene, drv)
     end = render_latency(drv)[1] if lat else 0.0
-    return held, (lat, end), {"protocol": scene.device.protocol, "rates": held,
-                              "render_latency_s": lat, "render_latency_end_s": end}
+    late = int(getattr(drv, "late_reading_periods", 0) or 0)
+    return held, (lat, end, late), {"protocol": scene.device.protocol, "rates": held,
+                                    "render_latency_s": lat, "render_latency_end_s": end,
+                                    "late_reading_periods": late}
 
 
 def _delay(scene, rate_hz: float, latency_s: float):
@@ -265,7 +271,7 @@ def _delay(scene, rate_hz: float, latency_s: float):
 
 
 def _advise_link(scene, lk, tolerance: float, margin: float, rates,
-                 latency_s: tuple = (0.0, 0.0)) -> LinkAdvice:
+                 latency_s: tuple = (0.0, 0.0, 0)) -> LinkAdvice:
     """Lowest rate and cheapest method for one port link, taken against a ground."""
     dev = scene.device
     k, b = _wanted(lk, dev.friction)
@@ -278,7 +284,9 @@ def _advise_link(scene, lk, tolerance: float, margin: float, rates,
         (("naive", "calibrated") if to_ground else ("naive",))
     for r in rates:
         loop = LoopModel(dev.mass, dev.friction, r, _delay(scene, r, latency_s[0]), dev.hold)
-        late = LoopModel(dev.mass, dev.friction, r, _delay(scene, r, latency_s[1]), dev.hold)
+        n_late = latency_s[2] if len(latency_s) > 2 else 0
+        late = LoopModel(dev.mass, dev.friction, r,
+                         _delay(scene, r, latency_s[1]) + n_late, dev.hold)
         for method in methods:
             if method == "naive":
                 K, B = lk.stiffness, lk.damping
@@ -296,7 +304,8 @@ def _advise_link(scene, lk, tolerance: float, margin: float, rates,
             if err > tolerance and to_ground:
                 continue  # a link to a virtual mass is judged for accuracy with the scene
             if spectral_radius(loop, K / margin, B / margin) >= 1.0 or (
-                    latency_s[1] and spectral_radius(late, K / margin, B / margin) >= 1.0):
+                    (latency_s[1] or n_late)
+                    and spectral_radius(late, K / margin, B / margin) >= 1.0):
                 continue
             why = (f"{method} at {r:g} Hz is the first rate of the ladder with felt error "
                    f"{err:.2g} <= {tolerance:g} and stable at (K, B)/{margin:g}; against {against}"
@@ -403,9 +412,10 @@ def advise_scene(scene, tolerance: float = 0.01, *, margin: float = 0.95,
     for r in [x for x in rates if x >= floor]:
         sc = scene.with_rate(r)
         late = None
-        if lat[0]:
+        n_late = lat[2] if len(lat) > 2 else 0
+        if lat[0] or n_late:
             late = dataclasses.replace(sc, device=dataclasses.replace(
-                dev, delay=_delay(scene, r, lat[1])))
+                dev, delay=_delay(scene, r, lat[1]) + n_late))
             sc = dataclasses.replace(sc, device=dataclasses.replace(
                 dev, delay=_delay(scene, r, lat[0])))
         loop = LoopModel(dev.mass, dev.friction, r, _delay(scene, r, lat[0]), dev.hold)

@@ -88,6 +88,9 @@ def run(args) -> int:
                f"middle of its bounds) added to the delay, the margin held at "
                f"{bd['render_latency_end_s'] * 1e3:g} ms too" if bd["render_latency_s"]
                else "")
+        n = bd.get("late_reading_periods") or 0
+        lat += (f", and with its reply taken {n} period{'s' if n != 1 else ''} late" if n
+                else "")
         print(f"  board ({bd['protocol']}): the ladder's rates it holds: "
               f"{', '.join(f'{r:g}' for r in bd['rates']) or 'none'} Hz{lat}")
     for la in adv.links:
