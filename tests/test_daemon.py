@@ -570,3 +570,47 @@ def test_force_seq_read_only_when_the_device_says_it_is_valid():
     assert not tick_late(1, 0, 0, d, False)
     assert tick_late(5, 3, 0, d, False)
     assert named_delay(0, 0xFFFFFFFF, A, True) == 1          # mod 2^32
+
+
+def test_a_real_time_run_says_when_a_force_a_period_late_runs_its_loop_away(tmp_path):
+    """A device holds the last force it got, so a FORCE a host sends a period late makes
+    the loop's delay a period longer for that stretch: a loop stable at its own delay but
+    not at that one grows on a host that falls behind (configs/wall.yaml: K_max 1313 N/m
+    at d = 1, 785 at d = 2, its wall 1000 N/m; ``late_tolerant_wall`` above was written
+    for that). Random devices and walls on the framed protocol, 6 seeded draws, the
+    limits from the loop model itself at d and d + 1: a wall between them is prepared
+    for a real-time run with the warning, naming d + 1, and not refused; below the d + 1
+    limit, and in lockstep (the device waits for each FORCE), without it. A real-time run
+    of the shipped wall (0.3 s, the embedded mock) reports it among its warnings; the
+    README's first wall (stable at d = 3) reports none."""
+    import json
+
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
+    from hapsim.scene import load_scene
+    from inproc import hapsim_main  # same directory (pytest prepend import mode)
+    from hapsim.analysis.stability import stability_limit
+    rng = np.random.default_rng(11)
+    for i in range(6):
+        m, b0, B = (float(rng.uniform(0.05, 0.5)), float(rng.uniform(0.0, 1.0)),
+                    float(rng.uniform(0.5, 3.0)))
+        d = int(rng.integers(1, 4))
+        k1, k2 = (stability_limit(LoopModel(mass=m, friction=b0, rate_hz=1000.0, delay=dd,
+                                            hold="zoh"), B) for dd in (d, d + 1))
+        assert k2 < k1
+        for K, warned in ((0.5 * (k1 + k2), True), (0.95 * k2, False)):
+            path = tmp_path / f"w{i}{warned}.yaml"
+            path.write_text(wall_text(K, B, m=m, b0=b0, d=d, x0=0.001))
+            for lock in (False, True):
+                prep = prepare_run(load_scene(str(path)), RunOptions(
+                    handle_signals=False, lockstep=lock))
+                said = prep.pred.get("late_force_warning")
+                assert (said is not None) is (warned and not lock), (i, K, lock, said)
+                if said:
+                    assert prep.pred["late_force_unstable"]["delay"] == d + 1
+                    assert f"d = {d + 1}:" in said
+    for scene, warned in (("configs/wall.yaml", True), ("configs/first_wall.yaml", False)):
+        code, out, err = hapsim_main(["run", scene, "--duration", "0.3", "--json"])
+        assert code == 0, err
+        ws = json.loads(out)["loop"]["warnings"]
+        assert any("a FORCE a period late" in w for w in ws) is warned, ws

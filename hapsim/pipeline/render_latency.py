@@ -42,7 +42,8 @@ import numpy as np
 from hapsim.analysis.prediction import timed_scene
 
 __all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction",
-           "latency_refusal", "late_reading", "late_reading_refusal", "latency_search",
+           "latency_refusal", "late_reading", "late_reading_refusal", "late_force",
+           "latency_search",
            "SPREAD_POINTS", "REFINE_STEPS", "GOLDEN_STEPS"]
 
 #: Latencies tried over a driver's range (ends included): for the prediction's spread
@@ -216,6 +217,53 @@ def late_reading(scene, driver, pred: dict, latest_s: float) -> None:
     if p.get("stable") is False:
         pred["late_reading_unstable"] = {"periods": n, "delay": float(at.device.delay),
                                          "spectral_radius": float(p["spectral_radius"])}
+
+
+def late_force(scene, pred: dict, latest_s: float = 0.0) -> str | None:
+    """Whether the loop holds a FORCE that comes a period late: a real-time run's warning.
+
+    A device holds the last force it got (the framed mock, the boards' firmware), so a
+    FORCE a host sends a period late (a loaded machine falling behind) makes the loop's
+    delay a period longer for that stretch. A loop stable at its own delay but not at
+    that one (``configs/wall.yaml``: K_max 1313 N/m at d = 1, 785 at d = 2, its wall
+    1000 N/m) grows on a host that falls behind, to the force limit or the envelope's
+    safety stop. The run goes on (on an unloaded host it holds), and says so. A board
+    whose reading is itself taken late (``late_reading_periods``) is held to that
+    instead, and refused (:func:`late_reading`). The delay is a real number of periods,
+    modelled exactly (modified z-transform: Jury, 1964; :mod:`hapsim.analysis.subsample`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its own delay).
+    pred : dict
+        The run's prediction (:func:`timed_prediction`). Nothing is said where it is
+        unstable already, or a late reading makes it so; where a FORCE a period late
+        does, ``pred["late_force_unstable"]``: ``delay`` [periods] and
+        ``spectral_radius`` there.
+    latest_s : float
+        The board's latest render after its read [s] (its bounds' end; 0 without).
+
+    Returns
+    -------
+    str or None
+        The warning (None where the loop holds it).
+    """
+    from hapsim.analysis.prediction import predict
+    if (scene.device is None or pred.get("stable") is False
+            or pred.get("unstable_latency_s") is not None
+            or pred.get("late_reading_unstable") is not None):
+        return None
+    at = timed_scene(scene, float(latest_s) + scene.period)
+    p = predict(at)
+    if p.get("stable") is not False:
+        return None
+    d = float(at.device.delay)
+    pred["late_force_unstable"] = {"delay": d, "spectral_radius": float(p["spectral_radius"])}
+    return (f"the loop is stable at its own delay but not with a FORCE a period late "
+            f"(d = {d:.4g}: spectral radius {float(p['spectral_radius']):.6g}): a host that "
+            f"falls a period behind, on a loaded machine, can run it to its safety stop "
+            f"(`hapsim stability --scene {scene.path}`: the stiffness limits)")
 
 
 def late_reading_refusal(scene, pred: dict):

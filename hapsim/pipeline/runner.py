@@ -38,8 +38,9 @@ import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
-from hapsim.pipeline.render_latency import (late_reading_refusal, latency_middle,
-                                            latency_refusal, timed_prediction)
+from hapsim.pipeline.render_latency import (late_force, late_reading_refusal,
+                                            latency_middle, latency_refusal,
+                                            timed_prediction)
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
@@ -126,6 +127,11 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         raise latency_refusal(scene, pred)
     if pred.get("late_reading_unstable") is not None and not opts.allow_unstable:
         raise late_reading_refusal(scene, pred)
+    if not opts.lockstep:       # a real-time run: does the loop hold a FORCE a period late?
+        lat = pred.get("render_latency_s")
+        warning = late_force(scene, pred, lat[1] if lat else 0.0)
+        if warning:
+            pred["late_force_warning"] = warning
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
