@@ -207,16 +207,24 @@ def late_reading(scene, driver, pred: dict, latest_s: float) -> None:
     latest_s : float
         The board's latest render after its read [s] (its bounds' end; 0 without).
     """
-    from hapsim.analysis.prediction import predict
     n = int(getattr(driver, "late_reading_periods", 0) or 0) if driver is not None else 0
     if (n <= 0 or scene.device is None or pred.get("stable") is False
             or pred.get("unstable_latency_s") is not None):
         return
-    at = timed_scene(scene, float(latest_s) + n * scene.period)
+    found = _unstable_later(scene, float(latest_s) + n * scene.period)
+    if found is not None:
+        pred["late_reading_unstable"] = {"periods": n, **found}
+
+
+def _unstable_later(scene, extra_s: float) -> dict | None:
+    """``{"delay", "spectral_radius"}`` of the loop with ``extra_s`` [s] more in its
+    delay (:func:`timed_scene`) where it is unstable there; None where it is stable."""
+    from hapsim.analysis.prediction import predict
+    at = timed_scene(scene, extra_s)
     p = predict(at)
-    if p.get("stable") is False:
-        pred["late_reading_unstable"] = {"periods": n, "delay": float(at.device.delay),
-                                         "spectral_radius": float(p["spectral_radius"])}
+    if p.get("stable") is not False:
+        return None
+    return {"delay": float(at.device.delay), "spectral_radius": float(p["spectral_radius"])}
 
 
 def late_force(scene, pred: dict, latest_s: float = 0.0) -> str | None:
@@ -249,21 +257,18 @@ def late_force(scene, pred: dict, latest_s: float = 0.0) -> str | None:
     str or None
         The warning (None where the loop holds it).
     """
-    from hapsim.analysis.prediction import predict
     if (scene.device is None or pred.get("stable") is False
             or pred.get("unstable_latency_s") is not None
             or pred.get("late_reading_unstable") is not None):
         return None
-    at = timed_scene(scene, float(latest_s) + scene.period)
-    p = predict(at)
-    if p.get("stable") is not False:
+    found = _unstable_later(scene, float(latest_s) + scene.period)
+    if found is None:
         return None
-    d = float(at.device.delay)
-    pred["late_force_unstable"] = {"delay": d, "spectral_radius": float(p["spectral_radius"])}
+    pred["late_force_unstable"] = found
     return (f"the loop is stable at its own delay but not with a FORCE a period late "
-            f"(d = {d:.4g}: spectral radius {float(p['spectral_radius']):.6g}): a host that "
-            f"falls a period behind, on a loaded machine, can run it to its safety stop "
-            f"(`hapsim stability --scene {scene.path}`: the stiffness limits)")
+            f"(d = {found['delay']:.4g}: spectral radius {found['spectral_radius']:.6g}): "
+            f"a host that falls a period behind, on a loaded machine, can run it to its "
+            f"safety stop (`hapsim stability --scene {scene.path}`: the stiffness limits)")
 
 
 def late_reading_refusal(scene, pred: dict):
