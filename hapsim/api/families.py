@@ -137,14 +137,20 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
             scene.device, correction=correction))
     scene, ends, board = _board_family(scene)
     res = _family(scene, samples, grid=grid, seed=seed, certify=certify)
-    for lat, end in ends if res.robust else ():
-        # the board may render anywhere in its bounds: the family there, the (K, B)
-        # calibrated at the middle sent as they are; an unstable member is the verdict's
+    for lat, end, late in ends if res.robust else ():
+        # the board may render anywhere in its bounds, and its reading be taken late: the
+        # family there, the (K, B) calibrated at the middle sent as they are; an unstable
+        # member is the verdict's
         at = _family(end, samples, grid=grid, seed=seed, certify=certify,
                      calibrated=res.calibrated)
         if not at.robust:
             res, scene = at, end
-            board.update(unstable_latency_s=lat, delay_modelled=float(end.device.delay))
+            if late:
+                board.update(late_reading_unstable={"periods": late,
+                                                    "delay": float(end.device.delay)})
+            else:
+                board.update(unstable_latency_s=lat,
+                             delay_modelled=float(end.device.delay))
             break
     rep = res.to_dict()
     if len(res.links) + bool((hand_stiffness(res.members) > 0).any()) >= 2:
@@ -179,19 +185,27 @@ def _board_family(scene) -> tuple:
     """The family's scene as the board its ``device.protocol`` names runs it: at the
     board's rate, the render latency's middle in the delay (``hapsim check``'s loop,
     :func:`hapsim.api.checking.board_loop`), and the scenes at the latency's two bounds
-    the robust verdict holds too; ``(scene, ((latency [s], scene), ...), board)``, the
-    ``board`` dict None (and no bounds) on hapsim's framed protocol."""
+    the robust verdict holds too, and the scene with the board's reading taken late
+    (its driver's ``late_reading_periods`` more periods after the bounds' end, as the run
+    holds the loop: :func:`hapsim.pipeline.render_latency.late_reading`);
+    ``(scene, ((latency [s], scene, late periods), ...), board)``, the ``board`` dict None
+    (and no bounds) on hapsim's framed protocol."""
     from hapsim.analysis.prediction import timed_scene
     from hapsim.api.checking import at_board_rate
     from hapsim.pipeline.render_latency import latency_middle, render_latency
     scene, drv = at_board_rate(scene)
     if drv is None:
         return scene, (), None
+    n = int(getattr(drv, "late_reading_periods", 0) or 0)
     mid = latency_middle(scene, drv)
     if not mid:
-        return scene, (), {"protocol": scene.device.protocol, "rate_hz": scene.rate_hz}
+        late = ((n * scene.period, timed_scene(scene, n * scene.period), n),) if n else ()
+        return scene, late, {"protocol": scene.device.protocol, "rate_hz": scene.rate_hz}
     lo, hi = render_latency(drv)
     timed = timed_scene(scene, mid)
-    return timed, tuple((lat, timed_scene(scene, lat)) for lat in (lo, hi)), {
+    ends = [(lat, timed_scene(scene, lat), 0) for lat in (lo, hi)]
+    if n:
+        ends.append((hi + n * scene.period, timed_scene(scene, hi + n * scene.period), n))
+    return timed, tuple(ends), {
         "protocol": scene.device.protocol, "rate_hz": scene.rate_hz,
         "render_latency_s": [lo, hi], "delay_modelled": float(timed.device.delay)}

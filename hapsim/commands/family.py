@@ -223,6 +223,12 @@ def run(args: argparse.Namespace) -> int:
               + (f"periods, at {at * 1e3:g} ms, where it is not robustly stable (at the "
                  f"middle it is)" if at is not None else
                  "periods (the middle) and held stable at both bounds"))
+    lr = (bd or {}).get("late_reading_unstable")
+    if lr is not None:
+        print(f"  with the board's reply taken {lr['periods']} period(s) late, as a host "
+              f"that wakes a little late takes it (d = {lr['delay']:.6g}), the family is not "
+              f"robustly stable: the members below are there (hapsim run holds the scene's "
+              f"own loop to the same delay)")
     for name, (K, B) in rep["calibrated"].items():
         print(f"target {name}: calibrated on the nominal member: K = {K:.6g} N/m, "
               f"B = {B:.6g} N s/m")
