@@ -403,14 +403,19 @@ def test_a_rate_whose_period_is_no_whole_number_of_ticks_is_refused():
     them (an idle host's runs at 4 ticks read much of the answers after the next deadline);
     periods of whole ticks within the link's limit pass, written exactly or to six figures
     (201.613 Hz: 1.6e-6 of a tick off, inside the driver's 1e-4)."""
+    from tolerance import rel_tol  # same directory (pytest prepend import mode)
     drv = hk.HapkitSerial()
     tick = hk.FIRMWARE_TICK_S
     wire = 19 * 10 / 57600
     # the latest answer, from its parts (Hapkit_arduino.ino:96-135, tick_align.
-    # fit_tick_jump); 1e-12: a bound on the round-off of five terms of ~1e-3 s summed
-    late = wire + hk.RENDER_LATENCY_S[1] + 2 * tick - 9 * 10 / 57600
-    # (the same bound)
-    assert drv.latest_answer_s() == pytest.approx(late, rel=1e-12)
+    # fit_tick_jump)
+    parts = (wire, hk.RENDER_LATENCY_S[1], 2 * tick, -9 * 10 / 57600)
+    late = sum(parts)
+    # derived (tests/tolerance.rel_tol): four terms, each at most 3 roundings deep
+    # (a product and a quotient), summed in either order (3 more) by the driver and here:
+    # 2 x 6 roundings, the sum's condition sum |x| / |sum x| (the subtraction, ~1.7)
+    cond = sum(abs(x) for x in parts) / abs(late)
+    assert abs(drv.latest_answer_s() - late) <= rel_tol(12, cond) * late
     for n in (5, 6, 8, 1008):
         drv.check_rate(1.0 / (n * tick))
         assert drv.period_ticks(1.0 / (n * tick)) == n
@@ -684,6 +689,7 @@ def test_a_hand_family_on_the_board_is_judged_over_its_latency(tmp_path):
     import yaml
 
     from hapsim.api import family
+    from tolerance import rel_tol  # same directory (pytest prepend import mode)
     doc = yaml.safe_load(open("configs/hapkit_serial.yaml"))
     doc["device"]["hand"] = {"mass": [0.05, 0.5], "damping": 1.0,
                              "grip_stiffness": [300, 3000], "grip_damping": 2.0}
@@ -705,11 +711,12 @@ def test_a_hand_family_on_the_board_is_judged_over_its_latency(tmp_path):
     assert not late.robust and late.unstable >= 1
     assert "unstable_latency_s" not in late.extra["board"]
     lr = late.extra["board"]["late_reading_unstable"]
-    # bound: the same delay formed in another order (1 + (0.55 ms + T) / T against
-    # 2 + 0.55 ms / T), each of its three operations within half a unit of round-off of
-    # ~2.1: 1e-15 holds it with room
-    assert lr["periods"] == 1 and abs(
-        lr["delay"] - (2.0 + hk.RENDER_LATENCY_S[1] / (5 * hk.FIRMWARE_TICK_S))) < 1e-15
+    want = 2.0 + hk.RENDER_LATENCY_S[1] / (5 * hk.FIRMWARE_TICK_S)
+    # derived (tests/tolerance.rel_tol): the same delay formed another way, the driver's
+    # 1 + (0.55 ms + T) / T with T = 1 / rate and rate = 1 / (5 tick) (6 roundings)
+    # against 2 + 0.55 ms / (5 tick) (3): 9 roundings of positive terms (condition 1)
+    # on a value of ~2.1
+    assert lr["periods"] == 1 and abs(lr["delay"] - want) <= rel_tol(9) * want
     assert not edge.robust and edge.unstable >= 1
     assert edge.extra["board"]["unstable_latency_s"] == hk.RENDER_LATENCY_S[1]
     assert "late_reading_unstable" not in edge.extra["board"]
