@@ -192,20 +192,19 @@ def _board_family(scene) -> tuple:
     (and no bounds) on hapsim's framed protocol."""
     from hapsim.analysis.prediction import timed_scene
     from hapsim.api.checking import at_board_rate
-    from hapsim.pipeline.render_latency import latency_middle, render_latency
+    from hapsim.pipeline.render_latency import late_reading_s, latency_middle, render_latency
     scene, drv = at_board_rate(scene)
     if drv is None:
         return scene, (), None
-    n = int(getattr(drv, "late_reading_periods", 0) or 0)
     mid = latency_middle(scene, drv)
+    lo, hi = render_latency(drv) if mid else (0.0, 0.0)
+    n, late_s = late_reading_s(scene, drv, hi)
+    late = [(late_s, timed_scene(scene, late_s), n)] if n else []
     if not mid:
-        late = ((n * scene.period, timed_scene(scene, n * scene.period), n),) if n else ()
-        return scene, late, {"protocol": scene.device.protocol, "rate_hz": scene.rate_hz}
-    lo, hi = render_latency(drv)
+        return scene, tuple(late), {"protocol": scene.device.protocol,
+                                    "rate_hz": scene.rate_hz}
     timed = timed_scene(scene, mid)
-    ends = [(lat, timed_scene(scene, lat), 0) for lat in (lo, hi)]
-    if n:
-        ends.append((hi + n * scene.period, timed_scene(scene, hi + n * scene.period), n))
+    ends = [(lat, timed_scene(scene, lat), 0) for lat in (lo, hi)] + late
     return timed, tuple(ends), {
         "protocol": scene.device.protocol, "rate_hz": scene.rate_hz,
         "render_latency_s": [lo, hi], "delay_modelled": float(timed.device.delay)}

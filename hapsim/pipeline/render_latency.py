@@ -42,7 +42,8 @@ import numpy as np
 from hapsim.analysis.prediction import timed_scene
 
 __all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction",
-           "latency_refusal", "late_reading", "late_reading_refusal", "late_force",
+           "latency_refusal", "late_reading", "late_reading_s", "late_reading_refusal",
+           "late_force",
            "latency_search",
            "SPREAD_POINTS", "REFINE_STEPS", "GOLDEN_STEPS"]
 
@@ -207,13 +208,35 @@ def late_reading(scene, driver, pred: dict, latest_s: float) -> None:
     latest_s : float
         The board's latest render after its read [s] (its bounds' end; 0 without).
     """
-    n = int(getattr(driver, "late_reading_periods", 0) or 0) if driver is not None else 0
+    n, extra_s = late_reading_s(scene, driver, latest_s)
     if (n <= 0 or scene.device is None or pred.get("stable") is False
             or pred.get("unstable_latency_s") is not None):
         return
-    found = _unstable_later(scene, float(latest_s) + n * scene.period)
+    found = _unstable_later(scene, extra_s)
     if found is not None:
         pred["late_reading_unstable"] = {"periods": n, **found}
+
+
+def late_reading_s(scene, driver, latest_s: float) -> tuple:
+    """How late a board's reading may be taken: ``(periods, seconds)``, the driver's
+    ``late_reading_periods`` (0 without a driver) and the time they and the board's
+    latest render ``latest_s`` [s] add to the scene's delay (:func:`late_reading`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The scene (its period).
+    driver : type or hapsim.drivers.base.Driver or None
+    latest_s : float
+        The board's latest render after its read [s].
+
+    Returns
+    -------
+    tuple
+        ``(int, float)``.
+    """
+    n = int(getattr(driver, "late_reading_periods", 0) or 0) if driver is not None else 0
+    return n, float(latest_s) + n * scene.period
 
 
 def _unstable_later(scene, extra_s: float) -> dict | None:
