@@ -206,8 +206,23 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
     measured, late_info, cols, known = _fit_record(prep, tel, hello, driver)
     if known and not searching and "k" in measured:
         # the known inputs were taken out through the predicted loop: again through the
-        # loop the record measured (hapsim.pipeline.loop_refit)
+        # loop the record measured (hapsim.pipeline.loop_refit). A "differs"'s review asks
+        # whether the PREDICTED loop explains the record: its state stays this fit's, the
+        # known inputs taken out through that loop (through the measured one, a misfit of
+        # that correction, 5 % of the record on the sketch's levels, was left in every
+        # row with the predicted poles, and no break could explain it)
+        tested = measured.get("_unseen")
         measured = _through_loop(prep, tel, hello, driver, measured)
+        if tested is not None and "_unseen" in measured:
+            found = (measured.get("loop_refit") or {}).get("device")
+            if found is not None:
+                # the review's alternative: the loop the record measured, its record
+                loop = dataclasses.replace(scene, device=dataclasses.replace(
+                    scene.device, mass=found[0], friction=found[1]))
+                tested = {**tested, "alternative": {
+                    "poles": predicted_poles(loop)[0],
+                    "position": measured["_unseen"]["position"]}}
+            measured["_unseen"] = tested
     measured.pop("_hold_rows", None)
     notes = []
     if any(lk.kind == "contact" for lk in scene.links) and measured.get("comparable"):
@@ -269,6 +284,10 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
             f"{measured['link_k_unc']:.3g}, b +-{measured['link_b_unc']:.3g}); rerun "
             "with the board in lockstep to measure the loop")
     review_differs_too, review = review, measured.pop("_unseen", None)
+    if searching and review is not None:
+        # the record's test at this latency, for the search's review of a "differs"
+        # (hapsim.pipeline.render_latency.latency_search)
+        measured["_tested"] = review
     if (review is not None and measured.get("within") is False and not searching
             and review_differs_too):
         # a board on its own tick: the "differs" stands only where the predicted loop,
@@ -327,7 +346,7 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
     (:mod:`hapsim.pipeline.loop_refit`); default the model's. The law's replays, the
     fit's starting poles and the mass the felt pair is expressed with stay the model's.
     ``unseen``: a board on its own tick, the holds to cut without a search
-    (:func:`_cut_unseen_holds`' ``given``); default: searched.
+    (:func:`hapsim.pipeline.unseen_review.cut_unseen_holds`' ``given``); default: searched.
 
     Returns
     -------
@@ -481,7 +500,8 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
             for b in (hw, lfb):
                 if b is not None:
                     unread = unread | (np.asarray(b, float) > 0)
-            measured = _cut_unseen_holds(loop, fitted, exclude, position, cols, quantum,
+            from hapsim.pipeline.unseen_review import cut_unseen_holds
+            measured = cut_unseen_holds(loop, fitted, exclude, position, cols, quantum,
                                          driver, unread, poles, given=unseen)
         else:
             measured = fitted(exclude)
@@ -498,9 +518,65 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         if put_back:
             measured["skipped_put_back"] = put_back   # rows of skipped STATEs measured too
         known = not np.array_equal(position, cols["position"])
+        if known and "k" in measured:
+            from hapsim.analysis.identify import sensor_sd
+            _own_motion(measured, cols["position"], position, exclude,
+                        sensor_sd(quantum, dev.noise))
     if tail:
         measured["tail_left_out"] = tail
     return measured, late_info, cols, known
+
+
+def _own_motion(measured: dict, raw, position, exclude, floor: float) -> None:
+    """A measurement of a record with known inputs taken out through the predicted loop,
+    refused (in place: ``error``, the pair removed) where the handle did not move over
+    the rows measured.
+
+    The known inputs' response (an output stage's levels, late ticks' forces, a clamp)
+    is the model's: on a handle that stopped (held by a Coulomb friction the scene does
+    not state, 0.03 N on a 21 N/m paddle: the record constant from its second cycle on)
+    the record measured was that response alone, the predicted loop's free response,
+    and the pair came out as predicted to 1e-14 with "within"
+    (tests/test_unseen_accepted.py). The record logged must move over those rows by more
+    than its sensor's noise could: its norm about its mean above ``2 sigma sqrt(N)``
+    (``N`` rows, ``sigma`` the sensor's deviation; white noise alone gives
+    ``sigma sqrt(N - 1)``, within ``sigma / sqrt(2)`` of it). A response taken out as
+    large as the motion is no fault (a record driven into the force limit, clamped, still
+    measures the prediction to 1e-6: tests/test_identify_late.py).
+
+    Parameters
+    ----------
+    measured : dict
+        The fit's result (``first_row``; the rows from it on, not ``exclude``d, are the
+        ones measured).
+    raw, position : ndarray, shape (n,)
+        The record logged and the record measured [m].
+    exclude : ndarray of bool, shape (n,)
+        Rows the fit left out.
+    floor : float
+        The sensor's standard deviation [m] (0: read exactly).
+    """
+    first = int(measured.get("first_row") or 0)
+    keep = np.zeros(len(raw), bool)
+    keep[first:] = True
+    keep &= ~np.asarray(exclude, bool)
+    x = np.asarray(raw, float)[keep]
+    if not x.size:
+        return
+    own = float(np.linalg.norm(x - x.mean()))
+    if own > 2.0 * float(floor) * math.sqrt(x.size):
+        return
+    c = (np.asarray(raw, float) - position)[keep]
+    for q in [q for q in measured if q in ("k", "b", "f0_hz", "damping_ratio")
+              or q.startswith(("k_", "b_"))]:
+        measured.pop(q)
+    measured["error"] = (
+        f"not identified: the handle did not move over the {x.size} rows measured "
+        f"({own:.3g} m about its mean, within its sensor's noise): the oscillation "
+        f"there ({float(np.linalg.norm(c - c.mean())):.3g} m) was the known inputs' "
+        f"response taken out of the record (an output stage's levels, late or clamped "
+        f"forces) through the predicted loop, the model's, not the device's (a handle "
+        f"stopped, held by friction the scene does not state?)")
 
 
 def _write_holds(scene, cols: dict, driver, quantum: float):
@@ -565,119 +641,6 @@ def _link_check(pred, measured, fitted, exclude, bounds, holds) -> None:
     measured["link_k_unc"] = link.get("k_interval", math.nan)
     measured["link_b_unc"] = link.get("b_interval", math.nan)
     measured["_link_within"] = link.get("within") is True
-
-
-def _cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
-                      unread, poles, given=None) -> dict:
-    """:func:`identify_run`'s fit of a board on its own tick, with the holds it mistimed
-    that no host saw cut out (:func:`hapsim.analysis.unseen_holds.find_unseen_holds`).
-
-    Fit, find the rows whose hold signature stands out of the residual, cut them
-    (:func:`~hapsim.analysis.unseen_holds.hold_rows`, as the host-marked holds), fit
-    again, at most :data:`~hapsim.analysis.unseen_holds.MAX_PASSES` times more. With
-    none found the first fit is the measurement, unchanged.
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        The run's calibrated scene.
-    fitted : callable
-        ``fitted(exclude, fit) -> dict``: :func:`hapsim.analysis.measurement.identify` on
-        the run's record with these rows left out (``fit`` filled as it says).
-    exclude : ndarray of bool, shape (n,)
-        The rows already left out.
-    position : ndarray, shape (n,)
-        The record measured [m] (the late ticks' response taken out).
-    cols : dict of ndarray
-        The telemetry columns (``force`` [N], ``seq``), shape (n,).
-    quantum : float
-        The sensor's step [m].
-    driver : hapsim.drivers.base.Driver
-        The run's driver (its ``position_rel``: the wire's rounding in the floor).
-    unread : ndarray of bool, shape (n,)
-        Rows whose error the stated uncertainty bounds already (an estimated position, a
-        force the account cannot name, a late tick's accounted force): no hold is sought
-        near them (:func:`~hapsim.analysis.unseen_holds.find_unseen_holds`' ``unread``).
-    poles : array_like of complex
-        The predicted closed-loop poles (for a "differs"'s review,
-        :func:`hapsim.pipeline.unseen_review.review_differs`).
-    given : (list of int, list of float), optional
-        Holds found before (rows, mistimings [s]: a measurement's ``_hold_rows``), cut
-        without a search (:mod:`hapsim.pipeline.loop_refit`'s fits at other loops).
-
-    Returns
-    -------
-    dict
-        The measurement; with ``unseen_holds`` (how many were cut, 0 if none) and, when
-        some were, ``unseen_hold_seqs`` (the ``seq`` of each one's first disturbed row,
-        at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], quarter
-        ticks: positive, taken late); ``_unseen``, what a "differs"'s review needs
-        (:func:`hapsim.pipeline.unseen_review.review_differs`' ``state``), popped by
-        :func:`identify_run`; ``_hold_rows``, the rows and mistimings cut (``given``'s
-        form).
-    """
-    from hapsim.analysis.error_response import force_error_response, sensor_error_response
-    from hapsim.analysis.identify import sensor_sd
-    from hapsim.analysis.unseen_holds import (MAX_PASSES, find_unseen_holds, hold_rows,
-                                              mistimings)
-    n = int(cols["seq"].size)
-    tried = mistimings(scene.period, float(driver.tick_s))
-    x = np.asarray(position, float)
-    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
-    floor = math.hypot(sensor_sd(quantum, scene.device.noise),
-                       pr * float(np.max(np.abs(x))) / math.sqrt(3.0) if n else 0.0)
-    fit: dict = {}
-    if given is not None:
-        # the holds a search made before (at another loop), cut as they are
-        rows, taus = [int(j) for j in given[0]], [float(t) for t in given[1]]
-        ex = np.asarray(exclude, bool) | hold_rows(n, rows)
-        measured = fitted(ex, fit)
-        last = (fit, ex, measured)
-        passes = 0
-    else:
-        measured = fitted(exclude, fit)
-        if not fit:                    # no variable projection: an exact record, or none
-            measured["unseen_holds"] = 0
-            measured["_hold_rows"] = ([], [])
-            return measured
-        rows, taus = [], []
-        ex = np.asarray(exclude, bool).copy()
-        last = (fit, ex.copy(), measured)
-        passes = MAX_PASSES
-    try:
-        S, H = sensor_error_response(scene, n), force_error_response(scene, n)
-    except ConfigError:
-        passes = 0
-    for _ in range(passes):
-        got = find_unseen_holds(x, cols["force"], fit, scene.period, S, H, tried,
-                                floor=floor, lead=math.ceil(float(scene.device.delay)) + 3,
-                                unread=unread)
-        # a hold whose rows are cut already (one before a stretch, found again by its
-        # tail) changes nothing: the search stops when no hold found cuts a new row
-        new = [(j, t) for j, t in zip(got["rows"].tolist(), got["tau_s"].tolist())
-               if np.any(hold_rows(n, [j]) & ~ex)]
-        if not new:
-            break
-        rows += [j for j, _ in new]
-        taus += [t for _, t in new]
-        ex |= hold_rows(n, [j for j, _ in new])
-        fit = {}
-        measured = fitted(ex, fit)
-        if not fit:
-            break
-        last = (fit, ex.copy(), measured)
-    measured["unseen_holds"] = len(rows)
-    measured["_hold_rows"] = (list(rows), list(taus))
-    if last[2] is measured and "k" in measured and last[0]:
-        measured["_unseen"] = {
-            "fitted": fitted, "fit": last[0], "exclude": last[1], "position": x,
-            "poles": poles, "floor": floor,
-            "drop": math.ceil(float(scene.device.delay)) + 2}
-    if rows:
-        seq = np.asarray(cols["seq"], np.int64)
-        measured["unseen_hold_seqs"] = [int(seq[j]) for j in rows[:100]]
-        measured["unseen_hold_tau_ms"] = [round(t * 1e3, 3) for t in taus[:100]]
-    return measured
 
 
 class _Record:

@@ -1,19 +1,29 @@
-"""A "differs" of a board on its own tick reviewed against the predicted loop with the
-breaks its unseen holds may have made (:func:`hapsim.analysis.unseen_verdict.
-break_prediction`), for :func:`hapsim.pipeline.measure.identify_run`."""
+"""A board on its own tick that mistimes holds no host sees, for
+:func:`hapsim.pipeline.measure.identify_run`: the holds found in the record and cut
+(:func:`cut_unseen_holds`), and a "differs" reviewed against the predicted loop with the
+breaks its unseen holds may have made (:func:`review_differs`,
+:func:`hapsim.analysis.unseen_verdict.break_prediction`)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from hapsim.analysis.measurement import verdict
+from hapsim.errors import ConfigError
 
-__all__ = ["review_differs"]
+__all__ = ["cut_unseen_holds", "review_differs"]
 
 
 def review_differs(pred: dict, measured: dict, state: dict) -> dict:
     """Let a "differs" stand only where the predicted loop, broken where the board may
     have mistimed holds no host saw, does not explain the record to its noise.
+
+    Nor where the loop of the pair measured, with its own breaks, explains it at a far
+    lower cost (:func:`hapsim.analysis.unseen_verdict.break_cost_gain`: breaks explain
+    anything when enough are taken; ``prediction_test`` then has ``explained`` False and
+    ``measured_loop_gain``, ``gain_limit``, ``measured_loop_breaks``).
 
     When it does, the record is measured again with those breaks cut as the holds found
     are (:func:`hapsim.analysis.unseen_holds.hold_rows`): within the stated uncertainty
@@ -28,10 +38,14 @@ def review_differs(pred: dict, measured: dict, state: dict) -> dict:
         The measurement whose verdict is "differs" (:func:`hapsim.analysis.measurement.
         verdict`'s ``within`` False).
     state : dict
-        What :func:`hapsim.pipeline.measure._cut_unseen_holds` leaves for it: ``fitted``
+        What :func:`cut_unseen_holds` leaves for it: ``fitted``
         (``fitted(exclude, fit) -> dict``), ``fit`` (the last fit's modes and rows),
         ``exclude`` (bool, shape (n,): the rows cut), ``position`` [m], ``poles`` (the
-        predicted poles), ``floor`` [m] and ``drop`` (rows dropped after a cut).
+        predicted poles), ``floor`` [m] and ``drop`` (rows dropped after a cut);
+        optionally ``alternative``: the loop the record measured (``poles``, and
+        ``position``, the record with its known inputs taken out through it); default
+        the predicted loop with the pair the fit measured
+        (:func:`hapsim.analysis.unseen_verdict.measured_loop_poles`).
 
     Returns
     -------
@@ -41,7 +55,8 @@ def review_differs(pred: dict, measured: dict, state: dict) -> dict:
         break_prediction`).
     """
     from hapsim.analysis.unseen_holds import hold_rows
-    from hapsim.analysis.unseen_verdict import break_prediction
+    from hapsim.analysis.unseen_verdict import (break_cost_gain, break_prediction,
+                                                measured_loop_poles)
     got = break_prediction(state["position"], state["fit"], state["poles"],
                            floor=state["floor"], drop=state["drop"])
     test = {q: got[q] for q in ("explained", "chi2", "limit", "dof")}
@@ -49,6 +64,22 @@ def review_differs(pred: dict, measured: dict, state: dict) -> dict:
     measured["prediction_test"] = test
     if not got["explained"]:
         return measured
+    # the measured pair's loop, with its own breaks: explaining the record at a far lower
+    # cost, the departure stands whatever breaks the predicted loop was allowed
+    other = state.get("alternative") or {}
+    alt = other.get("poles")
+    if alt is None:
+        alt = measured_loop_poles(state["poles"], state["fit"].get("spec", []))
+    if alt is not None:
+        cmp = break_cost_gain(state["position"], state["fit"], state["poles"], alt,
+                              floor=state["floor"], drop=state["drop"],
+                              alternative_position=other.get("position"))
+        test["measured_loop_gain"] = cmp["gain"]
+        test["gain_limit"] = cmp["limit"]
+        test["measured_loop_breaks"] = int(cmp["alternative"]["breaks"].size)
+        if cmp["stands"]:
+            test["explained"] = False
+            return measured
     # measured again with the breaks cut as the holds found are
     ex = np.asarray(state["exclude"], bool) | hold_rows(len(state["position"]),
                                                          got["breaks"])
@@ -70,4 +101,118 @@ def review_differs(pred: dict, measured: dict, state: dict) -> dict:
         f"explains the record to its noise (chi-square {test['chi2']:.3g} against "
         f"{test['limit']:.3g}, {test['dof']} degrees of freedom){how}: the departure is "
         f"no evidence that the device differs; rerun, or with the board in lockstep")
+    return measured
+
+
+def cut_unseen_holds(scene, fitted, exclude, position, cols, quantum, driver,
+                     unread, poles, given=None) -> dict:
+    """:func:`hapsim.pipeline.measure.identify_run`'s fit of a board on its own tick, with
+    the holds it mistimed that no host saw cut out
+    (:func:`hapsim.analysis.unseen_holds.find_unseen_holds`).
+
+    Fit, find the rows whose hold signature stands out of the residual, cut them
+    (:func:`~hapsim.analysis.unseen_holds.hold_rows`, as the host-marked holds), fit
+    again, at most :data:`~hapsim.analysis.unseen_holds.MAX_PASSES` times more. With
+    none found the first fit is the measurement, unchanged.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene.
+    fitted : callable
+        ``fitted(exclude, fit) -> dict``: :func:`hapsim.analysis.measurement.identify` on
+        the run's record with these rows left out (``fit`` filled as it says).
+    exclude : ndarray of bool, shape (n,)
+        The rows already left out.
+    position : ndarray, shape (n,)
+        The record measured [m] (the late ticks' response taken out).
+    cols : dict of ndarray
+        The telemetry columns (``force`` [N], ``seq``), shape (n,).
+    quantum : float
+        The sensor's step [m].
+    driver : hapsim.drivers.base.Driver
+        The run's driver (its ``position_rel``: the wire's rounding in the floor).
+    unread : ndarray of bool, shape (n,)
+        Rows whose error the stated uncertainty bounds already (an estimated position, a
+        force the account cannot name, a late tick's accounted force): no hold is sought
+        near them (:func:`~hapsim.analysis.unseen_holds.find_unseen_holds`' ``unread``).
+    poles : array_like of complex
+        The predicted closed-loop poles (for a "differs"'s review,
+        :func:`hapsim.pipeline.unseen_review.review_differs`).
+    given : (list of int, list of float), optional
+        Holds found before (rows, mistimings [s]: a measurement's ``_hold_rows``), cut
+        without a search (:mod:`hapsim.pipeline.loop_refit`'s fits at other loops).
+
+    Returns
+    -------
+    dict
+        The measurement; with ``unseen_holds`` (how many were cut, 0 if none) and, when
+        some were, ``unseen_hold_seqs`` (the ``seq`` of each one's first disturbed row,
+        at most 100) and ``unseen_hold_tau_ms`` (each one's mistiming [ms], quarter
+        ticks: positive, taken late); ``_unseen``, what a "differs"'s review needs
+        (:func:`review_differs`' ``state``), popped by
+        :func:`hapsim.pipeline.measure.identify_run`; ``_hold_rows``, the rows and
+        mistimings cut (``given``'s form).
+    """
+    from hapsim.analysis.error_response import force_error_response, sensor_error_response
+    from hapsim.analysis.identify import sensor_sd
+    from hapsim.analysis.unseen_holds import (MAX_PASSES, find_unseen_holds, hold_rows,
+                                              mistimings)
+    n = int(cols["seq"].size)
+    tried = mistimings(scene.period, float(driver.tick_s))
+    x = np.asarray(position, float)
+    pr = float(getattr(driver, "position_rel", 0.0) or 0.0)
+    floor = math.hypot(sensor_sd(quantum, scene.device.noise),
+                       pr * float(np.max(np.abs(x))) / math.sqrt(3.0) if n else 0.0)
+    fit: dict = {}
+    if given is not None:
+        # the holds a search made before (at another loop), cut as they are
+        rows, taus = [int(j) for j in given[0]], [float(t) for t in given[1]]
+        ex = np.asarray(exclude, bool) | hold_rows(n, rows)
+        measured = fitted(ex, fit)
+        last = (fit, ex, measured)
+        passes = 0
+    else:
+        measured = fitted(exclude, fit)
+        if not fit:                    # no variable projection: an exact record, or none
+            measured["unseen_holds"] = 0
+            measured["_hold_rows"] = ([], [])
+            return measured
+        rows, taus = [], []
+        ex = np.asarray(exclude, bool).copy()
+        last = (fit, ex.copy(), measured)
+        passes = MAX_PASSES
+    try:
+        S, H = sensor_error_response(scene, n), force_error_response(scene, n)
+    except ConfigError:
+        passes = 0
+    for _ in range(passes):
+        got = find_unseen_holds(x, cols["force"], fit, scene.period, S, H, tried,
+                                floor=floor, lead=math.ceil(float(scene.device.delay)) + 3,
+                                unread=unread)
+        # a hold whose rows are cut already (one before a stretch, found again by its
+        # tail) changes nothing: the search stops when no hold found cuts a new row
+        new = [(j, t) for j, t in zip(got["rows"].tolist(), got["tau_s"].tolist())
+               if np.any(hold_rows(n, [j]) & ~ex)]
+        if not new:
+            break
+        rows += [j for j, _ in new]
+        taus += [t for _, t in new]
+        ex |= hold_rows(n, [j for j, _ in new])
+        fit = {}
+        measured = fitted(ex, fit)
+        if not fit:
+            break
+        last = (fit, ex.copy(), measured)
+    measured["unseen_holds"] = len(rows)
+    measured["_hold_rows"] = (list(rows), list(taus))
+    if last[2] is measured and "k" in measured and last[0]:
+        measured["_unseen"] = {
+            "fitted": fitted, "fit": last[0], "exclude": last[1], "position": x,
+            "poles": poles, "floor": floor,
+            "drop": math.ceil(float(scene.device.delay)) + 2}
+    if rows:
+        seq = np.asarray(cols["seq"], np.int64)
+        measured["unseen_hold_seqs"] = [int(seq[j]) for j in rows[:100]]
+        measured["unseen_hold_tau_ms"] = [round(t * 1e3, 3) for t in taus[:100]]
     return measured
