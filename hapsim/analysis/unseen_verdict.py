@@ -47,7 +47,7 @@ import math
 import numpy as np
 
 __all__ = ["FALSE_ALARM", "BREAK_FRACTION", "KEEP_FRACTION", "pole_spec",
-           "break_prediction", "measured_loop_poles", "break_cost_gain"]
+           "break_prediction", "prediction_rss", "measured_loop_poles", "break_cost_gain"]
 
 #: False-alarm probability of each test (the breaks' family over the candidates, and the
 #: final chi-square): the hold search's (:data:`hapsim.analysis.unseen_holds.
@@ -287,6 +287,27 @@ def _residual(p: _Piece) -> np.ndarray:
         return np.zeros(0)
     c = np.linalg.lstsq(p.phi, p.y, rcond=None)[0]
     return p.y - p.phi @ c
+
+
+def prediction_rss(position, fit: dict, poles) -> float:
+    """The residual's sum of squares of the record on the predicted modes with no break
+    [m^2]: each stretch of ``fit["rows"]`` its own coefficients (:func:`break_prediction`
+    with none taken, without its search).
+
+    Parameters
+    ----------
+    position, fit, poles
+        As :func:`break_prediction`.
+
+    Returns
+    -------
+    float
+    """
+    x = np.asarray(position, float)
+    spec = pole_spec(poles)
+    offset = bool(fit.get("offset"))
+    return float(sum(_rss(x[r], _basis(spec, np.asarray(r).size, offset))
+                      for r in fit["rows"] if np.asarray(r).size))
 
 
 def measured_loop_poles(poles, spec):
