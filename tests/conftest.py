@@ -35,18 +35,6 @@ if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
     import sys
     sys.dont_write_bytecode = False
 
-# --- One BLAS thread a process, as every hapsim command has -------------------------------
-# The suite runs one xdist worker more than the cores and calls hapsim's analysis in them
-# (not through the command line, which sizes its pools: hapsim.blas.size_pools); OpenBLAS
-# would start a thread per core in each worker, spinning while they wait. Measured on this
-# 2-core machine beside three busy processes: an SVD of a 700 x 61 Hankel matrix (the
-# matrix pencil of a Hapkit record) 29 ms against 3.0 ms with one thread. Sized here, in
-# the pytest process, before the workers start (they inherit the environment); a pool
-# size the caller set is kept.
-from hapsim.blas import size_pools  # noqa: E402
-
-size_pools()
-
 #: Restored after every test.
 _SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGPIPE)
 #: A test must leave these as it found them (the Ctrl-C and service-manager tests' signals).
