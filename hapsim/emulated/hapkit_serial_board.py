@@ -7,6 +7,7 @@ by :func:`hapsim.emulated.driver_mock.serve`.
 from __future__ import annotations
 
 import math
+import statistics
 
 from hapsim.drivers.hapkit_serial import FIRMWARE_TICK_S, whole_ticks
 from hapsim.emulated.actuated import Actuated, offline_record
@@ -443,7 +444,8 @@ class HapkitSerialDevice(Actuated):
         the host's timing: ``commands``; ``near_boundary``, those within a tenth of a tick
         of the tick's end or start (a header coming there is read at one tick or the next
         by a jitter of 0.1 ms: the reading 0.42 ms off);
-        ``median_phase``, the median arrival phase [fraction of a tick, 0 at a tick];
+        ``median_phase``, the median arrival phase [fraction of a tick, 0 at a tick], and
+        ``phase_sd`` their standard deviation [fraction of a tick];
         ``sample_interval_ms``, the 1st, 50th and 99th percentiles of the intervals
         between the replies' readings [ms] (the first 100,000; intervals over two periods,
         the probes' and an arming's, left out);
@@ -467,6 +469,7 @@ class HapkitSerialDevice(Actuated):
                 "sample_interval_ms": {"p1": pct(0.01), "median": pct(0.5),
                                        "p99": pct(0.99)},
                 "median_phase": ph[len(ph) // 2] if ph else None,
+                "phase_sd": statistics.pstdev(ph) if ph else None,
                 "off_period": len(off), "off_at": off[:1000]}
 
 
