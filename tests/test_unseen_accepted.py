@@ -55,9 +55,10 @@ from test_unseen_verdict import _holds, _says, _wrong
 
 pytestmark = pytest.mark.xdist_group("test_unseen_accepted")
 
-#: Seeds of the property test: two of each wrong device (mass, viscous, Coulomb), the
-#: Coulomb paddle 32 that was "within" and the viscous one 34 that was "explained".
-SEEDS = tuple(range(30, 36))
+#: Seeds of the property test: one of each wrong device, the Coulomb paddle 32 that was
+#: "within", a mass 33 and the viscous one 34 that was "explained" (the sweep of seeds
+#: 0-39 in the module notes is the same test; three keep the suite in its time).
+SEEDS = (32, 33, 34)
 
 
 def _accepted(seed: int, tmp: pathlib.Path):
