@@ -342,7 +342,7 @@ def measured_loop_poles(poles, spec):
 
 
 def break_cost_gain(position, fit: dict, poles, alternative, *, floor: float,
-                    drop: int, alternative_position=None) -> dict:
+                    drop: int, alternative_position=None, predicted=None) -> dict:
     """How much better the alternative loop (the measured pair,
     :func:`measured_loop_poles`) explains the record than the predicted one, each with
     the breaks the board's unseen holds may have made: the difference of their penalised
@@ -370,6 +370,9 @@ def break_cost_gain(position, fit: dict, poles, alternative, *, floor: float,
     alternative_position : array_like, shape (n,), optional
         The record as the alternative loop measures it (its known inputs taken out through
         that loop); default ``position``. Both are fitted on ``fit``'s rows.
+    predicted : dict, optional
+        :func:`break_prediction`'s result for ``position``, ``fit`` and ``poles`` when the
+        caller has it already (computed here otherwise).
 
     Returns
     -------
@@ -379,7 +382,8 @@ def break_cost_gain(position, fit: dict, poles, alternative, *, floor: float,
         (:func:`break_prediction`'s results).
     """
     from scipy.stats import chi2
-    a = break_prediction(position, fit, poles, floor=floor, drop=drop)
+    a = (break_prediction(position, fit, poles, floor=floor, drop=drop)
+         if predicted is None else predicted)
     b = break_prediction(position if alternative_position is None else alternative_position,
                          fit, alternative, floor=floor, drop=drop)
 

@@ -214,11 +214,10 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         tested = measured.get("_unseen")
         measured = _through_loop(prep, tel, hello, driver, measured)
         if tested is not None and "_unseen" in measured:
-            found = (measured.get("loop_refit") or {}).get("device")
+            found = _refit_device(scene, measured)
             if found is not None:
                 # the review's alternative: the loop the record measured, its record
-                loop = dataclasses.replace(scene, device=dataclasses.replace(
-                    scene.device, mass=found[0], friction=found[1]))
+                loop = dataclasses.replace(scene, device=found)
                 tested = {**tested, "alternative": {
                     "poles": predicted_poles(loop)[0],
                     "position": measured["_unseen"]["position"]}}
@@ -324,10 +323,9 @@ def _through_loop(prep: PreparedRun, tel: Telemetry, hello, driver, measured: di
         return _fit_record(prep, tel, hello, driver, loop_device=d, unseen=given)[0]
 
     at = through_measured_loop(scene, measured, lambda d: fit(d, rows))
-    got = at.get("loop_refit", {}).get("device")
-    if rows is None or "k" not in at or got is None:
+    found = _refit_device(scene, at)
+    if rows is None or "k" not in at or found is None:
         return at
-    found = dataclasses.replace(scene.device, mass=got[0], friction=got[1])
     searched = fit(found, None)
     again = searched.get("_hold_rows", ([], []))
     if "k" not in searched:
@@ -335,6 +333,15 @@ def _through_loop(prep: PreparedRun, tel: Telemetry, hello, driver, measured: di
     if sorted(again[0]) == sorted(rows[0]):
         return at
     return through_measured_loop(scene, searched, lambda d: fit(d, again), start=found)
+
+
+def _refit_device(scene: Scene, measured: dict):
+    """The device of the loop the record measured: the scene's with the mass and friction
+    :mod:`hapsim.pipeline.loop_refit` found (``measured["loop_refit"]["device"]``); None
+    without a refit."""
+    got = (measured.get("loop_refit") or {}).get("device")
+    return (None if got is None else
+            dataclasses.replace(scene.device, mass=got[0], friction=got[1]))
 
 
 def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,

@@ -487,14 +487,13 @@ def latency_search(prep, measure_at) -> dict:
         p_o = predict(model_o)
         m_o = dict(measure_at(dataclasses.replace(prep, model_scene=model_o, pred=p_o),
                               True))
-        if not str(m_o.get("verdict", "")).startswith("measured differs"):
+        if not _differs(m_o):
             r, p, m = other, p_o, m_o
             m["render_latency_review"] = (
                 "the predicted loop at the latency picked did not explain the record "
                 "with the breaks the board's unseen holds may have made; at this one "
                 "it does")
-    if (m.get("within") is False and n_grid > 1
-            and str(m.get("verdict", "")).startswith("measured differs")):
+    if m.get("within") is False and n_grid > 1 and _differs(m):
         # (a "not measurable" the review gave is no departure to widen: the spread's
         # verdict made again would have turned it back into "differs")
         _latency_spread(prep, m, p, r, (lo, hi), measure_at)
@@ -513,6 +512,12 @@ def latency_search(prep, measure_at) -> dict:
     prep.pred["render_latency_found_s"] = r
     prep.pred["delay_modelled"] = float(timed_scene(prep.scene, r).device.delay)
     return m
+
+
+def _differs(m: dict) -> bool:
+    """Whether a measurement's verdict is "measured differs" (not a review's "not
+    measurable", nor a pair within)."""
+    return str(m.get("verdict", "")).startswith("measured differs")
 
 
 def _explained_elsewhere(m: dict, cache: dict, picked: float):
@@ -560,7 +565,7 @@ def _explained_elsewhere(m: dict, cache: dict, picked: float):
     states = {r: c[0].pop("_tested", None) for r, c in cache.items()}
     test = m.get("prediction_test")
     if not (m.get("within") is False and test and test.get("explained") is False
-            and str(m.get("verdict", "")).startswith("measured differs")):
+            and _differs(m)):
         return None
     from hapsim.analysis.unseen_verdict import break_prediction, prediction_rss
     # the latencies tried, the nearest to the record first (its residual with no break):

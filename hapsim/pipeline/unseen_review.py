@@ -73,7 +73,7 @@ def review_differs(pred: dict, measured: dict, state: dict) -> dict:
     if alt is not None:
         cmp = break_cost_gain(state["position"], state["fit"], state["poles"], alt,
                               floor=state["floor"], drop=state["drop"],
-                              alternative_position=other.get("position"))
+                              alternative_position=other.get("position"), predicted=got)
         test["measured_loop_gain"] = cmp["gain"]
         test["gain_limit"] = cmp["limit"]
         test["measured_loop_breaks"] = int(cmp["alternative"]["breaks"].size)
