@@ -611,6 +611,12 @@ def test_a_real_time_run_says_when_a_force_a_period_late_runs_its_loop_away(tmp_
                     assert f"d = {d + 1}:" in said
     for scene, warned in (("configs/wall.yaml", True), ("configs/first_wall.yaml", False)):
         code, out, err = hapsim_main(["run", scene, "--duration", "0.3", "--json"])
-        assert code == 0, err
-        ws = json.loads(out)["loop"]["warnings"]
+        assert out, (code, err)
+        lp = json.loads(out)["loop"]
+        # the shipped wall is what its warning says: a host a period behind can run it to
+        # its safety stop (exit 1, the report written: once in a whole suite on a slow,
+        # loaded machine); the wall without the warning never stops
+        assert code == 0 or (warned and code == 1 and lp["safety_stop"]), (
+            code, err, lp["stop_reason"])
+        ws = lp["warnings"]
         assert any("a FORCE a period late" in w for w in ws) is warned, ws
