@@ -244,13 +244,19 @@ def _with_unread(Q, rows, unread, S, H, lead):
     return U[:, sv > np.finfo(float).eps * max(B.shape) * sv[0]]
 
 
-def _correlate(r, k):
-    """``c[i] = sum_m r[i + m] k[m]`` over ``m < r.size - i`` (the kernel cut at the end)."""
+def _correlate(R, kernels):
+    """``c[j, ..., i] = sum_m R[..., i + m] k_j[m]`` over ``m < L - i`` (each kernel cut at
+    the end), for the rows ``R[..., :]`` of length ``L`` and every kernel ``k_j`` of
+    ``kernels``, in one batched FFT convolution; shape ``(len(kernels),) + R.shape``."""
     from hapsim.analysis.fftconv import fftconvolve
-    L = r.size
-    kk = np.zeros(L)
-    kk[:min(L, k.size)] = k[:L]
-    return fftconvolve(r[::-1], kk)[:L][::-1]
+    R = np.asarray(R, float)
+    L = R.shape[-1]
+    K = np.zeros((len(kernels),) + (1,) * (R.ndim - 1) + (L,))
+    for j, k in enumerate(kernels):
+        K[j, ..., :min(L, k.size)] = k[:L]
+    if R.size == 0:
+        return np.zeros((len(kernels),) + R.shape)
+    return fftconvolve(R[None, ..., ::-1], K, axes=-1)[..., :L][..., ::-1]
 
 
 def mistimings(period: float, tick: float) -> list:
@@ -393,10 +399,7 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         norms = (cS[hi] - cS[lo], cSH[hi] - cSH[lo], cH[hi] - cH[lo])
         # what the fit takes of a signature: Q' g = e Q'S_i + w Q'H_i, per column of Q
         Qx = np.vstack([np.zeros((p, Q.shape[1])), Q])
-        QS = np.array([_correlate(Qx[:, c], S) for c in range(Q.shape[1])]).reshape(
-            Q.shape[1], cand.size)
-        QH = np.array([_correlate(Qx[:, c], H) for c in range(Q.shape[1])]).reshape(
-            Q.shape[1], cand.size)
+        QS, QH = _correlate(Qx.T, (S, H))          # (columns of Q, candidates) each
         taken = np.zeros(cand.size, bool)
         if un is not None:
             for k in np.flatnonzero(un) + p:
@@ -425,22 +428,29 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         return out
     cap = max(int(n_test // 10), 1) if max_holds is None else int(max_holds)
     found, tau_found, zs = [], [], []
+
+    def stretch_best(si):
+        """The stretch's best (D, stretch, row, tau, e, w): only the stretch a hold was
+        taken from changes between two rounds of the pursuit."""
+        cand, r, (nss, nsh, nhh), p, taken, _, QS, QH = stretches[si]
+        rs, rh = _correlate(r, (S, H))
+        # every tau at once, (taus, candidates): e the sensor error, w the force's
+        e, w = E[:, cand], dF[cand][None, :] * tw
+        # the residual lowered by the signature the fit leaves, P g: 2 <r, g> (r is
+        # the fit's residual: <r, P g> = <r, g>) less |P g|^2
+        D = (2 * (e * rs + w * rh) - (e * e * nss + 2 * e * w * nsh + w * w * nhh)
+             + np.sum((e[:, None, :] * QS + w[:, None, :] * QH) ** 2, axis=1))
+        D[:, taken] = -math.inf
+        # the first best in (tau, row) order, as a loop over the taus would take it
+        ti, i = np.unravel_index(int(np.argmax(D)), D.shape)
+        return (float(D[ti, i]), si, int(i), taus[ti], float(e[ti, i]), float(w[ti, i]))
+
+    bests = [stretch_best(si) for si in range(len(stretches))]
     while len(found) < cap:
         best = None
-        for si, (cand, r, (nss, nsh, nhh), p, taken, _, QS, QH) in enumerate(stretches):
-            rs, rh = _correlate(r, S), _correlate(r, H)
-            # every tau at once, (taus, candidates): e the sensor error, w the force's
-            e, w = E[:, cand], dF[cand][None, :] * tw
-            # the residual lowered by the signature the fit leaves, P g: 2 <r, g> (r is
-            # the fit's residual: <r, P g> = <r, g>) less |P g|^2
-            D = (2 * (e * rs + w * rh) - (e * e * nss + 2 * e * w * nsh + w * w * nhh)
-                 + np.sum((e[:, None, :] * QS + w[:, None, :] * QH) ** 2, axis=1))
-            D[:, taken] = -math.inf
-            # the first best in (tau, row) order, as a loop over the taus would take it
-            ti, i = np.unravel_index(int(np.argmax(D)), D.shape)
-            if best is None or D[ti, i] > best[0]:
-                best = (float(D[ti, i]), si, int(i), taus[ti], float(e[ti, i]),
-                        float(w[ti, i]))
+        for b in bests:                 # the first stretch's on a tie, as before
+            if best is None or b[0] > best[0]:
+                best = b
         D, si, i, t, e, w = best
         z = math.sqrt(D) / sigma if D > 0 else 0.0
         if not z > thr or (zs and z < relative * zs[0]):
@@ -457,6 +467,7 @@ def find_unseen_holds(position, force, fit: dict, period: float, sensor_response
         found.append(int(cand[i]))
         tau_found.append(t)
         zs.append(z)
+        bests[si] = stretch_best(si)
     out.update(rows=np.asarray(found, np.int64), tau_s=np.asarray(tau_found),
                z=np.asarray(zs))
     return out
