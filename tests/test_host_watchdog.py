@@ -365,6 +365,9 @@ def _run(name: str, silence_s: float, at: int = 40, force: float = 0.05, seed: i
                 os.write(master, stray)     # bytes that make no record, read alone
                 time.sleep(0.005)
                 tr.receive(0.0)
+                # whether the host read them as the evidence they are (not so when a
+                # board's late answer came after them in the same read)
+                suspected = bool(tr._wd_suspect)
             if k == at:
                 time.sleep(silence_s)       # the host does not run
             tr.send(fp.Force(k, (force if k < at else force / 5,)))
@@ -378,6 +381,8 @@ def _run(name: str, silence_s: float, at: int = 40, force: float = 0.05, seed: i
         tr.close()
     finally:
         _stop_board(flag, th, slave, master)
+    if stray:
+        rep["stray_suspected"] = suspected
     return rep, flag["report"], after
 
 
@@ -462,7 +467,15 @@ def test_m3_bytes_that_make_no_record_before_a_silence_get_the_robust_write():
     torque no longer than the stated bound. (When the host told the watchdog only at its
     next command, this silence got the plain zero command, which a board whose parser
     lost the motor's address does not take: a torque held 94 ms of a 300 ms stall.)"""
-    rep, board, after = _run("haply", SILENCE_S, stray=b"\x07\x07")
+    for _ in range(3):
+        # the condition made: the stray bytes read as the last before the silence (a
+        # board's answer late past the drain, on a loaded machine, came after them in
+        # the same read once in a whole suite: a record, no evidence; that run tests the
+        # plain silence, above, and is made again)
+        rep, board, after = _run("haply", SILENCE_S, stray=b"\x07\x07")
+        if rep["stray_suspected"]:
+            break
+    assert rep["stray_suspected"], rep
     wd = rep["watchdog"]
     # (the first write robust: no second one in that silence; beside the suite's
     # real-time workers the host may stall once more)
