@@ -157,6 +157,12 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
             # 39 ms once passed the 34 ms the wake-up alone allowed)
             rep["watchdog_latency_s"] = max(LATENCY_S, (page.get("overslept_ns")
                                                         + page.get("acted_ns")) * 1e-9)
+            # when it began the dying host's write: from the host's last write, and from
+            # the host's last word before its death
+            dying = page.get("dying_ns")
+            if dying and len(last) >= 2:
+                rep["dying_after_write_s"] = (dying - int(last[0])) * 1e-9
+                rep["dying_after_death_s"] = (dying - int(last[1])) * 1e-9
     finally:
         if host is not None and host.poll() is None:
             os.killpg(host.pid, signal.SIGKILL)
@@ -183,10 +189,28 @@ def test_a_2diy_whose_parser_lost_its_motors_is_zeroed_when_its_host_dies_or_sto
     # the silence's bound and a check; and the watchdog's wake-up latency
     # (test_host_watchdog's LATENCY_S, or what the watchdog measured of its own when
     # more: under the suite's load a hold of 48 ms once passed the 42 ms that allowed)
+    info = {k: rep.get(k) for k in ("longest_hold_s", "longest_gap_s", "host_silent_s",
+                                    "watchdog_latency_s", "dying_after_write_s",
+                                    "dying_after_death_s")}
+    if action == "kill" and rep.get("dying_after_write_s") is not None:
+        # the dead host's, divided by the watchdog's own time stamp of its write for the
+        # dead host: the host's death is its exit, which takes scheduling of its own that
+        # nothing here measures (beside three CPU-bound processes, 20.5 ms from its last
+        # word to the watchdog's write, with the watchdog's own lateness under 10 ms; a
+        # whole suite on a slow machine held 47 ms against the 43.5 ms the host's last
+        # word allowed). The watchdog wrote for the dead host before its long silence's
+        # rule could have (a link that lost nothing gets none: only this write zeroes a
+        # board whose parser lost its motors) ...
+        assert rep["dying_after_write_s"] < ROBUST_AFTER * HOLD_BOUND_S, info
+        # ... and the board's torque ended within that write's own time on the board
+        # after it began (and the pty's 1 ms, test_host_watchdog's allowance)
+        assert (rep["longest_hold_s"] <= rep["dying_after_write_s"] + ROBUST_S + 1e-3
+                + rep["longest_gap_s"]), info
+        return
     bound = (rep.get("host_silent_s", 0.0) + CHECK_S if action == "kill"
              else HOLD_BOUND_S + CHECK_S) + rep["watchdog_latency_s"]
     assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
-        rep["longest_hold_s"], rep["longest_gap_s"], bound + ROBUST_S)
+        info, bound + ROBUST_S)
 
 
 def test_a_lossy_2diy_link_stopped_in_the_bytes_that_lost_its_place_gets_the_robust_write():

@@ -89,11 +89,12 @@ __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report", "watchdog_text
 #: ``1 << 32 | bits``, its last angle read, which a long silence's robust write carries)
 #: robust_for (the host write whose silence had its robust write), overslept_ns (its
 #: largest wake-up past a check's end) and acted_ns (its longest time from a wake-up to
-#: the write it then made: its own descheduling after waking, a dying host's write too).
+#: the write it then made: its own descheduling after waking, a dying host's write too),
+#: dying_ns (when it began its write for a host that died armed: 0 before).
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired_ns", "fired_for", "quit",
                                   "longest_ns", "ready", "rt", "holding", "failed",
                                   "suspect", "counts", "wrote_bits", "angle",
-                                  "robust_for", "overslept_ns", "acted_ns"))}
+                                  "robust_for", "overslept_ns", "acted_ns", "dying_ns"))}
 _SIZE = 8 * len(_F)
 _F32 = struct.Struct("<f")
 #: The sinks a watchdog writes to besides a device file it opens by path, each an
@@ -727,6 +728,7 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
         try:
             out = data(False, dying=True)[0]
             acted(woke)
+            page.set("dying_ns", time.monotonic_ns())
             write(out, 1.0)                 # (a full buffer waited for, 1 s at most)
         except OSError:
             pass
