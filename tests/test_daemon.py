@@ -380,6 +380,46 @@ def test_allow_unstable_ends_in_safety_stop_with_zero_force():
     assert rep["exit_code"] == 1
 
 
+def test_a_safety_stop_says_what_came_before_it():
+    """The report of a safety stop holds what the device did before it
+    (``loop.safety_context``, :func:`hapsim.pipeline.report.safety_context`): a loop that
+    grew (in lockstep: the device's time one period a sample exactly, a new FORCE applied
+    at each, forces to the limit, no watchdog), and, on a telemetry written here, a host
+    that stalled 60 ms while the device held its last FORCE and its watchdog zeroed it
+    after 50 (the counts exact)."""
+    from hapsim.pipeline.report import format_report, safety_context
+    rep = lockstep(wall_text(3000.0, 1.5), allow_unstable=True, duration=5.0)
+    sc = rep["loop"]["safety_context"]
+    assert sc is not None and sc["rows"] == min(rep["loop"]["ticks"], 300), sc
+    # (device times are whole microseconds: a period is 1e-3 s to the double's rounding
+    # of the difference of two times below 5 s, 2 ulp(5) = 1.8e-15)
+    assert abs(sc["largest_step_s"] - 1e-3) <= 2e-15, sc
+    # (the run's first two samples both name FORCE 0: none is applied before it, d = 1)
+    assert sc["longest_same_force_rows"] == (2 if sc["from_s"] == 0.0 else 1), sc
+    assert sc["watchdog_rows"] == 0, sc
+    assert sc["force_abs_max_n"] == 10.0, sc
+    assert abs(sc["position_last_m"]) > abs(sc["position_first_m"]), sc
+    assert "before the stop (its last" in format_report(rep)
+    tel = Telemetry(400)
+    n = 300
+    tel.time[:n] = np.arange(n) * 1e-3
+    tel.force_seq[:n] = np.arange(n) - 1
+    tel.force_seq[100:160] = 98                 # the host silent: FORCE 98 held 61 samples
+    tel.status[150:160] = fp.STATUS_WATCHDOG_TRIPPED | fp.STATUS_OVERRUN
+    tel.force[:n] = 0.5
+    tel.force[150:160] = 0.0
+    tel.position[:n] = np.linspace(0.0, -0.12, n)
+    tel.n = n
+    sc = safety_context(tel, rows=250)
+    assert sc["rows"] == 250 and sc["from_s"] == tel.time[50], sc
+    assert sc["longest_same_force_rows"] == 61, sc      # rows 99..159
+    assert sc["watchdog_rows"] == 10 and sc["overrun_rows"] == 10, sc
+    assert sc["force_abs_max_n"] == 0.5 and sc["position_last_m"] == -0.12, sc
+    assert safety_context(Telemetry(10)) is None
+    # a run that did not stop says nothing of it
+    assert lockstep(wall_text(1000.0, 1.5), duration=0.2)["loop"]["safety_context"] is None
+
+
 # --------------------------------------------------------------------------- host safety
 
 class _NanMock(MockDevice):

@@ -18,7 +18,8 @@ from hapsim.errors import dash
 if TYPE_CHECKING:
     from hapsim.pipeline.options import RunOptions
 
-__all__ = ["build_report", "device_clock_warning", "format_report", "verdict_summary"]
+__all__ = ["build_report", "device_clock_warning", "format_report", "safety_context",
+           "verdict_summary"]
 
 
 #: A device on a port whose ticks run this many times faster than the wall clock in a run
@@ -165,6 +166,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
                    "passivity_controller": cfg.passivity_controller,
                    "max_damping": cfg.max_damping, "brake_damping": cfg.brake_damping},
         "faults": res.faults, "fault_plan": _fault_plan(opts.plan, mock_report),
+        # what came before a safety stop (a host stall, a held force, a loop that grew)
+        "safety_context": safety_context(conn.tel) if res.safety_stop else None,
     }
     targets = prep.targets
     ctl = run.control
@@ -186,6 +189,66 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
             "sound": run.sound, **verdict_summary(measured),
             "exit_code": 1 if (res.safety_stop or res.faults or unfit) else 0}
+
+
+#: Rows before a safety stop that :func:`safety_context` reads (a few of the device's
+#: watchdog periods at 1 kHz).
+SAFETY_CONTEXT_ROWS = 300
+
+
+def safety_context(tel, rows: int = SAFETY_CONTEXT_ROWS) -> dict | None:
+    """What the device did over the last ``rows`` samples of a run that ended on a safety
+    stop, from its telemetry: what tells a host that stalled (the device's time stepping
+    by more than a period between two samples the host took, a FORCE held for many
+    samples, the watchdog's zero) from a loop that grew (forces at the limit, growing
+    positions).
+
+    Parameters
+    ----------
+    tel : hapsim.host.telemetry.Telemetry
+        The run's telemetry (its rows in memory; a 1-D run).
+    rows : int
+        Rows read, the last ones (default :data:`SAFETY_CONTEXT_ROWS`).
+
+    Returns
+    -------
+    dict or None
+        ``rows`` (read), ``from_s`` (the device time of the first [s]), ``largest_step_s``
+        (the largest device time between two successive samples [s]) and ``step_at_s``
+        (the device time it ended at [s]), ``longest_same_force_rows`` (the most successive
+        samples that reported the same FORCE applied: one a period in a loop that keeps
+        up), ``watchdog_rows`` and ``overrun_rows`` (samples whose status says the
+        device's watchdog zeroed the force, or that it held the last FORCE for a late
+        one: PROTOCOL.md, STATE), ``late_rows`` (samples the host answered late),
+        ``force_abs_max_n`` [N], ``position_first_m`` and ``position_last_m`` [m]; None
+        without a row.
+    """
+    import numpy as np
+
+    import firmware_protocol as fp
+    spans = tel.rows_in_memory()
+    if not spans:
+        return None
+    a, b = spans[-1]
+    a = max(a, b - int(rows))
+    c = tel.columns((a, b))
+    t, fs = np.asarray(c["time"], float), np.asarray(c["force_seq"])
+    if t.size == 0:
+        return None
+    steps = np.diff(t)
+    changes = np.flatnonzero(np.diff(fs) != 0)
+    runs = np.diff(np.concatenate(([-1], changes, [fs.size - 1])))
+    status = np.asarray(c["status"], np.int64)
+    f, x = np.asarray(c["force"], float), np.asarray(c["position"], float)
+    return {"rows": int(t.size), "from_s": float(t[0]),
+            "largest_step_s": float(steps.max()) if steps.size else 0.0,
+            "step_at_s": float(t[int(steps.argmax()) + 1]) if steps.size else float(t[0]),
+            "longest_same_force_rows": int(runs.max()),
+            "watchdog_rows": int(np.count_nonzero(status & fp.STATUS_WATCHDOG_TRIPPED)),
+            "overrun_rows": int(np.count_nonzero(status & fp.STATUS_OVERRUN)),
+            "late_rows": int(np.count_nonzero(c["late"])),
+            "force_abs_max_n": float(np.abs(f).max()),
+            "position_first_m": float(x[0]), "position_last_m": float(x[-1])}
 
 
 def verdict_summary(measured: dict) -> dict:
@@ -369,6 +432,14 @@ def format_report(rep: dict) -> str:
                  f"{dash(lp.get('energy_excess_max_j'), '.4g')} (limit "
                  f"{dash(sf['energy_limit'], 'g')}"
                  f"{', passivity controller on' if sf['passivity_controller'] else ''})")
+    sc = lp.get("safety_context")
+    if sc:
+        lines.append(f"before the stop (its last {sc['rows']} samples): the device's time "
+                     f"stepped up to {sc['largest_step_s'] * 1e3:.1f} ms between two, the "
+                     f"same FORCE applied for up to {sc['longest_same_force_rows']} of "
+                     f"them, watchdog zero in {sc['watchdog_rows']}, force up to "
+                     f"{sc['force_abs_max_n']:.3g} N, position {sc['position_first_m']:.4g} "
+                     f"-> {sc['position_last_m']:.4g} m")
     bk = lp.get("brake")
     if bk:
         # the host braked the device after the safety stop (hapsim.host.recovery)
