@@ -88,7 +88,8 @@ def _loop_summary(out: str, telemetry: str | None = None) -> dict | str:
     summary = {k: lp.get(k) for k in ("stop_reason", "faults", "safety_stop", "lost",
                                       "recovered", "ticks", "overruns", "late", "missed",
                                       "skipped", "stale", "v_max", "f_max", "energy_max_j",
-                                      "scheduling", "loop", "turnaround_us")}
+                                      "scheduling", "loop", "turnaround_us",
+                                      "safety_context")}
     summary["mock"] = {k: (lp.get("mock") or {}).get(k)
                        for k in ("ticks", "forces_rx", "late", "watchdog_trips", "overruns",
                                  "stale", "clamped")}
