@@ -1,0 +1,77 @@
+"""``tools/estimate_patterns.py``: the 1-D loop as a switched system over a request-reply
+driver's fresh, estimated and skipped ticks. Its loop with every reading on time is an
+implementation independent of :mod:`hapsim.analysis.stability` (a state matrix per tick
+against the characteristic polynomial's damping limits), and the two must agree on where
+the loop becomes unstable; the finding it was written for (configs/haply.yaml: sporadic
+missing replies grow a loop ``check`` calls stable) is held here too."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hapsim.analysis.loop import LoopModel
+from hapsim.analysis.stability import damping_limits
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _tool():
+    """tools/estimate_patterns.py as a module (its sibling tools/provenance.py importable)."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        spec = importlib.util.spec_from_file_location("estimate_patterns",
+                                                      ROOT / "tools" / "estimate_patterns.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    return mod
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_every_reading_on_time_is_checks_loop(seed):
+    """Random devices, walls and delays 1-3: the state matrix of a fresh tick has its
+    spectral radius cross 1 at ``check``'s upper damping limit (1 % either side: the
+    limit is a simple root of the radius's crossing, found to 1e-12 by
+    :func:`hapsim.analysis.stability.damping_limits`, and the radius moves by far more
+    than its round-off, ~1e-15, over 1 % of B)."""
+    tool = _tool()
+    rng = np.random.default_rng(seed)
+    m, b0 = float(rng.uniform(0.05, 0.5)), float(rng.uniform(0.0, 1.0))
+    d, T = int(rng.integers(1, 4)), 1e-3
+    lm = LoopModel(mass=m, friction=b0, rate_hz=1.0 / T, delay=d, hold="zoh")
+    # a stiffness the loop holds over a range of damping (a third of the stiffness limit)
+    from hapsim.analysis.stability import stability_limit
+    K = stability_limit(lm, 0.0) / 3
+    lims = damping_limits(lm, K)
+    assert lims, (m, b0, d, K)
+    bmax = max(hi for _, hi in lims)
+    below = tool.growth(tool.tick_matrices(m, b0, T, d, K, 0.99 * bmax), ["F"])
+    above = tool.growth(tool.tick_matrices(m, b0, T, d, K, 1.01 * bmax), ["F"])
+    assert below < 1.0 < above, (m, b0, d, K, bmax, below, above)
+
+
+def test_sporadic_missing_replies_grow_a_haply_loop_check_calls_stable():
+    """configs/haply.yaml's joint at 0.9 of check's damping limit: two missing replies in
+    eight, each stepped with today's extrapolated estimate, grow the loop (the switched
+    system's product over the pattern has a spectral radius above 1 per tick), and the
+    shipped damping (0.001 N m s/rad) holds every pattern the tool tries."""
+    tool = _tool()
+    from hapsim.scene import load_scene
+    sc = load_scene(str(ROOT / "configs" / "haply.yaml"))
+    dev, lk = sc.device, sc.links[0]
+    lm = LoopModel(mass=dev.mass, friction=dev.friction, rate_hz=sc.rate_hz,
+                   delay=int(dev.delay), hold="zoh")
+    bmax = max(hi for _, hi in damping_limits(lm, lk.stiffness))
+    mats = tool.tick_matrices(dev.mass, dev.friction, sc.period, int(dev.delay),
+                              lk.stiffness, 0.9 * bmax)
+    assert tool.growth(mats, ["F"]) < 1.0
+    assert tool.growth(mats, list("FF") + ["E1"] + list("FFF") + ["E1", "F"]) > 1.0
+    shipped = tool.tick_matrices(dev.mass, dev.friction, sc.period, int(dev.delay),
+                                 lk.stiffness, lk.damping)
+    assert max(tool.growth(shipped, p) for p in tool.patterns(("E1", "E2"), 8)) < 1.0
