@@ -1,4 +1,4 @@
-"""``tools/estimate_patterns.py``: the 1-D loop as a switched system over a request-reply
+"""``hapsim.analysis.missing_replies`` (``tools/estimate_patterns.py`` charts it): the 1-D loop as a switched system over a request-reply
 driver's fresh, estimated and skipped ticks. Its loop with every reading on time is an
 implementation independent of :mod:`hapsim.analysis.stability` (a state matrix per tick
 against the characteristic polynomial's damping limits), and the two must agree on where
@@ -7,8 +7,6 @@ missing replies grow a loop ``check`` calls stable) is held here too."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,19 +18,6 @@ from hapsim.analysis.stability import damping_limits
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _tool():
-    """tools/estimate_patterns.py as a module (its sibling tools/provenance.py importable)."""
-    sys.path.insert(0, str(ROOT / "tools"))
-    try:
-        spec = importlib.util.spec_from_file_location("estimate_patterns",
-                                                      ROOT / "tools" / "estimate_patterns.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-    finally:
-        sys.path.remove(str(ROOT / "tools"))
-    return mod
-
-
 @pytest.mark.parametrize("seed", range(6))
 def test_every_reading_on_time_is_checks_loop(seed):
     """Random devices, walls and delays 1-3: the state matrix of a fresh tick has its
@@ -40,7 +25,7 @@ def test_every_reading_on_time_is_checks_loop(seed):
     limit is a simple root of the radius's crossing, found to 1e-12 by
     :func:`hapsim.analysis.stability.damping_limits`, and the radius moves by far more
     than its round-off, ~1e-15, over 1 % of B)."""
-    tool = _tool()
+    import hapsim.analysis.missing_replies as tool
     rng = np.random.default_rng(seed)
     m, b0 = float(rng.uniform(0.05, 0.5)), float(rng.uniform(0.0, 1.0))
     d, T = int(rng.integers(1, 4)), 1e-3
@@ -61,7 +46,7 @@ def test_sporadic_missing_replies_grow_a_haply_loop_check_calls_stable():
     eight, each stepped with today's extrapolated estimate, grow the loop (the switched
     system's product over the pattern has a spectral radius above 1 per tick), and the
     shipped damping (0.001 N m s/rad) holds every pattern the tool tries."""
-    tool = _tool()
+    import hapsim.analysis.missing_replies as tool
     from hapsim.scene import load_scene
     sc = load_scene(str(ROOT / "configs" / "haply.yaml"))
     dev, lk = sc.device, sc.links[0]
@@ -75,3 +60,30 @@ def test_sporadic_missing_replies_grow_a_haply_loop_check_calls_stable():
     shipped = tool.tick_matrices(dev.mass, dev.friction, sc.period, int(dev.delay),
                                  lk.stiffness, lk.damping)
     assert max(tool.growth(shipped, p) for p in tool.patterns(("E1", "E2"), 8)) < 1.0
+
+
+def test_a_real_time_run_says_when_missing_replies_grow_its_loop(tmp_path):
+    """``prepare_run`` of a Haply scene at 0.7 N m s/rad (between the 0.587 that sporadic
+    missing replies hold and check's 0.828) warns, naming the pattern and its growth,
+    and goes on (a warning, not a refusal); the shipped scene (0.001), the same scene in
+    lockstep (a mock waits for each command: no reply is missing) and a framed wall (no
+    request-reply driver) do not."""
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.pipeline.runner import prepare_run
+    from hapsim.scene import load_scene
+    text = (ROOT / "configs" / "haply.yaml").read_text()
+    assert "damping: 0.001" in text
+    path = tmp_path / "haply_damped.yaml"
+    path.write_text(text.replace("damping: 0.001", "damping: 0.7"))
+
+    def said(p, lockstep=False, driver="haply"):
+        prep = prepare_run(load_scene(str(p)), RunOptions(driver=driver, lockstep=lockstep,
+                                                          handle_signals=False))
+        return prep.pred.get("missing_reply_warning"), prep.pred.get("missing_reply_unstable")
+
+    w, u = said(path)
+    assert w is not None and u["growth_per_tick"] > 1.0 and "E" in u["pattern"], (w, u)
+    assert u["pattern"] in w and "go missing now and then" in w
+    assert said(ROOT / "configs" / "haply.yaml") == (None, None)
+    assert said(path, lockstep=True) == (None, None)
+    assert said(ROOT / "configs" / "first_wall.yaml", driver=None) == (None, None)

@@ -11,7 +11,8 @@ each command; where an answer is overdue the host loop steps the engine with the
 extrapolated linearly from the last two records, at most ``ESTIMATED_MAX`` = 2 ticks in a
 row, then skips ticks (the engine not stepped, the last force written again) until a record
 comes (:mod:`hapsim.host.host_clock`). ``hapsim check`` predicts the loop with every reading
-on time. This program builds the closed loop's state matrix for each kind of tick (exact
+on time. This program (its model in :mod:`hapsim.analysis.missing_replies`) builds the
+closed loop's state matrix for each kind of tick (exact
 zero-order hold of ``m x'' + b0 x' = f``, Florens et al. Sec. 6; the virtual spring-damper
 ``f = -K r - B (r - r_prev) / T`` on the reading ``r``; ``d`` periods of delay), multiplies
 them over every periodic pattern of missing replies up to ``--period-max`` ticks, and prints
@@ -28,7 +29,6 @@ port link is refused: the program reads the port's spring-damper to ground alone
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 
@@ -38,101 +38,8 @@ from provenance import REPO, command_line  # tools/, beside this file
 
 sys.path.insert(0, str(REPO))
 
-#: Most missing replies in a row the patterns hold, and their largest share: a board that
-#: answers late now and then, not one that has gone quiet (the host's silence rules take
-#: over there).
-MAX_RUN = 2
-MAX_SHARE = 0.25
-
-
-def tick_matrices(m: float, b0: float, T: float, d: int, K: float, B: float) -> dict:
-    """The closed loop's state transition over one tick of each kind.
-
-    The state is ``[x, v, q_1 .. q_d, r_prev, rec_1, rec_2]``: the device's position [m]
-    and velocity [m/s], the forces written and not yet applied (``q_1`` applied over this
-    period), the engine's last reading, the last two records [m].
-
-    Parameters
-    ----------
-    m, b0, T : float
-        Moving mass [kg], viscous friction [N s/m], sample period [s].
-    d : int
-        Delay [periods], >= 1.
-    K, B : float
-        The virtual stiffness [N/m] and damping [N s/m].
-
-    Returns
-    -------
-    dict
-        ``"F"`` (a fresh record), ``"E1"``, ``"E2"`` (the first and second estimate
-        extrapolated from the last two records), ``"H1"``, ``"H2"`` (the last record
-        held), ``"S"`` (a skipped tick): arrays of shape ``(d + 5, d + 5)``.
-    """
-    from hapsim.analysis.loop import zoh_state_space
-    Ad, Bd = zoh_state_space(m, b0, T)
-    n = d + 5
-    I = np.eye(n)
-    ir, i1, i2 = d + 2, d + 3, d + 4
-
-    def base():
-        M = np.zeros((n, n))
-        M[0:2, 0:2] = Ad
-        M[0:2, 2] = Bd
-        for j in range(1, d):                  # the queue moves on one period
-            M[2 + j - 1, 2 + j] = 1.0
-        return M
-
-    out = {}
-    readings = {"F": I[0], "E1": 2 * I[i1] - I[i2], "E2": 3 * I[i1] - 2 * I[i2],
-                "H1": I[i1], "H2": I[i1]}
-    for kind, r in readings.items():
-        M = base()
-        M[2 + d - 1] = -K * r - B / T * (r - I[ir])     # the new force, written last
-        M[ir] = r
-        if kind == "F":
-            M[i1], M[i2] = r, I[i1]
-        else:
-            M[i1, i1] = M[i2, i2] = 1.0
-        out[kind] = M
-    M = base()
-    M[2 + d - 1] = I[2 + d - 1] if d > 1 else I[2]      # the last force written again
-    M[ir, ir] = M[i1, i1] = M[i2, i2] = 1.0
-    out["S"] = M
-    return out
-
-
-def patterns(rule: tuple, period_max: int) -> set:
-    """Every periodic pattern of missing replies up to ``period_max`` ticks with at most
-    :data:`MAX_RUN` in a row and a share of at most :data:`MAX_SHARE`, each tick named by
-    ``rule`` (the kinds of the first, second... missing reply; ``"S"`` after them)."""
-    out = set()
-    for L in range(1, period_max + 1):
-        for p in itertools.product((0, 1), repeat=L):
-            if all(p) or sum(p) > MAX_SHARE * L:
-                continue
-            s = p.index(0)
-            q = p[s:] + p[:s]
-            kinds, run = [], 0
-            for miss in q:
-                run = run + 1 if miss else 0
-                if run > MAX_RUN:
-                    break
-                kinds.append("F" if not miss else rule[run - 1] if run <= len(rule) else "S")
-            else:
-                out.add(tuple(kinds))
-    return out
-
-
-def growth(mats: dict, pattern) -> float:
-    """The spectral radius of the pattern's product, per tick."""
-    P = np.eye(next(iter(mats.values())).shape[0])
-    for k in pattern:
-        P = mats[k] @ P
-    return float(max(abs(np.linalg.eigvals(P)))) ** (1.0 / len(pattern))
-
-
-RULES = {"extrapolated (today)": ("E1", "E2"), "last record held": ("H1", "H2"),
-         "skipped": ()}
+from hapsim.analysis.missing_replies import (MAX_RUN, MAX_SHARE, RULES,  # noqa: E402
+                                            growth, patterns, tick_matrices)
 
 
 def main(argv=None) -> int:

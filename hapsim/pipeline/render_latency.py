@@ -43,7 +43,7 @@ from hapsim.analysis.prediction import timed_scene
 
 __all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction",
            "latency_refusal", "late_reading", "late_reading_s", "late_reading_refusal",
-           "late_force",
+           "late_force", "missing_reply_warning",
            "latency_search",
            "SPREAD_POINTS", "REFINE_STEPS", "GOLDEN_STEPS", "REVIEW_LATENCIES"]
 
@@ -295,6 +295,68 @@ def late_force(scene, pred: dict, latest_s: float = 0.0) -> str | None:
             f"(d = {found['delay']:.4g}: spectral radius {found['spectral_radius']:.6g}): "
             f"a host that falls a period behind, on a loaded machine, can run it to its "
             f"safety stop (`hapsim stability --scene {scene.path}`: the stiffness limits)")
+
+
+def missing_reply_warning(scene, driver, pred: dict) -> str | None:
+    """Whether the loop holds replies that go missing now and then: a real-time run's
+    warning for a request-reply driver (:attr:`hapsim.drivers.base.Driver.request_reply`).
+
+    Where a reply is overdue the host steps the engine with an estimated position, at most
+    two ticks in a row, then skips ticks until a record comes (:mod:`hapsim.host.
+    host_clock`). The loop is then a switched system, which can grow where every reading
+    on time holds: on configs/haply.yaml's joint at 0.9 of ``check``'s damping limit, two
+    missing replies in eight grow it 6 % a tick; such patterns hold that loop only to 71 %
+    of the limit (docs/drivers.md, "Missing replies and the loop's stability"). The
+    patterns tried: :func:`hapsim.analysis.missing_replies.patterns` (up to 8 ticks, at
+    most 2 missing in a row and a quarter of the ticks); the growth a lower bound of the
+    joint spectral radius (Jungers 2009). The run goes on (a link that answers in time
+    holds it), and says so. Analysed for a scene of spring-dampers from the port to ground
+    with a zero-order hold and a whole delay >= 1 (the model's form); others: None.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene.
+    driver : type or hapsim.drivers.base.Driver or None
+        The run's driver (None, lockstep or no request-reply: nothing checked).
+    pred : dict
+        The run's prediction; nothing is said where it is unstable already or refused.
+        Where a pattern grows the loop, ``pred["missing_reply_unstable"]``:
+        ``growth_per_tick`` and ``pattern`` (``F`` a reply, ``E`` an estimated tick,
+        ``S`` a skipped one).
+
+    Returns
+    -------
+    str or None
+        The warning (None where every pattern holds the loop, or it is not analysed).
+    """
+    from hapsim.analysis.missing_replies import worst_pattern
+    from hapsim.analysis.prediction import port_links
+    dev = scene.device
+    if (driver is None or not getattr(driver, "request_reply", False) or dev is None
+            or scene.port is None or pred.get("stable") is False
+            or pred.get("unstable_latency_s") is not None
+            or pred.get("late_reading_unstable") is not None):
+        return None
+    links = port_links(scene)
+    if (not links or len(links) != len(scene.links) or dev.hold != "zoh"
+            or float(dev.delay) != int(dev.delay) or int(dev.delay) < 1
+            or any(m.kind not in ("port", "ground") for m in scene.masses)):
+        return None
+    K = sum(lk.stiffness for lk in links)
+    B = sum(lk.damping for lk in links)
+    g, pat = worst_pattern(dev.mass, dev.friction, scene.period, int(dev.delay), K, B)
+    # (a spectral radius of the products is rounded to ~1e-13: a margin of 1e-9 keeps a
+    # loop at 1 to its rounding from being called growing)
+    if not g > 1.0 + 1e-9:
+        return None
+    pred["missing_reply_unstable"] = {"growth_per_tick": g, "pattern": pat}
+    return (f"the loop is stable with every reply on time but grows when the board's "
+            f"replies go missing now and then (the pattern {pat}, repeated: F a reply, E a "
+            f"tick stepped with the host's estimate, S a skipped tick; {g - 1:.2%} a "
+            f"tick): a link that delays replies can run it to its safety stop; less "
+            f"damping holds it (`python tools/estimate_patterns.py {scene.path}`: the "
+            f"limits)")
 
 
 def late_reading_refusal(scene, pred: dict):

@@ -124,7 +124,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         # (a device paced by the FORCEs runs as fast as the host answers): see
         # device_clock_warning
         "device_clock_ratio": clock_ratio,
-        "warnings": [w for w in (clock_warning, prep.pred.get("late_force_warning")) if w],
+        "warnings": [w for w in (clock_warning, prep.pred.get("late_force_warning"),
+                                 prep.pred.get("missing_reply_warning")) if w],
         "transport": transport if transport != "pty" else
         "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,

@@ -40,7 +40,7 @@ from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
 from hapsim.pipeline.render_latency import (late_force, late_reading_refusal,
                                             latency_middle, latency_refusal,
-                                            timed_prediction)
+                                            missing_reply_warning, timed_prediction)
 from hapsim.blas import limit_blas_threads
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
@@ -132,6 +132,10 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         warning = late_force(scene, pred, lat[1] if lat else 0.0)
         if warning:
             pred["late_force_warning"] = warning
+        # and replies that go missing now and then, stepped with the host's estimates?
+        warning = missing_reply_warning(scene, drv_lat, pred)
+        if warning:
+            pred["missing_reply_warning"] = warning
     T = scene.period
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" else None
     exc_end = hand_force_samples(scene.excitation, T, base_dir).size * T
