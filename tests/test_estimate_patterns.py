@@ -87,3 +87,24 @@ def test_a_real_time_run_says_when_missing_replies_grow_its_loop(tmp_path):
     assert said(ROOT / "configs" / "haply.yaml") == (None, None)
     assert said(path, lockstep=True) == (None, None)
     assert said(ROOT / "configs" / "first_wall.yaml", driver=None) == (None, None)
+
+
+def test_check_says_it_too(tmp_path):
+    """``hapsim check --json`` of the same scenes: the board's ``missing_reply_unstable``
+    and its warning for 0.7 N m s/rad (the verdict still "stable": a warning, as the run's),
+    nothing for the shipped scene."""
+    import json
+
+    from inproc import hapsim_main  # same directory (pytest prepend import mode)
+    text = (ROOT / "configs" / "haply.yaml").read_text()
+    path = tmp_path / "haply_damped.yaml"
+    path.write_text(text.replace("damping: 0.001", "damping: 0.7"))
+    code, out, err = hapsim_main(["check", str(path), "--json"])
+    assert code == 0, err
+    rep = json.loads(out)
+    bd = rep["board"]
+    assert rep["stable"] and bd["missing_reply_unstable"]["growth_per_tick"] > 1.0, bd
+    assert bd["missing_reply_unstable"]["pattern"] in bd["missing_reply_warning"]
+    code, out, err = hapsim_main(["check", str(ROOT / "configs" / "haply.yaml"), "--json"])
+    assert code == 0, err
+    assert "missing_reply_unstable" not in (json.loads(out)["board"] or {})

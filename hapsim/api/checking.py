@@ -67,7 +67,11 @@ class CheckReport(Charted, Report):
         at the board's timing but not with its reading taken that many periods late, as a
         host waking a little late may take it (:func:`hapsim.pipeline.render_latency.
         late_reading`; then too ``stable`` is False), beside ``late_reading_periods`` (the
-        driver's, where it has some); ``rate_written_hz`` where the
+        driver's, where it has some); ``missing_reply_unstable`` (``growth_per_tick``,
+        ``pattern``) and ``missing_reply_warning`` where replies that go missing now and
+        then, stepped with the host's estimates, grow a loop stable on time (a warning, as
+        ``hapsim run`` gives it: :func:`hapsim.pipeline.render_latency.
+        missing_reply_warning`; ``stable`` unchanged); ``rate_written_hz`` where the
         board's rate is not the file's, ``refused`` where ``hapsim run`` refuses the
         rate. None: the board runs the scene as it is written (the framed protocol, or a
         driver with no timing of its own).
@@ -320,8 +324,13 @@ def board_timing(scene, driver, written_hz=None):
     except ConfigError as e:
         board["refused"] = str(e)
     late = int(getattr(driver, "late_reading_periods", 0) or 0)
-    if model is scene and "refused" not in board and not moved and not late:
+    from hapsim.pipeline.render_latency import missing_reply_warning
+    missing = missing_reply_warning(scene, driver, pred)
+    if model is scene and "refused" not in board and not moved and not late and not missing:
         return scene, None
+    if missing:
+        board["missing_reply_unstable"] = pred["missing_reply_unstable"]
+        board["missing_reply_warning"] = missing
     for key in ("render_latency_s", "delay_modelled", "k_spread", "b_spread",
                 "unstable_latency_s", "unstable_spectral_radius", "late_reading_unstable"):
         if key in pred:

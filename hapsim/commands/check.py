@@ -235,6 +235,8 @@ def run(args: argparse.Namespace) -> int:
     if ok and chk.marginal:
         tag += " (marginal: some poles sit on the unit circle and never decay)"
     print(f"verdict: {tag}")
+    if rep.board and rep.board.get("missing_reply_warning"):
+        print(f"warning: {rep.board['missing_reply_warning']}")
     print(f"spectral radius: {chk.spectral_radius:.12g}  ({len(chk.eigenvalues)} states)")
     rp = chk.rendered
     if rp is not None:
