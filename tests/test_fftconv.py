@@ -96,3 +96,27 @@ def test_a_measuring_run_never_imports_scipy_signal_or_sparse():
                          cwd=str(Path(__file__).resolve().parents[1]), timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout[-500:]
+
+
+def test_the_unseen_hold_search_correlates_every_row_with_every_kernel():
+    """``hapsim.analysis.unseen_holds._correlate`` (one batched FFT for the fit's columns
+    and both signatures) against the direct sum ``c[j, r, i] = sum_m R[r, i + m] k_j[m]``
+    over ``m < L - i``, kernels shorter and longer than the rows, one row and a matrix of
+    rows, within the FFT's rounding bound (above); no rows: zeros of the right shape."""
+    from hapsim.analysis.unseen_holds import _correlate
+    rng = np.random.default_rng(5)
+    L = 97
+    R = rng.standard_normal((4, L))
+    ks = (rng.standard_normal(30), rng.standard_normal(150))
+    got = _correlate(R, ks)
+    assert got.shape == (2, 4, L)
+    for j, k in enumerate(ks):
+        kk = np.zeros(L)
+        kk[:min(L, k.size)] = k[:L]
+        for r in range(4):
+            want = np.array([np.dot(R[r, i:], kk[:L - i]) for i in range(L)])
+            tol = _fft_tol(R[r], kk, fast_length(2 * L - 1))
+            assert np.max(np.abs(got[j, r] - want)) <= tol
+            one = _correlate(R[r], (k,))
+            assert one.shape == (1, L) and np.max(np.abs(one[0] - want)) <= tol
+    assert _correlate(np.zeros((0, L)), ks).shape == (2, 0, L)
