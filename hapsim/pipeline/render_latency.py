@@ -354,9 +354,9 @@ def missing_reply_warning(scene, driver, pred: dict) -> str | None:
     return (f"the loop is stable with every reply on time but grows when the board's "
             f"replies go missing now and then (the pattern {pat}, repeated: F a reply, E a "
             f"tick stepped with the host's estimate, S a skipped tick; {g - 1:.2%} a "
-            f"tick): a link that delays replies can run it to its safety stop; less "
-            f"damping holds it (`python tools/estimate_patterns.py {scene.path}`: the "
-            f"limits)")
+            f"tick): a link that delays replies can run it to its safety stop "
+            f"(`python tools/estimate_patterns.py {scene.path}` charts the damping that "
+            f"holds it)")
 
 
 def late_reading_refusal(scene, pred: dict):
