@@ -19,6 +19,24 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.mark.parametrize("seed", range(6))
+def test_every_reading_on_time_is_checks_loop_at_a_sub_sample_delay(seed):
+    """The same at real delays of 0.3-3 periods: the split hold of the tick matrices
+    against ``check``'s modified z-transform (:mod:`hapsim.analysis.subsample`), two
+    implementations of the same loop, crossing 1 at the same damping to 1 %."""
+    import hapsim.analysis.missing_replies as tool
+    from hapsim.analysis.stability import stability_limit
+    rng = np.random.default_rng(100 + seed)
+    m, b0 = float(rng.uniform(0.05, 0.5)), float(rng.uniform(0.0, 1.0))
+    d, T = float(rng.uniform(0.3, 3.0)), 1e-3
+    lm = LoopModel(mass=m, friction=b0, rate_hz=1.0 / T, delay=d, hold="zoh")
+    K = stability_limit(lm, 0.0) / 3
+    bmax = max(hi for _, hi in damping_limits(lm, K))
+    below = tool.growth(tool.tick_matrices(m, b0, T, d, K, 0.99 * bmax), ["F"])
+    above = tool.growth(tool.tick_matrices(m, b0, T, d, K, 1.01 * bmax), ["F"])
+    assert below < 1.0 < above, (m, b0, d, K, bmax, below, above)
+
+
+@pytest.mark.parametrize("seed", range(6))
 def test_every_reading_on_time_is_checks_loop(seed):
     """Random devices, walls and delays 1-3: the state matrix of a fresh tick has its
     spectral radius cross 1 at ``check``'s upper damping limit (1 % either side: the
@@ -87,6 +105,15 @@ def test_a_real_time_run_says_when_missing_replies_grow_its_loop(tmp_path):
     assert said(ROOT / "configs" / "haply.yaml") == (None, None)
     assert said(path, lockstep=True) == (None, None)
     assert said(ROOT / "configs" / "first_wall.yaml", driver=None) == (None, None)
+    # the FireFader's knob (delay 0.725 periods and its board's render latency, a split
+    # hold) at 0.9 of check's damping limit, and as shipped (0.1 N s/m)
+    ff = (ROOT / "configs" / "firefader.yaml").read_text()
+    assert "damping: 0.1}" in ff
+    path = tmp_path / "firefader_damped.yaml"
+    path.write_text(ff.replace("damping: 0.1}", "damping: 11.0}"))
+    w, u = said(path, driver="firefader")
+    assert w is not None and u["growth_per_tick"] > 1.0, (w, u)
+    assert said(ROOT / "configs" / "firefader.yaml", driver="firefader") == (None, None)
 
 
 def test_check_says_it_too(tmp_path):

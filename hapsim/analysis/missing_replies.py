@@ -38,20 +38,25 @@ RULES = {"extrapolated (today)": ("E1", "E2"), "last record held": ("H1", "H2"),
          "skipped": ()}
 
 
-def tick_matrices(m: float, b0: float, T: float, d: int, K: float, B: float) -> dict:
+def tick_matrices(m: float, b0: float, T: float, d: float, K: float, B: float) -> dict:
     """The closed loop's state transition over one tick of each kind.
 
-    The state is ``[x, v, q_1 .. q_d, r_prev, rec_1, rec_2]``: the device's position [m]
-    and velocity [m/s], the forces written and not yet applied (``q_1`` applied over this
-    period, a write's force ``d`` periods after its reading), the engine's last reading
-    and the last two records [m].
+    The state is ``[x, v, q ..., r_prev, rec_1, rec_2]``: the device's position [m] and
+    velocity [m/s], the forces written and not yet applied in full, the engine's last
+    reading and the last two records [m]. A force computed from the reading of tick ``n``
+    acts from ``(n + d) T`` on: for a whole ``d`` (``d`` forces queued, the oldest held
+    over the period), or over a split period for a fraction ``d = k + delta`` (``k + 1``
+    forces queued: the older over the period's first ``delta T``, the newer over the
+    rest; the split hold of the modified z-transform, Jury 1964, as
+    :mod:`hapsim.analysis.subsample` models it).
 
     Parameters
     ----------
     m, b0, T : float
         Moving mass [kg], viscous friction [N s/m], sample period [s] (all > 0; b0 >= 0).
-    d : int
-        Delay [periods], >= 1.
+    d : float
+        Delay [periods], > 0 (a fraction below 1: the force of a reading acts within its
+        own period, after ``d T``).
     K, B : float
         The virtual stiffness [N/m] and damping [N s/m] to ground.
 
@@ -60,48 +65,57 @@ def tick_matrices(m: float, b0: float, T: float, d: int, K: float, B: float) -> 
     dict
         ``"F"`` (a fresh record), ``"E1"``, ``"E2"`` (the first and second estimate,
         extrapolated from the last two records: ``2 rec_1 - rec_2``, ``3 rec_1 - 2
-        rec_2``), ``"H1"``, ``"H2"`` (the last record held), ``"S"`` (a skipped tick):
-        arrays of shape ``(d + 5, d + 5)``.
+        rec_2``), ``"H1"``, ``"H2"`` (the last record held), ``"S"`` (a skipped tick: the
+        last force written again): square arrays, ``d + 5`` states for a whole ``d``,
+        ``floor(d) + 6`` otherwise.
 
     Raises
     ------
     ValueError
-        ``d < 1``.
+        ``d <= 0``.
     """
     from hapsim.analysis.loop import zoh_state_space
-    d = int(d)
-    if d < 1:
-        raise ValueError(f"the delay must be a whole number of periods >= 1, got {d}")
+    d = float(d)
+    if not d > 0:
+        raise ValueError(f"the delay must be > 0 periods, got {d}")
+    k = int(round(d)) if abs(d - round(d)) < 1e-12 else int(np.floor(d))
+    whole = abs(d - k) < 1e-12
     Ad, Bd = zoh_state_space(m, b0, T)
-    n = d + 5
+    if whole:
+        nq, B1, B2 = k, None, None
+    else:
+        A2, B2 = zoh_state_space(m, b0, (1.0 - (d - k)) * T)
+        B1 = A2 @ zoh_state_space(m, b0, (d - k) * T)[1]
+        nq = k + 1
+    n = 2 + nq + 3
     eye = np.eye(n)
-    ir, i1, i2 = d + 2, d + 3, d + 4
+    iq, ir, i1, i2 = 2, 2 + nq, 3 + nq, 4 + nq
 
-    def base():
+    def build(r, fresh: bool):
         M = np.zeros((n, n))
-        M[0:2, 0:2] = Ad
-        M[0:2, 2] = Bd
-        for j in range(1, d):                  # the queue moves on one period
-            M[2 + j - 1, 2 + j] = 1.0
+        # the force written this tick: from the reading, or the last one again (a skip)
+        un = eye[iq] if r is None else -K * r - B / T * (r - eye[ir])
+        if whole:
+            # the queue's oldest (written d ticks ago) held over the period
+            M[0:2] = Ad @ eye[0:2] + np.outer(Bd, eye[iq + nq - 1])
+        else:
+            # the oldest over the first delta T, the next (this tick's, k = 0) the rest
+            newer = un if k == 0 else eye[iq + k - 1]
+            M[0:2] = Ad @ eye[0:2] + np.outer(B1, eye[iq + k]) + np.outer(B2, newer)
+        M[iq] = un                                  # the queue moves on one tick
+        for j in range(1, nq):
+            M[iq + j] = eye[iq + j - 1]
+        if r is None:
+            M[ir], M[i1], M[i2] = eye[ir], eye[i1], eye[i2]
+        else:
+            M[ir] = r
+            M[i1], M[i2] = (r, eye[i1]) if fresh else (eye[i1], eye[i2])
         return M
 
-    out = {}
-    readings = {"F": eye[0], "E1": 2 * eye[i1] - eye[i2], "E2": 3 * eye[i1] - 2 * eye[i2],
-                "H1": eye[i1], "H2": eye[i1]}
-    for kind, r in readings.items():
-        M = base()
-        M[2 + d - 1] = -K * r - B / T * (r - eye[ir])    # the new force, written last
-        M[ir] = r
-        if kind == "F":
-            M[i1], M[i2] = r, eye[i1]
-        else:
-            M[i1, i1] = M[i2, i2] = 1.0
-        out[kind] = M
-    M = base()
-    M[2 + d - 1] = eye[2 + d - 1]                         # the last force written again
-    M[ir, ir] = M[i1, i1] = M[i2, i2] = 1.0
-    out["S"] = M
-    return out
+    held = build(eye[i1], False)
+    return {"F": build(eye[0], True), "E1": build(2 * eye[i1] - eye[i2], False),
+            "E2": build(3 * eye[i1] - 2 * eye[i2], False), "H1": held, "H2": held,
+            "S": build(None, False)}
 
 
 def patterns(rule: tuple, period_max: int = PERIOD_MAX, max_run: int = MAX_RUN,
@@ -170,7 +184,7 @@ def worst_pattern(m: float, b0: float, T: float, d: int, K: float, B: float,
     Parameters
     ----------
     m, b0, T, d, K, B
-        As :func:`tick_matrices`.
+        As :func:`tick_matrices` (``d`` a real number of periods).
     rule : tuple of str
         How a missing reply's tick is stepped (default: the host's extrapolation).
     period_max : int

@@ -325,7 +325,7 @@ def board_timing(scene, driver, written_hz=None):
         board["refused"] = str(e)
     late = int(getattr(driver, "late_reading_periods", 0) or 0)
     from hapsim.pipeline.render_latency import missing_reply_warning
-    missing = missing_reply_warning(scene, driver, pred)
+    missing = missing_reply_warning(model, driver, pred)
     if model is scene and "refused" not in board and not moved and not late and not missing:
         return scene, None
     if missing:

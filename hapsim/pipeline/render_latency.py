@@ -311,12 +311,14 @@ def missing_reply_warning(scene, driver, pred: dict) -> str | None:
     most 2 missing in a row and a quarter of the ticks); the growth a lower bound of the
     joint spectral radius (Jungers 2009). The run goes on (a link that answers in time
     holds it), and says so. Analysed for a scene of spring-dampers from the port to ground
-    with a zero-order hold and a whole delay >= 1 (the model's form); others: None.
+    with a zero-order hold (the model's form; its delay a real number of periods, as the
+    board runs it); others: None.
 
     Parameters
     ----------
     scene : hapsim.scene.Scene
-        The run's calibrated scene.
+        The run's calibrated scene at the board's timing (:func:`timed_prediction`'s
+        model: its delay with the board's render latency).
     driver : type or hapsim.drivers.base.Driver or None
         The run's driver (None, lockstep or no request-reply: nothing checked).
     pred : dict
@@ -340,12 +342,12 @@ def missing_reply_warning(scene, driver, pred: dict) -> str | None:
         return None
     links = port_links(scene)
     if (not links or len(links) != len(scene.links) or dev.hold != "zoh"
-            or float(dev.delay) != int(dev.delay) or int(dev.delay) < 1
+            or not float(dev.delay) > 0
             or any(m.kind not in ("port", "ground") for m in scene.masses)):
         return None
     K = sum(lk.stiffness for lk in links)
     B = sum(lk.damping for lk in links)
-    g, pat = worst_pattern(dev.mass, dev.friction, scene.period, int(dev.delay), K, B)
+    g, pat = worst_pattern(dev.mass, dev.friction, scene.period, float(dev.delay), K, B)
     # (a spectral radius of the products is rounded to ~1e-13: a margin of 1e-9 keeps a
     # loop at 1 to its rounding from being called growing)
     if not g > 1.0 + 1e-9:

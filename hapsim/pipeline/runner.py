@@ -133,7 +133,7 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         if warning:
             pred["late_force_warning"] = warning
         # and replies that go missing now and then, stepped with the host's estimates?
-        warning = missing_reply_warning(scene, drv_lat, pred)
+        warning = missing_reply_warning(model, drv_lat, pred)
         if warning:
             pred["missing_reply_warning"] = warning
     T = scene.period
