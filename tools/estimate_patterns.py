@@ -58,34 +58,38 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     from hapsim.analysis.loop import LoopModel
     from hapsim.analysis.stability import damping_limits
-    from hapsim.analysis.prediction import port_links
+    from hapsim.analysis.missing_replies import wall_loop
     from hapsim.scene import load_scene
-    sc = load_scene(a.scene)
-    dev = sc.device
-    links = port_links(sc) if sc.port is not None else []
-    if dev is None or len(links) != 1 or dev.hold != "zoh" or not float(dev.delay) > 0:
-        print(f"{a.scene}: needs one port link to ground, a zero-order hold and a delay > 0",
-              file=sys.stderr)
+    from hapsim.errors import ConfigError
+    try:
+        sc = load_scene(a.scene)
+    except ConfigError as exc:
+        print(f"estimate_patterns: {exc}", file=sys.stderr)
+        return 2
+    loop = wall_loop(sc)
+    if loop is None:
+        print(f"{a.scene}: needs spring-dampers from the port to ground alone, a zero-order "
+              f"hold and a delay > 0", file=sys.stderr)
         return 2
     # (the scene's delay as written: a run analyses it at its board's timing, the render
     # latency added)
-    K, B0, d, T = links[0].stiffness, links[0].damping, float(dev.delay), sc.period
-    lm = LoopModel(mass=dev.mass, friction=dev.friction, rate_hz=sc.rate_hz, delay=d,
+    m, b0, T, d, K, B0 = loop
+    lm = LoopModel(mass=m, friction=b0, rate_hz=sc.rate_hz, delay=d,
                    hold="zoh")
     lims = damping_limits(lm, K)
     bmax = max(hi for _, hi in lims) if lims else float("nan")
     Bs = a.damping or [B0] + [f * bmax for f in (0.3, 0.5, 0.7, 0.9)]
     from provenance import portable_path
-    print(f"{portable_path(a.scene)}: m {dev.mass:g}, b0 {dev.friction:g}, K {K:g}, d {d:g}, T {T:g} s; "
+    print(f"{portable_path(a.scene)}: m {m:g}, b0 {b0:g}, K {K:g}, d {d:g}, T {T:g} s; "
           f"check's damping limit {bmax:.4g} (every reading on time); patterns up to "
           f"{a.period_max} ticks, at most {MAX_RUN} missing in a row, "
           f"{MAX_SHARE:.0%} missing")
-    on_time = growth(tick_matrices(dev.mass, dev.friction, T, d, K, bmax * 0.999), ["F"])
+    on_time = growth(tick_matrices(m, b0, T, d, K, bmax * 0.999), ["F"])
     print(f"model check: every reading on time at 0.999 of the limit, growth {on_time:.6f} "
           f"per tick (< 1)")
     rows = []
     for B in Bs:
-        mats = tick_matrices(dev.mass, dev.friction, T, d, K, B)
+        mats = tick_matrices(m, b0, T, d, K, B)
         row = {"B": B}
         for name, rule in RULES.items():
             g, p = max((growth(mats, p), p) for p in patterns(rule, a.period_max))
@@ -103,7 +107,7 @@ def main(argv=None) -> int:
         ps = patterns(rule, a.period_max)
 
         def worst(B):
-            mats = tick_matrices(dev.mass, dev.friction, T, d, K, B)
+            mats = tick_matrices(m, b0, T, d, K, B)
             return max(growth(mats, p) for p in ps)
         ok = [worst(B) <= 1.0 for B in grid]
         if not any(ok):

@@ -22,8 +22,8 @@ import itertools
 
 import numpy as np
 
-__all__ = ["tick_matrices", "patterns", "growth", "worst_pattern", "RULES", "MAX_RUN",
-           "MAX_SHARE", "PERIOD_MAX"]
+__all__ = ["tick_matrices", "patterns", "growth", "worst_pattern", "wall_loop", "RULES",
+           "MAX_RUN", "MAX_SHARE", "PERIOD_MAX"]
 
 #: Most missing replies in a row the patterns hold, and their largest share of the ticks:
 #: a board that answers late now and then, not one that has gone quiet (the host's
@@ -36,6 +36,35 @@ PERIOD_MAX = 8
 #: missing reply in a row (``"S"``, a skipped tick, after them).
 RULES = {"extrapolated (today)": ("E1", "E2"), "last record held": ("H1", "H2"),
          "skipped": ()}
+
+
+def wall_loop(scene) -> tuple | None:
+    """The loop this module models, read off a scene: spring-dampers from the port to
+    ground only (their stiffness and damping summed, as :func:`hapsim.analysis.
+    prediction.predict` renders them) and a zero-order hold.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        A 1-D scene (its delay a real number of periods).
+
+    Returns
+    -------
+    tuple or None
+        ``(m, b0, T, d, K, B)`` for :func:`tick_matrices`; None for another scene (no
+        port or device, another link or mass, another hold, a delay not above 0).
+    """
+    from hapsim.analysis.prediction import port_links
+    dev = scene.device
+    if dev is None or scene.port is None:
+        return None
+    links = port_links(scene)
+    if (not links or len(links) != len(scene.links) or dev.hold != "zoh"
+            or not float(dev.delay) > 0
+            or any(m.kind not in ("port", "ground") for m in scene.masses)):
+        return None
+    return (dev.mass, dev.friction, scene.period, float(dev.delay),
+            sum(lk.stiffness for lk in links), sum(lk.damping for lk in links))
 
 
 def tick_matrices(m: float, b0: float, T: float, d: float, K: float, B: float) -> dict:

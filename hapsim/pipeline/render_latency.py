@@ -332,22 +332,16 @@ def missing_reply_warning(scene, driver, pred: dict) -> str | None:
     str or None
         The warning (None where every pattern holds the loop, or it is not analysed).
     """
-    from hapsim.analysis.missing_replies import worst_pattern
-    from hapsim.analysis.prediction import port_links
-    dev = scene.device
-    if (driver is None or not getattr(driver, "request_reply", False) or dev is None
-            or scene.port is None or pred.get("stable") is False
+    from hapsim.analysis.missing_replies import wall_loop, worst_pattern
+    if (driver is None or not getattr(driver, "request_reply", False)
+            or pred.get("stable") is False
             or pred.get("unstable_latency_s") is not None
             or pred.get("late_reading_unstable") is not None):
         return None
-    links = port_links(scene)
-    if (not links or len(links) != len(scene.links) or dev.hold != "zoh"
-            or not float(dev.delay) > 0
-            or any(m.kind not in ("port", "ground") for m in scene.masses)):
+    loop = wall_loop(scene)
+    if loop is None:
         return None
-    K = sum(lk.stiffness for lk in links)
-    B = sum(lk.damping for lk in links)
-    g, pat = worst_pattern(dev.mass, dev.friction, scene.period, float(dev.delay), K, B)
+    g, pat = worst_pattern(*loop)
     # (a spectral radius of the products is rounded to ~1e-13: a margin of 1e-9 keeps a
     # loop at 1 to its rounding from being called growing)
     if not g > 1.0 + 1e-9:
