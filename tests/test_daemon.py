@@ -391,10 +391,10 @@ def test_a_safety_stop_says_what_came_before_it():
     rep = lockstep(wall_text(3000.0, 1.5), allow_unstable=True, duration=5.0)
     sc = rep["loop"]["safety_context"]
     assert sc is not None and sc["rows"] == min(rep["loop"]["ticks"], 300), sc
+    t = sc["step_at_s"]
     # (device times are whole microseconds, each divided by 1e6 and rounded: half an ulp
     # of each time, and half an ulp of the difference's rounding, derived at the times
     # the step ended at, the largest in the run)
-    t = sc["step_at_s"]
     assert abs(sc["largest_step_s"] - 1e-3) <= np.spacing(t) + 0.5 * np.spacing(1e-3), sc
     # (the run's first two samples both name FORCE 0: none is applied before it, d = 1)
     assert sc["longest_same_force_rows"] == (2 if sc["from_s"] == 0.0 else 1), sc
