@@ -310,6 +310,50 @@ def test_integer_limits_and_continuity(seed):
     assert all(a > b for a, b in zip(ks, ks[1:])), ks   # more delay, less stiffness
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_fractions_down_to_the_subnormal_range_are_the_whole_delay(seed):
+    """A delay ``M + f`` with ``f`` from 1e-12 down to the smallest double (5e-324): the
+    split hold's share ``f T`` is subnormal there. Before, the hold's balancing divided
+    by it (``inf``, then ``nan``): ``hapsim stability --delay 1e-308`` ended in a
+    ``LinAlgError`` traceback, found by a fuzz of the command line. Each quantity is
+    finite and within ``f`` times the slope of the whole delay's (the bound of
+    :func:`test_integer_limits_and_continuity`), and the hold over ``f T`` is ``(A f T,
+    b f T)`` to first order (bound below)."""
+    from hapsim.analysis.hand import rigid_matrices, zoh_matrices
+    rng = np.random.default_rng(5000 + seed)
+    m, b0, rate, d = _random_loop(rng, whole_max=3)
+    M = int(math.floor(d))
+    base = dict(mass=m, friction=max(b0, 0.5), rate_hz=rate)
+
+    def quantities(dd):
+        lp = LoopModel(delay=dd, **base)
+        km = stability_limit(lp, 0.0)
+        r = render(lp, 0.3 * km, 0.0)
+        return np.array([km, r.k, r.b])
+    at = quantities(M)
+    slope = np.abs(quantities(M + 1e-3) - at) / 1e-3
+    A, b = rigid_matrices(m, base["friction"], 0.0)
+    T = 1.0 / rate
+    for f in (1e-12, 1e-100, 1e-300, 1e-308, 1e-320, 5e-324):
+        got = quantities(M + f)
+        assert np.all(np.isfinite(got)), (f, got)
+        # bound: an O(f) move (f times the slope, derived above) plus the solvers'
+        # relative precision (Brent's 1e-12 on K_max), as in test_integer_limits_...
+        assert np.all(np.abs(got - at) <= 10.0 * slope * f + 1e-11 * np.abs(at)), (f, got, at)
+        tau = f * T
+        Aw, Bd = zoh_matrices(A, b, tau)
+        # e^X - I - X and (Gamma - tau I) b are at most ||X||^2 and tau ||X|| ||b|| for
+        # ||X|| = ||A tau|| <= 1e-12 (the series' remainder); 4 eps of the largest entry
+        # for their sums' rounding; a subnormal carries its own absolute rounding, 2**-1074
+        X = np.linalg.norm(A * tau, 2)
+        tiny = np.finfo(float).smallest_subnormal
+        assert np.all(np.abs(Aw - A * tau)
+                      <= 4 * EPS * np.max(np.abs(A * tau)) + X * X + tiny), (f, Aw)
+        assert np.all(np.abs(Bd - b * tau)
+                      <= 4 * EPS * np.max(np.abs(b * tau)) + tau * X * np.max(np.abs(b))
+                      + tiny), (f, Bd)
+
+
 def test_calibrate_hits_the_target_at_fractional_delays():
     """calibrate's (K, B) renders the target back, at fractional delays."""
     for d in (0.25, 1.3, 2.75):

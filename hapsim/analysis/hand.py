@@ -134,11 +134,19 @@ def hand_zoh(mc: float, bc: float, member, period: float):
     return _zoh(A, b, float(period))
 
 
+#: Smallest balancing scale of :func:`_phi1_balanced` [s]: its square and its inverse's stay
+#: far inside double precision's range.
+_BALANCE_FLOOR = 1e-150
+
+
 def _phi1_balanced(A: np.ndarray, T: float) -> np.ndarray:
     """``phi1(A T)`` of a stack of ``[x, v, ...]`` systems, computed on the balanced
     ``[x, v T]`` coordinates (O(1) entries: ``(w T)^2`` and damping ``x T / m``) and mapped
-    back: ``phi1(S X S^-1) = S phi1(X) S^-1``."""
-    S = np.tile([1.0, T], A.shape[-1] // 2)
+    back: ``phi1(S X S^-1) = S phi1(X) S^-1``, exact for any diagonal ``S``. The scale is
+    ``T`` down to :data:`_BALANCE_FLOOR`: below it ``S^-1`` would overflow (a split hold's
+    share ``f T`` of a delay ``1e-308`` periods: ``inf`` and ``nan`` in ``check``) while
+    ``A T`` is far below round-off against ``I`` anyway, so no balancing is needed."""
+    S = np.tile([1.0, max(T, _BALANCE_FLOOR)], A.shape[-1] // 2)
     return _phi1((A * T) * S[:, None] / S[None, :]) / S[:, None] * S[None, :]
 
 
