@@ -30,7 +30,7 @@ from typing import Callable
 
 import numpy as np
 
-from hapsim.errors import ConfigError
+from hapsim.errors import DAMAGED_FILE_ERRORS, ConfigError
 from hapsim.scene import Device, Excitation
 
 __all__ = ["zoh_step_coefficients", "ideal_step_coefficients", "hand_force_samples",
@@ -182,7 +182,7 @@ def load_profile(path: str, column: str = "force", unit: str = "N",
                 data = data[1:]          # header line
             data = np.atleast_2d(data)
             t, f = data[:, 0], data[:, 1]
-    except (OSError, KeyError, ValueError, IndexError) as exc:
+    except DAMAGED_FILE_ERRORS as exc:
         raise ConfigError(f"cannot read the {column} profile {path}: {exc}; expected "
                           f"columns {what}", key=key) from None
     if t.size < 1 or t.shape != f.shape or not (np.all(np.isfinite(t)) and np.all(np.isfinite(f))):

@@ -6,24 +6,10 @@ import argparse
 import json
 import math
 import os
-import struct
-import tokenize
-import zipfile
-import zlib
 
-from hapsim.errors import ConfigError
+from hapsim.errors import DAMAGED_FILE_ERRORS, ConfigError
 from hapsim.option_values import Number
 from hapsim.outputs import finite_or_none as _finite
-
-#: What reading a damaged file raises: the OS, a short or garbled zip (``zipfile``: a
-#: "version" or compression it does not know is ``NotImplementedError``; a deflate stream
-#: ``zlib.error``), an ``.npy`` header that numpy parses as a Python literal
-#: (``tokenize.TokenError``, ``SyntaxError``), packed numbers (``struct.error``), text
-#: (``ValueError``, ``UnicodeDecodeError``), a header naming another shape (``KeyError``,
-#: ``TypeError``, ``OverflowError``). Each is "cannot read telemetry", exit 2.
-_DAMAGED = (OSError, ValueError, KeyError, TypeError, EOFError, OverflowError,
-            NotImplementedError, SyntaxError, tokenize.TokenError, struct.error,
-            zlib.error, zipfile.BadZipFile)
 
 __all__ = ["register", "run", "read", "summarize", "felt_energy", "format_summary"]
 
@@ -136,7 +122,7 @@ def read(path: str) -> tuple[dict, dict]:
             cols = load(path)
     except ConfigError:
         raise
-    except _DAMAGED as exc:
+    except DAMAGED_FILE_ERRORS as exc:
         msg = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
         raise ConfigError(f"cannot read telemetry: {msg}", file=path, key="FILE") from None
     if not all(np.asarray(cols[c]).ndim == 1 and cols[c].size == cols["seq"].size
