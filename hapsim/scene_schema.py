@@ -52,9 +52,13 @@ INTEGRATORS = ("centred", "symplectic_euler", "exact")
 MAX_DELAY = 500
 #: The smallest fraction of a period a sub-sample delay takes [-]: a delay whose fraction,
 #: or whose distance to the next whole period, is below it (``0 < f < MIN_DELAY_FRACTION``)
-#: is refused with its key. It is no timing a clock resolves (1 ps at 1 kHz), and near
-#: 1e-308 the split hold's first piece is a subnormal time whose matrices are NaN (the
-#: scene fuzz: ``delay: 1e-308`` gave ``hapsim check`` a linear-algebra traceback).
+#: is refused with its key: it is no timing a clock resolves (1 ps at 1 kHz), most likely
+#: a typing slip. (The scene fuzz found ``delay: 1e-308`` giving ``hapsim check`` a
+#: linear-algebra traceback, the split hold's first piece a subnormal time; the hold's
+#: matrices are now exact there too, :func:`hapsim.analysis.hand._phi1_balanced`, and the
+#: analysis' own loops, ``hapsim render --delay`` and :class:`hapsim.analysis.loop.
+#: LoopModel` take any fraction: a loop built from a sum of delays may land a round-off
+#: from a whole period.)
 MIN_DELAY_FRACTION = 1e-9
 #: Valid sample rates [Hz]: one sample per ~11.6 days to 1 GHz. Outside, ``T``, ``T^2``
 #: or ``1/T^2`` leave the double range long before any product is formed.
