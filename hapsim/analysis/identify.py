@@ -426,10 +426,12 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                 zf = complex(felt) if complex(felt).imag >= 0 else complex(felt).conjugate()
                 fi = min((i for i, s in enumerate(spec) if s[0] == "pair"),
                          key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
-                return _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
-                                          method="pencil", skipped=0, lens=lens),
-                                  spec, fi, y, offset, wire, mass, period, lens, bounded,
-                                  late_bounded)
+                out = _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
+                                         method="pencil", skipped=0, lens=lens),
+                                 spec, fi, y, offset, wire, mass, period, lens, bounded,
+                                 late_bounded)
+                out["record_amplitude"] = amp0
+                return out
     # ---- robust path
     felt = complex(felt)
     if felt.imag < 0:
@@ -495,7 +497,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
     rms, cov, c = _covariance(spec, yw, offset, sensor_response, lens_w)
     if fit is not None:
         fit.update(spec=[list(sp_) for sp_ in spec], kept=list(kept))
-    return _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
+    out = _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor),
                               lens=lens_w, ends=kept[-1][1] == bounds[-1][1]),
                       spec, fi, yw, offset, wire, mass, period, lens_w,
@@ -505,6 +507,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                       None if not late_bounded else [
                           (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
                           for e, r in late_bounded])
+    out["record_amplitude"] = amp0
+    return out
 
 
 def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
