@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 import random
 import re
 from pathlib import Path
@@ -138,3 +139,20 @@ def test_check_json_says_the_verdict_in_every_dimension(name):
     assert code in (0, 1), err
     assert doc["verdict"] == ("stable" if doc["stable"] else "unstable")
     assert code == (0 if doc["stable"] else 1)
+
+
+@pytest.mark.parametrize("k", ["5e-324", "1e-310", "1e-200"])
+def test_a_target_stiffness_near_the_smallest_double_is_a_result(tmp_path, k):
+    """A felt target of a subnormal or tiny stiffness (the fuzz: ``target: {k: 5e-324}``):
+    its damping ratio ``b / (2 sqrt(k m))`` took the square root of ``k m``, which
+    underflowed to 0 (``ZeroDivisionError``); now ``b / (2 sqrt(k) sqrt(m))``, finite. The
+    check is a result with the calibration's damping ratio stated."""
+    text = (CONFIGS / "felt_wall.yaml").read_text()
+    old = "target: {k: 1000.0, b: 3.0}"
+    assert text.count(old) == 1
+    path = tmp_path / "felt_wall.yaml"
+    path.write_text(text.replace(old, f"target: {{k: {k}, b: 3.0}}"))
+    code, out, err = run(["check", str(path), "--json"])
+    assert code in (0, 1), err
+    cal = json.loads(out)["calibrations"][0]
+    assert cal["damping_ratio"] > 0 and math.isfinite(cal["damping_ratio"]), cal

@@ -235,7 +235,7 @@ def compare_corrections(loop: LoopModel, corrections=None, *, k_range=None, b_ra
     k_lo, k_hi = (float(v) for v in k_range)
     if b_range is None:
         kmid = math.sqrt(k_lo * k_hi)
-        crit = 2.0 * math.sqrt(kmid * m)
+        crit = 2.0 * math.sqrt(kmid) * math.sqrt(m)
         b_range = (max(b0 * 1.2, 0.05 * crit), max(b0 * 1.5, 0.5 * crit))
     b_lo, b_hi = (float(v) for v in b_range)
     Kw, Bw = window if window is not None else (10.0 * k_hi, 3.0 * b_hi)

@@ -62,7 +62,7 @@ class TargetCalibration:
         return {"link": self.link, "k": float(self.k), "b": float(self.b), "K": float(res.K),
                 "B": float(res.B), "renderable": bool(res.renderable), "reason": res.reason,
                 "f0_hz": math.sqrt(self.k / self.mass) / (2 * math.pi),
-                "damping_ratio": self.b / (2 * math.sqrt(self.k * self.mass))}
+                "damping_ratio": self.b / (2 * math.sqrt(self.k) * math.sqrt(self.mass))}
 
 
 def calibrate_targets(scene) -> list[TargetCalibration]:

@@ -80,7 +80,7 @@ def grid_for(scene) -> dict | None:
     if not (math.isfinite(k) and k > 0):
         return None
     loop = LoopModel(dev.mass, dev.friction, scene.rate_hz, int(dev.delay), dev.hold)
-    b_hi = max(2.0 * b, 4.0 * math.sqrt(k * dev.mass) * 0.05, 1e-3)
+    b_hi = max(2.0 * b, 4.0 * math.sqrt(k) * math.sqrt(dev.mass) * 0.05, 1e-3)
     # the page draws the 7 x 7 nodes, the identity grid and the boundary; the finely
     # sampled iso curves (samples > 0) are not in to_dict: 560 more calibrations, 30 s of
     # the analysis process on a loaded 2-core box against 1.7 s without them
