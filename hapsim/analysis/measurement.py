@@ -26,7 +26,6 @@ __all__ = ["identify", "verdict", "contact_verdict", "relative_error", "late_acc
            "wire_errors"]
 
 
-
 #: The stated interval's floor on an exact record, relative to the felt pole [-]: the
 #: worst error of a lockstep record's dominant felt pair over 150 random 1-D loops was
 #: 4.4e-12 relative on k, 2e4 eps (masses 0.02-2 kg, frictions 0-3 N s/m, rates 250-5000
