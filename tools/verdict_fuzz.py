@@ -21,10 +21,10 @@ pty, one exchange per period).
 What it found (2026-11-26, stop 64): on the framed mock, 1 of 150 (an over-damped wall
 whose only complex pair is a weak delay mode: the verdict's round-off floor now grows with
 the pair's weakness, ``hapsim.analysis.measurement.ROUNDOFF_FREE_RATIO``); on the
-FireFader's mock, 4 of 27 measurable matching loops said "differs" (k about 1.1 % off
-against 0.98 % stated): its 0.39 mm counts in the loop move the felt stiffness beyond the
-wire term's standard errors (with counts 4 times finer the same loop is 0.39 % off,
-within). Open: a rounding term by draws of the rounding's phase, as the n-D one
+FireFader's mock (``--protocol firefader --cases 30``), 5 of the 20 measurable matching
+loops said "differs" (one: k 1.11 % off against 0.98 % stated), none of the heavier ones
+"matched": its 0.39 mm counts in the loop move the felt stiffness beyond the wire term's
+standard errors (with counts 4 times finer that loop is 0.39 % off, within). Open: a rounding term by draws of the rounding's phase, as the n-D one
 (``hapsim.analysis.wire_rounding``), for 1-D records.
 """
 
