@@ -337,9 +337,13 @@ def test_fractions_down_to_the_subnormal_range_are_the_whole_delay(seed):
     for f in (1e-12, 1e-100, 1e-300, 1e-308, 1e-320, 5e-324):
         got = quantities(M + f)
         assert np.all(np.isfinite(got)), (f, got)
-        # bound: an O(f) move (f times the slope, derived above) plus the solvers'
-        # relative precision (Brent's 1e-12 on K_max), as in test_integer_limits_...
-        assert np.all(np.abs(got - at) <= 10.0 * slope * f + 1e-11 * np.abs(at)), (f, got, at)
+        # bound: an O(f) move (f times the slope, derived above) plus the round-off
+        # between two computations of one loop (the split hold's and the plain hold's
+        # poles, K_max to Brent's rtol 1e-15 on the circle's crossings): beyond the slope
+        # term measured 1.7e-15 relative at most (8 eps) over seeds 5000-5039 and every f
+        # here, margin 128 for another CPU's or BLAS's rounding
+        assert np.all(np.abs(got - at) <= 10.0 * slope * f + 1000 * EPS * np.abs(at)), (
+            f, got, at)
         tau = f * T
         Aw, Bd = zoh_matrices(A, b, tau)
         # e^X - I - X and (Gamma - tau I) b are at most ||X||^2 and tau ||X|| ||b|| for

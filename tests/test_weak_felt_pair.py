@@ -76,9 +76,9 @@ def test_the_fuzz_case_is_within_and_its_floor_is_the_ratios(monkeypatch):
     ratio = ms["record_amplitude"] / ms["amplitude"]
     assert ratio > 1e5, ratio                      # the pair 1e5 times weaker: the class
     assert ms["verdict"].startswith("measured = predicted"), ms["verdict"]
-    # the floor: ROUNDOFF_FLOOR times the ratio over ROUNDOFF_FREE_RATIO (exact: the same
-    # operations as the verdict's)
-    assert ms["k_interval"] >= ROUNDOFF_FLOOR * ratio / ROUNDOFF_FREE_RATIO * abs(pr["k"])
+    # the floor: ROUNDOFF_FLOOR times the ratio over ROUNDOFF_FREE_RATIO (exact: the
+    # verdict's own operations, in its order)
+    assert ms["k_interval"] >= ROUNDOFF_FLOOR * (ratio / ROUNDOFF_FREE_RATIO) * abs(pr["k"])
     # and the pair is the predicted one (a delay mode far above the spring's own)
     assert pr["f0_hz"] > 0.2 * 500 and pr["k"] > 1000 * FOUND[4]
 
