@@ -8,7 +8,40 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["sensor_error_response", "force_error_response", "disturbance_response"]
+__all__ = ["sensor_inputs", "sensor_error_response", "force_error_response", "disturbance_response"]
+
+
+def sensor_inputs(scene):
+    """The closed loop and the two columns through which the position sensor's error
+    enters it: ``s[n+1] = A s[n] + g e[n] + h e[n-1]`` for a reading ``x[n] + e[n]``.
+
+    The links see the reading where the closed loop of
+    :func:`hapsim.analysis.network.closed_loop` has the measured positions ``x[n]`` and
+    ``x[n-1]``: ``g`` and ``h`` are those two states' columns of ``A`` less the same
+    loop's with every link at zero gain (the device's own dynamics, which sees the true
+    position, taken out).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene with a port and a device (calibrated: no ``target`` links).
+
+    Returns
+    -------
+    (ndarray, ndarray, ndarray)
+        ``A`` shape (n, n), ``g`` and ``h`` shape (n,) [per m of error].
+
+    Raises
+    ------
+    ConfigError
+        As :func:`hapsim.analysis.network.closed_loop`.
+    """
+    from hapsim.analysis.network import closed_loop
+
+    A, _ = closed_loop(scene)
+    A0, _ = closed_loop(scene, gain=0.0)
+    ipp = 2 if scene.device.hold == "zoh" else 1
+    return A, A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp]
 
 
 def sensor_error_response(scene, n: int) -> np.ndarray:
@@ -39,12 +72,7 @@ def sensor_error_response(scene, n: int) -> np.ndarray:
     ConfigError
         As :func:`hapsim.analysis.network.closed_loop`.
     """
-    from hapsim.analysis.network import closed_loop
-
-    A, names = closed_loop(scene)
-    A0, _ = closed_loop(scene, gain=0.0)
-    ipp = 2 if scene.device.hold == "zoh" else 1
-    g, h = A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp]
+    A, g, h = sensor_inputs(scene)
     out = np.zeros(max(n, 0))
     if n <= 0:        # an empty record (a run refused before its first STATE)
         return out

@@ -22,7 +22,8 @@ from hapsim.analysis.modes import mode_from_pole, modes_from_poles, rendered_pai
 from hapsim.analysis.pencil import pencil_poles, thin_pencil
 from hapsim.errors import ConfigError
 
-__all__ = ["measure_felt", "sensor_sd", "fit_free_response", "pair_noise_sensitivity"]
+__all__ = ["measure_felt", "sensor_sd", "fit_free_response", "pair_noise_sensitivity",
+           "refit_modes"]
 
 
 # ------------------------------------------------------------------ noisy / quantised records
@@ -594,6 +595,50 @@ def _kb_gradients(spec, fi, i, *, mass, period):
     g_k[i], g_k[i + 1] = 2 * mass * sig / period, 2 * mass * om / period
     g_b[i] = 2 * mass / period
     return g_k, g_b
+
+
+def refit_modes(spec, y, lens, *, mass: float, period: float, offset: bool,
+                felt: complex) -> dict | None:
+    """The felt pair of a record refitted with given modes: :func:`measure_felt`'s
+    robust path's variable projection started from ``spec`` alone, on windows it chose
+    already (the draws of :mod:`hapsim.analysis.pair_rounding`, each the run's record
+    rounded another way: the run's fit from the exact motion's minimum).
+
+    Parameters
+    ----------
+    spec : list
+        Modes (``["pair", a, w]``, ``z = exp(-a + i w)``, or ``["real", p]``) to start
+        from.
+    y : ndarray, shape (n,)
+        The windows' positions one after the other [m].
+    lens : sequence of int
+        The windows' lengths.
+    mass, period : float
+        m [kg] and T [s] (``k = m |s|^2``, ``b = -2 m Re s``).
+    offset : bool
+        A constant is fitted.
+    felt : complex
+        The predicted felt pole: the pair nearest it in ``spec`` is the felt one.
+
+    Returns
+    -------
+    dict or None
+        ``spec`` (the refined modes), ``k`` [N/m], ``b`` [N s/m]; None when the fit
+        gives no finite pair.
+    """
+    pairs = [i for i, s in enumerate(spec) if s[0] == "pair"]
+    if not pairs:
+        return None
+    zf = complex(felt) if complex(felt).imag >= 0 else complex(felt).conjugate()
+    fi = min(pairs, key=lambda i: abs(_mode_of(spec[i], mass, period).z - zf))
+    try:
+        sp, _ = _varpro([list(s) for s in spec], np.asarray(y, float), offset, list(lens))
+        md = _mode_of(sp[fi], mass, period)
+    except (ValueError, OverflowError, np.linalg.LinAlgError):
+        return None
+    if not (math.isfinite(md.k) and math.isfinite(md.b) and sp[fi][2] > 0):
+        return None
+    return {"spec": sp, "k": float(md.k), "b": float(md.b)}
 
 
 def pair_noise_sensitivity(y, period: float, mass: float, sigma: float,

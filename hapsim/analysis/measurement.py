@@ -272,10 +272,13 @@ def verdict(pred: dict, measured: dict) -> None:
     below the round-off of an exact record: 1e-9 relative on k, and on b the same error of
     the felt pole, ``1e-9 k / (2 pi f0)`` (= ``1e-9 sqrt(k m)``), or 1e-9 relative if larger;
     for a felt pair far weaker than the record (:data:`ROUNDOFF_FREE_RATIO`), that floor
-    times the ratio of their amplitudes. The quantiser's loop gain
-    (describing function, :func:`hapsim.analysis.quantisation.quantiser_gain_bound`) is left
-    out: bounded by its worst amplitude it widened the interval 2 to 70 times beyond the
-    errors observed over random loops (tests/test_identify_quantised.py).
+    times the ratio of their amplitudes. Where the sensor or the actuator rounds (a
+    driver's counts and force steps), the rounding in the loop, its loop gain included,
+    is stated by draws of its phase (``k_rounding``, ``b_rounding``:
+    :mod:`hapsim.analysis.pair_rounding`), and the interval is the larger of the two. (The
+    quantiser's describing-function gain bounded by its worst amplitude,
+    :func:`hapsim.analysis.quantisation.quantiser_gain_bound`, widened the interval 2 to 70
+    times beyond the errors observed over random loops: tests/test_identify_quantised.py.)
 
     Parameters
     ----------
@@ -301,6 +304,10 @@ def verdict(pred: dict, measured: dict) -> None:
     f0 = pred.get("f0_hz")
     pole = rel * abs(pred["k"]) / (2.0 * math.pi * f0) if f0 and f0 > 0 else 0.0
     db = max(db, rel * abs(pred["b"]), pole)
+    # the sensor's and the actuator's rounding in the loop (draws of its phase:
+    # hapsim.analysis.pair_rounding), where it exceeds the fit's interval
+    rk, rb = measured.get("k_rounding", 0.0), measured.get("b_rounding", 0.0)
+    dk, db = max(dk, rk), max(db, rb)
     measured["k_interval"], measured["b_interval"] = dk, db
     from hapsim.analysis.identify import COVERAGE
     if measured.get("method") == "varpro":
@@ -310,6 +317,12 @@ def verdict(pred: dict, measured: dict) -> None:
         measured["interval_note"] = (f"stated uncertainty: {COVERAGE:g} standard errors of "
                                      f"the fit, residual, sensor or the wire's number "
                                      f"format, the largest")
+    if "k_rounding" in measured:
+        from hapsim.analysis.pair_rounding import PAIR_DRAWS, PAIR_MARGIN
+        measured["interval_note"] = (
+            f"stated uncertainty: {COVERAGE:g} standard errors of the fit, residual, "
+            f"sensor or the wire's number format, or {PAIR_MARGIN:g} times the largest "
+            f"change of {PAIR_DRAWS} draws of the rounding in the loop, the largest")
     ok = abs(measured["k"] - pred["k"]) <= dk and abs(measured["b"] - pred["b"]) <= db
     measured["within"] = bool(ok)
     measured["verdict"] = ("measured = predicted within the stated uncertainty" if ok else

@@ -83,7 +83,9 @@ def identify_run(prep: PreparedRun, tel: Telemetry, hello=None, driver=None) -> 
         The run's driver: its wire's number format is in the stated uncertainty
         (:func:`hapsim.analysis.measurement.wire_errors`), and its ``position_scale``
         [m/count] is the sensor step when neither the scene nor a HELLO gives one (the
-        quantiser's share, q^2 / 12 through the loop: Widrow & Kollar 2008, ch. 4).
+        quantiser's share, q^2 / 12 through the loop: Widrow & Kollar 2008, ch. 4; with
+        its ``force_scale``, the rounding in the loop by draws of its phase:
+        :mod:`hapsim.analysis.pair_rounding`).
 
     Returns
     -------
@@ -269,6 +271,12 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                      f"quieter machine, at a lower rate, or with --lockstep")
     if notes:
         measured["note"] = "; ".join(notes)
+    rounding = measured.pop("_rounding", None)
+    if rounding is not None and not searching and "k" in measured:
+        # the sensor's and the actuator's rounding in the loop, by draws of their phase
+        from hapsim.analysis.pair_rounding import state_rounding
+        state_rounding(measured, scene, *rounding,
+                       float(getattr(driver, "force_scale", 0.0) or 0.0))
     verdict(prep.pred, measured)
     link_within = measured.pop("_link_within", None)
     if link_within and measured.get("within") is False:
@@ -488,7 +496,10 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         noise = math.hypot(dev.noise, aperture_noise(
             cols, T, FLAG_ESTIMATED, (cols["seq"] >= start) & ~exclude) if jit else 0.0)
 
+        last: dict = {}
+
         def fitted(ex, fit=None):
+            last["fit"] = {} if fit is None else fit      # (its windows: the rounding's)
             return identify(position, cols["seq"], T, pred["order"], device_body(dev)[0],
                             start, offset=offset, late=late,
                             skip=math.ceil(float(dev.delay)) + 2, predicted=poles,
@@ -496,7 +507,7 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                             sensor_response=response,
                             closed=None if replay is None else replay.closed, exclude=ex,
                             wire=wire, bounds=bounds or None, late_bounds=late_bounds,
-                            fit=fit)
+                            fit=last["fit"])
         if getattr(driver, "own_tick", False) and float(getattr(driver, "tick_s", 0.0)) > 0:
             # a board on its own tick and clock: the holds it mistimed that the host did
             # not see, found in the record and cut as the marked ones
@@ -512,6 +523,8 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
                                          driver, unread, poles, given=unseen)
         else:
             measured = fitted(exclude)
+        if "k" in measured and last["fit"].get("rows"):
+            measured["_rounding"] = (position, last["fit"], quantum)
         if holds is not None and "k" in measured:
             _link_check(prep.pred, measured, fitted, exclude, bounds, holds)
         if mistimed is not None:
