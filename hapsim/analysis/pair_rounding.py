@@ -7,8 +7,9 @@ fed back through the virtual links (:func:`hapsim.analysis.error_response.
 sensor_error_response`; Widrow & Kollar, *Quantization Noise*, 2008, ch. 4) and an
 actuator's step ``s`` (the FireFader's 8-bit force) as white noise of ``s^2 / 12``
 through the force response. Both are first-order and white. With few counts in the
-record they are neither: a slow oscillation of 25 counts moves a tenth of a count per
-sample, so its rounding error is a deterministic sawtooth of the motion, and the force
+record they are neither: an oscillation of 25 counts at 1.1 Hz sampled at 250 Hz moves
+at most 0.7 of a count per sample, so its rounding error is a function of the motion,
+correlated from sample to sample, and the force
 computed from rounded readings and rounded again to the actuator's step changes the
 loop itself (the quantiser's describing-function gain, Gelb & Vander Velde 1968). A
 matching FireFader (m 0.092 kg, b0 0.13 N s/m, K 4.6 N/m, B 0.10 N s/m, 250 Hz, start 10
@@ -278,7 +279,8 @@ def pair_rounding_term(scene, predicted, felt, position, rows, spec, *, mass: fl
     -------
     dict or None
         None when the term does not apply (no step, no window, no delay line for an
-        actuator step alone, a loop the closed-loop model cannot build). Else ``k``,
+        actuator step alone, a loop the closed-loop model cannot build, no pole of the
+        loop for the fit's modes). Else ``k``,
         ``b`` (the stated terms [N/m], [N s/m]), ``largest_k``, ``largest_b``,
         ``median_k``, ``median_b``, ``draws``, ``lost`` (draws whose fit lost the pair),
         ``margin``.
@@ -295,13 +297,21 @@ def pair_rounding_term(scene, predicted, felt, position, rows, spec, *, mass: fl
     if fstate is None and not q > 0:
         return None
     T = scene.period
+    # each fitted mode's nearest pole of the loop, a real mode's among the real poles
     pred = [complex(z) for z in np.asarray(predicted, complex)]
-    modes = []
+    modes: list = []
     for sp in spec:
-        z = (complex(math.exp(-sp[1]) * math.cos(sp[2]), math.exp(-sp[1]) * math.sin(sp[2]))
-             if sp[0] == "pair" else complex(sp[1]))
-        modes.append(min(pred, key=lambda p: abs(p - z) if sp[0] == "pair" or
-                         abs(p.imag) <= 1e-12 * max(abs(p), 1e-300) else math.inf))
+        pair = sp[0] == "pair"
+        z = complex(math.exp(-sp[1]) * math.cos(sp[2]), math.exp(-sp[1]) * math.sin(sp[2])) \
+            if pair else complex(sp[1])
+        near = [p for p in pred if pair or abs(p.imag) <= 1e-12 * max(abs(p), 1e-300)]
+        if near:
+            p = min(near, key=lambda p: abs(p - z))
+            p = p.conjugate() if p.imag < 0 else p
+            if all(abs(p - u) > 1e-12 * max(abs(p), 1e-300) for u in modes):
+                modes.append(p)
+    if not modes:
+        return None
     records = [np.asarray(position, float)[r] for r in rows]
     exact = exact_stretches(A, modes, records, offset=offset)
     lens = [r.size for r in rows]
