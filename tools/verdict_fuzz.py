@@ -3,7 +3,7 @@ device that matches its scene and once on one with 30 % more mass hidden in it.
 
 Usage::
 
-    python tools/verdict_fuzz.py [--protocol {framed,haply,hapkit-serial,firefader}]
+    python tools/verdict_fuzz.py [--protocol {framed,framed-counts,haply,hapkit-serial,firefader}]
                                  [--cases N] [--seed S] [--json FILE]
 
 A matching device must never be said to differ ("measured differs from predicted"), and
@@ -15,17 +15,21 @@ period more of delay, B, the start within the force limit), closed in lockstep
 process, or the driver's mock paced by the host), the hidden mass put into the mock's
 device (the run's prediction keeps the scene's). The program prints the count of each
 verdict per protocol and side, and every wrong one with its loop; ``--json`` writes them.
-Each case takes 0.1-0.5 s on the framed mock and 5-30 s on a driver's (real bytes over a
-pty, one exchange per period).
+Each case takes 0.1-0.5 s on the framed mock (about 1 s more with counts: the rounding's
+draws) and 5-30 s on a driver's (real bytes over a pty, one exchange per period).
 
 What it found (2026-11-26, stop 64): on the framed mock, 1 of 150 (an over-damped wall
 whose only complex pair is a weak delay mode: the verdict's round-off floor now grows with
 the pair's weakness, ``hapsim.analysis.measurement.ROUNDOFF_FREE_RATIO``); on the
 FireFader's mock (``--protocol firefader --cases 30``), 5 of the 20 measurable matching
-loops said "differs" (one: k 1.11 % off against 0.98 % stated), none of the heavier ones
-"matched": its 0.39 mm counts in the loop move the felt stiffness beyond the wire term's
-standard errors (with counts 4 times finer that loop is 0.39 % off, within). Open: a rounding term by draws of the rounding's phase, as the n-D one
-(``hapsim.analysis.wire_rounding``), for 1-D records.
+loops said "differs" (one: k 2.0 % off against 1.5 % stated): its 0.39 mm counts and 3 mN
+force steps in the loop move the felt pair beyond the white ``q^2/12`` term. Since stop 65
+the 1-D verdict takes the rounding by draws of its phase with the quantisers in the loop
+(``hapsim.analysis.pair_rounding``): none of those says "differs", and
+``--protocol framed-counts`` (hapsim's mock with an encoder of 8-40 counts over the start,
+its zero anywhere in a count: 1 of 44 measurable matching loops "differed" before) checks
+the class. Each matching run's departure over the draws' largest is kept (``ratios``,
+``ratio_max``): the measure of the draws' margin, ``PAIR_MARGIN``.
 """
 
 from __future__ import annotations
@@ -42,7 +46,7 @@ from provenance import REPO, command_line  # tools/, beside this file
 
 sys.path.insert(0, str(REPO))
 
-PROTOCOLS = ("framed", "haply", "hapkit-serial", "firefader")
+PROTOCOLS = ("framed", "framed-counts", "haply", "hapkit-serial", "firefader")
 #: The hidden share of mass the heavier device carries.
 HIDDEN = 1.3
 
@@ -52,7 +56,7 @@ def draw(rng: random.Random, protocol: str) -> dict:
     from hapsim.analysis.loop import LoopModel
     from hapsim.analysis.stability import stability_limit
     while True:
-        if protocol == "framed":
+        if protocol in ("framed", "framed-counts"):
             rate = rng.choice([250.0, 500.0, 1000.0, 2000.0, 5000.0])
             m, b0 = 10 ** rng.uniform(-1.7, 0.3), rng.uniform(0.0, 3.0) * (rng.random() < 0.8)
             d = rng.choice([1, 1, 2, 3, round(rng.uniform(0.2, 3.0), 3)])
@@ -66,26 +70,35 @@ def draw(rng: random.Random, protocol: str) -> dict:
         else:
             rate, m, b0, d, lim = 250.0, rng.uniform(0.02, 0.1), rng.uniform(0.0, 0.3), 1, 1.0
             B, x0 = rng.uniform(0.0, 0.025) * m * rate, 0.01
-        margin = 0 if protocol == "framed" else 1
+        framed = protocol.startswith("framed")
+        margin = 0 if framed else 1
         km = stability_limit(LoopModel(mass=m, friction=b0, rate_hz=rate, delay=d + margin,
                                        hold="zoh"), B)
         if not km > 0:
             continue
-        K = rng.uniform(0.05, 0.9) * km if protocol == "framed" else rng.uniform(0.1, 0.6) * km
-        return dict(rate=rate, m=m, b0=b0, d=d, K=K, B=B, force_limit=lim,
-                    x0=min(x0, 0.6 * lim / K))
+        K = rng.uniform(0.05, 0.9) * km if framed else rng.uniform(0.1, 0.6) * km
+        out = dict(rate=rate, m=m, b0=b0, d=d, K=K, B=B, force_limit=lim,
+                   x0=min(x0, 0.6 * lim / K))
+        if protocol == "framed-counts":
+            # an encoder of 8-40 counts over the start, its zero anywhere in a count
+            out["resolution"] = out["x0"] / rng.uniform(8.0, 40.0)
+            out["wall"] = rng.uniform(-0.5, 0.5) * out["resolution"]
+        return out
 
 
 def scene_text(case: dict, protocol: str) -> str:
     """The YAML scene of a drawn loop."""
-    proto = "" if protocol == "framed" else f"protocol: {protocol}, "
+    proto = "" if protocol.startswith("framed") else f"protocol: {protocol}, "
+    if "resolution" in case:
+        proto += f"position_resolution: {case['resolution']!r}, "
+    wall = case.get("wall", 0.0)
     return (f"rate_hz: {case['rate']}\nmasses:\n  - {{name: handle, kind: port}}\n"
-            f"  - {{name: wall, kind: ground, x0: 0.0}}\nlinks:\n"
+            f"  - {{name: wall, kind: ground, x0: {wall!r}}}\nlinks:\n"
             f"  - {{name: spring, kind: spring_damper, between: [handle, wall], "
             f"stiffness: {case['K']!r}, damping: {case['B']!r}}}\n"
             f"device: {{{proto}mass: {case['m']!r}, friction: {case['b0']!r}, "
             f"delay: {case['d']}, hold: zoh, force_limit: {case['force_limit']}}}\n"
-            f"excitation: {{x0: {case['x0']!r}}}\n")
+            f"excitation: {{x0: {wall + case['x0']!r}}}\n")
 
 
 def run_case(text: str, protocol: str, hidden: float, seed: int) -> str:
@@ -107,15 +120,29 @@ def run_case(text: str, protocol: str, hidden: float, seed: int) -> str:
         return make
     runner.MockDevice, driver_mock.EmbeddedDriverMock = heavier(framed), heavier(driven)
     try:
-        kw = (dict(transport="inprocess") if protocol == "framed"
+        kw = (dict(transport="inprocess") if protocol.startswith("framed")
               else dict(driver=protocol, seed=seed))
         rep = runner.run_scene(sc, lockstep=True, handle_signals=False, **kw)
         ms = rep["measured"]
-        return str(ms.get("verdict") or ms.get("error") or "no verdict")
+        return str(ms.get("verdict") or ms.get("error") or "no verdict"), _ratios(rep)
     except HapsimError as exc:
-        return f"refused: {exc}"
+        return f"refused: {exc}", None
     finally:
         runner.MockDevice, driver_mock.EmbeddedDriverMock = framed, driven
+
+
+def _ratios(rep: dict):
+    """The run's departure from the prediction over the largest change of the rounding's
+    draws (``hapsim.analysis.pair_rounding``), for k and b; None without the draws."""
+    ms, pr = rep["measured"], rep["predicted"]
+    rd = ms.get("rounding")
+    if not rd or "k" not in ms or rd["lost"]:
+        return None
+    out = {}
+    for q in ("k", "b"):
+        largest = rd["largest_rel"][q] * abs(ms[q])
+        out[q] = abs(ms[q] - pr[q]) / largest if largest > 0 else math.inf
+    return out
 
 
 def main(argv=None) -> int:
@@ -131,7 +158,7 @@ def main(argv=None) -> int:
     if a.cases < 1:
         ap.error(f"--cases must be >= 1, got {a.cases}")
     out = {"command": command_line(__file__, argv), "hidden": HIDDEN, "counts": {},
-           "wrong": []}
+           "wrong": [], "ratios": {}}
     for protocol in a.protocol or PROTOCOLS:
         rng = random.Random(f"{a.seed}:{protocol}")
         counts = out["counts"].setdefault(protocol, {
@@ -142,7 +169,9 @@ def main(argv=None) -> int:
             case = draw(rng, protocol)
             text = scene_text(case, protocol)
             for side, hidden in (("matching", 1.0), ("heavier", HIDDEN)):
-                v = run_case(text, protocol, hidden, seed=i)
+                v, ratio = run_case(text, protocol, hidden, seed=i)
+                if side == "matching" and ratio is not None:
+                    out["ratios"].setdefault(protocol, []).append({"case": i, **ratio})
                 kind = ("within" if v.startswith("measured = predicted") else "differs"
                         if v.startswith("measured differs") else "refused"
                         if v.startswith("refused") else "not measurable")
@@ -154,6 +183,15 @@ def main(argv=None) -> int:
             print(f"{protocol}: {i + 1}/{a.cases} loops, {time.monotonic() - t0:.0f} s",
                   file=sys.stderr, flush=True)
         print(f"{protocol}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+        rs = out["ratios"].get(protocol)
+        if rs:
+            top = out.setdefault("ratio_max", {})[protocol] = {
+                "k": max(r["k"] for r in rs), "b": max(r["b"] for r in rs), "runs": len(rs),
+                "statements_above_1": sum((r["k"] > 1) + (r["b"] > 1) for r in rs)}
+            print(f"{protocol}: matching runs' departure over the rounding draws' largest "
+                  f"(the margin's measure): k up to {top['k']:.2f}, b up to {top['b']:.2f} "
+                  f"over {len(rs)} runs ({top['statements_above_1']} of {2 * len(rs)} "
+                  f"statements above 1)")
     out["wrong_count"] = len(out["wrong"])
     print(f"wrong verdicts: {out['wrong_count']}")
     if a.json:

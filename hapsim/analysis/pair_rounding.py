@@ -63,8 +63,9 @@ PAIR_DRAWS = 100
 #: (``tools/verdict_fuzz.py``, docs/verdict_fuzz_*.json ``ratios``): hapsim's mock with
 #: an encoder of 8-40 counts over the start and its zero anywhere in a count, 142 runs:
 #: at most 1.46 (k; 4 of 284 statements above 1, the exchangeable rate 1/101 gives
-#: 2.8); the FireFader's mock, 20 runs: 1.08; the Haply's, 6 runs: 1.12. 2 leaves a
-#: factor 1.37 over the worst measured (1.5, the n-D margin, left 1.03).
+#: 2.8); the Hapkit sketch's mock over serial, 20 runs: 1.43; the FireFader's, 20 runs:
+#: 1.08; the Haply's, 6 runs: 1.12. 2 leaves a factor 1.37 over the worst measured
+#: (1.5, the n-D margin, left 1.03).
 PAIR_MARGIN = 2.0
 #: The draws' seed: fixed, so a statement is a function of its record.
 PAIR_SEED = 29
