@@ -73,7 +73,7 @@ PAIR_SEED = 29
 
 def _mode_vector(A: np.ndarray, lam: complex) -> np.ndarray:
     """The closed loop's eigenvector at its eigenvalue ``lam`` (inverse iteration,
-    Golub & Van Loan, *Matrix Computations*, 4th ed., Sec. 7.6.1: two steps from a
+    Golub & Van Loan, *Matrix Computations*, 4th ed., Sec. 7.6.1: three steps from a
     fixed start, the shift one part in 1e10 off the eigenvalue so the solve stays
     regular)."""
     import scipy.linalg as sl
