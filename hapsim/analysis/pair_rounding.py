@@ -46,16 +46,17 @@ import math
 
 import numpy as np
 
+from hapsim.analysis.wire_rounding import ROUNDING_DRAWS, ROUNDING_SEED
 from hapsim.errors import ConfigError
 
 __all__ = ["PAIR_DRAWS", "PAIR_MARGIN", "PAIR_SEED", "loop_inputs", "exact_stretches",
            "rounded_stretches", "pair_rounding_term", "state_rounding"]
 
-#: Draws of the rounding's phase [-] (as :data:`hapsim.analysis.wire_rounding.
-#: ROUNDING_DRAWS`): the largest of 100 exchangeable draws is exceeded by one more with
-#: probability 1/101. Each draw is one variable-projection fit from the exact motion's
-#: modes, 5-8 ms on a FireFader record of 2,200 rows.
-PAIR_DRAWS = 100
+#: Draws of the rounding's phase [-]: the n-D term's count (the largest of 100
+#: exchangeable draws is exceeded by one more with probability 1/101). Each draw is one
+#: variable-projection fit from the exact motion's modes, 5-8 ms on a FireFader record of
+#: 2,200 rows.
+PAIR_DRAWS = ROUNDING_DRAWS
 #: The factor over the draws' largest change that is stated [-]: it covers one scene's
 #: scatter of its largest and the model's departures from the device (the phases
 #: uniform where a device's zero is fixed; the loop linear). Measured as each matching
@@ -67,8 +68,8 @@ PAIR_DRAWS = 100
 #: 1.08; the Haply's, 6 runs: 1.12. 2 leaves a factor 1.37 over the worst measured
 #: (1.5, the n-D margin, left 1.03).
 PAIR_MARGIN = 2.0
-#: The draws' seed: fixed, so a statement is a function of its record.
-PAIR_SEED = 29
+#: The draws' seed (the n-D term's): fixed, so a statement is a function of its record.
+PAIR_SEED = ROUNDING_SEED
 
 
 def _mode_vector(A: np.ndarray, lam: complex) -> np.ndarray:
