@@ -134,3 +134,20 @@ def test_the_firefaders_found_loop_is_within_and_its_force_steps_are_why():
     assert off > ms["k_unc"] and off <= ms["k_rounding"] == seen["both"]["k"]
     # (measured: 0.093 N/m off; the fit's 0.068, the counts' draws alone 0.081, both 0.35)
     assert seen["counts alone"]["k"] < off
+
+
+def test_draws_beyond_their_budget_are_skipped_and_said():
+    """The draws' cost is projected from the exact motion's refit: beyond the budget
+    (configs/string.yaml with an encoder: 51 modes, ~150 CPU-s) none is made, and the
+    run's note says its counts were taken as white noise."""
+    import hapsim.analysis.pair_rounding as pr
+    case = _draw(random.Random("counts:0"))
+    real = pr.pair_rounding_term
+    pr.pair_rounding_term = lambda *a, **k: real(*a, **{**k, "budget_s": 0.0})
+    try:
+        ms, _ = _run(case, 1.0)
+    finally:
+        pr.pair_rounding_term = real
+    assert ms["rounding"]["skipped"] is True and ms["rounding"]["projected_s"] > 0
+    assert "k_rounding" not in ms and "white noise" in ms["note"]
+    assert "draws of the rounding" not in ms.get("interval_note", "")

@@ -43,13 +43,14 @@ device (:data:`PAIR_MARGIN`'s notes).
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
 from hapsim.analysis.wire_rounding import ROUNDING_DRAWS, ROUNDING_SEED
 from hapsim.errors import ConfigError
 
-__all__ = ["PAIR_DRAWS", "PAIR_MARGIN", "PAIR_SEED", "loop_inputs", "exact_stretches",
+__all__ = ["PAIR_DRAWS", "PAIR_MARGIN", "PAIR_SEED", "PAIR_BUDGET_S", "loop_inputs", "exact_stretches",
            "rounded_stretches", "pair_rounding_term", "state_rounding"]
 
 #: Draws of the rounding's phase [-]: the n-D term's count (the largest of 100
@@ -70,6 +71,11 @@ PAIR_DRAWS = ROUNDING_DRAWS
 PAIR_MARGIN = 2.0
 #: The draws' seed (the n-D term's): fixed, so a statement is a function of its record.
 PAIR_SEED = ROUNDING_SEED
+#: The CPU time the draws may take at a run's end [s]. A record of one felt pair takes
+#: 0.5-0.7 s (a FireFader's 2,200 rows); configs/string.yaml with a 20 um encoder (51
+#: modes, 104 states) took 297 s: beyond the budget the draws are skipped and the
+#: verdict says its counts were taken as white noise (``state_rounding``).
+PAIR_BUDGET_S = 10.0
 
 
 def _mode_vector(A: np.ndarray, lam: complex) -> np.ndarray:
@@ -129,16 +135,27 @@ def exact_stretches(A: np.ndarray, poles, records, *, offset: bool) -> list:
         y = np.asarray(y, float)
         L = y.size
         t = np.arange(L + 1)
-        basis = []
-        for lam, v, pair in cols:
-            w = np.power(lam, t)[:, None] * v[None, :]
-            basis += [w.real, w.imag] if pair else [w.real]
-        B = np.stack(basis, axis=2)                        # (L + 1, n, modes)
-        M = B[:L, 0, :]
+        # per mode lam^t (L + 1,) and its vector: the real solutions' position rows for
+        # the fit, the states formed only for the coefficients found ((L + 1, n), not a
+        # basis of (L + 1, n, modes): a 51-mode string would take 300 MB)
+        P = [np.power(lam, t) for lam, _, _ in cols]
+        rows = []
+        for p, (_, v, pair) in zip(P, cols):
+            w = p * v[0]
+            rows += [w.real, w.imag] if pair else [w.real]
+        M = np.column_stack(rows)[:L] if rows else np.zeros((L, 0))
         if offset:
             M = np.column_stack([M, np.ones(L)])
         c = np.linalg.lstsq(M, y, rcond=None)[0]
-        S = B @ c[:B.shape[2]]
+        S = np.zeros((L + 1, v.size if cols else 0))
+        i = 0
+        for p, (_, v, pair) in zip(P, cols):
+            if pair:                # c_re Re(p v) + c_im Im(p v) = Re(p (c_re - i c_im) v)
+                S += np.real(np.outer(p, (c[i] - 1j * c[i + 1]) * v))
+                i += 2
+            else:
+                S += c[i] * np.real(np.outer(p, v))
+                i += 1
         out.append((S, float(c[-1]) if offset else 0.0))
     return out
 
@@ -248,7 +265,8 @@ def rounded_stretches(A, g, h, force_column, force_state, exact, *, quantum: flo
 def pair_rounding_term(scene, predicted, felt, position, rows, spec, *, mass: float,
                        offset: bool, quantum: float, force_step: float = 0.0,
                        draws: int = PAIR_DRAWS, seed=PAIR_SEED,
-                       margin: float = PAIR_MARGIN) -> dict | None:
+                       margin: float = PAIR_MARGIN,
+                       budget_s: float | None = None) -> dict | None:
     """The wire's rounding term of a run's felt pair (module notes): ``margin`` times
     the largest change of ``k`` and of ``b`` over ``draws`` draws of the rounding's
     phase.
@@ -276,6 +294,9 @@ def pair_rounding_term(scene, predicted, felt, position, rows, spec, *, mass: fl
         The sensor's step [m] and the actuator's [N] (at least one positive).
     draws, seed, margin
         :data:`PAIR_DRAWS`, :data:`PAIR_SEED`, :data:`PAIR_MARGIN`.
+    budget_s : float, optional
+        The CPU time the draws may take [s] (default :data:`PAIR_BUDGET_S`): projected
+        from the exact motion's refit; beyond it the draws are not made.
 
     Returns
     -------
@@ -285,9 +306,11 @@ def pair_rounding_term(scene, predicted, felt, position, rows, spec, *, mass: fl
         loop for the fit's modes). Else ``k``,
         ``b`` (the stated terms [N/m], [N s/m]), ``largest_k``, ``largest_b``,
         ``median_k``, ``median_b``, ``draws``, ``lost`` (draws whose fit lost the pair),
-        ``margin``.
+        ``margin``; or, beyond the budget, ``skipped`` True with ``projected_s``,
+        ``modes``, ``states`` and ``draws``.
     """
     from hapsim.analysis.identify import refit_modes
+    budget_s = PAIR_BUDGET_S if budget_s is None else float(budget_s)
     q, s = float(quantum), float(force_step)
     rows = [np.asarray(r, np.int64) for r in rows if len(r)]
     if not (q > 0 or s > 0) or not rows or not spec:
@@ -318,9 +341,17 @@ def pair_rounding_term(scene, predicted, felt, position, rows, spec, *, mass: fl
     exact = exact_stretches(A, modes, records, offset=offset)
     lens = [r.size for r in rows]
     x_exact = np.concatenate([S[:-1, 0] + x0 for S, x0 in exact])
+    t0 = time.process_time()
     ref = refit_modes(spec, x_exact, lens, mass=mass, period=T, offset=offset, felt=felt)
     if ref is None:
         return None
+    # the draws' cost, projected from the exact motion's own refit and the loop's size
+    # (a (draws, n) by (n, n) product a row): a scene of many modes is skipped, said so
+    n = A.shape[0]
+    cost = int(draws) * (time.process_time() - t0) + sum(lens) * (2e-5 + draws * n * n * 1e-9)
+    if cost > budget_s:
+        return {"skipped": True, "projected_s": float(cost), "modes": len(spec),
+                "states": int(n), "draws": int(draws)}
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     Ys = rounded_stretches(A, g, h, fcol, fstate, exact, quantum=q, force_step=s,
                            draws=draws, rng=rng)
@@ -373,6 +404,15 @@ def state_rounding(measured: dict, scene, position, fit: dict, quantum: float,
                               mass=device_body(scene.device)[0], offset=bool(fit["offset"]),
                               quantum=quantum, force_step=force_step)
     if term is None:
+        return
+    if term.get("skipped"):
+        measured["rounding"] = {q: term[q] for q in ("skipped", "projected_s", "modes",
+                                                       "states", "draws")}
+        note = (f"the rounding's {term['draws']} draws in the loop were not made (about "
+                f"{term['projected_s']:.0f} CPU-s for {term['modes']} modes, over "
+                f"{PAIR_BUDGET_S:g}): the stated uncertainty takes the sensor's counts as "
+                "white noise, which misses their loop gain")
+        measured["note"] = "; ".join(x for x in (measured.get("note"), note) if x)
         return
     k, b = abs(measured["k"]) or 1.0, abs(measured["b"]) or 1.0
     measured["rounding"] = {
