@@ -278,6 +278,8 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         state_rounding(measured, scene, *rounding,
                        float(getattr(driver, "force_scale", 0.0) or 0.0))
     verdict(prep.pred, measured)
+    from hapsim.analysis.coulomb_check import coulomb_verdict
+    coulomb_verdict(measured, dev, scene.period)     # the linear prediction's blind spot
     link_within = measured.pop("_link_within", None)
     if link_within and measured.get("within") is False:
         # beyond the stated uncertainty, but within it with the link's unseen latency
