@@ -151,3 +151,22 @@ def test_draws_beyond_their_budget_are_skipped_and_said():
     assert ms["rounding"]["skipped"] is True and ms["rounding"]["projected_s"] > 0
     assert "k_rounding" not in ms and "white noise" in ms["note"]
     assert "draws of the rounding" not in ms.get("interval_note", "")
+
+
+def test_a_draw_that_loses_the_pair_makes_the_record_not_measurable():
+    """A draw whose refit has no finite pair: the run's pair is withdrawn and its verdict
+    says why (a verdict, as every "not measurable"; never an interval of inf)."""
+    import hapsim.analysis.pair_rounding as pr
+    case = _draw(random.Random("counts:0"))
+    real = pr.pair_rounding_term
+
+    def lossy(*a, **k):
+        got = real(*a, **k)
+        return {**got, "lost": 3, "k": float("inf"), "b": float("inf")}
+    pr.pair_rounding_term = lossy
+    try:
+        ms, _ = _run(case, 1.0)
+    finally:
+        pr.pair_rounding_term = real
+    assert "k" not in ms and ms["within"] is None
+    assert ms["verdict"] == ms["error"] and ms["verdict"].startswith("not measurable: 3 of 100")

@@ -379,8 +379,8 @@ def state_rounding(measured: dict, scene, position, fit: dict, quantum: float,
     ``b_rounding`` (:func:`pair_rounding_term`'s ``k``, ``b``), which
     :func:`hapsim.analysis.measurement.verdict` takes when they exceed the fit's
     interval, and ``rounding`` (the draws' summary, relative to the measured pair); when
-    a draw's fit lost the pair, the pair is removed and ``error`` says why (not
-    measurable: the record's counts are too few for the fit).
+    a draw's fit lost the pair, the pair is removed, ``within`` is None and ``error`` and
+    ``verdict`` say why (not measurable: the record's counts are too few for the fit).
 
     Parameters
     ----------
@@ -422,9 +422,10 @@ def state_rounding(measured: dict, scene, position, fit: dict, quantum: float,
     if term["lost"]:
         for q in ("k", "b", "f0_hz", "damping_ratio"):
             measured.pop(q, None)
-        measured["error"] = (
+        measured["error"] = measured["verdict"] = (
             f"not measurable: {term['lost']} of {term['draws']} draws of the sensor's "
             "rounding in the loop gave the fit no felt pair (too few counts in the "
             "record: a larger start or a finer sensor)")
+        measured["within"] = None
         return
     measured["k_rounding"], measured["b_rounding"] = term["k"], term["b"]
