@@ -10,10 +10,10 @@ damping exceeds the stated interval of b; below it the verdict stands.
 
 from __future__ import annotations
 
-import dataclasses
 import random
 
 import pytest
+from wall_loops import run_hidden, wall_scene
 
 
 def _draw(rng: random.Random) -> dict:
@@ -32,28 +32,7 @@ def _draw(rng: random.Random) -> dict:
 
 
 def _run(case: dict, coulomb: float, hidden: float = 1.0) -> dict:
-    import hapsim.pipeline.runner as runner
-    from hapsim.scene import parse_scene
-    sc = parse_scene(
-        f"rate_hz: {case['rate']}\nmasses:\n  - {{name: handle, kind: port}}\n"
-        f"  - {{name: wall, kind: ground, x0: 0.0}}\nlinks:\n"
-        f"  - {{name: spring, kind: spring_damper, between: [handle, wall], "
-        f"stiffness: {case['K']!r}, damping: {case['B']!r}}}\n"
-        f"device: {{coulomb: {coulomb!r}, mass: {case['m']!r}, friction: {case['b0']!r}, "
-        f"delay: {case['d']}, hold: zoh, force_limit: 1000.0}}\n"
-        f"excitation: {{x0: {case['x0']!r}}}\n")
-    framed = runner.MockDevice
-
-    def heavier(*a, **k):
-        a = list(a)
-        a[0] = dataclasses.replace(a[0], mass=hidden * a[0].mass)
-        return framed(*a, **k)
-    runner.MockDevice = heavier
-    try:
-        return runner.run_scene(sc, lockstep=True, handle_signals=False,
-                                transport="inprocess")["measured"]
-    finally:
-        runner.MockDevice = framed
+    return run_hidden(wall_scene(case, f"coulomb: {coulomb!r}, "), hidden)["measured"]
 
 
 @pytest.mark.parametrize("seed", range(8))

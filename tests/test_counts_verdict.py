@@ -13,10 +13,10 @@ device that matches the scene and on one with 30 % more mass hidden in it.
 
 from __future__ import annotations
 
-import dataclasses
 import random
 
 import pytest
+from wall_loops import run_hidden, wall_scene
 
 #: The found case: the verdict fuzz's matching loop that said "differs" (seed 0, case 53).
 FOUND = dict(rate=5000.0, m=0.2530668067611146, b0=0.41556277523204777, d=2.937,
@@ -47,29 +47,9 @@ def _draw(rng: random.Random) -> dict:
 
 def _run(case: dict, hidden: float) -> tuple:
     """The lockstep run's (measured, predicted), the device ``hidden`` times heavier."""
-    import hapsim.pipeline.runner as runner
-    from hapsim.scene import parse_scene
-    sc = parse_scene(
-        f"rate_hz: {case['rate']}\nmasses:\n  - {{name: handle, kind: port}}\n"
-        f"  - {{name: wall, kind: ground, x0: {case['wall']!r}}}\nlinks:\n"
-        f"  - {{name: spring, kind: spring_damper, between: [handle, wall], "
-        f"stiffness: {case['K']!r}, damping: {case['B']!r}}}\n"
-        f"device: {{position_resolution: {case['resolution']!r}, mass: {case['m']!r}, "
-        f"friction: {case['b0']!r}, delay: {case['d']}, hold: zoh, force_limit: 1000.0}}\n"
-        f"excitation: {{x0: {case['x0']!r}}}\n")
-    framed = runner.MockDevice
-
-    def heavier(*a, **k):
-        a = list(a)
-        a[0] = dataclasses.replace(a[0], mass=hidden * a[0].mass)
-        return framed(*a, **k)
-    runner.MockDevice = heavier
-    try:
-        rep = runner.run_scene(sc, lockstep=True, handle_signals=False,
-                               transport="inprocess")
-        return rep["measured"], rep["predicted"]
-    finally:
-        runner.MockDevice = framed
+    rep = run_hidden(wall_scene(case, f"position_resolution: {case['resolution']!r}, "),
+                     hidden)
+    return rep["measured"], rep["predicted"]
 
 
 def _kind(ms: dict) -> str:
