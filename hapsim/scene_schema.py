@@ -405,7 +405,10 @@ _KEYS = [
         doc="Encoder quantum of the mock device (0: none).",
         example="device: {mass: 0.1, position_resolution: 1.0e-6}"),
     Key("device.coulomb", "number", "N", default=0.0, minimum=0.0,
-        doc="Coulomb friction of the mock device (0: none).",
+        doc="Coulomb friction of the mock device (0: none). The run's prediction is "
+            "linear and leaves it out: where its equivalent damping, 4 fc / (pi a w) at "
+            "the record's weighted amplitude, exceeds the stated interval of b, a "
+            "departure is \"not measurable\", never \"differs\".",
         example="device: {mass: 0.1, coulomb: 0.05}"),
     Key("device.noise", "number", "m", default=0.0, minimum=0.0,
         doc="Standard deviation of the mock device's position noise (0: none; seeded).",
