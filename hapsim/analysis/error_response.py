@@ -28,8 +28,9 @@ def sensor_inputs(scene):
 
     Returns
     -------
-    (ndarray, ndarray, ndarray)
-        ``A`` shape (n, n), ``g`` and ``h`` shape (n,) [per m of error].
+    (ndarray, ndarray, ndarray, list of str)
+        ``A`` shape (n, n), ``g`` and ``h`` shape (n,) [per m of error], and the states'
+        names (:func:`~hapsim.analysis.network.closed_loop`'s).
 
     Raises
     ------
@@ -38,10 +39,10 @@ def sensor_inputs(scene):
     """
     from hapsim.analysis.network import closed_loop
 
-    A, _ = closed_loop(scene)
+    A, names = closed_loop(scene)
     A0, _ = closed_loop(scene, gain=0.0)
     ipp = 2 if scene.device.hold == "zoh" else 1
-    return A, A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp]
+    return A, A[:, 0] - A0[:, 0], A[:, ipp] - A0[:, ipp], names
 
 
 def sensor_error_response(scene, n: int) -> np.ndarray:
@@ -72,7 +73,7 @@ def sensor_error_response(scene, n: int) -> np.ndarray:
     ConfigError
         As :func:`hapsim.analysis.network.closed_loop`.
     """
-    A, g, h = sensor_inputs(scene)
+    A, g, h, _ = sensor_inputs(scene)
     out = np.zeros(max(n, 0))
     if n <= 0:        # an empty record (a run refused before its first STATE)
         return out

@@ -187,9 +187,8 @@ def loop_inputs(scene):
         As :func:`hapsim.analysis.network.closed_loop`.
     """
     from hapsim.analysis.error_response import sensor_inputs
-    from hapsim.analysis.network import closed_loop, force_input
-    A, g, h = sensor_inputs(scene)
-    names = closed_loop(scene)[1]
+    from hapsim.analysis.network import force_input
+    A, g, h, names = sensor_inputs(scene)
     fstate = next((i for i, nm in enumerate(names) if nm.startswith("F[n-1]")), None)
     if fstate is not None and float(scene.device.delay) >= 1.0:
         fcol = np.zeros(A.shape[0])
@@ -374,7 +373,7 @@ def pair_rounding_term(scene, predicted, felt, position, rows, spec, *, mass: fl
 
 
 def state_rounding(measured: dict, scene, position, fit: dict, quantum: float,
-                   force_step: float) -> None:
+                   poles, felt, force_step: float) -> None:
     """Add the rounding term to a run's measurement (in place): ``k_rounding`` and
     ``b_rounding`` (:func:`pair_rounding_term`'s ``k``, ``b``), which
     :func:`hapsim.analysis.measurement.verdict` takes when they exceed the fit's
@@ -392,12 +391,15 @@ def state_rounding(measured: dict, scene, position, fit: dict, quantum: float,
         The record the fit measured [m].
     fit : dict
         The fit's ``spec``, ``offset`` and ``rows`` (``identify``'s ``fit``).
-    quantum, force_step : float
-        The sensor's step [m] and the actuator's [N].
+    quantum : float
+        The sensor's step [m].
+    poles, felt
+        The predicted poles and felt pole the run's fit took
+        (:func:`hapsim.analysis.prediction.predicted_poles`).
+    force_step : float
+        The actuator's step [N].
     """
     from hapsim.analysis.network import device_body
-    from hapsim.analysis.prediction import predicted_poles
-    poles, felt = predicted_poles(scene)
     if felt is None:
         return
     term = pair_rounding_term(scene, poles, felt, position, fit["rows"], fit["spec"],

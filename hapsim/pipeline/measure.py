@@ -526,7 +526,7 @@ def _fit_record(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         else:
             measured = fitted(exclude)
         if "k" in measured and last["fit"].get("rows"):
-            measured["_rounding"] = (position, last["fit"], quantum)
+            measured["_rounding"] = (position, last["fit"], quantum, poles, felt)
         if holds is not None and "k" in measured:
             _link_check(prep.pred, measured, fitted, exclude, bounds, holds)
         if mistimed is not None:
