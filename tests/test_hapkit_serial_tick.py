@@ -313,6 +313,58 @@ def test_a_deadline_is_put_where_its_write_lands_mid_tick(monkeypatch):
         assert tr._delay_ns == 0 and tr._phase_z is None
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_on_the_aligned_grid_each_write_comes_mid_tick_whatever_the_hosts_lateness(
+        monkeypatch, seed):
+    """Once the host loop's deadlines are aligned (a period of whole ticks known), each
+    write is made at its deadline plus ``WRITE_LEAD`` of a tick, the middle of the board's
+    tick, however late the host woke and worked within that (``_write_on_grid``): over
+    random boards (phase, link, 4 or 5 ticks a period) and host lateness of 0-0.3 of a
+    tick, the sketch's header bytes all arrive at one phase of its tick -- a spread of a
+    few of the simulated clock's 2-us steps (the polling's last step and the readings
+    between it and the write; measured 2 us, bound 10 us), where before each write came
+    at its deadline plus the host's lateness (a spread of 0.3 of a tick, 300 us) -- within
+    an eighth of a tick of the middle (the probe's own error,
+    test_the_probe_finds_the_boundary_and_the_writes_come_mid_tick), and every hold the
+    board took is the period's. A write the host makes later than the lead (0.6-0.9 of a
+    tick after its deadline, one in nine) is made at once, where it falls: each hold of
+    another number of ticks is marked mistimed (the class of
+    test_writes_the_host_made_a_tick_late_are_marked_and_cut)."""
+    from hapsim.drivers import transport as transport_mod
+    from hapsim.drivers.tick_align import WRITE_LEAD
+    rng = np.random.default_rng(seed)
+    port = TickingPort(int(rng.uniform(0, TICK_NS)), int(rng.uniform(0, 1.5e6)), sketch=True)
+    tr = _transport(monkeypatch, port)
+    assert tr.tick_phase() is not None, tr.tick_probe
+    clk = transport_mod.time                     # the simulated clock (_transport)
+    per = int(rng.choice([4, 5]))
+    tr._period_ticks = per
+    deadline = tr.align_deadline(clk.monotonic_ns())
+    assert (deadline - tr._write_at) % TICK_NS == TICK_NS // 2 - int(WRITE_LEAD * TICK_NS)
+    cmd = tr.driver.encode_force(0.0)
+    port.arrivals.clear()
+    port.ticks.clear()
+    late = set()
+    for k in range(90):
+        lateness = rng.uniform(0.0, 0.3)
+        if k % 9 == 4:
+            lateness = rng.uniform(0.6, 0.9)
+            late.add(k)
+        clk.sleep(max(deadline + k * per * TICK_NS + int(lateness * TICK_NS)
+                      - clk.monotonic_ns(), 0) * 1e-9)
+        tr._write_tick = None
+        tr._command(cmd)
+        tr._note_hold(k)
+    on = [k for k in range(90) if k not in late]
+    arr = np.asarray(port.arrivals, float)
+    assert np.ptp(arr[on]) <= 10_000, np.ptp(arr[on])
+    assert abs(np.median(arr[on]) - TICK_NS / 2) <= TICK_NS / 8, np.median(arr[on])
+    ticks = np.asarray(port.ticks)
+    off = {k for k in range(1, 90) if ticks[k] - ticks[k - 1] != per}
+    assert not off - late - {k + 1 for k in late}, sorted(off)     # only around late ones
+    assert off <= tr.mistimed, (sorted(off - tr.mistimed), sorted(tr.mistimed))
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_the_write_made_on_waking_from_a_stall_moves_no_write_after_it(monkeypatch, seed):
     """A host wakes from a stall at a random phase of the tick: its loop puts the next

@@ -615,7 +615,15 @@ def test_2diy_host_silence_without_the_watchdog_holds_the_torque(monkeypatch):
     monkeypatch.setattr(tw, "start_watchdog", lambda *a, **k: (None, "off for the test"))
     r, rep = _2diy_run(monkeypatch, SILENCE_S)
     assert r["watchdog"]["running"] is False
-    assert rep["longest_hold_s"] >= SILENCE_S
+    # the silence, less how late the board took the write made before it: the hold runs
+    # from the board's taking of that write to its taking of the next, so a first write
+    # delivered late shortens it (0.0989 s once under the suite's load, against the 0.1 s
+    # asserted before); the emulator's own lateness (longest_gap_s) bounds that delay, as
+    # it bounds the watchdog's hold from above in the test before. And far beyond what a
+    # watchdog lets a board hold: the control's point.
+    assert rep["longest_hold_s"] >= SILENCE_S - rep["longest_gap_s"], (
+        rep["longest_hold_s"], rep["longest_gap_s"])
+    assert rep["longest_hold_s"] > 2 * (HOLD_BOUND_S + LATENCY_S), rep["longest_hold_s"]
 
 
 def _lossy_parser_states(n_states: int, loss: float = 0.005):

@@ -19,7 +19,7 @@ from hapsim.errors import DeviceError
 
 __all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S",
            "PROBES_NEEDED", "PROBE_TRIES", "REARM_INTERVAL", "JUMP_STEPS", "FLAT_STEPS",
-           "LANDED_BINS"]
+           "LANDED_BINS", "WRITE_LEAD", "SPIN"]
 
 #: Wait for the first record before the arming command is sent again [s].
 REARM_INTERVAL = 0.1
@@ -43,6 +43,20 @@ LANDED_BINS = 128
 #: part's width to 1/16.
 JUMP_STEPS = 128
 FLAT_STEPS = 16
+#: Where a write is made after the host loop's deadline once the deadlines are aligned
+#: (:meth:`TickAligned.align_deadline`) [fraction of a tick]: the deadline is put this much
+#: before the middle of the board's tick and the write is made at the middle itself,
+#: whenever the host's wake-up and its tick's work took less (:meth:`TickAligned.
+#: _write_on_grid`). A write made as soon as the tick's work was done came at the
+#: deadline plus that work and the wake-up's latency, both varying: on the CI machine kind
+#: (a virtual machine waking its halted CPUs 0.1-1 ms late) the writes' phases spread
+#: with a standard deviation of 0.15-0.2 of a tick and a third of the rows were marked
+#: mistimed, the Hapkit scene "not measurable" in 8 runs of 8.
+WRITE_LEAD = 0.35
+#: The last part of the wait for a write's time spent polling the clock instead of
+#: sleeping [fraction of a tick]: a sleep's wake-up comes 0.07-0.3 ms late on such a
+#: machine (a tick is 0.992 ms); at most this much CPU per write.
+SPIN = 0.25
 
 
 def fit_tick_jump(q, e, tick) -> dict:
@@ -160,6 +174,9 @@ class TickAligned:
         import cmath
         tk = self._tick_ns
         t = time.monotonic_ns()
+        if self._grid_ns and t >= self._aligned_ns:
+            self._write_on_grid(t)
+            return
         if t < self._aligned_ns:
             # a write before the deadline the host loop was just put on (the one it makes
             # when it wakes from a stall, :meth:`align_deadline`) is on no grid of the
@@ -197,6 +214,15 @@ class TickAligned:
         if self._write_at is None:
             return int(deadline_ns)
         tk = self._tick_ns
+        if self._period_ticks:
+            # the writes on the deadlines' grid, each at the middle of its tick
+            # (_write_on_grid): the deadline WRITE_LEAD of a tick before it
+            self._grid_ns = int(self._period_ticks) * tk
+            shift = (tk // 2 - int(WRITE_LEAD * tk) - (int(deadline_ns) - self._write_at)) % tk
+            self._phase_z = None
+            self._delay_ns = 0
+            self._aligned_ns = int(deadline_ns) + int(shift)
+            return self._aligned_ns
         shift = (tk // 2 - self._over_ns - (int(deadline_ns) - self._write_at)) % tk
         # the writes' own phase starts again at the middle: no delay of its own (one
         # set by the arming's writes, made between deadlines, would stay while the writes
@@ -206,6 +232,25 @@ class TickAligned:
         self._delay_ns = 0
         self._aligned_ns = int(deadline_ns) + int(shift)
         return self._aligned_ns
+
+    def _write_on_grid(self, t: int) -> None:
+        """Wait for the time of this tick's write on the aligned deadlines' grid: the
+        deadline the loop woke for, ``t`` [monotonic ns] after it, plus :data:`WRITE_LEAD`
+        of a tick (the middle of the board's tick, :meth:`align_deadline`), slept to
+        within :data:`SPIN` of a tick and polled for the rest; at once when ``t`` is past
+        it (a late tick: its phase noted where it falls). The deadlines are whole periods
+        apart, each a whole number of ticks, so the writes are too: no write waits for
+        another tick than its own."""
+        tk = self._tick_ns
+        g = self._grid_ns
+        due = self._aligned_ns + (t - self._aligned_ns) // g * g + int(WRITE_LEAD * tk)
+        rest = due - t
+        if rest > 0:
+            if rest > SPIN * tk:
+                time.sleep((rest - SPIN * tk) * 1e-9)
+            while time.monotonic_ns() < due:
+                pass
+        self._note_tick(time.monotonic_ns())
 
     def tick_landed_median(self) -> float | None:
         """Where the writes went, on the host's clock: the median phase after the jump the
@@ -281,6 +326,7 @@ class TickAligned:
         self._delay_ns = 0
         self._over_ns = 0
         self._aligned_ns = 0                         # (the last aligned deadline)
+        self._grid_ns = 0                            # (their period, once aligned)
         self._landed = [0] * LANDED_BINS
         self.tick_probe = None
         k = TICK_PROBES

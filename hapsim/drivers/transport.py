@@ -266,7 +266,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         self._write_at = None               # a monotonic_ns time of the boundary (or None)
         self._phase_z = None                # the writes' own phase, a running mean
         self._delay_ns = 0                  # the delay that puts them mid-tick
-        self._over_ns = self._aligned_ns = 0   # its sleep's lateness; the aligned deadline
+        self._over_ns = self._aligned_ns = self._grid_ns = 0   # (TickAligned's)
         self.tick_probe = None              # what the last probe found (report)
         self._write_tick = None             # the last write's (tick index, near) on it
         self._period_ticks = None           # the host's period in whole ticks, or None
