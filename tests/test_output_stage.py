@@ -258,8 +258,11 @@ def _wall_runs_within(config: str, driver: str, truth, seeds=(1, 2, 3)) -> list:
         # what a failure needs to be read: the record's cuts and the host's lateness
         outcomes.append((seed, verdict[:60], {q: m.get(q) for q in (
             "samples_used", "stretches_used", "mistimed_rows", "unseen_holds", "cycles")},
-            {q: rep["loop"].get(q) for q in ("overruns", "missed", "estimated")},
-            {q: rep["loop"]["driver"].get(q) for q in ("read_late", "mispaired", "missing")}))
+            {q: rep["loop"].get(q) for q in ("overruns", "missed", "estimated", "scheduling")},
+            {q: rep["loop"]["driver"].get(q) for q in ("read_late", "mispaired", "missing")},
+            # the board's own truth: the commands it took off its period (its process
+            # late on a loaded or virtual machine, or the host's writes near its boundary)
+            (rep["loop"]["mock"].get("tick_arrivals") or {}).get("off_period")))
         assert not verdict.startswith("measured differs"), (seed, verdict, m.get("k"),
                                                              m.get("b"), truth)
         if m.get("within") is True:
