@@ -217,7 +217,8 @@ class TickAligned:
         if self._period_ticks:
             # the writes on the deadlines' grid, each at the middle of its tick
             # (_write_on_grid): the deadline WRITE_LEAD of a tick before it
-            self._grid_ns = int(self._period_ticks) * tk
+            self._grid_ns = int(getattr(self, "_grid_period_ns", 0)
+                                or int(self._period_ticks) * tk)
             shift = (tk // 2 - int(WRITE_LEAD * tk) - (int(deadline_ns) - self._write_at)) % tk
             self._phase_z = None
             self._delay_ns = 0
@@ -232,6 +233,15 @@ class TickAligned:
         self._delay_ns = 0
         self._aligned_ns = int(deadline_ns) + int(shift)
         return self._aligned_ns
+
+    def _host_period(self, rate_hz: float):
+        """The host loop's period at ``rate_hz`` [Hz], kept on the host loop's own grid
+        [ns] (its deadlines are ``round(1e9 / rate)`` apart: :meth:`_write_on_grid` counts
+        them so, however far a whole number of ticks drifts from it over a long run);
+        returns the period in whole ticks of the board (``driver.period_ticks``), or
+        None."""
+        self._grid_period_ns = int(round(1e9 / float(rate_hz)))
+        return self.driver.period_ticks(float(rate_hz))
 
     def _write_on_grid(self, t: int) -> None:
         """Wait for the time of this tick's write on the aligned deadlines' grid: the

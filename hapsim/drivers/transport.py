@@ -407,7 +407,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
             if self._tick_ns:
                 # a period of whole ticks: every hold is that many (else they alternate
                 # by nature, which the loop's model does not hold either)
-                self._period_ticks = dr.period_ticks(float(msg.rate_hz))
+                self._period_ticks = self._host_period(float(msg.rate_hz))
             if (self._tick_ns and self._handled is None and self._board_T is None
                     and not self._tick_probed):
                 # once, at the first arming (the device at rest): a re-arming mid-run
