@@ -126,7 +126,13 @@ def test_falcon_host_silence_bounded_by_the_watchdog_and_accounted():
     assert dev.longest_hold_s >= fr.HOLD_BOUND_S - 2 * math.ulp(time.monotonic()), (
         dev.longest_hold_s, wd)
     assert res["stalls"] >= 1 and res["verdict"] == "degraded", res["reason"]
-    assert res["stopped"] is not None and "late" in res["stopped"][1], res["stopped"]
+    # stopped for the stall, or for where the legs went meanwhile: a host descheduled
+    # past its own silence (a loaded CI machine) let the legs coast on under the zero
+    # command, and on waking the envelope's check came first ("leg 2 +17.6 deg from the
+    # operating point, beyond the envelope of 5.7 deg" once in a fresh-clone CI run)
+    assert res["stopped"] is not None and (
+        "late" in res["stopped"][1] or "beyond the envelope" in res["stopped"][1]), \
+        res["stopped"]
     assert res["zeroed"] == fr.ZERO_PACKETS
     # every reading compared after the silence but the one whose exchange followed the
     # watchdog's write (its reply may answer the zero command): exact
