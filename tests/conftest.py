@@ -395,13 +395,36 @@ def shipped_lockstep_run():
 # set here (NodeId.parse keeps the string as given), only where xdist's own did not take.
 
 
+#: The modules whose tests close real-time loops over a pty or a port (a host at
+#: ``SCHED_FIFO`` and an emulated board on its own clock), found by sampling the processes
+#: at ``SCHED_FIFO`` during a whole-suite run: 85 such tests, about 275 of the suite's
+#: 2,350 worker-seconds, two of them running at once in 19 % of the samples on 2 cores.
+#: Each claims what one loop does beside CPU-bound load, not two real-time loops sharing
+#: two cores: they run in one xdist group, one at a time (a module with a group of its
+#: own keeps it: its tests run in turn already).
+REALTIME_MODULES = frozenset({
+    "test_bench_advise", "test_counts_verdict", "test_daemon_pty", "test_drivers",
+    "test_faders_realtime", "test_falcon_spring", "test_falcon_watchdog", "test_firmware",
+    "test_hapkit_serial_tick", "test_haply2_prediction", "test_haply2_probe",
+    "test_haply2_realtime", "test_haply2_watchdog", "test_host_watchdog",
+    "test_identify_excitation", "test_identify_late", "test_mock_board",
+    "test_mock_persistent", "test_output_stage", "test_run_nd_faults", "test_run_nd_stop",
+    "test_stop_cleanup", "test_throttled_host", "test_wallclock"})
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """On a pytest-xdist worker with ``--dist loadgroup``: give each test that carries
+    """On a pytest-xdist worker with ``--dist loadgroup``: the tests of
+    :data:`REALTIME_MODULES` in the group ``realtime``; give each test that carries
     ``xdist_group(name)`` the node id ``<id>@<name>`` the controller's LoadGroupScheduling
     groups by (what pytest-xdist itself does where ``item._nodeid`` is the node id)."""
     if not getattr(config.option, "loadgroup", False):
         return
+    for item in items:
+        mod = getattr(item, "module", None)
+        if (mod is not None and mod.__name__.rpartition(".")[2] in REALTIME_MODULES
+                and item.get_closest_marker("xdist_group") is None):
+            item.add_marker(pytest.mark.xdist_group("realtime"))
     for item in items:
         names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
                         for m in item.iter_markers("xdist_group")})
