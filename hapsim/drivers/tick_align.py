@@ -214,17 +214,14 @@ class TickAligned:
         if self._write_at is None:
             return int(deadline_ns)
         tk = self._tick_ns
+        lead = self._over_ns
         if self._period_ticks:
             # the writes on the deadlines' grid, each at the middle of its tick
             # (_write_on_grid): the deadline WRITE_LEAD of a tick before it
             self._grid_ns = int(getattr(self, "_grid_period_ns", 0)
                                 or int(self._period_ticks) * tk)
-            shift = (tk // 2 - int(WRITE_LEAD * tk) - (int(deadline_ns) - self._write_at)) % tk
-            self._phase_z = None
-            self._delay_ns = 0
-            self._aligned_ns = int(deadline_ns) + int(shift)
-            return self._aligned_ns
-        shift = (tk // 2 - self._over_ns - (int(deadline_ns) - self._write_at)) % tk
+            lead = int(WRITE_LEAD * tk)
+        shift = (tk // 2 - lead - (int(deadline_ns) - self._write_at)) % tk
         # the writes' own phase starts again at the middle: no delay of its own (one
         # set by the arming's writes, made between deadlines, would stay while the writes
         # it moved stayed in the band, the answer's time short by it); the writes before
