@@ -19,7 +19,29 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["coulomb_verdict"]
+__all__ = ["coulomb_verdict", "coulomb_equivalent_damping"]
+
+
+def coulomb_equivalent_damping(fc: float, amplitude: float, w: float) -> float:
+    """The viscous damping that dissipates per cycle what a Coulomb friction does in a
+    sinusoidal motion: ``4 fc / (pi a w)`` (its describing function; Gelb & Vander Velde
+    1968, ch. 2).
+
+    Parameters
+    ----------
+    fc : float
+        The Coulomb friction's force [N], >= 0.
+    amplitude : float
+        The motion's amplitude a [m], > 0.
+    w : float
+        Its angular frequency [rad/s], > 0.
+
+    Returns
+    -------
+    float
+        The equivalent damping [N s/m].
+    """
+    return 4.0 * fc / (math.pi * amplitude * w)
 
 
 def coulomb_verdict(measured: dict, device, period: float) -> None:
@@ -51,7 +73,7 @@ def coulomb_verdict(measured: dict, device, period: float) -> None:
     # its square), a0 sqrt((1 - exp(-2 x)) / (2 x)) with x = zeta w t
     x = zeta * w * t
     a_eff = a0 * (math.sqrt(-math.expm1(-2.0 * x) / (2.0 * x)) if x > 1e-12 else 1.0)
-    b_eq = 4.0 * fc / (math.pi * a_eff * w)
+    b_eq = coulomb_equivalent_damping(fc, a_eff, w)
     measured["coulomb_b_eq"] = b_eq
     if b_eq <= measured["b_interval"]:
         return

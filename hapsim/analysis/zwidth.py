@@ -258,6 +258,7 @@ def predicted_coulomb(device, rate_hz: float, B: float, amplitude: float) -> flo
     ConfigError
         A non-positive amplitude with Coulomb friction.
     """
+    from hapsim.analysis.coulomb_check import coulomb_equivalent_damping
     from hapsim.analysis.loop_poles import closed_loop_poles
     from hapsim.analysis.stability import stability_limit
 
@@ -280,7 +281,7 @@ def predicted_coulomb(device, rate_hz: float, B: float, amplitude: float) -> flo
         w = abs(math.atan2(zc.imag, zc.real)) / T
         if w <= 0:
             return K
-        beq = 4.0 * fc / (math.pi * amp(K) * w)
+        beq = coulomb_equivalent_damping(fc, amp(K), w)
         K_new = stability_limit(device_loop(device, rate_hz, loop.friction + beq), B)
         if abs(K_new - K) <= 1e-10 * abs(K):
             return K_new
