@@ -81,7 +81,7 @@ def test_the_equivalent_damping_dissipates_what_the_friction_does_in_a_cycle():
     """The describing function's damping, against the energy each loses over a cycle of
     x = a sin(w t), integrated numerically: fc |v| and b v^2 over the half cycle where
     v >= 0 (both integrands analytic there; 60-point Gauss-Legendre, exact to round-off
-    for them: a few eps, far below the 1e-12 asked), twice."""
+    for them), twice."""
     import numpy as np
 
     from hapsim.analysis.coulomb_check import coulomb_equivalent_damping
@@ -94,4 +94,5 @@ def test_the_equivalent_damping_dissipates_what_the_friction_does_in_a_cycle():
         b = coulomb_equivalent_damping(fc, a, w)
         e_coulomb = 2 * half * np.dot(weights, fc * v)
         e_viscous = 2 * half * np.dot(weights, b * v * v)
+        # measured 1.4e-15 (6.4 eps) over 4,000 draws (seeds 0-199), margin 700
         assert abs(e_viscous - e_coulomb) <= 1e-12 * e_coulomb, (fc, a, w)
