@@ -193,14 +193,15 @@ class SerialLink:
     def __init__(self, port: str, baud: int, rtscts: bool = False, *, watchdog=None,
                  zero: bytes = b"") -> None:
         import serial
+        from hapsim.drivers.urlhandler import serial_for_url
         self.watchdog, self.zero = watchdog, bytes(zero)
         #: The watchdog's writes taken (each answered by a reply the exchange reads as a
         #: late one: :meth:`Exchange.stop` reads them too).
         self.extra = 0
         try:
             # a fixed short read timeout (setting it per read reconfigures the port)
-            self.ser = serial.serial_for_url(port, baudrate=baud, rtscts=rtscts, timeout=0.005,
-                                             write_timeout=1.0)
+            self.ser = serial_for_url(port, baudrate=baud, rtscts=rtscts, timeout=0.005,
+                                      write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.port = port

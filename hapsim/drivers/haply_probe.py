@@ -356,19 +356,19 @@ def probe_port(drv, port: str, *, force_limit: float, envelope: float,
         As :func:`find_direction`; DeviceError also when the port cannot be opened.
     """
     wd = None
-    if pace:
-        # a board on its own clock holds each pulse's torque while the host does not run:
-        # the host's watchdog beside the probe too (hapsim.drivers.torque_watchdog;
-        # before, none: an identify over a lossy M3 held a torque 54 ms, the independent
-        # board model's count, tools/independent_boards)
-        from hapsim.drivers.resync import HOLD_BOUND_S
-        from hapsim.drivers.torque_watchdog import start_watchdog
-        wd, _ = start_watchdog(port, drv.encode_force(0.0), HOLD_BOUND_S)
+    link = SerialLink(port, drv.baud, zero=drv.encode_force(0.0))
     try:
-        link = SerialLink(port, drv.baud, watchdog=wd, zero=drv.encode_force(0.0))
+        if pace:
+            # a board on its own clock holds each pulse's torque while the host does not
+            # run: the host's watchdog beside the probe too (hapsim.drivers.
+            # torque_watchdog; before, none: an identify over a lossy M3 held a torque
+            # 54 ms, the independent board model's count, tools/independent_boards)
+            from hapsim.drivers.resync import HOLD_BOUND_S
+            from hapsim.drivers.torque_watchdog import start_watchdog
+            wd, _ = start_watchdog(port, drv.encode_force(0.0), HOLD_BOUND_S, ser=link.ser)
+            link.watchdog = wd
     except BaseException:
-        if wd is not None:
-            wd.close()
+        link.close()
         raise
     try:
         if wd is not None:

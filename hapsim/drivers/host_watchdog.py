@@ -77,8 +77,8 @@ class Watched:
         from hapsim.drivers.torque_watchdog import start_watchdog
         robust = robust_stop(driver)
         self._wd_zero = driver.encode_force(0.0)
-        self.watchdog, self._wd_why = start_watchdog(port, self._wd_zero,
-                                                     HOLD_BOUND_S, robust=robust)
+        self.watchdog, self._wd_why = start_watchdog(port, self._wd_zero, HOLD_BOUND_S,
+                                                     robust=robust, ser=self._ser)
         self._wd_robust = self.watchdog is not None and robust is not None
 
     def _wd_take(self, times: tuple) -> None:

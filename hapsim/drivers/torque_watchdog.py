@@ -102,8 +102,10 @@ _F32 = struct.Struct("<f")
 #: libusb's own, and the bulk OUT endpoint: the Falcon's FT232R) and ``stamped`` (a pipe
 #: to an emulated chip: each write prefixed by its monotonic time [ns], 8 bytes little
 #: endian, so that the chip applies it at that time,
-#: :meth:`hapsim.emulated.ftdi_usb.VirtualFT232R.side_channel`).
-_SINKS = ("usbfs", "stamped")
+#: :meth:`hapsim.emulated.ftdi_usb.VirtualFT232R.side_channel`) and ``packet`` (the host's
+#: socket of an emulated link, :mod:`hapsim.drivers.urlhandler`: each write one packet,
+#: which the kernel stamps for the board).
+_SINKS = ("usbfs", "stamped", "packet")
 #: The usbfs transfer's timeout [ms]: a full-speed bulk OUT of one packet takes one
 #: frame (1 ms); a chip that NAKs longer (its FIFO full) is not waited for.
 USBFS_TIMEOUT_MS = 10
@@ -156,7 +158,8 @@ class TorqueWatchdog:
     sink : tuple, optional
         Instead of opening ``port`` (then only named in messages): ``(kind, fd, *args)``,
         a file descriptor of this process the watchdog inherits and writes to,
-        ``("usbfs", fd, endpoint)`` or ``("stamped", fd)`` (:data:`_SINKS`).
+        ``("usbfs", fd, endpoint)``, ``("stamped", fd)`` or ``("packet", fd)`` (an
+        emulated link's socket, :mod:`hapsim.drivers.urlhandler`; :data:`_SINKS`).
     robust : (bytes, int or None), optional
         For a board without framing: ``(data, index)``, the write that zeroes the force
         whatever the board's parser is inside (the driver's ``stop_bytes``: zero writes
@@ -439,7 +442,7 @@ class TorqueWatchdog:
 
 
 def start_watchdog(port: str, zero: bytes, bound_s: float, *, sink: tuple | None = None,
-                   robust: tuple | None = None):
+                   robust: tuple | None = None, ser=None):
     """A :class:`TorqueWatchdog` on ``port`` (or ``sink``), or the reason it could not
     start.
 
@@ -456,6 +459,10 @@ def start_watchdog(port: str, zero: bytes, bound_s: float, *, sink: tuple | None
         :class:`TorqueWatchdog`'s ``sink``: an inherited file instead of ``port``.
     robust : (bytes, int or None), optional
         :class:`TorqueWatchdog`'s ``robust``.
+    ser : serial.SerialBase, optional
+        The host's open port: on an emulated link (``emulated://NAME``, no device file,
+        :mod:`hapsim.drivers.urlhandler`) the watchdog writes to its socket (the sink
+        ``("packet", fd)``).
 
     Returns
     -------
@@ -463,6 +470,10 @@ def start_watchdog(port: str, zero: bytes, bound_s: float, *, sink: tuple | None
         The watchdog, or None and why not (a port that is no device file: a URL, a
         socket; a process that could not start).
     """
+    if sink is None and ser is not None:
+        from hapsim.drivers.urlhandler import is_emulated
+        if is_emulated(port):
+            sink = ("packet", ser.fileno())
     if sink is None and not os.path.exists(port):
         return None, f"{port} is not a device file"
     try:
@@ -602,6 +613,11 @@ def _writer(port: str):
     os.fstat(fd)                        # (OSError EBADF: not inherited)
     if kind == "usbfs":
         return _usbfs_writer(fd, int(arg[0]))
+    if kind == "packet":
+        # the emulated link's socket (hapsim.drivers.urlhandler): a write is one packet,
+        # taken whole or refused, as a tty's is written whole
+        os.set_blocking(fd, False)
+        return lambda data, patience=0.0: _write_whole(fd, data, patience)
     # "stamped": the emulated chip's side channel, each write its monotonic time first
     def stamped(data: bytes, patience: float = 0.0) -> bytes:
         os.write(fd, time.monotonic_ns().to_bytes(8, "little") + data)  # (<= PIPE_BUF)

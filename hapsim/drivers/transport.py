@@ -205,11 +205,11 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                  reply_deadline: float = 0.0, delay_known: bool = True,
                  inertia: float | None = None, board_period: float | None = None,
                  handled=None) -> None:
-        import serial
+        from hapsim.drivers.urlhandler import serial_for_url
         try:
-            self._ser = serial.serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
-                                              timeout=read_timeout, write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
+            self._ser = serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
+                                       timeout=read_timeout, write_timeout=1.0)
+        except (OSError, ValueError) as exc:        # (serial.SerialException is an OSError)
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.driver = driver
         self._d = int(delay)

@@ -107,11 +107,12 @@ class SerialTransport:
         """Open :attr:`info`'s port, in low-latency mode where it has one (DeviceError when
         it cannot be opened)."""
         import serial  # pyserial; imported here so in-process tests do not need it
+        from hapsim.drivers.urlhandler import serial_for_url
 
         port = self.info["port"]
         try:
-            self._ser = serial.serial_for_url(port, baudrate=self.info["baud"],
-                                              timeout=self._timeout, write_timeout=1.0)
+            self._ser = serial_for_url(port, baudrate=self.info["baud"],
+                                       timeout=self._timeout, write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self._read, self._write = self._ser.read, self._ser.write

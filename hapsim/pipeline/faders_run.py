@@ -660,6 +660,8 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
 
     import serial
 
+    from hapsim.drivers.urlhandler import serial_for_url
+
     from hapsim.analysis.ports import stable_ports_check
     from hapsim.drivers.firefader import FireFader, encode_packet
     from hapsim.host.realtime import RealtimePriority
@@ -704,8 +706,7 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     report = None
     try:
         try:
-            ser = serial.serial_for_url(port, baudrate=drv.baud, timeout=0,
-                                        write_timeout=1.0)
+            ser = serial_for_url(port, baudrate=drv.baud, timeout=0, write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         if mock is not None:
@@ -714,7 +715,7 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
         if (board or {}).get("clock", "wall") == "wall":
             from hapsim.drivers.resync import HOLD_BOUND_S
             from hapsim.drivers.torque_watchdog import start_watchdog
-            wd, wd_why = start_watchdog(port, encode_packet(0, 0), HOLD_BOUND_S)
+            wd, wd_why = start_watchdog(port, encode_packet(0, 0), HOLD_BOUND_S, ser=ser)
         try:
             with RealtimePriority(options.rt_priority or 0):
                 run = record_faders(ser, scene, N, len(starts),

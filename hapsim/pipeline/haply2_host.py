@@ -316,6 +316,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         A joint wired backwards against its direction bytes (the probe's refusal).
     """
     import serial
+    from hapsim.drivers.urlhandler import serial_for_url
 
     from hapsim.kinematics import device
     from hapsim.lockstep import identification_plan
@@ -326,7 +327,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     drv = Haply2DIY(generation, resolution=resolution, **(directions or {}))
     own = isinstance(port, str)
     try:
-        ser = (serial.serial_for_url(port, baudrate=115200, timeout=0, write_timeout=1.0)
+        ser = (serial_for_url(port, baudrate=115200, timeout=0, write_timeout=1.0)
                if own else port)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceError(f"cannot open port {port}: {exc}") from None
@@ -344,7 +345,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         from hapsim.drivers.torque_watchdog import start_watchdog
         from hapsim.pipeline.haply2_record import watchdog_robust
         wd, wd_why = (start_watchdog(port, drv.write_bytes((0.0, 0.0)), HOLD_BOUND_S,
-                                     robust=watchdog_robust(drv, scene))
+                                     robust=watchdog_robust(drv, scene), ser=ser)
                       if own else (None, "a port object, not a device file"))
     try:
         if probe_wiring:
