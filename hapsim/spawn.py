@@ -165,19 +165,56 @@ class PtyChild:
             The master's descriptor, for :meth:`start` (which closes it).
         """
         import pty
-        import tempfile
         import tty
         master, slave = pty.openpty()
         tty.setraw(slave)
         self.port = os.ttyname(slave)
         self._slave = slave
+        self._new_report(prefix)
+        return master
+
+    def open_link(self, prefix: str) -> int:
+        """A new emulated link (``emulated://NAME``, :mod:`hapsim.drivers.urlhandler`):
+        a listening packet socket for the child, ``port`` its URL, and a fresh
+        ``report_path`` (as :meth:`open_pty`). The child takes the host's writes at the
+        times the kernel stamped them with (:mod:`hapsim.emulated.stamped_link`).
+
+        Parameters
+        ----------
+        prefix : str
+            The report file's name prefix.
+
+        Returns
+        -------
+        int
+            The listening socket's descriptor, for :meth:`start` (which closes it).
+
+        Raises
+        ------
+        OSError
+            No Unix packet socket here.
+        """
+        import socket
+        name = f"hapsim-board-{os.getpid()}-{os.urandom(4).hex()}"
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        try:
+            sock.bind("\0" + name)             # (an abstract name: no file to remove)
+            sock.listen(1)
+        except OSError:
+            sock.close()
+            raise
+        self.port = "emulated://" + name
+        self._new_report(prefix)
+        return sock.detach()
+
+    def _new_report(self, prefix: str) -> None:
+        import tempfile
         fd, self.report_path = tempfile.mkstemp(prefix=prefix, suffix=".json")
         os.close(fd)
         os.unlink(self.report_path)
         # the child writes its report when it exits: a stop at any moment from now on
         # (Ctrl-C during the imports, before the owner's try) ends it and removes that
         self._stop_token = at_stop(self.close)
-        return master
 
     def start(self, cmd: list, master: int) -> None:
         """Start the child ``cmd`` with ``master`` passed (``pass_fds``), this package

@@ -412,6 +412,11 @@ def main(argv=None) -> int:
     p.add_argument("--no-host-watchdog", action="store_true",
                    help="the baseline of an A/B: no host watchdog is started "
                         "(hapsim.drivers.torque_watchdog.start_watchdog)")
+    p.add_argument("--link", choices=("emulated", "pty"), default="emulated",
+                   help="the 1-D boards' link (hapsim.emulated.driver_mock.WALL_LINK): "
+                        "emulated (the default: each host write taken at its kernel "
+                        "stamp) or pty (each taken when the board's process reads it: "
+                        "the link before, for a before/after table)")
     p.add_argument("--json", default=None, metavar="PATH")
     p.add_argument("--resummarize", default=None, metavar="PATH",
                    help="recompute the summary of a JSON this tool wrote from its runs "
@@ -420,6 +425,8 @@ def main(argv=None) -> int:
     if a.resummarize:
         print(json.dumps(resummarize(a.resummarize), indent=1))
         return 0
+    import hapsim.emulated.driver_mock as dm
+    dm.WALL_LINK = a.link
     if a.no_host_watchdog:
         import hapsim.drivers.torque_watchdog as tw
         tw.start_watchdog = lambda *_a, **_k: (None, "off: --no-host-watchdog")
@@ -470,7 +477,7 @@ def main(argv=None) -> int:
             h.wait()
     out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
            "starve": a.starve, "host_stall_ms": a.host_stall,
-           "host_watchdog": not a.no_host_watchdog,
+           "host_watchdog": not a.no_host_watchdog, "link": a.link,
            "haply2_scene": a.haply2_scene, "haply2_amplitude": a.haply2_amplitude,
            "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),
            "runs": normalize(rows), "summary": summarize(rows)}

@@ -43,6 +43,12 @@ MOCKS = {f.name: f.load_mock() for f in FAMILIES if f.dimension == 1 and f.mock}
 #: lockstep by name (``--lockstep``).
 WALL_CLOCK_MOCKS = tuple(name for name, cls in MOCKS.items() if issubclass(cls, Actuated))
 
+#: The link of an embedded driver mock on the wall clock (:class:`EmbeddedDriverMock`'s
+#: ``link`` when none is given): ``"emulated"``, each host write taken at its kernel stamp
+#: (:mod:`hapsim.emulated.stamped_link`); ``"pty"`` for a before/after measurement
+#: (``tools/driver_timing.py --link pty``).
+WALL_LINK = "emulated"
+
 
 class ByteFaults:
     """Seeded byte faults on a driver mock's link, in both directions.
@@ -96,14 +102,46 @@ class ByteFaults:
         return self._apply(data, "drop_tx", "corrupt_tx")
 
 
+def _take(dev, data: bytes, now: float, fl, streams: bool, listens: bool, later: deque,
+          t0: float) -> bytes:
+    """:func:`serve`'s handling of one read of the host's bytes, come at the board's time
+    ``now`` [s]: fed to ``dev`` through the link's faults, its answer returned to be
+    written now, or queued in ``later`` for its time (a board that listens while it
+    answers), or written after a sleep to its time."""
+    split = getattr(dev, "host_writes", None)
+    if split is not None and not streams:
+        # the link's faults per host write: a write is one host tick whatever the
+        # faults leave of it (the device's time goes on)
+        ws = [fl.rx(w) for w in split(data)]
+        got = dev.feed(b"".join(ws), now, writes=ws)
+    else:
+        got = dev.feed(fl.rx(data), now)
+    if got and dev.reply_delay_s > 0:
+        # the device's pass and its answer's wire time (the host's bytes that come
+        # meanwhile wait for the next pass)
+        wait = t0 + now + dev.reply_delay_s - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+    if got and listens:
+        later.append((t0 + dev.ready_at, got))
+        return b""
+    if got and getattr(dev, "wall", None) is not None and hasattr(dev, "ready_at"):
+        # a board on its own clock answers when its pass has run (after a set-up's
+        # wait, later than the bytes came)
+        wait = t0 + dev.ready_at - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+    return got
+
+
 def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
-          poll: float = 0.02, handled=None) -> dict:
+          poll: float = 0.02, handled=None, stamped=None) -> dict:
     """Serve ``dev`` on a byte stream until EOF (host closed) or ``stop()`` is true.
 
     Parameters
     ----------
     fd : int
-        Master side of the pty.
+        Master side of the pty, or the emulated link's socket (``stamped``).
     dev : FireFaderDevice, HaplyDevice or HapkitSerialDevice
         The device (``feed(bytes, now) -> bytes``, ``idle(silent_s) -> bytes``,
         ``decoder.stats``). What a silent host does to the force is the device's own rule
@@ -124,6 +162,11 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     handled : hapsim.spawn.HandledBytes, optional
         A lockstep mock's account of the bytes it has handled, published after each read
         is answered (the host tells a slow mock from a lost packet by it, not by time).
+    stamped : hapsim.emulated.stamped_link.StampedReader, optional
+        The emulated link's reader of ``fd``: each host write is taken at the time the
+        kernel stamped it with, not when this process read it (its wake-up's lateness,
+        which a board on its own processor does not have; :mod:`hapsim.emulated.
+        stamped_link`). Without it, the bytes of a read are taken at the read's time.
 
     Returns
     -------
@@ -178,41 +221,29 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                     later.append((t0 + dev.ready_at, out))
                     out = b""
         else:
-            try:
-                data = os.read(fd, 4096)
-            except BlockingIOError:
-                continue
-            except OSError:
-                break
-            if not data:
-                break
-            n_read += len(data)
-            now = time.monotonic()
-            last = now
-            split = getattr(dev, "host_writes", None)
-            if split is not None and not streams:
-                # the link's faults per host write: a write is one host tick whatever the
-                # faults leave of it (the device's time goes on)
-                ws = [fl.rx(w) for w in split(data)]
-                got = dev.feed(b"".join(ws), now - t0, writes=ws)
+            if stamped is not None:
+                try:
+                    reads = stamped.read()      # (each host write at its own time)
+                except OSError:
+                    break
+                if not reads and stamped.eof:
+                    break
             else:
-                got = dev.feed(fl.rx(data), now - t0)
-            if got and dev.reply_delay_s > 0:
-                # the device's pass and its answer's wire time (the host's bytes that come
-                # meanwhile wait for the next pass)
-                wait = now + dev.reply_delay_s - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-            if got and listens:
-                later.append((t0 + dev.ready_at, got))
-                got = b""
-            elif got and getattr(dev, "wall", None) is not None and hasattr(dev, "ready_at"):
-                # a board on its own clock answers when its pass has run (after a set-up's
-                # wait, later than the bytes came)
-                wait = t0 + dev.ready_at - time.monotonic()
-                if wait > 0:
-                    time.sleep(wait)
-            out += got
+                try:
+                    data = os.read(fd, 4096)
+                except BlockingIOError:
+                    continue
+                except OSError:
+                    break
+                if not data:
+                    break
+                reads = [(data, time.monotonic())]
+            for data, now in reads:
+                n_read += len(data)
+                last = now
+                out += _take(dev, data, now - t0, fl, streams, listens, later, t0)
+            if stamped is not None and stamped.eof:
+                break
         while later and later[0][0] <= time.monotonic():
             out += later.popleft()[1]
         out = fl.tx(out)
@@ -264,7 +295,10 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                                if getattr(dev, "wall", None) is not None else None),
             "ticks": n, "late": 0, "overruns": 0, "clamped": dev.clamped,
             "last_applied": dev.held, "saw_stop": bool(n and dev.last_command == 0),
-            **({"starved": starved} if slow_p > 0 else {}), **extra}
+            **({"starved": starved} if slow_p > 0 else {}),
+            # the emulated link: host writes taken at their kernel stamps, and any not
+            **({"link": {"stamped": stamped.stamped, "unstamped": stamped.unstamped}}
+               if stamped is not None else {}), **extra}
 
 
 def firefader_offline_loop(scene, n: int = 900, *, lost=(), silence_at=None,
@@ -381,13 +415,17 @@ def _above_the_hosts() -> None:
 
 
 def main(argv=None) -> int:
-    """Child-process entry: ``python -m hapsim.emulated.driver_mock --fd N --spec JSON --rate R``."""
+    """Child-process entry: ``python -m hapsim.emulated.driver_mock --fd N --spec JSON --rate R``
+    (``--fd``: a pty's master; ``--listen``: an emulated link's listening socket instead,
+    :mod:`hapsim.emulated.stamped_link`)."""
     import argparse
     import dataclasses
 
     from hapsim.scene import Device, Excitation
     p = argparse.ArgumentParser(prog="hapsim.emulated.driver_mock")
-    p.add_argument("--fd", type=int, required=True)
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--fd", type=int)
+    where.add_argument("--listen", type=int)
     p.add_argument("--spec", required=True)
     p.add_argument("--rate", type=float, required=True)
     p.add_argument("--report")
@@ -421,16 +459,26 @@ def main(argv=None) -> int:
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda *_: flag.__setitem__("stop", True))
     from hapsim.spawn import HandledBytes
-    rep = serve(a.fd, dev, stop=lambda: flag["stop"], faults=json.loads(a.faults),
-                poll=0.02 if getattr(dev, "firmware", "") != "pde" else 1.0 / a.rate,
-                handled=HandledBytes(a.handled) if a.handled else None)
-    if a.report:
+    fd, reader, conn = a.fd, None, None
+    if a.listen is not None:
+        import socket
+
+        from hapsim.emulated.stamped_link import StampedReader, accept
+        conn = accept(socket.socket(fileno=a.listen), stop=lambda: flag["stop"])
+        if conn is not None:
+            fd, reader = conn.fileno(), StampedReader(conn)
+    rep = (serve(fd, dev, stop=lambda: flag["stop"], faults=json.loads(a.faults),
+                 poll=0.02 if getattr(dev, "firmware", "") != "pde" else 1.0 / a.rate,
+                 handled=HandledBytes(a.handled) if a.handled else None, stamped=reader)
+           if fd is not None else None)
+    if a.report and rep is not None:            # (None: stopped before the port opened)
         write_json(a.report, rep)
     return 0
 
 
 class EmbeddedDriverMock(PtyChild):
-    """A driver mock in a child process on the master side of a new pty.
+    """A driver mock in a child process, on the master side of a new pty or on an emulated
+    link (``link``).
 
     Parameters
     ----------
@@ -448,11 +496,23 @@ class EmbeddedDriverMock(PtyChild):
         ``cpr``, ``motor_sign``): the hardware, which the host's driver may describe wrongly.
     faults : dict, optional
         :class:`ByteFaults` spec (and :func:`serve`'s ``slow`` hook).
+    link : {"emulated", "pty"}, optional
+        ``"emulated"`` (the default on the wall clock, :data:`WALL_LINK`): a Unix packet socket
+        (``emulated://NAME``, :mod:`hapsim.drivers.urlhandler`) whose writes the board takes
+        at the times the kernel stamped them with, as a board on its own processor takes
+        its bytes when they come (:mod:`hapsim.emulated.stamped_link`); ``"pty"`` (the
+        default in lockstep, whose time is the commands'): a pseudo-terminal, its bytes
+        taken when the child reads them.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        A driver with no mock, or another ``link``.
 
     Attributes
     ----------
     port : str
-        The slave path to open.
+        The port to open: the pty's slave path, or the link's URL.
     handled : hapsim.spawn.HandledBytes or None
         A lockstep mock's account of the bytes it has handled
         (``options["clock"]`` ``"lockstep"``, the default): for
@@ -462,24 +522,31 @@ class EmbeddedDriverMock(PtyChild):
     handled = None
 
     def __init__(self, driver: str, device, excitation, rate_hz: float, *, seed: int = 0,
-                 options: dict | None = None, faults: dict | None = None) -> None:
+                 options: dict | None = None, faults: dict | None = None,
+                 link: str | None = None) -> None:
         import dataclasses
 
         from hapsim.errors import ConfigError
         if driver not in MOCKS:
             raise ConfigError(f"no mock for driver {driver!r}; valid: {', '.join(MOCKS)}",
                               key="--driver")
-        master = self.open_pty("hapsim-drvmock-")
+        lockstep = (options or {}).get("clock", "lockstep") == "lockstep"
+        link = ("pty" if lockstep else WALL_LINK) if link is None else link
+        if link not in ("emulated", "pty"):
+            raise ConfigError(f"must be 'emulated' or 'pty', got {link!r}", key="link")
+        master = (self.open_pty("hapsim-drvmock-") if link == "pty"
+                  else self.open_link("hapsim-drvmock-"))
         spec = {"device": dataclasses.asdict(device), "excitation": dataclasses.asdict(excitation),
                 "driver": driver}
         if not math.isfinite(spec["device"]["force_limit"]):
             spec["device"]["force_limit"] = None
         extra = []
-        if (options or {}).get("clock", "lockstep") == "lockstep":
+        if lockstep:
             from hapsim.spawn import HandledBytes
             self.handled = HandledBytes.create()
             extra = ["--handled", self.handled.path]
-        self.start([sys.executable, "-m", "hapsim.emulated.driver_mock", "--fd", str(master), "--spec",
+        where = "--fd" if link == "pty" else "--listen"
+        self.start([sys.executable, "-m", "hapsim.emulated.driver_mock", where, str(master), "--spec",
                     json.dumps(spec), "--rate", repr(float(rate_hz)), "--report",
                     self.report_path, "--seed", str(seed), "--options",
                     json.dumps(options or {}), "--faults", json.dumps(faults or {})]

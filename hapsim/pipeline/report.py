@@ -127,7 +127,9 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "warnings": [w for w in (clock_warning, prep.pred.get("late_force_warning"),
                                  prep.pred.get("missing_reply_warning")) if w],
         "transport": transport if transport != "pty" else
-        "embedded mock on a pty", "port": tr.info.get("port"), "baud": tr.info.get("baud"),
+        ("embedded mock on an emulated link" if str(tr.info.get("port")).startswith(
+            "emulated://") else "embedded mock on a pty"),
+        "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
         "late": res.late, "missed": res.missed, "estimated": res.estimated,
