@@ -1,4 +1,5 @@
-"""The emulated Haply 2DIY board in a child process behind a pseudo-terminal, for the
+"""The emulated Haply 2DIY board in a child process behind an emulated link (a
+pseudo-terminal in lockstep), for the
 real-time loop (:mod:`hapsim.pipeline.haply2_record`) to drive as it would a real board:
 :class:`Embedded2DIY` starts it, :func:`main` is the child's entry
 (``python -m hapsim.pipeline.haply2_embedded``), serving
@@ -22,7 +23,9 @@ __all__ = ["Embedded2DIY", "main"]
 
 class Embedded2DIY(PtyChild):
     """The emulated 2DIY board (:class:`hapsim.emulated.haply2_board.Haply2DIYBoard`) in a
-    child process on the master side of a new pty, served by
+    child process on an emulated link on the wall clock (``emulated://NAME``: each host
+    write taken at its kernel stamp, :mod:`hapsim.emulated.stamped_link`) or on the master
+    side of a new pty in lockstep, served by
     :func:`hapsim.emulated.driver_mock.serve` on its own clock (the wall clock: the joints move in
     real time, a set-up takes its encoders' waits) or, named, in lockstep (one period per
     write, replies at once).
@@ -58,7 +61,7 @@ class Embedded2DIY(PtyChild):
     Attributes
     ----------
     port : str
-        The slave path to open.
+        The port to open: the link's URL, or the pty's slave path in lockstep.
     clock : str
         The board's clock (what the host's loop reads: a stall on a board with its own
         clock costs a record).
@@ -71,8 +74,12 @@ class Embedded2DIY(PtyChild):
         if clock not in ("wall", "lockstep"):
             raise ConfigError(f"unknown clock {clock!r}; valid: wall, lockstep", key="clock")
         self.clock = clock
-        master = self.open_pty("hapsim-2diy-")
-        self.start([sys.executable, "-m", "hapsim.pipeline.haply2_embedded", "--fd", str(master),
+        from hapsim.emulated.driver_mock import WALL_LINK
+        link = WALL_LINK if clock == "wall" else "pty"
+        master = (self.open_pty("hapsim-2diy-") if link == "pty"
+                  else self.open_link("hapsim-2diy-"))
+        where = "--fd" if link == "pty" else "--listen"
+        self.start([sys.executable, "-m", "hapsim.pipeline.haply2_embedded", where, str(master),
                     "--scene", str(scene_path), "--generation", generation, "--amplitude",
                     repr(float(amplitude)), "--cpr", repr(float(cpr or 0.0)), "--report",
                     self.report_path, "--slow-every", str(int(slow_every)), "--slow-s",
@@ -97,14 +104,18 @@ class _SlowBoard(Haply2DIYBoard):
 def main(argv=None) -> int:
     """Child-process entry: ``python -m hapsim.pipeline.haply2_embedded --fd N --scene PATH
     --generation G --amplitude A [--cpr C] [--report FILE]``: serve the emulated board
-    until the host closes the port or SIGTERM; the serving report as JSON."""
+    until the host closes the port or SIGTERM; the serving report as JSON (``--listen N``
+    instead of ``--fd``: an emulated link's listening socket,
+    :mod:`hapsim.emulated.stamped_link`)."""
     import argparse
     import signal
 
     from hapsim.emulated.driver_mock import serve
     from hapsim.scene import load_scene_nd
     p = argparse.ArgumentParser(prog="hapsim.pipeline.haply2_embedded")
-    p.add_argument("--fd", type=int, required=True)
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--fd", type=int)
+    where.add_argument("--listen", type=int)
     p.add_argument("--scene", required=True)
     p.add_argument("--generation", default="gen3")
     p.add_argument("--amplitude", type=float, required=True)
@@ -138,8 +149,17 @@ def main(argv=None) -> int:
         warm.feed(drv.write_bytes((0.0, 0.0)), scene.period)
     # SCHED_FIFO once the start-up is done (the board made, its plant compiled): a board's
     # microcontroller is never descheduled; serve waits in select, it does not spin
+    fd, reader = a.fd, None
+    if a.listen is not None:
+        import socket
+
+        from hapsim.emulated.stamped_link import StampedReader, accept
+        conn = accept(socket.socket(fileno=a.listen), stop=lambda: flag["stop"])
+        fd, reader = (None, None) if conn is None else (conn.fileno(), StampedReader(conn))
+    if fd is None:
+        return 0                            # (stopped before the port was opened)
     with RealtimePriority(a.rt_priority if a.clock == "wall" else 0) as rt:
-        rep = serve(a.fd, board, stop=lambda: flag["stop"])
+        rep = serve(fd, board, stop=lambda: flag["stop"], stamped=reader)
     rep["scheduling"] = rt.note
     if a.report:
         write_json(a.report, rep)
