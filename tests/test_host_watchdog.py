@@ -530,10 +530,10 @@ def test_m3_host_silence_without_the_watchdog_holds_the_torque(monkeypatch):
 
 def _2diy_run(monkeypatch, silence_s: float, at_tick: int = 30, stray: bytes = b"",
               stray_tick: int | None = None, records: list | None = None):
-    """The 2DIY's measurement over a pty (the board in its child process, on its own
-    clock), the host silent ``silence_s`` once, at the ``at_tick``-th tick of the loop
-    (in the first record); ``stray`` bytes written to the board (on the host's side of
-    the pty, as a host byte too many) at the ``stray_tick``-th tick, 3 ms before the
+    """The 2DIY's measurement over its emulated link (the board in its child process, on
+    its own clock), the host silent ``silence_s`` once, at the ``at_tick``-th tick of the
+    loop (in the first record); ``stray`` bytes written to the board (through the host's
+    own port, as a host byte too many) at the ``stray_tick``-th tick, 3 ms before the
     tick goes on (the board's parser takes them alone); ``records``, a list, gets the
     loop's records (:func:`hapsim.pipeline.haply2_record.record_realtime`'s, each with the
     measurement's ``usable`` rows). Returns (the measurement, the board's report)."""
@@ -551,7 +551,7 @@ def _2diy_run(monkeypatch, silence_s: float, at_tick: int = 30, stray: bytes = b
     def silent_once(self, k, got, resynced):
         ticks["n"] += 1
         if stray and ticks["n"] == stray_tick:
-            os.write(fd[0], stray)
+            port[0].write(stray)
             time.sleep(0.003)
         if ticks["n"] == at_tick:
             time.sleep(silence_s)           # the host does not run (not the port either)
@@ -565,23 +565,26 @@ def _2diy_run(monkeypatch, silence_s: float, at_tick: int = 30, stray: bytes = b
             records.append(loop(*a, **k))
             return records[-1]
         monkeypatch.setattr(host, "record_realtime", kept)
+    # the host's port, kept for the stray bytes (the measurement opens it)
+    import hapsim.drivers.urlhandler as urlhandler
+    port = [None]
+    opened = urlhandler.serial_for_url
+
+    def keep(*a, **k):
+        port[0] = opened(*a, **k)
+        return port[0]
+    monkeypatch.setattr(urlhandler, "serial_for_url", keep)
     sc = load_scene_nd(wall)
     N = 60
     child = Embedded2DIY(str(wall), "gen3", amplitude=1e-4, cpr=2.0 ** 22,
                          rt_priority=BOARD_PRIORITY)
-    fd = [os.open(child.port, os.O_WRONLY | os.O_NOCTTY)] if stray else [None]
     try:
         r = measure_felt_haply2_port(child.port, sc, "gen3", amplitude=1e-4,
                                      resolution=2.0 ** 22, samples=N,
                                      plan=identification_plan(sc, N), probe_wiring=False)
-        if fd[0] is not None:
-            os.close(fd[0])
-            fd[0] = None
         child.release_slave()
         rep = child.report(5.0)
     finally:
-        if fd[0] is not None:
-            os.close(fd[0])
         child.close()
     return r, rep
 
