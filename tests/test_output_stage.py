@@ -260,10 +260,12 @@ def _wall_runs_within(config: str, driver: str, truth, seeds=(1, 2, 3)) -> list:
     short). Returns the outcomes; at least one "within" is asserted, unless every run's
     board says it did not run the loop modelled: a board on its own tick that took
     :data:`OFF_PERIOD_SHARE` or more of its commands at another number of ticks than the
-    period (its emulating process woken late on a virtual machine that halts idle CPUs:
-    0.3-1 ms at the median, a pty's delivery 1-2 ms at times, measured; its replies then
-    late too, the host holding and asking again), which a board on its own processor does
-    not do. Each such run must still say no "differs" and "not measurable" with its
+    period. Over a pty that was mostly its emulating process woken late on a virtual
+    machine that halts idle CPUs (0.3-1 ms at the median, a pty's delivery 1-2 ms at
+    times, measured), which a board on its own processor does not do; over the emulated
+    link the board takes each write when it was made (hapsim.emulated.stamped_link), and
+    its count is the host's own writes made late (marked, the record cut there: a host
+    that cannot keep the sketch's tick on this machine). Each such run must still say no "differs" and "not measurable" with its
     reason; the outcomes are said in pytest's warnings summary."""
     outcomes = []
     excused = 0

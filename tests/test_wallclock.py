@@ -387,6 +387,15 @@ def test_closed_loop_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs, c
     rep = run_scene(sc, handle_signals=False, **kw)
     loop = rep["loop"]
     assert loop["mock"]["clock"] == "wall" and loop["mock"]["held_at_end"] == 0.0
+    if driver:
+        # a driver's board on its emulated link takes the host's writes at their kernel
+        # stamps (hapsim.emulated.stamped_link): all but those written before its process
+        # took the connection (the port opened while it started up: the arming and its
+        # repeats; the loop's ticks come after its first record)
+        assert loop["transport"] == "embedded mock on an emulated link", loop["transport"]
+        link, dl = loop["mock"]["link"], loop["driver"]
+        assert link["unstamped"] <= 1 + dl["rearms"], (link, dl["rearms"])
+        assert link["stamped"] >= dl["commands"] - link["unstamped"], (link, dl["commands"])
     if loop.get("safety_stop"):
         # Where the OS refuses SCHED_FIFO (a container), three CPU-bound processes (the
         # two hogs and the other xdist worker) on 2 cores can starve the loop: the one

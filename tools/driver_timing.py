@@ -412,11 +412,12 @@ def main(argv=None) -> int:
     p.add_argument("--no-host-watchdog", action="store_true",
                    help="the baseline of an A/B: no host watchdog is started "
                         "(hapsim.drivers.torque_watchdog.start_watchdog)")
-    p.add_argument("--link", choices=("emulated", "pty"), default="emulated",
+    p.add_argument("--link", nargs="+", choices=("emulated", "pty"), default=["emulated"],
                    help="the 1-D boards' link (hapsim.emulated.driver_mock.WALL_LINK): "
                         "emulated (the default: each host write taken at its kernel "
                         "stamp) or pty (each taken when the board's process reads it: "
-                        "the link before, for a before/after table)")
+                        "the link before); both: each seed run on each in turn, an A/B "
+                        "whose two arms share the hour (the summary keyed by link too)")
     p.add_argument("--json", default=None, metavar="PATH")
     p.add_argument("--resummarize", default=None, metavar="PATH",
                    help="recompute the summary of a JSON this tool wrote from its runs "
@@ -426,7 +427,6 @@ def main(argv=None) -> int:
         print(json.dumps(resummarize(a.resummarize), indent=1))
         return 0
     import hapsim.emulated.driver_mock as dm
-    dm.WALL_LINK = a.link
     if a.no_host_watchdog:
         import hapsim.drivers.torque_watchdog as tw
         tw.start_watchdog = lambda *_a, **_k: (None, "off: --no-host-watchdog")
@@ -441,7 +441,8 @@ def main(argv=None) -> int:
     try:
         for drv in a.drivers:
             for loss in a.loss:
-                for seed in a.seeds:
+                for seed, link in ((s, k) for s in a.seeds for k in a.link):
+                    dm.WALL_LINK = link
                     t = time.monotonic()
                     if drv in _names(True):
                         # the host loop (and the in-process board) at the command's
@@ -460,6 +461,8 @@ def main(argv=None) -> int:
                         row = run_1d(drv, seed, loss, a.duration, a.rt_priority,
                                      a.starve, a.host_stall)
                         sched = row.get("scheduling")
+                    if len(a.link) > 1 and drv not in _names(True):
+                        row["link"] = link
                     row.update(driver=drv, seed=seed, loss=loss, scheduling=sched,
                                seconds=round(time.monotonic() - t, 1), load=_load())
                     rows.append(row)
@@ -521,8 +524,10 @@ VERDICTS = ("measured = predicted within the stated uncertainty",
 
 
 def summarize(rows):
-    """Per driver and loss: runs, safety stops, runs with a re-synchronisation, the most
-    re-synchronisations, the largest excursion, verdicts counted, errors.
+    """Per driver and loss (and link, for an A/B of ``--link``): runs, safety stops, runs
+    with a re-synchronisation, the most re-synchronisations, the largest excursion,
+    verdicts counted, errors, the range of the host's stalls and of the commands the
+    board took off its period (``stalls_range``, ``board_off_period_range``).
 
     Parameters
     ----------
@@ -535,7 +540,8 @@ def summarize(rows):
     """
     out = {}
     for r in rows:
-        s = out.setdefault(f"{r['driver']} {r['loss']:g}", {
+        key = f"{r['driver']} {r['loss']:g}" + (f" {r['link']}" if r.get("link") else "")
+        s = out.setdefault(key, {
             "runs": 0, "safety_stops": 0, "runs_resynced": 0, "resyncs_max": 0,
             "excursion_true_max": None, "excursion_host_max": None,
             "longest_hold_s_max": None, "verdicts": dict.fromkeys(VERDICTS, 0),
@@ -551,6 +557,11 @@ def summarize(rows):
         v = str(r.get("verdict")).split(":")[0]
         s["verdicts"][v] = s["verdicts"].get(v, 0) + 1
         s["errors"] += bool(r.get("error")) and r.get("verdict") is None
+        for k in ("stalls", "board_off_period"):
+            v = r.get(k)
+            if isinstance(v, int):
+                lo, hi = s.get(k + "_range") or (v, v)
+                s[k + "_range"] = [min(lo, v), max(hi, v)]
         _felt_ranges(s, r)
     return out
 
