@@ -98,8 +98,9 @@ class _Recorder:
     held = 0.0
     last_command = 0.0
 
-    def __init__(self, busy_s: float) -> None:
+    def __init__(self, busy_s: float, reply: bytes = b"") -> None:
         self.busy_s = busy_s
+        self.reply = reply
         self.fed = []
         self.decoder = SimpleNamespace(stats={})
 
@@ -107,7 +108,7 @@ class _Recorder:
         self.fed.append((bytes(data), now))
         if len(self.fed) == 1:
             time.sleep(self.busy_s)
-        return b""
+        return self.reply
 
     def idle(self, silent_s):
         return b""
@@ -132,10 +133,10 @@ def _host_writes(write, n: int = 12, gap_s: float = 0.003) -> list:
     return out
 
 
-def _serve_in_thread(fd, dev, stamped=None):
+def _serve_in_thread(fd, dev, stamped=None, faults=None):
     done = {}
     th = threading.Thread(target=lambda: done.setdefault(
-        "rep", serve(fd, dev, stamped=stamped, poll=0.01)), daemon=True)
+        "rep", serve(fd, dev, stamped=stamped, poll=0.01, faults=faults)), daemon=True)
     th.start()
     return th, done
 
@@ -181,3 +182,28 @@ def test_the_board_takes_each_write_at_its_time_whatever_its_lateness():
             took.setdefault(data[i + 1], t)
     gaps = [took[b[1]] - took[a[1]] for (a, _, _), (b, _, _) in zip(writes, writes[1:])]
     assert min(gaps) == 0.0, gaps       # (the class the emulated link removes)
+
+
+def test_a_starved_board_reads_nothing_during_its_silence_on_the_link_too():
+    """serve's ``slow`` hook (a board process starved 0.1 s after each answer: nothing read
+    meanwhile) keeps its meaning on the emulated link: the writes that came during a
+    silence are taken together at its end, not at their stamps (tools/driver_timing.py
+    --starve, the host's silences rule)."""
+    lst, url = _listener()
+    ser = serial_for_url(url, timeout=0, write_timeout=1.0)
+    conn = accept(lst)
+    dev = _Recorder(busy_s=0.0, reply=b"r")
+    th, done = _serve_in_thread(conn.fileno(), dev, stamped=StampedReader(conn),
+                                faults={"slow": 1.0, "slow_s": 0.1})
+    _host_writes(ser.write, n=12, gap_s=0.003)
+    time.sleep(0.3)
+    ser.close()
+    th.join(5)
+    assert not th.is_alive() and done["rep"]["starved"]["silences"] >= 2
+    taken = [t for _, t in dev.fed]
+    # the first write taken at its stamp, its answer's silence; the writes of that
+    # silence (the other eleven, 3 ms apart) taken at one time, its end (a sleep never
+    # ends early: at least 0.1 s after the first was taken)
+    assert taken[1] == taken[2] == taken[3], taken[:4]
+    assert taken[1] - taken[0] >= 0.1, taken[:2]
+    lst.close()

@@ -153,7 +153,8 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
         :class:`ByteFaults` spec (seeded byte loss and corruption, both directions); also
         the test hook ``slow`` / ``slow_s``: each answer, with that probability (its own
         seeded draw, so the bytes lost are the same), is written ``slow_s`` [s] late, as
-        a mock process on a loaded host is (a starved reader: nothing is read meanwhile);
+        a mock process on a loaded host is (a starved reader: nothing is read meanwhile,
+        and on the emulated link the writes that came meanwhile are taken at its end);
         ``slow_s`` may be a pair ``[lo, hi]``: each such silence drawn uniformly in it
         (``tools/driver_timing.py --starve``). The silences are counted in the result's
         ``starved`` (their number and their longest [s]).
@@ -200,6 +201,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                and getattr(dev, "wall", None) is not None)
     later: deque = deque()                      # (when [monotonic s], answer bytes)
     gap = 0.0                                   # the longest time this loop did not run
+    deaf_until = 0.0                            # the test hook's silence's end [monotonic s]
     t_loop = time.monotonic()
     while not (stop and stop()):
         wait_s = poll if not later else min(poll, max(later[0][0] - time.monotonic(), 0.0))
@@ -239,6 +241,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                     break
                 reads = [(data, time.monotonic())]
             for data, now in reads:
+                now = max(now, deaf_until)
                 n_read += len(data)
                 last = now
                 out += _take(dev, data, now - t0, fl, streams, listens, later, t0)
@@ -254,6 +257,7 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             starved["silences"] += 1
             starved["longest_s"] = max(starved["longest_s"], s)
             time.sleep(s)
+            deaf_until = time.monotonic()       # (nothing read meanwhile, stamped or not)
         while out:
             try:
                 k = os.write(fd, out)
