@@ -463,14 +463,11 @@ def main(argv=None) -> int:
     for s in (signal.SIGTERM, signal.SIGINT):
         signal.signal(s, lambda *_: flag.__setitem__("stop", True))
     from hapsim.spawn import HandledBytes
-    fd, reader, conn = a.fd, None, None
+    fd, reader = a.fd, None
     if a.listen is not None:
-        import socket
-
-        from hapsim.emulated.stamped_link import StampedReader, accept
-        conn = accept(socket.socket(fileno=a.listen), stop=lambda: flag["stop"])
-        if conn is not None:
-            fd, reader = conn.fileno(), StampedReader(conn)
+        from hapsim.emulated.stamped_link import connection
+        conn, reader = connection(a.listen, stop=lambda: flag["stop"])
+        fd = None if conn is None else conn.fileno()
     rep = (serve(fd, dev, stop=lambda: flag["stop"], faults=json.loads(a.faults),
                  poll=0.02 if getattr(dev, "firmware", "") != "pde" else 1.0 / a.rate,
                  handled=HandledBytes(a.handled) if a.handled else None, stamped=reader)

@@ -22,7 +22,7 @@ import socket
 import struct
 import time
 
-__all__ = ["accept", "StampedReader", "PACKET"]
+__all__ = ["accept", "connection", "StampedReader", "PACKET"]
 
 #: The largest packet read at once [bytes] (the host's end writes at most this much in one,
 #: :data:`hapsim.drivers.urlhandler.protocol_emulated.PACKET`).
@@ -64,6 +64,27 @@ def accept(listener: socket.socket, stop=None):
         conn.setblocking(False)
         return conn
     return None
+
+
+def connection(listen_fd: int, stop=None) -> tuple:
+    """A child's side of :func:`accept` from its inherited listening descriptor: the
+    connection and its :class:`StampedReader`, or ``(None, None)`` when ``stop()`` came
+    first (the host never opened the port).
+
+    Parameters
+    ----------
+    listen_fd : int
+        The listening socket's descriptor (:meth:`hapsim.spawn.PtyChild.open_link`).
+    stop : callable, optional
+        As :func:`accept`'s.
+
+    Returns
+    -------
+    (socket.socket or None, StampedReader or None)
+        Keep the socket referenced while serving its descriptor.
+    """
+    conn = accept(socket.socket(fileno=listen_fd), stop=stop)
+    return (None, None) if conn is None else (conn, StampedReader(conn))
 
 
 class StampedReader:

@@ -151,11 +151,9 @@ def main(argv=None) -> int:
     # microcontroller is never descheduled; serve waits in select, it does not spin
     fd, reader = a.fd, None
     if a.listen is not None:
-        import socket
-
-        from hapsim.emulated.stamped_link import StampedReader, accept
-        conn = accept(socket.socket(fileno=a.listen), stop=lambda: flag["stop"])
-        fd, reader = (None, None) if conn is None else (conn.fileno(), StampedReader(conn))
+        from hapsim.emulated.stamped_link import connection
+        conn, reader = connection(a.listen, stop=lambda: flag["stop"])
+        fd = None if conn is None else conn.fileno()
     if fd is None:
         return 0                            # (stopped before the port was opened)
     with RealtimePriority(a.rt_priority if a.clock == "wall" else 0) as rt:
