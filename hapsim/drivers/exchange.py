@@ -193,6 +193,7 @@ class SerialLink:
     def __init__(self, port: str, baud: int, rtscts: bool = False, *, watchdog=None,
                  zero: bytes = b"") -> None:
         import serial
+
         from hapsim.drivers.urlhandler import serial_for_url
         self.watchdog, self.zero = watchdog, bytes(zero)
         #: The watchdog's writes taken (each answered by a reply the exchange reads as a

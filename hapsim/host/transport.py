@@ -107,8 +107,8 @@ class SerialTransport:
         """Open :attr:`info`'s port, in low-latency mode where it has one (DeviceError when
         it cannot be opened)."""
         import serial  # pyserial; imported here so in-process tests do not need it
-        from hapsim.drivers.urlhandler import serial_for_url
 
+        from hapsim.drivers.urlhandler import serial_for_url
         port = self.info["port"]
         try:
             self._ser = serial_for_url(port, baudrate=self.info["baud"],

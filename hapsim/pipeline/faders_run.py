@@ -660,10 +660,9 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
 
     import serial
 
-    from hapsim.drivers.urlhandler import serial_for_url
-
     from hapsim.analysis.ports import stable_ports_check
     from hapsim.drivers.firefader import FireFader, encode_packet
+    from hapsim.drivers.urlhandler import serial_for_url
     from hapsim.host.realtime import RealtimePriority
     from hapsim.lockstep import default_samples, excitation_starts
     from hapsim.pipeline.felt_run import refuse_options

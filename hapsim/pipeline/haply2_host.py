@@ -316,8 +316,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         A joint wired backwards against its direction bytes (the probe's refusal).
     """
     import serial
-    from hapsim.drivers.urlhandler import serial_for_url
 
+    from hapsim.drivers.urlhandler import serial_for_url
     from hapsim.kinematics import device
     from hapsim.lockstep import identification_plan
     if scene.dimension != 2 or scene.device is None or scene.device.kind != "pantograph":
