@@ -779,7 +779,11 @@ def test_firefader_answers_read_late_at_a_rearming_are_no_streaming_firmware(hol
             tr.send(fp.Force(0, (0.01,)))
             _t.sleep(0.004)
         tr.send(fp.Stop())
-        board["hold_until"] = _t.monotonic() + hold_ms / 1000.0
+        # held hold_ms from the STOP's write (the transport's own stamp of it): the
+        # arming comes 2 LISTEN_S after that write at the earliest, after the hold (from
+        # the time this line ran instead, a test thread descheduled 25 ms after the STOP
+        # under a loaded suite held the arming too: 7 held, once in a fresh-clone CI run)
+        board["hold_until"] = tr._t_write + hold_ms / 1000.0
         tr.send(fp.Config(250.0, 50_000, 1.0))          # listens, then arms
         again = _states_within(tr, 2.0)
         rep = tr.report()
