@@ -228,8 +228,6 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                     reads = stamped.read()      # (each host write at its own time)
                 except OSError:
                     break
-                if not reads and stamped.eof:
-                    break
             else:
                 try:
                     data = os.read(fd, 4096)

@@ -16,17 +16,15 @@ seqpacket sockets, not stream ones).
 
 from __future__ import annotations
 
-import os
 import select
 import socket
 import struct
 import time
 
-__all__ = ["accept", "connection", "StampedReader", "PACKET"]
+from hapsim.drivers.urlhandler.protocol_emulated import PACKET, SEND_BUFFER
 
-#: The largest packet read at once [bytes] (the host's end writes at most this much in one,
-#: :data:`hapsim.drivers.urlhandler.protocol_emulated.PACKET`).
-PACKET = 4096
+__all__ = ["accept", "connection", "StampedReader"]
+
 _SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
 _SCM_TIMESTAMPNS = getattr(socket, "SCM_TIMESTAMPNS", _SO_TIMESTAMPNS)
 _TS = struct.Struct("@qq")
@@ -50,7 +48,6 @@ def accept(listener: socket.socket, stop=None):
         Non-blocking, its receive stamps on (``SO_TIMESTAMPNS``), its send buffer as large as
         the host's (:data:`hapsim.drivers.urlhandler.protocol_emulated.SEND_BUFFER`).
     """
-    from hapsim.drivers.urlhandler.protocol_emulated import SEND_BUFFER
     while not (stop and stop()):
         try:
             r, _, _ = select.select([listener], [], [], ACCEPT_POLL_S)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 from hapsim.analysis.prediction import port_links
 from hapsim.drivers import DEFAULT
+from hapsim.drivers.urlhandler import is_emulated
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import process_start
 from hapsim.braking import brake_text
@@ -127,8 +128,8 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "warnings": [w for w in (clock_warning, prep.pred.get("late_force_warning"),
                                  prep.pred.get("missing_reply_warning")) if w],
         "transport": transport if transport != "pty" else
-        ("embedded mock on an emulated link" if str(tr.info.get("port")).startswith(
-            "emulated://") else "embedded mock on a pty"),
+        ("embedded mock on an emulated link" if is_emulated(tr.info.get("port"))
+         else "embedded mock on a pty"),
         "port": tr.info.get("port"), "baud": tr.info.get("baud"),
         "rate_hz": scene.rate_hz, "ticks": res.samples,
         "requested": prep.n_samples or None, "open_ended": not prep.n_samples,
