@@ -6,7 +6,8 @@ Usage::
     nice python tools/driver_timing.py [--drivers haply haply2 firefader hapkit-serial falcon]
                                        [--seeds 1 2 ... 10] [--loss 0 0.005] [--hogs 2]
                                        [--duration S] [--falcon-scene PATH]
-                                       [--starve P LO_MS HI_MS] [--json PATH]
+                                       [--starve P LO_MS HI_MS] [--board-ppm PPM]
+                                       [--json PATH]
     python tools/driver_timing.py --resummarize PATH    # the summary again from the runs
 
 For each driver, each loss (the probability that a byte is lost, each way: 0 and 1 in
@@ -34,6 +35,11 @@ after each answer with probability ``P``, for a silence drawn in ``LO_MS``..``HI
 (seeded; it reads nothing meanwhile: :func:`hapsim.emulated.driver_mock.serve`'s ``slow``
 hook), as a board process behind CPU-bound processes, a USB hub or a descheduled pty
 reader is; no byte is lost by it (``board_silences``: their number and the longest).
+
+``--board-ppm PPM`` (``hapkit-serial``): the emulated Hapkit's oscillator runs ``PPM``
+parts per million off the host's clock (positive slower), so its 0.992 ms tick walks
+across the host's writes, which the transport aligns to it once, at the first arming
+(:class:`hapsim.emulated.hapkit_serial_board.HapkitSerialDevice`, ``clock_ppm``).
 
 ``--host-stall MS`` (the 1-D drivers): this process, the host, is stopped once for ``MS``
 ms (``SIGSTOP``, then ``SIGCONT`` from a child) at a seeded moment 1 to 1 + duration/2 s (the duration 1 s
@@ -107,10 +113,11 @@ def _stall_this_process(stall_ms: float, at_s: float) -> subprocess.Popen:
 
 
 def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: int = 10,
-           starve=None, stall_ms=None) -> dict:
+           starve=None, stall_ms=None, board_ppm=None) -> dict:
     """One run of ``configs/<driver>.yaml`` through the driver's mock (module notes);
     ``starve``: ``(P, lo_ms, hi_ms)``, the board's process starved; ``stall_ms``: one
-    stall of this process (module notes, ``--host-stall``)."""
+    stall of this process (module notes, ``--host-stall``); ``board_ppm``: the Hapkit
+    board's oscillator off the host's clock [ppm] (``--board-ppm``)."""
     faults = {"drop_tx": loss, "drop_rx": loss, "seed": seed}
     staller = None
     if stall_ms:
@@ -124,6 +131,10 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
     from hapsim.pipeline.runner import run_scene
     from hapsim.errors import DeviceError, ProtocolError
     from hapsim.scene import load_scene
+    hardware = None
+    if board_ppm:
+        from hapsim.drivers import get_driver
+        hardware = {**get_driver(driver).mock_hardware(), "clock_ppm": float(board_ppm)}
     with tempfile.TemporaryDirectory() as tmp:
         tel = os.path.join(tmp, "t.npz")
         try:
@@ -132,7 +143,7 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
                             duration=duration, handle_signals=False,
                             rt_priority=rt_priority,
                             telemetry=tel, seed=seed,
-                            driver_faults=faults)
+                            driver_faults=faults, mock_options=hardware)
             err = None
         except (DeviceError, ProtocolError) as exc:
             rep = getattr(exc, "report", None)
@@ -406,6 +417,11 @@ def main(argv=None) -> int:
     p.add_argument("--host-stall", type=float, default=None, metavar="MS",
                    help="the 1-D and Falcon runs: stop the host's process once for MS ms at "
                         "a seeded moment of its loop (SIGSTOP/SIGCONT; module notes)")
+    p.add_argument("--board-ppm", type=float, default=None, metavar="PPM",
+                   help="the Hapkit-serial board's oscillator this far off the host's "
+                        "clock [parts per million], positive slower: its 0.992 ms tick "
+                        "walks against the host's writes, aligned once at the arming "
+                        "(hapsim.emulated.hapkit_serial_board, clock_ppm)")
     p.add_argument("--falcon-start", type=float, default=0.0, metavar="MM",
                    help="the Falcon's loop: the hand let go MM mm off rest along x as it "
                         "starts (default 0: from rest)")
@@ -459,7 +475,8 @@ def main(argv=None) -> int:
                         sched = rt.note
                     else:
                         row = run_1d(drv, seed, loss, a.duration, a.rt_priority,
-                                     a.starve, a.host_stall)
+                                     a.starve, a.host_stall,
+                                     a.board_ppm if drv == "hapkit-serial" else None)
                         sched = row.get("scheduling")
                     if len(a.link) > 1 and drv not in _names(True):
                         row["link"] = link
@@ -479,7 +496,7 @@ def main(argv=None) -> int:
             h.kill()
             h.wait()
     out = {"command": command_line("tools/driver_timing.py", argv), "hogs": a.hogs,
-           "starve": a.starve, "host_stall_ms": a.host_stall,
+           "starve": a.starve, "host_stall_ms": a.host_stall, "board_ppm": a.board_ppm,
            "host_watchdog": not a.no_host_watchdog, "link": a.link,
            "haply2_scene": a.haply2_scene, "haply2_amplitude": a.haply2_amplitude,
            "load_before": load_before, "load_after": _load(), "cpus": os.cpu_count(),

@@ -198,6 +198,13 @@ class HapkitSerialDevice(Actuated):
         updatedPos + b)``, ``Hapkit_Kinematics_Simulation.h:130-138``, counted from the
         power-up pose at 0; 0: the handle read exactly). A device stating its own
         ``position_resolution`` keeps it.
+    clock_ppm : float, optional
+        Wall clock: how far the board's oscillator runs from the host's clock [parts per
+        million], positive slower (default 0). The sketch's tick is 62 counts of Timer1 at
+        16 MHz / 256 (``Hapkit_arduino.h:59-68``): a board whose 16 MHz source is off by
+        ``e`` ticks every ``TICK_S (1 + e)`` host seconds, and the host's writes, aligned
+        to its ticks once at the arming, walk across them by ``e`` ticks a tick. Within
+        (-1e5, 1e5).
 
     Attributes
     ----------
@@ -210,7 +217,8 @@ class HapkitSerialDevice(Actuated):
 
     #: The sketch's control tick [s]: Timer1 reloaded to 65474 at 16 MHz / 256, 62 counts
     #: of 16 us, 0.992 ms (:data:`hapsim.drivers.hapkit_serial.FIRMWARE_TICK_S`,
-    #: ``Hapkit_arduino.h:59-68``), on the host's clock (no crystal drift).
+    #: ``Hapkit_arduino.h:59-68``), on the host's clock; an instance's is its board's
+    #: (``clock_ppm``: an oscillator off the host's clock).
     TICK_S = FIRMWARE_TICK_S
     #: A 9-byte reply's time on the wire at 57600 baud, 10 bits a byte [s].
     REPLY_WIRE_S = 9 * 10 / 57600
@@ -227,7 +235,7 @@ class HapkitSerialDevice(Actuated):
     def __init__(self, device, rate_hz: float, excitation=None, *, force_limit: float = 2.0,
                  clock: str = "wall", seed: int = 0, levels: int = 256,
                  render_s: float | None = None, reply: str = "Tp",
-                 count_m: float | None = None) -> None:
+                 count_m: float | None = None, clock_ppm: float = 0.0) -> None:
         import dataclasses
 
         from hapsim.drivers import hapkit_serial as hk
@@ -247,6 +255,12 @@ class HapkitSerialDevice(Actuated):
         render_s = hk.RENDER_S if render_s is None else float(render_s)
         if not (math.isfinite(render_s) and render_s >= 0.0):
             raise ConfigError(f"must be a time >= 0 [s], got {render_s!r}", key="render_s")
+        if not (isinstance(clock_ppm, (int, float)) and abs(float(clock_ppm)) < 1e5):
+            raise ConfigError(f"must be a number of parts per million within (-1e5, 1e5), "
+                              f"got {clock_ppm!r}", key="clock_ppm")
+        # the tick on the host's clock: the board's oscillator off by clock_ppm
+        self.TICK_S = FIRMWARE_TICK_S * (1.0 + float(clock_ppm) * 1e-6)
+        self.clock_ppm = float(clock_ppm)
         self._hk = hk
         self.levels = int(levels)
         self.render_s = render_s
@@ -455,7 +469,7 @@ class HapkitSerialDevice(Actuated):
         first 1000 of them (their index among the commands)."""
         ph = sorted(self._phases)
         near = sum(1 for p in ph if p < 0.1 or p > 0.9)
-        per = whole_ticks(self.physics.period, self.TICK_S)
+        per = whole_ticks(self.physics.period)     # (the board's own count of ticks)
         off = []
         if per is not None:
             t = self._ticks
@@ -476,7 +490,7 @@ class HapkitSerialDevice(Actuated):
 def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
                                phase: float = 0.5, levels: int = 256,
                                render_s: float | None = None, lost_replies=(),
-                               count_m: float = 0.0):
+                               count_m: float = 0.0, clock_ppm: float = 0.0):
     """The Hapkit-serial THS closed offline on a simulated clock: the sketch on its own
     0.992 ms tick (:class:`HapkitSerialDevice` with ``clock="wall"``, fed the simulated time
     of each command), hapsim's engine as the host; deterministic, no pty, no real time.
@@ -484,7 +498,9 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     The host loop's arithmetic: row ``k`` is the reply to command ``k`` (the handle read
     at the tick that took it), the force computed from it goes out with command ``k + 1``.
     The host writes command ``k`` at ``k T + phase`` ticks, in the middle of a tick as the
-    transport aligns them (:meth:`hapsim.drivers.tick_align.TickAligned.tick_phase`); the
+    transport aligns them (:meth:`hapsim.drivers.tick_align.TickAligned.tick_phase`): of
+    the board's ticks when its oscillator keeps the host's time, of the nominal 0.992 ms
+    when it does not (``clock_ppm``: the writes then walk across the board's ticks); the
     board reads command ``k`` ``read_late[k]`` ticks after it came (its own read latency:
     a USB-serial bridge's frame, its process scheduled late), unseen by the host (nothing
     is marked in the driver's ``mistimed_seqs``): a latency past the tick's end takes the
@@ -512,6 +528,9 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         The board's position step [m] and the driver's (:class:`HapkitSerialDevice`'s
         ``count_m``); 0 (the default here): read exactly, the exact records the offline
         tests compare to round-off.
+    clock_ppm : float
+        The board's oscillator off the host's clock [ppm], positive slower
+        (:class:`HapkitSerialDevice`'s ``clock_ppm``; 0, the default: on the host's time).
     lost_replies : collection of int, optional
         Commands whose reply the host never reads (a lossy link's): the board took the
         command, the host steps that row with the position extrapolated from the two rows
@@ -533,9 +552,10 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     drv.mistimed_seqs = set()
     drv.own_tick = True                        # the sketch keeps its tick (simulated)
     board = HapkitSerialDevice(device or sc.device, sc.rate_hz, sc.excitation, clock="wall",
-                               levels=levels, render_s=render_s, count_m=count_m)
+                               levels=levels, render_s=render_s, count_m=count_m,
+                               clock_ppm=clock_ppm)
     dec = drv.decoder()
-    T, tick = sc.period, board.TICK_S
+    T, tick = sc.period, FIRMWARE_TICK_S             # (the host's count of a tick)
     late = dict(read_late or {})
 
     lost = {int(j) for j in lost_replies}
