@@ -63,10 +63,12 @@ class TickingPort:
     ``arrivals`` keeps each command's arrival phase within its tick [ns after the tick
     before it: the header's end for the sketch, where its jump is] and ``ticks`` the tick
     it was taken (read) at. ``numbered``: each reply's position is 1e-4 m times the
-    number of the write it answers (1, 2, ...)."""
+    number of the write it answers (1, 2, ...). ``tick_ns``: its tick on the host's clock
+    (a board whose oscillator is off it; default ``TICK_NS``)."""
 
     def __init__(self, phase_ns: int, transit_ns: int, sketch: bool = False,
-                 numbered: bool = False) -> None:
+                 numbered: bool = False, tick_ns: float = TICK_NS) -> None:
+        self.tick = tick_ns if isinstance(tick_ns, int) else float(tick_ns)
         self.phase = int(phase_ns)
         self.transit = int(transit_ns)
         self.sketch = bool(sketch)
@@ -90,18 +92,19 @@ class TickingPort:
 
     def write(self, data: bytes) -> int:
         arr = time.monotonic_ns() + self.transit
+        tk = self.tick
         if self.sketch:
             head = arr + BYTE_NS
-            k = -((self.phase - head) // TICK_NS)          # the first tick at or after
-            self.arrivals.append((head - self.phase) % TICK_NS)
+            k = -((self.phase - head) // tk)               # the first tick at or after
+            self.arrivals.append((head - self.phase) % tk)
             self.ticks.append(k)
-            read = max(arr + 10 * BYTE_NS, self.phase + (k + 1) * TICK_NS)
+            read = max(arr + 10 * BYTE_NS, self.phase + (k + 1) * tk)
             ready = read + RENDER_NS + WIRE_NS
         else:
-            k = (arr - self.phase) // TICK_NS + 1
-            self.arrivals.append((arr - self.phase) % TICK_NS)
+            k = (arr - self.phase) // tk + 1
+            self.arrivals.append((arr - self.phase) % tk)
             self.ticks.append(k)
-            ready = self.phase + k * TICK_NS + WIRE_NS
+            ready = self.phase + k * tk + WIRE_NS
         # the reply's position names the write it answers (1e-4 m a write), the
         # handle's for a test that does not ask (0.01 m)
         self.writes += 1

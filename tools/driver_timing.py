@@ -182,7 +182,10 @@ def run_1d(driver: str, seed: int, loss: float, duration: float, rt_priority: in
             # a board on its own tick: the holds it took off the period (its own count)
             # and those the measurement found in the record and cut
             "board_off_period": (mk.get("tick_arrivals") or {}).get("off_period"),
-            "unseen_holds": m.get("unseen_holds")}
+            "unseen_holds": m.get("unseen_holds"),
+            # a ticking board: how far its tick moved against the host's writes over the
+            # run (the probe at its stop, hapsim.drivers.tick_align.TickAligned.end_probe)
+            "tick_moved": dl.get("tick_moved")}
 
 
 def run_haply2(seed: int, loss: float, clock: str = "wall",
@@ -417,11 +420,13 @@ def main(argv=None) -> int:
     p.add_argument("--host-stall", type=float, default=None, metavar="MS",
                    help="the 1-D and Falcon runs: stop the host's process once for MS ms at "
                         "a seeded moment of its loop (SIGSTOP/SIGCONT; module notes)")
-    p.add_argument("--board-ppm", type=float, default=None, metavar="PPM",
+    p.add_argument("--board-ppm", type=float, nargs="+", default=[0.0], metavar="PPM",
                    help="the Hapkit-serial board's oscillator this far off the host's "
                         "clock [parts per million], positive slower: its 0.992 ms tick "
                         "walks against the host's writes, aligned once at the arming "
-                        "(hapsim.emulated.hapkit_serial_board, clock_ppm)")
+                        "(hapsim.emulated.hapkit_serial_board, clock_ppm; default 0); "
+                        "several: each seed run on each in turn, the summary keyed by "
+                        "the offset too")
     p.add_argument("--falcon-start", type=float, default=0.0, metavar="MM",
                    help="the Falcon's loop: the hand let go MM mm off rest along x as it "
                         "starts (default 0: from rest)")
@@ -457,7 +462,8 @@ def main(argv=None) -> int:
     try:
         for drv in a.drivers:
             for loss in a.loss:
-                for seed, link in ((s, k) for s in a.seeds for k in a.link):
+                for seed, link, ppm in ((s, k, e) for s in a.seeds for k in a.link
+                                        for e in a.board_ppm):
                     dm.WALL_LINK = link
                     t = time.monotonic()
                     if drv in _names(True):
@@ -476,10 +482,12 @@ def main(argv=None) -> int:
                     else:
                         row = run_1d(drv, seed, loss, a.duration, a.rt_priority,
                                      a.starve, a.host_stall,
-                                     a.board_ppm if drv == "hapkit-serial" else None)
+                                     ppm if drv == "hapkit-serial" else None)
                         sched = row.get("scheduling")
                     if len(a.link) > 1 and drv not in _names(True):
                         row["link"] = link
+                    if len(a.board_ppm) > 1 and drv == "hapkit-serial":
+                        row["board_ppm"] = ppm
                     row.update(driver=drv, seed=seed, loss=loss, scheduling=sched,
                                seconds=round(time.monotonic() - t, 1), load=_load())
                     rows.append(row)
@@ -488,7 +496,8 @@ def main(argv=None) -> int:
                         "resync_reasons", "silences", "board_silences", "board_parser",
                         "frame_walk", "frame_bound", "stalls",
                         "excursion_true", "excursion_host", "verdict", "exit_code",
-                        "error", "board_off_period", "unseen_holds", "link_verdict")},
+                        "error", "board_off_period", "unseen_holds", "link_verdict",
+                        "tick_moved")},
                                      default=str),
                           file=sys.stderr, flush=True)
     finally:
@@ -541,7 +550,8 @@ VERDICTS = ("measured = predicted within the stated uncertainty",
 
 
 def summarize(rows):
-    """Per driver and loss (and link, for an A/B of ``--link``): runs, safety stops, runs
+    """Per driver and loss (and link, for an A/B of ``--link``; the board's offset, of
+    ``--board-ppm``): runs, safety stops, runs
     with a re-synchronisation, the most re-synchronisations, the largest excursion,
     verdicts counted, errors, the range of the host's stalls and of the commands the
     board took off its period (``stalls_range``, ``board_off_period_range``).
@@ -557,7 +567,8 @@ def summarize(rows):
     """
     out = {}
     for r in rows:
-        key = f"{r['driver']} {r['loss']:g}" + (f" {r['link']}" if r.get("link") else "")
+        key = (f"{r['driver']} {r['loss']:g}" + (f" {r['link']}" if r.get("link") else "")
+               + (f" {r['board_ppm']:g}ppm" if r.get("board_ppm") is not None else ""))
         s = out.setdefault(key, {
             "runs": 0, "safety_stops": 0, "runs_resynced": 0, "resyncs_max": 0,
             "excursion_true_max": None, "excursion_host_max": None,

@@ -313,6 +313,10 @@ class Driver:
     #: late (set by the run's :class:`hapsim.drivers.transport.DriverTransport`: its
     #: ``mistimed``); None: none known (:meth:`mistimed_rows`).
     mistimed_seqs: set | None = None
+    #: How far the board's tick moved against the host's writes over the run (set by the
+    #: run's transport at its end, :meth:`hapsim.drivers.tick_align.TickAligned.
+    #: end_probe`); None: not probed.
+    tick_moved: dict | None = None
     #: The run's board takes commands on its own tick, on its own clock (set by the run's
     #: transport; a lockstep mock's is not): the measurement seeks the holds it mistimed
     #: that no host saw (:func:`hapsim.pipeline.measure.identify_run`).

@@ -259,6 +259,55 @@ class TickAligned:
                 pass
         self._note_tick(time.monotonic_ns())
 
+    def end_probe(self) -> dict | None:
+        """At each stop, probe the board's tick again and say how far it moved against
+        the host's writes since the first arming (``driver.tick_moved``, also returned):
+        a board whose oscillator is off the host's clock walks its tick across writes
+        aligned once (docs/drivers.md, "A board whose oscillator is off the host's
+        clock"), and a walk changes the loop's delay within the record.
+
+        The probe is :meth:`tick_phase`'s (its zero-force commands), its finding kept
+        apart: the alignment is left as it was. The boundary found is compared with the
+        arming's carried on at the nominal tick: ``moved`` is the difference folded into
+        half a tick either way [ticks], ``seconds`` the time between the two [s],
+        ``found`` whether the probe placed the boundary again (each placement is to about
+        a sixteenth of a tick; the walk during the probe's own 0.1 s shifts it too). A
+        walk of a whole number of ticks looks like none: ``moved`` is the walk's distance
+        to the nearest whole number, not the walk. None where the writes were not aligned
+        (no probe at the arming, lockstep). The probe takes about 0.1 s of zero-force
+        commands before the stop's bytes.
+
+        Returns
+        -------
+        dict or None
+            ``{"moved": float, "seconds": float, "found": bool}``.
+        """
+        if self._write_at is None:
+            return self.driver.tick_moved
+        before = self.driver.tick_moved            # (a stop before this one's)
+        keep = {k: getattr(self, k) for k in (
+            "_write_at", "_phase_z", "_delay_ns", "_over_ns", "_aligned_ns", "_grid_ns",
+            "_landed", "tick_probe")}
+        tk = self._tick_ns
+        try:
+            found = self.tick_phase() is not None
+            at = self._write_at
+        except DeviceError:
+            found, at = False, None
+        finally:
+            for k, v in keep.items():
+                setattr(self, k, v)
+        moved = 0.0
+        seconds = (time.monotonic_ns() - keep["_write_at"]) * 1e-9
+        if found:
+            d = at - keep["_write_at"]
+            moved = ((d + tk // 2) % tk - tk // 2) / tk
+            seconds = d * 1e-9
+        if before is not None and not before["found"]:
+            found = False                          # (a probe at an earlier stop failed)
+        self.driver.tick_moved = {"moved": moved, "seconds": seconds, "found": found}
+        return self.driver.tick_moved
+
     def tick_landed_median(self) -> float | None:
         """Where the writes went, on the host's clock: the median phase after the jump the
         probe found [fraction of a tick] (the aim: a half), to :data:`LANDED_BINS` of a

@@ -223,8 +223,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         self._frames = getattr(self._dec, "frames", self._dec) if self._reach else None
         self.decoder = _Dec(DriverStats(self._dec.stats))
         self._q: deque = deque()
-        self._armed = False
-        self._ever_armed = False              # a CONFIG has armed the device once
+        self._armed = self._ever_armed = False    # (_ever_armed: a CONFIG armed it once)
         self._t0 = time.monotonic_ns()
         self._last = deque(maxlen=16)
         # command ring: host time [us] each command was sent; seq of the newest command
@@ -423,8 +422,8 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         elif t is fp.Stop:
             if self.watchdog is not None:
                 self.watchdog.arm(False)
-            self._armed = False
-            self._force = 0.0
+            self._armed, self._force = False, 0.0
+            self.end_probe()                # (a ticking board: where its tick went)
             self._stop_owed = 2             # (its zero writes before and after its set-up)
             self._write(dr.stop_bytes(self._x_last))
 
@@ -773,7 +772,8 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         if self._tick_ns and self._handled is None and self._board_T is None:
             st["tick_probe"] = None if self.tick_probe is None else dict(self.tick_probe)
             st["tick_aligned"] = self._write_at is not None
-            st["tick_landed_median"] = self.tick_landed_median()
+            st["tick_landed_median"], st["tick_moved"] = (self.tick_landed_median(),
+                                                          self.driver.tick_moved)
         st["decoder"] = dict(self._dec.stats)
         st["firmware"] = (self.driver.streaming_firmware if st["unprompted_before_arming"]
                           else self.driver.answering_firmware if st["records"] else None)

@@ -543,7 +543,9 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         ``(columns, driver, board)``: telemetry columns (``time`` [s], ``position`` [m],
         ``force`` [N], ``seq``, ``flags``, ``late``, ``force_seq``, ``status``), shape
         (n,); the :class:`hapsim.drivers.hapkit_serial.HapkitSerial` whose replies they
-        are (its ``loop_delay`` and ``own_tick`` set, no hold marked); the board.
+        are (its ``loop_delay`` and ``own_tick`` set, no hold marked; ``tick_moved`` what
+        the probe at a run's stop would find, :meth:`hapsim.drivers.tick_align.
+        TickAligned.end_probe`); the board.
     """
     from hapsim.drivers.hapkit_serial import HapkitSerial
     sc = scene
@@ -570,6 +572,11 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
         return x
 
     cols = offline_record(sc, drv, command, n, lambda k: k * T)
+    # the probe at the run's stop (TickAligned.end_probe), right after the last command:
+    # the board's boundary against the host's nominal grid from time 0, folded into half
+    # a tick either way (its fit taken as exact)
+    walk = n * T / tick - n * T / board.TICK_S
+    drv.tick_moved = {"moved": (walk + 0.5) % 1.0 - 0.5, "seconds": n * T, "found": True}
     if lost:
         from hapsim.drivers.base import FLAG_ESTIMATED
         for j in lost:

@@ -303,6 +303,9 @@ def _identify_at(prep: PreparedRun, tel: Telemetry, hello=None, driver=None, *,
         # broken where its unseen holds may have struck, does not explain the record
         from hapsim.pipeline.unseen_review import review_differs
         measured = review_differs(pred, measured, review)
+    if not searching and getattr(driver, "tick_moved", None) is not None:
+        from hapsim.pipeline.unseen_review import review_tick_walk
+        review_tick_walk(measured, driver)     # (a board's tick that walked)
     if "k" in measured:
         measured.setdefault("comparable", True)
         measured["rel_err"] = {q: relative_error(measured[q], pred.get(q))

@@ -1,8 +1,9 @@
 """A board on its own tick that mistimes holds no host sees, for
 :func:`hapsim.pipeline.measure.identify_run`: the holds found in the record and cut
-(:func:`cut_unseen_holds`), and a "differs" reviewed against the predicted loop with the
+(:func:`cut_unseen_holds`), a "differs" reviewed against the predicted loop with the
 breaks its unseen holds may have made (:func:`review_differs`,
-:func:`hapsim.analysis.unseen_verdict.break_prediction`)."""
+:func:`hapsim.analysis.unseen_verdict.break_prediction`), and one left unsaid where the
+board's tick walked across the host's writes (:func:`review_tick_walk`)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,62 @@ import numpy as np
 from hapsim.analysis.measurement import verdict
 from hapsim.errors import ConfigError
 
-__all__ = ["cut_unseen_holds", "review_differs"]
+__all__ = ["cut_unseen_holds", "review_differs", "review_tick_walk", "TICK_MOVED_MAX"]
+
+#: How far the board's tick may have moved against the host's writes over a run, found
+#: by the probe at its stop, for a "differs" to stand [ticks]: the band the writes are
+#: kept in from the boundary (:attr:`hapsim.drivers.tick_align.TickAligned.BAND`), the
+#: probe placing the boundary to a sixteenth of a tick and less.
+TICK_MOVED_MAX = 0.15
+
+
+def review_tick_walk(measured: dict, driver) -> dict:
+    """Leave a "differs" unsaid where the board's tick walked across the host's writes.
+
+    A board whose oscillator is off the host's clock walks its tick across writes the
+    host aligned to it once; the handle's read then moves from the command's end to the
+    board's tick (or back), and the loop's delay changes within the record: offline, on
+    random paddles 1,000-5,000 ppm off, the matching paddle was said to differ in 3 of 16
+    (docs/drivers.md, "A board whose oscillator is off the host's clock"). The probe at
+    the run's stop (:meth:`hapsim.drivers.tick_align.TickAligned.end_probe`) tells the
+    walk's distance to a whole number of ticks, or that the boundary could not be placed
+    again (a walk smearing the probe itself): more than :data:`TICK_MOVED_MAX`, or not
+    placed, and the "differs" becomes "not measurable" with the reason. A walk within
+    that of a whole number of ticks is not seen (the probe cannot tell one from none), so
+    the guard is partial; a "within" is left as it is (on those paddles a device that
+    differs was never said to be within).
+
+    Parameters
+    ----------
+    measured : dict
+        The run's measurement (``verdict``, ``within``); changed in place.
+    driver : hapsim.drivers.base.Driver or None
+        The run's driver: its ``tick_moved`` (None: not probed, nothing changed).
+
+    Returns
+    -------
+    dict
+        ``measured``.
+    """
+    moved = getattr(driver, "tick_moved", None)
+    if (moved is None or measured.get("within") is not False
+            or not str(measured.get("verdict", "")).startswith("measured differs")):
+        return measured
+    if moved["found"] and abs(moved["moved"]) <= TICK_MOVED_MAX:
+        return measured
+    seen = (f"moved {abs(moved['moved']):.2f} of a tick against the host's writes over "
+            f"{moved['seconds']:.2f} s (its oscillator at least "
+            f"{abs(moved['moved']) * 992e-6 / max(moved['seconds'], 1e-9) * 1e6:.0f} ppm "
+            f"off the host's clock)" if moved["found"] else
+            "could not be placed again at the run's stop (a tick walking across the "
+            "probe's own writes)")
+    measured["tick_walk"] = dict(moved)
+    measured["verdict"] = (
+        f"not measurable: the board's tick {seen}; the host aligned its writes to it once, "
+        f"and a tick walking across them changes the loop's delay within the record: the "
+        f"departure is no evidence that the device differs; rerun, or with the board in "
+        f"lockstep")
+    return measured
 
 
 def review_differs(pred: dict, measured: dict, state: dict) -> dict:
