@@ -35,8 +35,7 @@ import pytest
 
 from hapsim.drivers.hapkit_serial import FIRMWARE_TICK_S
 from hapsim.emulated.hapkit_serial_board import hapkit_serial_offline_loop
-from hapsim.errors import UnstableConfigError
-from test_unseen_holds import DURATION, YAML, _measure, _prep   # same directory
+from test_unseen_holds import DURATION, _measure, _prep, stable_paddle  # same directory
 
 OPEN = pytest.mark.xfail(strict=True, reason=(
     "issue 29: a board whose oscillator is off the host's clock walks its tick across "
@@ -49,19 +48,7 @@ def _paddle(seed: int, tmp_path):
     the board's oscillator offset [ppm], 1,000 to 5,000 either way, and the writes' phase
     in the board's tick at the start [fraction of a tick]."""
     rng = np.random.default_rng(5000 + seed)
-    path = tmp_path / f"paddle{seed}.yaml"
-    while True:
-        m = float(rng.uniform(0.05, 0.15))
-        K = float(rng.uniform(60.0, 150.0))
-        x0 = min(float(rng.uniform(0.005, 0.015)), 1.5 / K)      # within the 2 N limit
-        path.write_text(YAML.format(rate=float(rng.choice([252.016, 201.613])), K=K,
-                                    B=float(rng.uniform(0.0, 0.3)), m=m,
-                                    b0=float(rng.uniform(0.05, 0.4)), x0=x0))
-        try:
-            prep = _prep(path)
-            break
-        except UnstableConfigError:      # beyond the stability limit: another loop
-            continue
+    prep = stable_paddle(rng, tmp_path / f"paddle{seed}.yaml")
     ppm = float(rng.choice([-1.0, 1.0]) * rng.uniform(1000.0, 5000.0))
     return prep, ppm, float(rng.uniform(0.2, 0.8))
 

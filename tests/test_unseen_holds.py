@@ -76,11 +76,9 @@ def _prep(path):
         return prep
 
 
-def _random_case(seed: int, tmp_path):
-    """A random Hapkit paddle and spring (drawn again until its loop is stable) and its
-    unseen holds: ``{command: read latency [ticks]}``."""
-    rng = np.random.default_rng(seed)
-    path = tmp_path / f"paddle{seed}.yaml"
+def stable_paddle(rng, path):
+    """A random Hapkit paddle and spring drawn from ``rng`` (again until its loop is
+    stable), written to ``path``: the run's prepared loop."""
     while True:
         m = float(rng.uniform(0.05, 0.15))
         K = float(rng.uniform(60.0, 150.0))
@@ -89,10 +87,16 @@ def _random_case(seed: int, tmp_path):
                                     B=float(rng.uniform(0.0, 0.3)), m=m,
                                     b0=float(rng.uniform(0.05, 0.4)), x0=x0))
         try:
-            prep = _prep(path)
-            break
+            return _prep(path)
         except UnstableConfigError:      # beyond the stability limit: another loop
             continue
+
+
+def _random_case(seed: int, tmp_path):
+    """A random Hapkit paddle and spring (drawn again until its loop is stable) and its
+    unseen holds: ``{command: read latency [ticks]}``."""
+    rng = np.random.default_rng(seed)
+    prep = stable_paddle(rng, tmp_path / f"paddle{seed}.yaml")
     n = int(round(DURATION * prep.scene.rate_hz))
     rows = rng.choice(np.arange(5, n - 5), size=int(rng.integers(1, 11)), replace=False)
     return prep, n, {int(r): float(rng.uniform(0.6, 2.5)) for r in rows}
