@@ -44,7 +44,9 @@ def review_tick_walk(measured: dict, driver) -> dict:
     measured : dict
         The run's measurement (``verdict``, ``within``); changed in place.
     driver : hapsim.drivers.base.Driver or None
-        The run's driver: its ``tick_moved`` (None: not probed, nothing changed).
+        The run's driver: its ``tick_moved`` (None: not probed, nothing changed) and
+        ``tick_s``, the board's nominal tick [s] (the Hapkit sketch's 0.992 ms where it
+        has none).
 
     Returns
     -------
@@ -57,9 +59,10 @@ def review_tick_walk(measured: dict, driver) -> dict:
         return measured
     if moved["found"] and abs(moved["moved"]) <= TICK_MOVED_MAX:
         return measured
+    tick_s = float(getattr(driver, "tick_s", 0.0) or 0.992e-3)    # (the sketch's)
     seen = (f"moved {abs(moved['moved']):.2f} of a tick against the host's writes over "
             f"{moved['seconds']:.2f} s (its oscillator at least "
-            f"{abs(moved['moved']) * 992e-6 / max(moved['seconds'], 1e-9) * 1e6:.0f} ppm "
+            f"{abs(moved['moved']) * tick_s / max(moved['seconds'], 1e-9) * 1e6:.0f} ppm "
             f"off the host's clock)" if moved["found"] else
             "could not be placed again at the run's stop (a tick walking across the "
             "probe's own writes)")
