@@ -8,6 +8,7 @@ distance to its ground mass), not against the helper's algebra."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -257,3 +258,56 @@ def test_a_scene_not_at_rest_states_its_bound_at_its_drift_too():
     # five counts (measured: the bound 1.8e-5 m above the drift, the starts' motion on
     # top of it; 0.21 mm before, at the differences)
     assert r["bound"].amplitude >= drift - 1e-6, (r["bound"].amplitude, drift)
+
+
+def test_held_forces_taken_out_of_the_records_leave_their_departure_in_the_bound():
+    """The 2DIY's wall (``configs/pantograph_wall.yaml``) over a port on the simulated
+    clock, its framed device on its own clock, the host stalled 20-100 % of ``ms`` (20, 30
+    and 50) before a seeded 2 % of its FORCEs (seeds 0-5): the device holds the force
+    before through each stall (late ticks, their response taken out through the linear
+    loop, :mod:`hapsim.pipeline.felt_port`), which carries the handle to 1.4-494 times
+    the free response's excursion, and that response's departure from the linear loop is
+    left in what the fit sees. The felt matrices are within the bound stated
+    (:func:`~hapsim.analysis.linearisation.bound_at_records` with ``free``) in all 18
+    (at most 0.10 of it measured). Taken at the excursion alone, as before, 4 of them
+    were off by more than the bound, up to 10.7 times it (seed 1 at 50 ms; a fresh-clone
+    CI run under the suite's load found it at 2.1): asserted too, so the class is there."""
+    import firmware_protocol as fp
+    from hapsim.emulated.links import SimTransport
+    from hapsim.emulated.mock import MockDeviceND
+    from hapsim.pipeline.felt_port import measure_felt_port
+    from hapsim.scene import load_scene_nd
+
+    sc = load_scene_nd(str(Path(__file__).resolve().parents[1] / "configs"
+                           / "pantograph_wall.yaml"))
+
+    class Stalled:
+        def __init__(self, inner, seed, ms):
+            self.inner, self.rng, self.ms = inner, np.random.default_rng(seed), ms
+            self.info = inner.info
+
+        def send(self, msg):
+            if isinstance(msg, fp.Force) and self.rng.random() < 0.02:
+                self.inner.sleep(self.rng.uniform(0.2, 1.0) * self.ms * 1e-3)
+            self.inner.send(msg)
+
+        def receive(self, timeout=0.0):
+            return self.inner.receive(timeout)
+
+        def last_frames(self):
+            return self.inner.last_frames()
+
+    now, before = [], []
+    for seed in range(6):
+        for ms in (20, 30, 50):
+            res = measure_felt_port(Stalled(SimTransport(MockDeviceND(sc, lockstep=False)),
+                                            seed, ms), sc)
+            poles = res["predicted"].render.rendered_poles
+            bound, _ = bound_at_records(sc, 1e-8, res["moved"], poles,
+                                        free=res["responses"])
+            old, _ = bound_at_records(sc, 1e-8, res["moved"], poles)
+            for key in ("felt_stiffness", "felt_damping"):
+                now.append(res["deviation"][key] / bound.to_dict()[key])
+                before.append(res["deviation"][key] / old.to_dict()[key])
+    assert max(now) <= 1.0, max(now)
+    assert max(before) > 1.0, max(before)           # the class happened

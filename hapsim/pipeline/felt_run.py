@@ -165,7 +165,8 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
     # moves the handle past the nominal amplitude, and the departure from the linear
     # loop grows with the motion (hapsim.analysis.linearisation)
     poles = res["predicted"].render.rendered_poles
-    res["bound"] = (bound_at_records(scene, amplitude, res["moved"], poles)[0]
+    res["bound"] = (bound_at_records(scene, amplitude, res["moved"], poles,
+                                     free=res.get("responses"))[0]
                     if res.get("moved") else
                     linearisation_bound(scene, max(amplitude, res["excursion"]), poles))
     return res, info
