@@ -387,10 +387,11 @@ def bound_at_records(scene, amplitude: float, records, rendered_poles=None, *,
     linear loop in them: about ``c ex`` of a motion ``ex``, ``c ex^2`` [m], against the
     free response the fit sees, of ``ex_f``. Relative to that response it is
     ``c ex (ex / ex_f)``: the bound is taken at ``ex^2 / ex_f`` where that is more than
-    ``ex``. Host stalls of 6-30 ms at 2 % of the ticks on the simulated clock carried the
-    2DIY's wall to ``ex`` = 1.13 um against ``ex_f`` = 22 nm, and the felt stiffness
-    1.6 times the bound at ``ex`` off the prediction (a fresh-clone CI run under the
-    suite's load, 487 late ticks: 2.1 times); taken at ``ex^2 / ex_f``, 0.03.
+    ``ex``. Host stalls of 4-50 ms before 2 % of the FORCEs on the simulated clock carried
+    the 2DIY's wall to 1.4-494 times ``ex_f`` (22 nm), and the felt matrices up to 10.7
+    times the bound at ``ex`` off the prediction, 4 runs of 18 beyond it (a fresh-clone
+    CI run under the suite's load, 487 late ticks: 2.1 times); taken at ``ex^2 / ex_f``,
+    at most 0.10 of it (``tests/test_bound_at_records.py``).
 
     Parameters
     ----------

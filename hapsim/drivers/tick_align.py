@@ -269,9 +269,9 @@ class TickAligned:
         aligned once (docs/drivers.md, "A board whose oscillator is off the host's
         clock"), and a walk changes the loop's delay within the record.
 
-        The probe is :meth:`tick_phase`'s (its zero-force commands), :data:`END_PROBES`
-        times, the median placement taken, its findings kept apart: the alignment is left
-        as it was. The boundary found is compared with the
+        The probe is :meth:`tick_phase`'s measurement (:meth:`_probe_boundary`: its
+        zero-force commands), :data:`END_PROBES` times, the median placement taken; the
+        alignment and :attr:`tick_probe` are left as they were. The boundary found is compared with the
         arming's carried on at the nominal tick: ``moved`` is the difference folded into
         half a tick either way [ticks], ``seconds`` the time between the two [s],
         ``found`` whether the probe placed the boundary again (each placement is to about
@@ -289,11 +289,8 @@ class TickAligned:
         if self._write_at is None:
             return self.driver.tick_moved
         before = self.driver.tick_moved            # (a stop before this one's)
-        keep = {k: getattr(self, k) for k in (
-            "_write_at", "_phase_z", "_delay_ns", "_over_ns", "_aligned_ns", "_grid_ns",
-            "_landed", "tick_probe")}
         tk = self._tick_ns
-        j0 = keep["_write_at"]
+        j0 = self._write_at
         got = []
         try:
             # END_PROBES placements, the median taken (one probe a loaded host timed badly
@@ -301,15 +298,13 @@ class TickAligned:
             # clock beside two CPU-bound processes, the guard's limit), with as many
             # refusals as the arming allows
             for _ in range(END_PROBES + PROBE_TRIES - 1):
-                if self.tick_phase() is not None:
-                    got.append(self._write_at)
+                at = self._probe_boundary()[1]
+                if at is not None:
+                    got.append(at)
                     if len(got) == END_PROBES:
                         break
         except DeviceError:
             pass
-        finally:
-            for k, v in keep.items():
-                setattr(self, k, v)
         found = bool(got)
         moved, seconds = 0.0, (time.monotonic_ns() - j0) * 1e-9
         if found:
@@ -387,8 +382,6 @@ class TickAligned:
         DeviceError
             The port failed.
         """
-        dr = self.driver
-        tk = self._tick_ns
         self._write_at = None
         self._phase_z = None
         self._delay_ns = 0
@@ -397,6 +390,25 @@ class TickAligned:
         self._grid_ns = 0                            # (their period, once aligned)
         self._landed = [0] * LANDED_BINS
         self.tick_probe = None
+        self.tick_probe, at = self._probe_boundary()
+        if at is None:
+            return None                     # (no clean fit: the phase is not known)
+        self._write_at = at
+        return self.tick_probe
+
+    def _probe_boundary(self) -> tuple:
+        """:meth:`tick_phase`'s measurement, the alignment left as it is: ``(finding,
+        boundary)``, the fit (:func:`fit_tick_jump`'s dict; ``{"probes": n}`` when too few
+        were answered; None when the board did not answer) and the monotonic time [ns] of
+        a boundary it placed (None when it placed none).
+
+        Raises
+        ------
+        DeviceError
+            The port failed.
+        """
+        dr = self.driver
+        tk = self._tick_ns
         k = TICK_PROBES
         # a probe's reply comes within the round trip and a tick; spaced whole ticks and
         # a sixteenth apart, the probes' phases sweep the tick once
@@ -422,7 +434,7 @@ class TickAligned:
                         self._n_read += len(data)
                         up = bool(dec.feed(data))
             if not up:
-                return None
+                return None, None
             # the answers to the commands a board still starting took late, one a tick,
             # let come and dropped: a probe's reply is its own
             self._drain(PROBE_QUIET_S)
@@ -458,11 +470,8 @@ class TickAligned:
         self._t_write = time.monotonic()
         n = len(q)
         if n < PROBES_NEEDED:
-            self.tick_probe = {"probes": n}
-            return None
+            return {"probes": n}, None
         found = fit_tick_jump(q, e, tk)
-        self.tick_probe = found
         if found["spread_us"] * 1e3 > tk / 8 or found["outliers"] > n // 4:
-            return None                     # no clean fit: the phase is not known
-        self._write_at = start + int(round(found["boundary_us"] * 1e3))
-        return found
+            return found, None              # no clean fit: the phase is not known
+        return found, start + int(round(found["boundary_us"] * 1e3))

@@ -12,15 +12,17 @@ import math
 import numpy as np
 
 from hapsim.analysis.measurement import verdict
+from hapsim.drivers.sketch_timing import FIRMWARE_TICK_S
+from hapsim.drivers.tick_align import TickAligned
 from hapsim.errors import ConfigError
 
 __all__ = ["cut_unseen_holds", "review_differs", "review_tick_walk", "TICK_MOVED_MAX"]
 
 #: How far the board's tick may have moved against the host's writes over a run, found
 #: by the probe at its stop, for a "differs" to stand [ticks]: the band the writes are
-#: kept in from the boundary (:attr:`hapsim.drivers.tick_align.TickAligned.BAND`), the
-#: probe placing the boundary to a sixteenth of a tick and less.
-TICK_MOVED_MAX = 0.15
+#: kept in from the boundary (:attr:`hapsim.drivers.tick_align.TickAligned.BAND`, 0.15),
+#: the probe placing the boundary to a sixteenth of a tick and less.
+TICK_MOVED_MAX = TickAligned.BAND
 
 
 def review_tick_walk(measured: dict, driver) -> dict:
@@ -59,7 +61,7 @@ def review_tick_walk(measured: dict, driver) -> dict:
         return measured
     if moved["found"] and abs(moved["moved"]) <= TICK_MOVED_MAX:
         return measured
-    tick_s = float(getattr(driver, "tick_s", 0.0) or 0.992e-3)    # (the sketch's)
+    tick_s = float(getattr(driver, "tick_s", 0.0) or FIRMWARE_TICK_S)
     seen = (f"moved {abs(moved['moved']):.2f} of a tick against the host's writes over "
             f"{moved['seconds']:.2f} s (its oscillator at least "
             f"{abs(moved['moved']) * tick_s / max(moved['seconds'], 1e-9) * 1e6:.0f} ppm "
