@@ -271,8 +271,8 @@ class TickAligned:
 
         The probe is :meth:`tick_phase`'s measurement (:meth:`_probe_boundary`: its
         zero-force commands), :data:`END_PROBES` times, the median placement taken; the
-        alignment and :attr:`tick_probe` are left as they were. The boundary found is compared with the
-        arming's carried on at the nominal tick: ``moved`` is the difference folded into
+        alignment and :attr:`tick_probe` are left as they were. The boundary found is
+        compared with the arming's carried on at the nominal tick: ``moved`` is the difference folded into
         half a tick either way [ticks], ``seconds`` the time between the two [s],
         ``found`` whether the probe placed the boundary again (each placement is to about
         a sixteenth of a tick; the walk during the probe's own 0.1 s shifts it too). A
