@@ -18,7 +18,9 @@ import time
 from hapsim.errors import DeviceError
 
 __all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S",
-           "PROBES_NEEDED", "PROBE_TRIES", "END_PROBES", "REARM_INTERVAL", "JUMP_STEPS",
+           "PROBES_NEEDED", "PROBE_TRIES", "END_PROBES", "END_GAP_S", "END_GAP_FRACTION",
+           "END_GAP_MAX_S", "REARM_INTERVAL",
+           "JUMP_STEPS", "walk_from_placements",
            "FLAT_STEPS", "LANDED_BINS", "WRITE_LEAD", "SPIN"]
 
 #: Wait for the first record before the arming command is sent again [s].
@@ -39,6 +41,21 @@ PROBE_TRIES = 3
 #: Placements of a ticking board's boundary at each stop whose median says how far its
 #: tick moved over the run (:meth:`TickAligned.end_probe`).
 END_PROBES = 3
+#: The wait at each stop between the first group of :data:`END_PROBES` placements and a
+#: second [s]: the two groups' difference is the board's rate against the host's clock
+#: (:func:`walk_from_placements`), which tells a walk of whole ticks over the run from
+#: none (the placements alone see the walk only to the nearest whole tick). Over 0.4 s
+#: a placement's error of a sixteenth of a tick is 160 ppm, 0.2 of a tick over a 1.3 s
+#: run.
+END_GAP_S = 0.4
+#: The wait's least share of the time since the arming (:data:`END_GAP_S` for short
+#: runs), at most :data:`END_GAP_MAX_S`: the rate's error grows with the run it is
+#: carried over, and a placement's thirty-second of a tick over a quarter of the run is a
+#: walk's deviation of 0.18 of a tick, three of which still tell a whole tick from none.
+END_GAP_FRACTION = 0.25
+#: The longest wait [s] (a longer run's "differs" stands only where its rate's walk is
+#: told from a whole tick).
+END_GAP_MAX_S = 3.0
 #: The writes' phases counted per write in this many bins of a tick (a histogram: the
 #: loop appends nothing, :meth:`TickAligned.tick_landed_median`).
 LANDED_BINS = 128
@@ -142,6 +159,86 @@ def fit_tick_jump(q, e, tick) -> dict:
     return {"boundary_us": jump / 1e3, "flat_us": float(L[0, j, 0]) / 1e3,
             "spread_us": float(np.median(rb)) / 1e3,
             "outliers": int(np.count_nonzero(rb > tk / 4)), "probes": int(q.size)}
+
+
+def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
+    """How far a board's tick walked against the host's nominal grid since an arming,
+    whole ticks counted, from two groups of placements of its boundary at a stop.
+
+    A placement ``(b, t)`` is a boundary time ``b`` found by a probe that met it at ``t``
+    [monotonic ns] (the probes sweep the tick over 0.1 s: a walking tick is placed where
+    they met it). Its phase against the arming's boundary carried on at the nominal tick
+    is ``p = fold((b - b0) / tick)``: the walk to the nearest whole tick. The groups'
+    median phases ``p_A``, ``p_B`` at their median times give the rate
+    ``r = (p_B - p_A) / (t_B - t_A)``, its whole ticks unwrapped by the first group's own
+    slope (placements a tenth of a second apart); the walk over the run is then ``p_A``
+    plus the whole number of ticks nearest ``r (t_A - t0) - p_A``. A group median's error
+    is taken as the larger of a thirty-second of a tick (half the probes' spacing) and
+    1.5 times the placements' median distance from their groups' lines of slope ``r``
+    (a robust scale: one placement a loaded host timed badly is an eighth of a tick off);
+    the rate's as ``sqrt(2)`` times that over ``t_B - t_A``, the run's walk's as the
+    rate's times ``t_A - t0``.
+
+    Parameters
+    ----------
+    j0 : tuple of int
+        The arming's placement ``(b0, t0)`` [monotonic ns].
+    tick_ns : int
+        The board's nominal tick [ns], > 0.
+    first, second : sequence of tuple of int
+        Placements ``(b, t)`` [monotonic ns], each group a few a probe apart; ``second``
+        may be empty.
+
+    Returns
+    -------
+    dict
+        ``moved`` (``p_A`` [ticks]), ``seconds`` (``t_A - t0`` [s]); with a ``second``
+        group, ``walk`` (the run's walk [ticks], positive: the board slow), ``walk_rate``
+        (``r (t_A - t0)`` [ticks]: the walk the rate alone says), ``walk_sd`` [ticks] and
+        ``rate_ppm`` (the walk per nominal tick, 1e6 times).
+
+    Raises
+    ------
+    ValueError
+        ``first`` empty.
+    """
+    if not len(first):
+        raise ValueError("walk_from_placements needs at least one placement")
+    tk = int(tick_ns)
+    b0, t0 = (int(v) for v in j0)
+
+    def fold(v: float) -> float:
+        return (v + 0.5) % 1.0 - 0.5
+
+    def group(g):
+        """The placements' phases unwrapped about the median one, and the median."""
+        g = sorted((int(t), fold((int(b) - b0) / tk)) for b, t in g)
+        tm, pm = g[len(g) // 2]
+        return [(t, pm + fold(p - pm)) for t, p in g], tm, pm
+
+    ga, t_a, p_a = group(first)
+    out = {"moved": p_a, "seconds": (t_a - t0) * 1e-9}
+    if not len(second):
+        return out
+    # the first group's own slope [ticks/ns]
+    slope = 0.0
+    if len(ga) > 1 and ga[-1][0] > ga[0][0]:
+        mt = sum(t for t, _ in ga) / len(ga)
+        mp = sum(p for _, p in ga) / len(ga)
+        slope = (sum((t - mt) * (p - mp) for t, p in ga)
+                 / sum((t - mt) ** 2 for t, _ in ga))
+    gb, t_b, p_b = group(second)
+    dt = t_b - t_a
+    guess = slope * dt
+    r = (guess + fold(p_b - p_a - guess)) / dt
+    res = sorted(abs(p - pm - r * (t - tm)) for g, tm, pm in ((ga, t_a, p_a), (gb, t_b, p_b))
+                 for t, p in g)
+    sd_p = max(1.0 / 32, 1.5 * res[len(res) // 2])
+    sd_r = math.sqrt(2.0) * sd_p / dt
+    w_rate = r * (t_a - t0)
+    out.update(walk=p_a + round(w_rate - p_a), walk_rate=w_rate,
+               walk_sd=sd_r * (t_a - t0), rate_ppm=r * tk * 1e6)
+    return out
 
 
 class TickAligned:
@@ -263,57 +360,71 @@ class TickAligned:
         self._note_tick(time.monotonic_ns())
 
     def end_probe(self) -> dict | None:
-        """At each stop, probe the board's tick again and say how far it moved against
+        """At each stop, probe the board's tick again and say how far it walked against
         the host's writes since the first arming (``driver.tick_moved``, also returned):
         a board whose oscillator is off the host's clock walks its tick across writes
         aligned once (docs/drivers.md, "A board whose oscillator is off the host's
         clock"), and a walk changes the loop's delay within the record.
 
         The probe is :meth:`tick_phase`'s measurement (:meth:`_probe_boundary`: its
-        zero-force commands), :data:`END_PROBES` times, the median placement taken; the
-        alignment and :attr:`tick_probe` are left as they were. The boundary found is
-        compared with the arming's carried on at the nominal tick: ``moved`` is the difference folded into
-        half a tick either way [ticks], ``seconds`` the time between the two [s],
-        ``found`` whether the probe placed the boundary again (each placement is to about
-        a sixteenth of a tick; the walk during the probe's own 0.1 s shifts it too). A
-        walk of a whole number of ticks looks like none: ``moved`` is the walk's distance
-        to the nearest whole number, not the walk. None where the writes were not aligned
-        (no probe at the arming, lockstep). The probes take about 0.3 s of zero-force
-        commands before the stop's bytes.
+        zero-force commands), :data:`END_PROBES` placements, and as many again
+        :data:`END_GAP_S` after the first, or a quarter of the time since the arming
+        (:data:`END_GAP_FRACTION`, at most :data:`END_GAP_MAX_S`; the board holding the
+        probes' zero force between): :func:`walk_from_placements` gives the walk to the nearest whole tick
+        (``moved``, the first group's median against the arming's boundary carried on at
+        the nominal tick, folded into half a tick either way), and the whole ticks from
+        the board's rate between the groups (``walk``, ``walk_rate``, ``walk_sd``,
+        ``rate_ppm``); ``seconds`` is the time since the arming [s], ``found`` whether
+        both groups placed the boundary (each placement to about a sixteenth of a tick;
+        the walk during a probe's own 0.1 s shifts it too). The alignment and
+        :attr:`tick_probe` are left as they were. None where the writes were not aligned
+        (no probe at the arming, lockstep). The probes and the wait take about 0.7 s
+        before the stop's bytes, and a quarter of the run more for a run over 1.6 s.
 
         Returns
         -------
         dict or None
-            ``{"moved": float, "seconds": float, "found": bool}``.
+            :func:`walk_from_placements`'s dict and ``found``.
         """
         if self._write_at is None:
             return self.driver.tick_moved
         before = self.driver.tick_moved            # (a stop before this one's)
-        tk = self._tick_ns
-        j0 = self._write_at
+        j0 = (self._write_at, self._write_at_t)
+        first = self._placements()
+        second = []
+        if first:
+            t1 = min(t for _, t in first)
+            gap = min(max(END_GAP_S, END_GAP_FRACTION * (t1 - j0[1]) * 1e-9), END_GAP_MAX_S)
+            wait = t1 + int(gap * 1e9) - time.monotonic_ns()
+            if wait > 0:
+                time.sleep(wait * 1e-9)
+            second = self._placements()
+        found = bool(first) and bool(second)
+        if first:
+            got = walk_from_placements(j0, self._tick_ns, first, second)
+        else:
+            got = {"moved": 0.0, "seconds": (time.monotonic_ns() - j0[1]) * 1e-9}
+        if before is not None and not before["found"]:
+            found = False                          # (a probe at an earlier stop failed)
+        self.driver.tick_moved = {**got, "found": found}
+        return self.driver.tick_moved
+
+    def _placements(self) -> list:
+        """:data:`END_PROBES` placements of the boundary [monotonic ns] (one probe a
+        loaded host timed badly places it up to an eighth of a tick off: 0.15 seen on the
+        wall clock beside two CPU-bound processes), with as many refusals as the arming
+        allows; fewer when the port failed."""
         got = []
         try:
-            # END_PROBES placements, the median taken (one probe a loaded host timed badly
-            # places the boundary up to an eighth of a tick off: 0.15 seen on the wall
-            # clock beside two CPU-bound processes, the guard's limit), with as many
-            # refusals as the arming allows
             for _ in range(END_PROBES + PROBE_TRIES - 1):
-                at = self._probe_boundary()[1]
+                found, at = self._probe_boundary()
                 if at is not None:
-                    got.append(at)
+                    got.append((at, found["t_ns"]))
                     if len(got) == END_PROBES:
                         break
         except DeviceError:
             pass
-        found = bool(got)
-        moved, seconds = 0.0, (time.monotonic_ns() - j0) * 1e-9
-        if found:
-            d, at = sorted(((a - j0 + tk // 2) % tk - tk // 2, a) for a in got)[len(got) // 2]
-            moved, seconds = d / tk, (at - j0) * 1e-9
-        if before is not None and not before["found"]:
-            found = False                          # (a probe at an earlier stop failed)
-        self.driver.tick_moved = {"moved": moved, "seconds": seconds, "found": found}
-        return self.driver.tick_moved
+        return got
 
     def tick_landed_median(self) -> float | None:
         """Where the writes went, on the host's clock: the median phase after the jump the
@@ -394,6 +505,7 @@ class TickAligned:
         if at is None:
             return None                     # (no clean fit: the phase is not known)
         self._write_at = at
+        self._write_at_t = self.tick_probe["t_ns"]   # (when the probe placed it)
         return self.tick_probe
 
     def _probe_boundary(self) -> tuple:
@@ -474,4 +586,9 @@ class TickAligned:
         found = fit_tick_jump(q, e, tk)
         if found["spread_us"] * 1e3 > tk / 8 or found["outliers"] > n // 4:
             return found, None              # no clean fit: the phase is not known
-        return found, start + int(round(found["boundary_us"] * 1e3))
+        # the probe that met the boundary is the one whose phase is the jump's: its write
+        # is the time of the placement (the probes sweep the tick over 0.1 s, and a
+        # walking tick is where they met it then, not at the first)
+        J = int(round(found["boundary_us"] * 1e3))
+        found["t_ns"] = start + int(round(J * k / tk)) * step
+        return found, start + J

@@ -576,7 +576,11 @@ def hapkit_serial_offline_loop(scene, n: int, *, read_late=None, device=None,
     # the board's boundary against the host's nominal grid from time 0, folded into half
     # a tick either way (its fit taken as exact)
     walk = n * T / tick - n * T / board.TICK_S
-    drv.tick_moved = {"moved": (walk + 0.5) % 1.0 - 0.5, "seconds": n * T, "found": True}
+    # and the board's rate from the stop's two groups of placements (the walk's whole
+    # ticks: walk_from_placements), exact
+    drv.tick_moved = {"moved": (walk + 0.5) % 1.0 - 0.5, "seconds": n * T, "found": True,
+                      "walk": walk, "walk_rate": walk, "walk_sd": 0.0,
+                      "rate_ppm": walk / (n * T / tick) * 1e6}
     if lost:
         from hapsim.drivers.base import FLAG_ESTIMATED
         for j in lost:

@@ -37,9 +37,12 @@ def review_tick_walk(measured: dict, driver) -> dict:
     walk's distance to a whole number of ticks, or that the boundary could not be placed
     again (a walk smearing the probe itself): more than :data:`TICK_MOVED_MAX`, or not
     placed, and the "differs" becomes "not measurable" with the reason. A walk within
-    that of a whole number of ticks is not seen (the probe cannot tell one from none), so
-    the guard is partial; a "within" is left as it is (on those paddles a device that
-    differs was never said to be within).
+    that of a whole number of ticks the placements cannot tell from none: the board's
+    rate between two groups of them (``walk_rate``, ``walk_sd``:
+    :func:`hapsim.drivers.tick_align.walk_from_placements`) tells it, and a "differs"
+    stands only where that walk, three of its standard deviations added, is within
+    ``1 - TICK_MOVED_MAX`` of none (no whole tick walked). A "within" is left as it is
+    (on those paddles a device that differs was never said to be within).
 
     Parameters
     ----------
@@ -59,15 +62,25 @@ def review_tick_walk(measured: dict, driver) -> dict:
     if (moved is None or measured.get("within") is not False
             or not str(measured.get("verdict", "")).startswith("measured differs")):
         return measured
-    if moved["found"] and abs(moved["moved"]) <= TICK_MOVED_MAX:
+    rated = "walk_rate" in moved
+    if (moved["found"] and abs(moved["moved"]) <= TICK_MOVED_MAX
+            and (not rated or abs(moved["walk_rate"]) + 3 * moved["walk_sd"]
+                 <= 1.0 - TICK_MOVED_MAX)):
         return measured
     tick_s = float(getattr(driver, "tick_s", 0.0) or FIRMWARE_TICK_S)
-    seen = (f"moved {abs(moved['moved']):.2f} of a tick against the host's writes over "
-            f"{moved['seconds']:.2f} s (its oscillator at least "
-            f"{abs(moved['moved']) * tick_s / max(moved['seconds'], 1e-9) * 1e6:.0f} ppm "
-            f"off the host's clock)" if moved["found"] else
-            "could not be placed again at the run's stop (a tick walking across the "
-            "probe's own writes)")
+    if not moved["found"]:
+        seen = ("could not be placed again at the run's stop (a tick walking across the "
+                "probe's own writes)")
+    elif rated and abs(moved["moved"]) <= TICK_MOVED_MAX:
+        seen = (f"walked {moved['walk_rate']:+.2f} +- {moved['walk_sd']:.2f} ticks against "
+                f"the host's writes over {moved['seconds']:.2f} s by the board's rate "
+                f"({moved['rate_ppm']:+.0f} ppm off the host's clock), within a tenth of "
+                f"a whole number of ticks of none, or not told from one")
+    else:
+        seen = (f"moved {abs(moved['moved']):.2f} of a tick against the host's writes "
+                f"over {moved['seconds']:.2f} s (its oscillator at least "
+                f"{abs(moved['moved']) * tick_s / max(moved['seconds'], 1e-9) * 1e6:.0f} "
+                f"ppm off the host's clock)")
     measured["tick_walk"] = dict(moved)
     measured["verdict"] = (
         f"not measurable: the board's tick {seen}; the host aligned its writes to it once, "
