@@ -172,12 +172,12 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
     median phases ``p_A``, ``p_B`` at their median times give the rate
     ``r = (p_B - p_A) / (t_B - t_A)``, its whole ticks unwrapped by the first group's own
     slope (placements a tenth of a second apart); the walk over the run is then ``p_A``
-    plus the whole number of ticks nearest ``r (t_A - t0) - p_A``. A group median's error
-    is taken as the larger of a thirty-second of a tick (half the probes' spacing) and
-    1.5 times the placements' median distance from their groups' lines of slope ``r``
-    (a robust scale: one placement a loaded host timed badly is an eighth of a tick off);
-    the rate's as ``sqrt(2)`` times that over ``t_B - t_A``, the run's walk's as the
-    rate's times ``t_A - t0``.
+    plus the whole number of ticks nearest ``r (t_A - t0) - p_A``. The rate is the median of
+    the slopes between each placement of the first group and each of the second
+    (Theil-Sen: a placement a loaded host timed badly, an eighth of a tick off, moves it
+    nothing), its deviation 1.4826 times their median absolute deviation, at least
+    ``sqrt(2)`` thirty-seconds of a tick (half the probes' spacing) over the groups'
+    distance; the run's walk's deviation is the rate's times ``t_A - t0``.
 
     Parameters
     ----------
@@ -194,8 +194,10 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
     dict
         ``moved`` (``p_A`` [ticks]), ``seconds`` (``t_A - t0`` [s]); with a ``second``
         group, ``walk`` (the run's walk [ticks], positive: the board slow), ``walk_rate``
-        (``r (t_A - t0)`` [ticks]: the walk the rate alone says), ``walk_sd`` [ticks] and
-        ``rate_ppm`` (the walk per nominal tick, 1e6 times).
+        (``r (t_A - t0)`` [ticks]: the walk the rate alone says), ``walk_sd`` [ticks],
+        ``rate_ppm`` (the walk per nominal tick, 1e6 times) and ``placements`` (each
+        placement's time since the arming's [s] and phase [ticks], unwrapped in its
+        group).
 
     Raises
     ------
@@ -228,16 +230,24 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
         slope = (sum((t - mt) * (p - mp) for t, p in ga)
                  / sum((t - mt) ** 2 for t, _ in ga))
     gb, t_b, p_b = group(second)
-    dt = t_b - t_a
-    guess = slope * dt
-    r = (guess + fold(p_b - p_a - guess)) / dt
-    res = sorted(abs(p - pm - r * (t - tm)) for g, tm, pm in ((ga, t_a, p_a), (gb, t_b, p_b))
-                 for t, p in g)
-    sd_p = max(1.0 / 32, 1.5 * res[len(res) // 2])
-    sd_r = math.sqrt(2.0) * sd_p / dt
+    # the rate: the median of the slopes between each placement of the first group and
+    # each of the second (Theil-Sen: one placement a loaded host timed badly in each
+    # group moves it nothing), each pair's whole ticks unwrapped by the first group's
+    # slope; its deviation 1.4826 times their median absolute deviation, at least the
+    # probes' own: sqrt(2) thirty-seconds of a tick over the groups' distance
+    rates = []
+    for ta, pa in ga:
+        for tb, pb in gb:
+            guess = slope * (tb - ta)
+            rates.append((guess + fold(pb - pa - guess)) / (tb - ta))
+    rates.sort()
+    r = rates[len(rates) // 2]
+    mad = sorted(abs(v - r) for v in rates)[len(rates) // 2]
+    sd_r = max(1.4826 * mad, math.sqrt(2.0) / 32 / (t_b - t_a))
     w_rate = r * (t_a - t0)
     out.update(walk=p_a + round(w_rate - p_a), walk_rate=w_rate,
-               walk_sd=sd_r * (t_a - t0), rate_ppm=r * tk * 1e6)
+               walk_sd=sd_r * (t_a - t0), rate_ppm=r * tk * 1e6,
+               placements=[[round((t - t0) * 1e-9, 4), round(p, 4)] for t, p in ga + gb])
     return out
 
 
