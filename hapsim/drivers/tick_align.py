@@ -18,7 +18,8 @@ import time
 from hapsim.errors import DeviceError
 
 __all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S",
-           "PROBES_NEEDED", "PROBE_TRIES", "END_PROBES", "END_GAP_S", "END_GAP_FRACTION",
+           "PROBES_NEEDED", "PROBE_TRIES", "END_PROBES", "END_FIRST", "END_GAP_S",
+           "END_GAP_FRACTION",
            "END_GAP_MAX_S", "REARM_INTERVAL",
            "JUMP_STEPS", "walk_from_placements",
            "FLAT_STEPS", "LANDED_BINS", "WRITE_LEAD", "SPIN"]
@@ -41,7 +42,10 @@ PROBE_TRIES = 3
 #: Placements of a ticking board's boundary at each stop whose median says how far its
 #: tick moved over the run (:meth:`TickAligned.end_probe`).
 END_PROBES = 3
-#: The wait at each stop between the first group of :data:`END_PROBES` placements and a
+#: Placements in the first group at each stop: its own slope (the median of its pairs')
+#: unwraps the whole ticks between the two groups (:func:`walk_from_placements`).
+END_FIRST = 5
+#: The wait at each stop between the first group of :data:`END_FIRST` placements and a
 #: second [s]: the two groups' difference is the board's rate against the host's clock
 #: (:func:`walk_from_placements`), which tells a walk of whole ticks over the run from
 #: none (the placements alone see the walk only to the nearest whole tick). Over 0.4 s
@@ -171,13 +175,16 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
     is ``p = fold((b - b0) / tick)``: the walk to the nearest whole tick. The groups'
     median phases ``p_A``, ``p_B`` at their median times give the rate
     ``r = (p_B - p_A) / (t_B - t_A)``, its whole ticks unwrapped by the first group's own
-    slope (placements a tenth of a second apart); the walk over the run is then ``p_A``
+    slope (the median of its pairs' slopes: placements a tenth of a second apart); the walk over the run is then ``p_A``
     plus the whole number of ticks nearest ``r (t_A - t0) - p_A``. The rate is the median of
     the slopes between each placement of the first group and each of the second
     (Theil-Sen: a placement a loaded host timed badly, an eighth of a tick off, moves it
-    nothing), its deviation 1.4826 times their median absolute deviation, at least
-    ``sqrt(2)`` thirty-seconds of a tick (half the probes' spacing) over the groups'
-    distance; the run's walk's deviation is the rate's times ``t_A - t0``.
+    nothing), its deviation 1.4826 times their median absolute deviation (a pair's) times
+    ``1.25 sqrt((1/n_A + 1/n_B) / 2)`` (the median of the pairs is the groups' medians'
+    difference: the deviation of a median of ``n`` normal errors is 1.25 theirs over
+    ``sqrt(n)``), at least ``sqrt(2)`` thirty-seconds of a tick (half the probes'
+    spacing) over the groups' distance; the run's walk's deviation is the rate's times
+    ``t_A - t0``.
 
     Parameters
     ----------
@@ -213,37 +220,45 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
         return (v + 0.5) % 1.0 - 0.5
 
     def group(g):
-        """The placements' phases unwrapped about the median one, and the median."""
+        """The placements' phases unwrapped in time order (each from the one before: a
+        tenth of a second apart), and the median one's."""
         g = sorted((int(t), fold((int(b) - b0) / tk)) for b, t in g)
-        tm, pm = g[len(g) // 2]
-        return [(t, pm + fold(p - pm)) for t, p in g], tm, pm
+        out = [g[0]]
+        for t, p in g[1:]:
+            out.append((t, out[-1][1] + fold(p - out[-1][1])))
+        tm, pm = out[len(out) // 2]
+        shift = pm - fold(pm)                    # (the median's phase folded)
+        return [(t, p - shift) for t, p in out], tm, pm - shift
 
     ga, t_a, p_a = group(first)
     out = {"moved": p_a, "seconds": (t_a - t0) * 1e-9}
     if not len(second):
         return out
-    # the first group's own slope [ticks/ns]
-    slope = 0.0
-    if len(ga) > 1 and ga[-1][0] > ga[0][0]:
-        mt = sum(t for t, _ in ga) / len(ga)
-        mp = sum(p for _, p in ga) / len(ga)
-        slope = (sum((t - mt) * (p - mp) for t, p in ga)
-                 / sum((t - mt) ** 2 for t, _ in ga))
+    # the first group's own slope [ticks/ns]: the median of its pairs' (Theil-Sen; a
+    # least-squares line through three placements a loaded host scattered by a fifth of a
+    # tick unwrapped the groups' difference by a whole tick: a board on the host's clock
+    # read -1,265 ppm)
+    pair = sorted((pj - pi) / (tj - ti) for i, (ti, pi) in enumerate(ga)
+                  for tj, pj in ga[i + 1:] if tj > ti)
+    slope = pair[len(pair) // 2] if pair else 0.0
     gb, t_b, p_b = group(second)
+    # the groups' whole ticks apart: the first group's slope carried over their distance,
+    # where it says half a tick or more (a slope within its noise, a few tenths of a tick
+    # a second on a loaded host, unwrapped a board on the host's clock by a whole tick)
+    dt = t_b - t_a
+    guess = slope * dt if abs(slope * dt) >= 0.5 else 0.0
     # the rate: the median of the slopes between each placement of the first group and
-    # each of the second (Theil-Sen: one placement a loaded host timed badly in each
-    # group moves it nothing), each pair's whole ticks unwrapped by the first group's
-    # slope; its deviation 1.4826 times their median absolute deviation, at least the
-    # probes' own: sqrt(2) thirty-seconds of a tick over the groups' distance
-    rates = []
-    for ta, pa in ga:
-        for tb, pb in gb:
-            guess = slope * (tb - ta)
-            rates.append((guess + fold(pb - pa - guess)) / (tb - ta))
-    rates.sort()
+    # each of the second (Theil-Sen: a placement a loaded host timed badly moves it
+    # nothing), each pair unwrapped by the guess
+    rates = sorted((guess * (tb - ta) / dt + fold(pb - pa - guess * (tb - ta) / dt))
+                   / (tb - ta) for ta, pa in ga for tb, pb in gb)
     r = rates[len(rates) // 2]
     mad = sorted(abs(v - r) for v in rates)[len(rates) // 2]
-    sd_r = max(1.4826 * mad, math.sqrt(2.0) / 32 / (t_b - t_a))
+    # a pair's deviation is sqrt(2) placements' over the distance; the median of the
+    # pairs is about the groups' medians' difference, whose deviation is
+    # 1.25 sqrt(1/n_A + 1/n_B) placements' (a median's efficiency for normal errors)
+    scale = 1.25 * math.sqrt((1.0 / len(ga) + 1.0 / len(gb)) / 2.0)
+    sd_r = max(1.4826 * mad * scale, math.sqrt(2.0) / 32 / dt)
     w_rate = r * (t_a - t0)
     out.update(walk=p_a + round(w_rate - p_a), walk_rate=w_rate,
                walk_sd=sd_r * (t_a - t0), rate_ppm=r * tk * 1e6,
@@ -377,7 +392,7 @@ class TickAligned:
         clock"), and a walk changes the loop's delay within the record.
 
         The probe is :meth:`tick_phase`'s measurement (:meth:`_probe_boundary`: its
-        zero-force commands), :data:`END_PROBES` placements, and as many again
+        zero-force commands), :data:`END_FIRST` placements, and :data:`END_PROBES`
         :data:`END_GAP_S` after the first, or a quarter of the time since the arming
         (:data:`END_GAP_FRACTION`, at most :data:`END_GAP_MAX_S`; the board holding the
         probes' zero force between): :func:`walk_from_placements` gives the walk to the nearest whole tick
@@ -388,7 +403,7 @@ class TickAligned:
         both groups placed the boundary (each placement to about a sixteenth of a tick;
         the walk during a probe's own 0.1 s shifts it too). The alignment and
         :attr:`tick_probe` are left as they were. None where the writes were not aligned
-        (no probe at the arming, lockstep). The probes and the wait take about 0.7 s
+        (no probe at the arming, lockstep). The probes and the wait take about 0.9 s
         before the stop's bytes, and a quarter of the run more for a run over 1.6 s.
 
         Returns
@@ -400,7 +415,7 @@ class TickAligned:
             return self.driver.tick_moved
         before = self.driver.tick_moved            # (a stop before this one's)
         j0 = (self._write_at, self._write_at_t)
-        first = self._placements()
+        first = self._placements(END_FIRST)
         second = []
         if first:
             t1 = min(t for _, t in first)
@@ -419,18 +434,18 @@ class TickAligned:
         self.driver.tick_moved = {**got, "found": found}
         return self.driver.tick_moved
 
-    def _placements(self) -> list:
-        """:data:`END_PROBES` placements of the boundary [monotonic ns] (one probe a
-        loaded host timed badly places it up to an eighth of a tick off: 0.15 seen on the
-        wall clock beside two CPU-bound processes), with as many refusals as the arming
-        allows; fewer when the port failed."""
+    def _placements(self, k: int = END_PROBES) -> list:
+        """``k`` placements of the boundary ``(boundary, time)`` [monotonic ns] (one probe
+        a loaded host timed badly places it up to an eighth of a tick off: 0.15 seen on
+        the wall clock beside two CPU-bound processes), with as many refusals as the
+        arming allows; fewer when the port failed."""
         got = []
         try:
-            for _ in range(END_PROBES + PROBE_TRIES - 1):
+            for _ in range(k + PROBE_TRIES - 1):
                 found, at = self._probe_boundary()
                 if at is not None:
                     got.append((at, found["t_ns"]))
-                    if len(got) == END_PROBES:
+                    if len(got) == k:
                         break
         except DeviceError:
             pass

@@ -74,8 +74,9 @@ def review_tick_walk(measured: dict, driver) -> dict:
     elif rated and abs(moved["moved"]) <= TICK_MOVED_MAX:
         seen = (f"walked {moved['walk_rate']:+.2f} +- {moved['walk_sd']:.2f} ticks against "
                 f"the host's writes over {moved['seconds']:.2f} s by the board's rate "
-                f"({moved['rate_ppm']:+.0f} ppm off the host's clock), within a tenth of "
-                f"a whole number of ticks of none, or not told from one")
+                f"({moved['rate_ppm']:+.0f} ppm off the host's clock): not told from a "
+                f"walk of whole ticks (the placements alone read {moved['moved']:+.2f} of "
+                f"a tick)")
     else:
         seen = (f"moved {abs(moved['moved']):.2f} of a tick against the host's writes "
                 f"over {moved['seconds']:.2f} s (its oscillator at least "
