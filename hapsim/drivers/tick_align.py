@@ -50,13 +50,16 @@ END_FIRST = 5
 #: (:func:`walk_from_placements`), which tells a walk of whole ticks over the run from
 #: none (the placements alone see the walk only to the nearest whole tick). Over 0.4 s
 #: a placement's error of a sixteenth of a tick is 160 ppm, 0.2 of a tick over a 1.3 s
-#: run.
+#: run (the wait is from the first group's median).
 END_GAP_S = 0.4
-#: The wait's least share of the time since the arming (:data:`END_GAP_S` for short
-#: runs), at most :data:`END_GAP_MAX_S`: the rate's error grows with the run it is
-#: carried over, and a placement's thirty-second of a tick over a quarter of the run is a
-#: walk's deviation of 0.18 of a tick, three of which still tell a whole tick from none.
-END_GAP_FRACTION = 0.25
+#: The second group's least distance from the first's median, as a share of the time
+#: since the arming (:data:`END_GAP_S` for short runs), at most :data:`END_GAP_MAX_S`: the
+#: rate's error is carried over the run, so the walk's deviation is the placements'
+#: times the run over the distance. At a quarter, beside two CPU-bound processes, the
+#: walk's deviation on a board on the host's clock was 0.19-0.26 of a tick and three of
+#: them told a whole tick from none in 3 runs of 6; at a third, 2.9 times the
+#: placements' 0.05.
+END_GAP_FRACTION = 1 / 3
 #: The longest wait [s] (a longer run's "differs" stands only where its rate's walk is
 #: told from a whole tick).
 END_GAP_MAX_S = 3.0
@@ -258,7 +261,9 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
     # pairs is about the groups' medians' difference, whose deviation is
     # 1.25 sqrt(1/n_A + 1/n_B) placements' (a median's efficiency for normal errors)
     scale = 1.25 * math.sqrt((1.0 / len(ga) + 1.0 / len(gb)) / 2.0)
-    sd_r = max(1.4826 * mad * scale, math.sqrt(2.0) / 32 / dt)
+    # at least the probes' own: a placement to within half their spacing (a
+    # thirty-second of a tick), uniformly: 1/32/sqrt(3) a placement
+    sd_r = scale * max(1.4826 * mad, math.sqrt(2.0 / 3.0) / 32 / dt)
     w_rate = r * (t_a - t0)
     out.update(walk=p_a + round(w_rate - p_a), walk_rate=w_rate,
                walk_sd=sd_r * (t_a - t0), rate_ppm=r * tk * 1e6,
@@ -393,9 +398,9 @@ class TickAligned:
 
         The probe is :meth:`tick_phase`'s measurement (:meth:`_probe_boundary`: its
         zero-force commands), :data:`END_FIRST` placements, and :data:`END_PROBES`
-        :data:`END_GAP_S` after the first, or a quarter of the time since the arming
-        (:data:`END_GAP_FRACTION`, at most :data:`END_GAP_MAX_S`; the board holding the
-        probes' zero force between): :func:`walk_from_placements` gives the walk to the nearest whole tick
+        :data:`END_GAP_S` after the first's median, or a third of the time since the
+        arming (:data:`END_GAP_FRACTION`, at most :data:`END_GAP_MAX_S`; the board holding
+        the probes' zero force between): :func:`walk_from_placements` gives the walk to the nearest whole tick
         (``moved``, the first group's median against the arming's boundary carried on at
         the nominal tick, folded into half a tick either way), and the whole ticks from
         the board's rate between the groups (``walk``, ``walk_rate``, ``walk_sd``,
@@ -404,7 +409,7 @@ class TickAligned:
         the walk during a probe's own 0.1 s shifts it too). The alignment and
         :attr:`tick_probe` are left as they were. None where the writes were not aligned
         (no probe at the arming, lockstep). The probes and the wait take about 0.9 s
-        before the stop's bytes, and a quarter of the run more for a run over 1.6 s.
+        before the stop's bytes, and a third of the run more for a run over 1.2 s.
 
         Returns
         -------
@@ -418,7 +423,7 @@ class TickAligned:
         first = self._placements(END_FIRST)
         second = []
         if first:
-            t1 = min(t for _, t in first)
+            t1 = sorted(t for _, t in first)[len(first) // 2]      # (the group's median)
             gap = min(max(END_GAP_S, END_GAP_FRACTION * (t1 - j0[1]) * 1e-9), END_GAP_MAX_S)
             wait = t1 + int(gap * 1e9) - time.monotonic_ns()
             if wait > 0:
