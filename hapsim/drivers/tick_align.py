@@ -17,12 +17,10 @@ import time
 
 from hapsim.errors import DeviceError
 
-__all__ = ["TickAligned", "fit_tick_jump", "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S",
-           "PROBES_NEEDED", "PROBE_TRIES", "END_PROBES", "END_FIRST", "END_GAP_S",
-           "END_GAP_FRACTION",
-           "END_GAP_MAX_S", "REARM_INTERVAL",
-           "JUMP_STEPS", "walk_from_placements",
-           "FLAT_STEPS", "LANDED_BINS", "WRITE_LEAD", "SPIN"]
+__all__ = ["TickAligned", "fit_tick_jump", "walk_from_placements", "TICK_PROBES",
+           "PROBE_WAIT_S", "PROBE_QUIET_S", "PROBES_NEEDED", "PROBE_TRIES", "END_PROBES",
+           "END_FIRST", "END_GAP_S", "END_GAP_FRACTION", "END_GAP_MAX_S", "REARM_INTERVAL",
+           "JUMP_STEPS", "FLAT_STEPS", "LANDED_BINS", "WRITE_LEAD", "SPIN"]
 
 #: Wait for the first record before the arming command is sent again [s].
 REARM_INTERVAL = 0.1
@@ -175,19 +173,19 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
     A placement ``(b, t)`` is a boundary time ``b`` found by a probe that met it at ``t``
     [monotonic ns] (the probes sweep the tick over 0.1 s: a walking tick is placed where
     they met it). Its phase against the arming's boundary carried on at the nominal tick
-    is ``p = fold((b - b0) / tick)``: the walk to the nearest whole tick. The groups'
-    median phases ``p_A``, ``p_B`` at their median times give the rate
-    ``r = (p_B - p_A) / (t_B - t_A)``, its whole ticks unwrapped by the first group's own
-    slope (the median of its pairs' slopes: placements a tenth of a second apart); the walk over the run is then ``p_A``
-    plus the whole number of ticks nearest ``r (t_A - t0) - p_A``. The rate is the median of
-    the slopes between each placement of the first group and each of the second
-    (Theil-Sen: a placement a loaded host timed badly, an eighth of a tick off, moves it
-    nothing), its deviation 1.4826 times their median absolute deviation (a pair's) times
-    ``1.25 sqrt((1/n_A + 1/n_B) / 2)`` (the median of the pairs is the groups' medians'
-    difference: the deviation of a median of ``n`` normal errors is 1.25 theirs over
-    ``sqrt(n)``), at least ``sqrt(2)`` thirty-seconds of a tick (half the probes'
-    spacing) over the groups' distance; the run's walk's deviation is the rate's times
-    ``t_A - t0``.
+    is ``p = fold((b - b0) / tick)``: the walk to the nearest whole tick; ``p_A`` (at
+    ``t_A``) is the first group's median, its placements unwrapped one from the next (a
+    tenth of a second apart). The rate ``r`` is the median of the slopes between each
+    placement of the first group and each of the second (Theil-Sen: a placement a loaded
+    host timed badly, an eighth of a tick off, moves it nothing), each pair's whole ticks
+    unwrapped by the first group's own slope (the median of its pairs') where that says
+    half a tick or more over the groups' distance. The walk over the run is ``p_A`` plus
+    the whole number of ticks nearest ``r (t_A - t0) - p_A``. The rate's deviation is the
+    pairs' (1.4826 times their median absolute deviation) scaled to the groups' medians'
+    difference, ``1.25 sqrt((1/n_A + 1/n_B) / 2)`` (a median of ``n`` normal errors
+    deviates 1.25 theirs over ``sqrt(n)``), and at least the probes' own (a placement
+    uniform within a thirty-second of a tick, half their spacing, over the groups'
+    distance); the walk's is the rate's times ``t_A - t0``.
 
     Parameters
     ----------
@@ -400,9 +398,10 @@ class TickAligned:
         zero-force commands), :data:`END_FIRST` placements, and :data:`END_PROBES`
         :data:`END_GAP_S` after the first's median, or a third of the time since the
         arming (:data:`END_GAP_FRACTION`, at most :data:`END_GAP_MAX_S`; the board holding
-        the probes' zero force between): :func:`walk_from_placements` gives the walk to the nearest whole tick
-        (``moved``, the first group's median against the arming's boundary carried on at
-        the nominal tick, folded into half a tick either way), and the whole ticks from
+        the probes' zero force between): :func:`walk_from_placements` gives the walk to
+        the nearest whole tick (``moved``, the first group's median against the arming's
+        boundary carried on at the nominal tick, folded into half a tick either way), and
+        the whole ticks from
         the board's rate between the groups (``walk``, ``walk_rate``, ``walk_sd``,
         ``rate_ppm``); ``seconds`` is the time since the arming [s], ``found`` whether
         both groups placed the boundary (each placement to about a sixteenth of a tick;
