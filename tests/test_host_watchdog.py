@@ -340,11 +340,12 @@ def _board(name: str, seed: int = 0):
 
 
 def _run(name: str, silence_s: float, at: int = 40, force: float = 0.05, seed: int = 0,
-         stray: bytes = b"", stray_at: int | None = None):
+         stray: bytes = b"", stray_at: int | None = None, before_stop_s: float = 0.0):
     """The emulated board ``name`` behind its driver's transport: armed, ``at`` ticks of
     ``force``, the host silent ``silence_s``, 40 ticks more at a fifth of it, STOP;
     ``stray`` bytes read by the host alone as from the board at tick ``stray_at``
-    (None: just before the silence; no bytes: nothing).
+    (None: just before the silence; no bytes: nothing); ``before_stop_s``: the host
+    silent that long again between its last FORCE and its STOP.
     Returns (the transport's report, the board's report, STATEs after the silence)."""
     from hapsim.drivers.transport import DriverTransport
     board, drv, rate = _board(name, seed)
@@ -390,6 +391,7 @@ def _run(name: str, silence_s: float, at: int = 40, force: float = 0.05, seed: i
             time.sleep(1.0 / rate)
             after += [m for m in tr.receive(0.0) if type(m) is fp.State]
             k += 1
+        time.sleep(before_stop_s)
         tr.send(fp.Stop())
         time.sleep(0.02)
         rep = tr.report()
@@ -1010,3 +1012,18 @@ def test_the_direction_probe_has_the_watchdog_beside_it(with_watchdog, monkeypat
         # the whole silence, less how late the board took the write it held (its own
         # lateness: 98.7 ms of 100 once under the suite's load)
         assert rep["longest_hold_s"] >= SILENCE_S - rep["longest_gap_s"], rep
+
+
+@pytest.mark.parametrize("name", ["haply", "hapkit-serial", "firefader"])
+def test_a_zero_write_just_before_the_stop_is_answered_as_the_watchdogs(name):
+    """The host silent past the hold bound between its last FORCE and its STOP (a stall
+    there, once in a fresh clone's CI): the watchdog's zero write is taken at the stop and
+    its answer read before the stop's own probe and bytes
+    (:meth:`hapsim.drivers.host_watchdog.Watched._wd_stop`), so every zero write the
+    watchdog made is counted as answered; before, the last one's answer went to the
+    Hapkit's tick probe or unread (fired 2, answered 1)."""
+    rep, board, after = _run(name, 0.0, before_stop_s=3 * HOLD_BOUND_S)
+    wd = rep["watchdog"]
+    info = (name, wd, {k: rep[k] for k in ("watchdog_zeroed", "watchdog_replies", "resyncs")})
+    assert wd["running"] and wd["fired"] >= 1, info
+    assert rep["watchdog_zeroed"] == rep["watchdog_replies"] == wd["fired"], info

@@ -420,8 +420,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
             if self.watchdog is not None:
                 self.watchdog.arm()
         elif t is fp.Stop:
-            if self.watchdog is not None:
-                self.watchdog.arm(False)
+            self._wd_stop()                 # (its last writes' answers read: host_watchdog)
             self._armed, self._force = False, 0.0
             self.end_probe()                # (a ticking board: where its tick went)
             self._stop_owed = 2             # (its zero writes before and after its set-up)
