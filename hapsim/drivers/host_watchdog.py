@@ -46,7 +46,13 @@ import time
 
 from hapsim.drivers.resync import HOLD_BOUND_S, RING
 
-__all__ = ["Watched", "robust_stop"]
+#: The longest wait at a STOP for the answers the watchdog's last writes owe, beyond the
+#: board's round trip [s] (:meth:`Watched._wd_stop`): an emulated board's thread beside
+#: the suite's other workers may not run for tens of ms (10 ms left one unread in a
+#: fresh clone's CI, the FireFader's, fired 2, answered 1).
+STOP_WAIT_S = 0.1
+
+__all__ = ["Watched", "robust_stop", "STOP_WAIT_S"]
 
 
 class Watched:
@@ -190,7 +196,8 @@ class Watched:
     def _wd_stop(self) -> None:
         """At a STOP: the watchdog disarmed, the writes it made since the host's last
         command taken, and their answers read for at most the board's round trip and
-        10 ms more, so that each is counted as the watchdog's (``watchdog_replies``):
+        :data:`STOP_WAIT_S` more, so that each is counted as the watchdog's
+        (``watchdog_replies``):
         before, a host that stalled past the hold bound between its last FORCE and its
         STOP left the watchdog's answer to the stop's tick probe
         (:meth:`hapsim.drivers.tick_align.TickAligned.end_probe`) or unread, counted
@@ -201,7 +208,7 @@ class Watched:
         times = self.watchdog.take()
         if times:
             self._wd_take(times)
-        end = time.monotonic() + self.driver.round_trip_s() + 0.01
+        end = time.monotonic() + self.driver.round_trip_s() + STOP_WAIT_S
         try:
             while self._wd_cmds and time.monotonic() < end:
                 data = self._ser.read(max(self._ser.in_waiting, 1))
