@@ -321,8 +321,14 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
     # the machine stalled, or slowed below the scene's rate, is told so ("degraded": the
     # firmware held each command longer than a period; in the full suite beside another
     # worker: 854 packets/s, 1.2 periods)
+    # (a reply read after the host's watchdog wrote its zero command may answer that
+    # command, an earlier tick's counts than the truth: not compared, the watchdog's
+    # rows; beside the suite's load 11 of 40 were, none missing)
     t = out["truth"]
-    assert t["compared"] == t["exact"] == 40 - out["missing"] and t["max_error_counts"] == 0
+    wd_rows = {r for r in out["watchdog"].get("rows", []) if r < 40}
+    assert 40 - out["missing"] - len(wd_rows) <= t["compared"] <= 40 - out["missing"], (
+        t, out["missing"], sorted(wd_rows))
+    assert t["exact"] == t["compared"] > 0 and t["max_error_counts"] == 0, t
     assert out["verdict"] == "ok" or (
         out["verdict"] == "degraded"
         and ("stalled" in out["reason"] or "packets/s, below" in out["reason"])), out["reason"]

@@ -316,7 +316,10 @@ def test_falcon_through_pyftdi_is_paced_by_its_firmware_ticks():
     # first packet's phase and the loop's own timing of its start)
     assert res["packets_per_s"] <= 1.02 * sc.rate_hz
     t = res["truth"]
-    assert t["compared"] >= 100 - res["missing"]
+    # (the rows the host's watchdog wrote before are not compared: their reply may answer
+    # its zero command)
+    wd_rows = {r for r in (res["watchdog"] or {}).get("rows", []) if r < 100}
+    assert t["compared"] >= 100 - res["missing"] - len(wd_rows), (t, sorted(wd_rows))
     # a reading is the true count at its tick; one a loaded host read an exchange late
     # is an earlier tick's (96 % exact at load 14 on 2 cores: a bound with its margin)
     assert t["exact"] >= 0.8 * t["compared"]
