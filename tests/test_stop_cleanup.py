@@ -97,9 +97,15 @@ def test_a_stopped_run_leaves_nothing(sig, after, tmp_path):
 
 
 def test_a_finished_and_a_failed_run_leave_nothing(tmp_path):
-    """The normal exit and an error exit (a port that does not exist) leave nothing."""
+    """The normal exit and an error exit (a port that does not exist) leave nothing.
+    (The normal run on the wall stable up to 10 samples late, test_daemon.
+    late_tolerant_wall: on configs/wall.yaml, stable at its own delay only, a fresh
+    clone's CI saw 309 late FORCEs in 608 ticks end the run on its safety stop, exit 1:
+    the scene's documented behaviour under load, not this test's subject.)"""
+    from test_daemon import late_tolerant_wall          # same directory
+    wall = late_tolerant_wall(tmp_path)
     code, left, alive, err = _stopped_run(
-        ["run", "configs/wall.yaml", "--duration", "0.3", "--loop", "python"], tmp_path / "a", None, None)
+        ["run", wall, "--duration", "0.3", "--loop", "python"], tmp_path / "a", None, None)
     assert code == 0 and not left and not alive, (code, left, alive, err)
     code, left, alive, err = _stopped_run(
         ["run", "configs/wall.yaml", "--port", "/dev/hapsim-no-such-port"],
