@@ -187,7 +187,11 @@ def test_firefader_closed_loop_through_its_mock(tmp_path):
     # (a host stall of 0.1 s on a loaded machine disables it for ~70 passes: the firmware)
     assert mk["passes_at_full_enable"] >= 0.85 * rep["loop"]["ticks"]
     assert rep["loop"]["driver"]["firmware"].startswith("haptics_firmware.ino")
-    assert rep["loop"]["driver"]["missing"] < 0.1 * len(seq) and not rep["loop"]["safety_stop"]
+    # (missing replies: a loaded host's, as above; a bound that catches a driver losing
+    # replies wholesale, not a load: measured 0.8 % idle, 4 % beside two CPU-bound
+    # processes, 12.6 % once in a fresh clone's CI at the suite's start, where every
+    # worker compiles; 25 %, twice that)
+    assert rep["loop"]["driver"]["missing"] < 0.25 * len(seq) and not rep["loop"]["safety_stop"]
     q = 0.05 / 128
     real = (cols["flags"] & 32) == 0                            # not an estimated sample
     # whole counts: x = count q, so x / q is a count to the round-off of a product and a
@@ -719,7 +723,13 @@ def test_firefader_answers_read_after_a_stop_are_no_streaming_firmware():
         tr.close()
     finally:
         _stop_board(flag, th, slave, master)
-    assert got and again and not [m for m in late if type(m) is fp.State]
+    # (a test thread descheduled past the host watchdog's hold bound between the FORCEs
+    # lets the watchdog write, and read what waits while the host is armed: those
+    # answers are the host's States, queued before the STOP, at most one a packet;
+    # reproduced with the FORCEs 30 ms apart)
+    states = [m for m in late if type(m) is fp.State]
+    fired = (before.get("watchdog") or {}).get("fired") or 0
+    assert got and again and (len(states) <= 6 if fired else not states), (fired, states)
     assert before["decoder"]["frames"] >= read + 5      # the late answers were read
     assert rep["unprompted_before_arming"] == 0
     assert rep["firmware"].startswith("haptics_firmware.ino"), rep
@@ -790,7 +800,12 @@ def test_firefader_answers_read_late_at_a_rearming_are_no_streaming_firmware(hol
         tr.close()
     finally:
         _stop_board(board, th, slave, master)
-    assert board["held"] == 6, board                      # 5 FORCEs and the STOP
+    # 5 FORCEs and the STOP, and any zero write of the host's watchdog between them (a
+    # test thread descheduled past its hold bound while a FORCE of 0.01 N was held: the
+    # watchdog's only writes, the force being zero before the first FORCE and after the
+    # STOP; held 7 once in a fresh clone's CI, at the suite's start)
+    fired = (rep.get("watchdog") or {}).get("fired") or 0
+    assert board["held"] == 6 + fired, (board, rep.get("watchdog"))
     assert again and rep["unprompted_before_arming"] == 0, rep
     assert rep["firmware"].startswith("haptics_firmware.ino"), rep
 
