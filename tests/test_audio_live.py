@@ -818,9 +818,16 @@ def test_native_callback_logs_the_blocks_that_starved(jack_server):
     log = out.native.starved_calls
     calls = out.native.calls
     starved = live.stats()["underruns"]
-    assert len(log) >= 10 and log == sorted(set(log)) and log[-1] <= calls
-    assert log == list(range(log[0], log[0] + len(log)))   # every block since, in a row
-    assert (len(log) - 1) * 256 < starved <= len(log) * 256
+    assert log == sorted(set(log)) and log[-1] <= calls
+    # every block since the positions ran out for good, in a row. (A test thread
+    # descheduled within its loop of pushes lets the callback run out before the rest
+    # come: a block partly starved, then blocks that had positions, then the lasting
+    # run; once in a fresh clone's CI at the suite's start: [10, 29, 30, ...].) Each
+    # break in the log starts a block only partly starved
+    breaks = [i for i in range(1, len(log)) if log[i] != log[i - 1] + 1]
+    tail = log[breaks[-1]:] if breaks else log
+    assert len(tail) >= 10 and tail == list(range(tail[0], tail[0] + len(tail))), log
+    assert (len(log) - 1 - len(breaks)) * 256 < starved <= len(log) * 256, (log, starved)
     assert out.underrun_at() == [round((i - 1) * 256 / 48000.0, 6) for i in log]
     assert out.underrun_at(log[0]) == out.underrun_at()[:1]
 
