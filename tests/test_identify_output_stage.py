@@ -49,7 +49,7 @@ def _identify_over_a_port(device, rate_hz, seed):
     th.start()
     try:
         rep = identify(child.port, driver="hapkit-serial", device=device, rate_hz=rate_hz,
-                       seed=seed, duration=2.0)
+                       seed=seed, lockstep=True)
     finally:
         stop[0] = True
         th.join(5)
