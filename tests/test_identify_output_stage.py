@@ -13,7 +13,6 @@ motor got.
 from __future__ import annotations
 
 import dataclasses
-import socket
 import threading
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from hapsim.api.identifying import identify
 from hapsim.emulated.driver_mock import HapkitSerialDevice, serve
 from hapsim.emulated.stamped_link import StampedReader, accept
 from hapsim.scene import load_scene
-from hapsim.spawn import PtyChild
+from test_emulated_link import _listener  # same directory
 
 SCENE = Path(__file__).resolve().parents[1] / "configs" / "hapkit_serial.yaml"
 
@@ -33,10 +32,7 @@ def _identify_over_a_port(device, rate_hz, seed):
     """``identify`` over the emulated link of a sketch's board in lockstep (its physics one
     period per command: deterministic whatever the host's timing), the port's delay not
     given, as ``hapsim identify --port`` has it."""
-    child = PtyChild()
-    fd = child.open_link("hapsim-test-idos-")
-    child.close()
-    lst = socket.socket(fileno=fd)
+    lst, url = _listener()
     stop = [False]
     board = HapkitSerialDevice(device, rate_hz, clock="lockstep", seed=seed)
 
@@ -48,7 +44,7 @@ def _identify_over_a_port(device, rate_hz, seed):
     th = threading.Thread(target=serve_board, daemon=True)
     th.start()
     try:
-        rep = identify(child.port, driver="hapkit-serial", device=device, rate_hz=rate_hz,
+        rep = identify(url, driver="hapkit-serial", device=device, rate_hz=rate_hz,
                        seed=seed, lockstep=True)
     finally:
         stop[0] = True

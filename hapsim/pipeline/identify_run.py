@@ -261,12 +261,11 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         # applied force (over a port the delay is not known, and the account needs it):
         # before, the commands' values were fitted, and the sketch's truncated levels,
         # about 5 % below them on the excitation's forces, read as a mass 3-7 % too
-        # heavy with its interval beside the truth (3 of 5 boards of configs/
-        # hapkit_serial.yaml on the wall clock). A force on a level's edge (its
-        # half-width > 0, within a few units in the last place) is taken at the stage's
-        # middle of the two levels
-        fn = getattr(drv, "output_stage", None)
-        stage = fn(np.asarray(cols["force"], float)) if fn is not None else None
+        # heavy with its interval beside the truth (10 of 14 runs of configs/
+        # hapkit_serial.yaml's emulated board on the wall clock). A force on a level's
+        # edge (its half-width > 0, within a few units in the last place) is taken at
+        # the stage's middle of the two levels
+        stage = drv.output_stage(np.asarray(cols["force"], float))
         if stage is not None:
             force = np.asarray(stage[0], float)
         late = cols["late"].astype(bool) if account is None else account.late
