@@ -57,15 +57,22 @@ def run_json(wall, *args):
     what these tests are about); its report. Every run keeps its telemetry (in a temporary
     directory unless ARGS name one) so that a run that does not exit 0 says what came
     before its end (:func:`_loop_summary`)."""
+    import shutil
     import tempfile
+    own = None
     if "--telemetry" in args:
         tel = args[list(args).index("--telemetry") + 1]
     else:
-        tel = os.path.join(tempfile.mkdtemp(prefix="hapsim-rel-"), "t.npz")
+        own = tempfile.mkdtemp(prefix="hapsim-rel-")
+        tel = os.path.join(own, "t.npz")
         args = (*args, "--telemetry", tel)
-    code, out, err = hapsim_main(["run", wall, "--json", *args])
-    assert code == 0, (err[-1500:], _loop_summary(out, tel))
-    return json.loads(out)
+    try:
+        code, out, err = hapsim_main(["run", wall, "--json", *args])
+        assert code == 0, (err[-1500:], _loop_summary(out, tel))
+        return json.loads(out)
+    finally:
+        if own is not None:       # (its summary is in the message: nothing left in /tmp)
+            shutil.rmtree(own, ignore_errors=True)
 
 
 def _loop_summary(out: str, telemetry: str | None = None) -> dict | str:

@@ -83,15 +83,16 @@ def _accepted(seed: int, tmp: pathlib.Path):
 @functools.lru_cache(maxsize=None)
 def _outcome(seed: int):
     """The verdicts of the matching paddle and of the wrong one, the same late commands."""
-    prep = _accepted(seed, pathlib.Path(tempfile.mkdtemp()))
-    n = prep.n_window
-    late = _holds(seed, prep, n)
-    cols, drv, board = hapkit_serial_offline_loop(prep.scene, n, read_late=late)
-    assert board.tick_arrivals["off_period"] >= 1                 # the class happened
-    match = _measure(prep, cols, drv)
-    cols, drv, _ = hapkit_serial_offline_loop(prep.scene, n, read_late=late,
-                                              device=_wrong(prep, seed))
-    return match, _measure(prep, cols, drv)
+    with tempfile.TemporaryDirectory() as tmp:   # (cached: no tmp_path; nothing left)
+        prep = _accepted(seed, pathlib.Path(tmp))
+        n = prep.n_window
+        late = _holds(seed, prep, n)
+        cols, drv, board = hapkit_serial_offline_loop(prep.scene, n, read_late=late)
+        assert board.tick_arrivals["off_period"] >= 1                 # the class happened
+        match = _measure(prep, cols, drv)
+        cols, drv, _ = hapkit_serial_offline_loop(prep.scene, n, read_late=late,
+                                                  device=_wrong(prep, seed))
+        return match, _measure(prep, cols, drv)
 
 
 @pytest.mark.parametrize("seed", SEEDS)

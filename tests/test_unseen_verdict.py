@@ -94,20 +94,20 @@ IDEAL = {"levels": 0, "render_s": 0.0}
 def _outcome(seed: int, ideal: bool = False):
     """The verdicts of the matching paddle and of the wrong one, same holds; on the
     sketch's board, or (``ideal``) on :data:`IDEAL`'s, predicted with the scene's delay."""
-    tmp = pathlib.Path(tempfile.mkdtemp())
-    prep, n, _ = _random_case(seed, tmp)
-    kw = {}
-    if ideal:
-        from hapsim.analysis.prediction import predict
-        prep = dataclasses.replace(prep, model_scene=None, pred=predict(prep.scene))
-        kw = IDEAL
-    late = _holds(seed, prep, n)
-    cols, drv, board = hapkit_serial_offline_loop(prep.scene, n, read_late=late, **kw)
-    assert board.tick_arrivals["off_period"] >= 1                 # the class happened
-    match = _measure(prep, cols, drv)
-    cols, drv, _ = hapkit_serial_offline_loop(prep.scene, n, read_late=late,
-                                              device=_wrong(prep, seed), **kw)
-    return match, _measure(prep, cols, drv)
+    with tempfile.TemporaryDirectory() as tmp:   # (cached: no tmp_path; nothing left)
+        prep, n, _ = _random_case(seed, pathlib.Path(tmp))
+        kw = {}
+        if ideal:
+            from hapsim.analysis.prediction import predict
+            prep = dataclasses.replace(prep, model_scene=None, pred=predict(prep.scene))
+            kw = IDEAL
+        late = _holds(seed, prep, n)
+        cols, drv, board = hapkit_serial_offline_loop(prep.scene, n, read_late=late, **kw)
+        assert board.tick_arrivals["off_period"] >= 1                 # the class happened
+        match = _measure(prep, cols, drv)
+        cols, drv, _ = hapkit_serial_offline_loop(prep.scene, n, read_late=late,
+                                                  device=_wrong(prep, seed), **kw)
+        return match, _measure(prep, cols, drv)
 
 
 def _says(m) -> str:
