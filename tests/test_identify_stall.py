@@ -45,10 +45,12 @@ def _stalls(rng, n: int, first: float) -> dict[int, int]:
 
 
 def run_stalled(m: float, b0: float, d: int, stalls: dict[int, int], seed: int,
-                clocked: bool = True) -> np.ndarray:
+                clocked: bool = True, applied: np.ndarray | None = None) -> np.ndarray:
     """True positions [m] of a device (mass ``m`` [kg], viscous friction ``b0`` [N s/m],
     delay ``d`` [ticks]) excited by the engine through a host that stalls (module notes);
-    ``clocked``: the engine reads the host's clock (a real-time run), else none (lockstep)."""
+    ``clocked``: the engine reads the host's clock (a real-time run), else none (lockstep);
+    ``applied`` (shape (N,)), when given, receives the force the device held over each
+    tick [N] (``tools/identify_noisy_stalls.py`` fits the records with it)."""
     plan = excitation_plan(N, 1.0 / T, FORCE_LIMIT, ENVELOPE, max_delay=20, seed=seed)
     now = [0.0]
     plan.clock = (lambda: now[0]) if clocked else None
@@ -77,6 +79,8 @@ def run_stalled(m: float, b0: float, d: int, stalls: dict[int, int], seed: int,
                 f = float(np.clip(eng.port_step(y), -FORCE_LIMIT, FORCE_LIMIT))
                 arrivals.append((max(j + d, k + 1) if d else k + 1, j, f))
             queue.clear()
+        if applied is not None:
+            applied[k] = held
         xn, vn, _ = E @ np.array([x, v, held])
         x, v = float(xn), float(vn)
     return xs
