@@ -210,3 +210,34 @@ def test_run_with_a_live_change_compares_with_the_prediction_after_it(capsys):
     text = format_report(rep)
     assert "  after OSC " in text and "osc: 1 change accepted, 0 refused" in text
     assert "sample 0: /hapsim/link/kb wall 300.0 1.5 -> felt k" in text
+
+
+def test_a_ramp_cut_by_a_rebuilt_engine_ends_at_its_values_and_is_journaled():
+    """A recovery rebuilds the loop's engine (the scene restarts from the file's values)
+    while a change is being ramped: the change ends there, at its values, on the new
+    engine, and the journal says "ramp_end" (before: dropped unjournaled, seen as a
+    journal with "ramp_start" alone from ``hapsim run --osc`` under a loaded CI); a pause
+    cut the same way leaves the force scale at its end, 0, not where its ramp was."""
+    sc = prepare_scene(parse_scene(SCENE))[0]
+    ctl = Controller(sc, Engine(sc), ramp_s=0.01, background=False)
+    try:
+        ok, _ = ctl.request("/hapsim/link/kb", "wall", 450.0, 2.5)
+        assert ok
+        for _ in range(3):
+            ctl.poll()                       # started, 3 of its steps done
+        assert ctl.ramping
+        fresh = Engine(sc)
+        ctl.poll(fresh)
+        assert not ctl.ramping
+        ends = [e for e in ctl.journal if e["event"] == "ramp_end"]
+        assert len(ends) == 1 and ends[0]["args"][:3] == ["wall", 450.0, 2.5], ends
+        assert ctl.request("/hapsim/pause")[0]
+        ctl.poll()
+        ctl.poll()
+        assert 0.0 < ctl.force_scale < 1.0   # mid-ramp
+        ctl.poll(Engine(sc))
+        assert ctl.force_scale == 0.0 and ctl.paused
+        assert [e["event"] for e in ctl.journal if e["event"].startswith("ramp")][-1] == \
+            "ramp_end"
+    finally:
+        ctl.close()

@@ -502,6 +502,16 @@ class Controller:
             for m in self.scene.masses:
                 if m.kind == "mass":
                     engine.set_mass(m.name, m.mass)
+            # the ramps under way end here, at their values (the links' and masses' set
+            # just above; a force scale's or pause's taken now; a gain's is the live
+            # sound's own ramp), and the journal says so: before, they were dropped
+            # unjournaled and a force scale stayed where its ramp was (a run recovered
+            # mid-ramp under a loaded CI journaled "ramp_start" alone)
+            for r in self._ramps:
+                if r.kind in ("pause", "resume"):
+                    self.force_scale = r.end[0]
+                    self.paused = r.kind == "pause"
+                self.log("ramp_end", r.kind, [r.name, *r.end])
             self._ramps = []
         self.sample += 1
         if self._mail:
