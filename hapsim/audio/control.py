@@ -502,15 +502,13 @@ class Controller:
             for m in self.scene.masses:
                 if m.kind == "mass":
                     engine.set_mass(m.name, m.mass)
-            # the ramps under way end here, at their values (the links' and masses' set
-            # just above; a force scale's or pause's taken now; a gain's is the live
-            # sound's own ramp), and the journal says so: before, they were dropped
-            # unjournaled and a force scale stayed where its ramp was (a run recovered
-            # mid-ramp under a loaded CI journaled "ramp_start" alone)
+            # the ramps under way end here, at their values (on the new engine, the force
+            # scale, the live gain's own ramp), and the journal says so: before, they
+            # were dropped unjournaled and a force scale stayed where its ramp was (a run
+            # recovered mid-ramp under a loaded CI journaled "ramp_start" alone)
             for r in self._ramps:
-                if r.kind in ("pause", "resume"):
-                    self.force_scale = r.end[0]
-                    self.paused = r.kind == "pause"
+                r.done = r.steps
+                self._apply(r)
                 self.log("ramp_end", r.kind, [r.name, *r.end])
             self._ramps = []
         self.sample += 1
@@ -527,28 +525,33 @@ class Controller:
         keep = []
         for r in self._ramps:
             r.done += 1
-            a = min(1.0, r.done / r.steps)
-            v = tuple(s + a * (e - s) for s, e in zip(r.start, r.end))
-            if r.kind == "link":
-                self.engine.set_link(r.name, v[0], v[1])
-            elif r.kind == "mass":
-                self.engine.set_mass(r.name, v[0])
-            elif r.kind == "gain":
-                if r.done == 1:
-                    self.live.set_gain(r.end[0], r.steps / self.scene.rate_hz)
-            else:
-                self.force_scale = v[0]
-                self.paused = r.kind == "pause"
-                if r.done == 1 and self.live is not None:   # the sound follows
-                    if self.paused:
-                        self._gain_before_pause = self.live.gain_target
-                    self.live.set_gain(0.0 if self.paused else self._gain_before_pause,
-                                       r.steps / self.scene.rate_hz)
-            if a < 1.0:
+            if self._apply(r) < 1.0:
                 keep.append(r)
             else:
                 self.log("ramp_end", r.kind, [r.name, *r.end])
         self._ramps = keep
+
+    def _apply(self, r: Change) -> float:
+        """Set ramp ``r`` at its step ``r.done`` (the engine's link or mass, the live
+        gain, the force scale); the fraction of it done, in [0, 1]."""
+        a = min(1.0, r.done / r.steps)
+        v = tuple(s + a * (e - s) for s, e in zip(r.start, r.end))
+        if r.kind == "link":
+            self.engine.set_link(r.name, v[0], v[1])
+        elif r.kind == "mass":
+            self.engine.set_mass(r.name, v[0])
+        elif r.kind == "gain":
+            if r.done == 1:
+                self.live.set_gain(r.end[0], r.steps / self.scene.rate_hz)
+        else:
+            self.force_scale = v[0]
+            self.paused = r.kind == "pause"
+            if r.done == 1 and self.live is not None:   # the sound follows
+                if self.paused:
+                    self._gain_before_pause = self.live.gain_target
+                self.live.set_gain(0.0 if self.paused else self._gain_before_pause,
+                                   r.steps / self.scene.rate_hz)
+        return a
 
     @property
     def ramping(self) -> bool:
