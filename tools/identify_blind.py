@@ -3,7 +3,8 @@
 Usage::
 
     python tools/identify_blind.py [--n 30] [--seed 19] [--busy 2] [--fractional]
-                                   [--mode port|inprocess] [--json docs/identify_blind.json]
+                                   [--noise-free] [--mode port|inprocess]
+                                   [--json docs/identify_blind.json]
 
 ``--mode port`` (default): each hidden device is a scene file given to a standalone
 ``hapsim mock --scene DEV.yaml`` (real time, its own process, a real pty), identified by
@@ -15,7 +16,9 @@ runs beside ``--busy`` CPU-bound processes (busy loops this program starts and s
 The devices (issue 29): m 0.02-2 kg (log-uniform), b0 0-5 N s/m, Coulomb friction 0-0.5 N,
 d 1-20 samples (d = 0 exists in lockstep only; ``inprocess`` draws 0-20; ``--fractional``:
 a real number of periods, 1-20), sensor noise 0-50 um and encoder quantum 0-20 um (each
-zero for a quarter of the devices), force limit 10 N.
+zero for a quarter of the devices), force limit 10 N. ``--noise-free``: no noise, no
+quantum and Coulomb friction 0.05-0.5 N (the same draws otherwise): the records where
+nothing hides a model error, so a stop the model cannot follow shows as "not explained".
 
 A row counts as identified when ``identify`` printed a device; a safety stop is the loop's
 ``safety_stop``; the coverage of a quantity is the share of identified devices whose truth
@@ -46,17 +49,21 @@ from provenance import command_line  # tools/, beside this file
 QUANTITIES = ("m", "b0", "fc+", "fc-", "d", "q", "noise")
 
 
-def draw(rng, realtime: bool, fractional: bool = False) -> dict:
+def draw(rng, realtime: bool, fractional: bool = False, noise_free: bool = False) -> dict:
     """One hidden device (module notes)."""
-    return {"mass": float(np.exp(rng.uniform(math.log(0.02), math.log(2.0)))),
-            "friction": float(rng.uniform(0.0, 5.0)),
-            "coulomb": float(rng.uniform(0.0, 0.5)),
-            "delay": (round(float(rng.uniform(1.0, 20.0)), 3) if fractional else
-                      int(rng.integers(1 if realtime else 0, 21))),
-            "position_resolution": float(rng.uniform(0, 20e-6)) if rng.random() < 0.75
-            else 0.0,
-            "noise": float(rng.uniform(0, 50e-6)) if rng.random() < 0.75 else 0.0,
-            "hold": "zoh", "force_limit": 10.0}
+    dev = {"mass": float(np.exp(rng.uniform(math.log(0.02), math.log(2.0)))),
+           "friction": float(rng.uniform(0.0, 5.0)),
+           "coulomb": float(rng.uniform(0.0, 0.5)),
+           "delay": (round(float(rng.uniform(1.0, 20.0)), 3) if fractional else
+                     int(rng.integers(1 if realtime else 0, 21))),
+           "position_resolution": float(rng.uniform(0, 20e-6)) if rng.random() < 0.75
+           else 0.0,
+           "noise": float(rng.uniform(0, 50e-6)) if rng.random() < 0.75 else 0.0,
+           "hold": "zoh", "force_limit": 10.0}
+    if noise_free:
+        dev.update(position_resolution=0.0, noise=0.0,
+                   coulomb=0.05 + 0.45 * dev["coulomb"] / 0.5)
+    return dev
 
 
 def busy_loop() -> subprocess.Popen:
@@ -145,6 +152,8 @@ def main(argv=None) -> int:
                     help="CPU-bound processes running beside every identification")
     ap.add_argument("--fractional", action="store_true",
                     help="hidden delays a real number of periods (1-20)")
+    ap.add_argument("--noise-free", action="store_true",
+                    help="no sensor noise, no quantum, Coulomb friction 0.05-0.5 N")
     ap.add_argument("--mode", choices=("port", "inprocess"), default="port")
     ap.add_argument("--json", metavar="FILE", help="write the results there")
     a = ap.parse_args(argv)
@@ -154,7 +163,7 @@ def main(argv=None) -> int:
     n_busy = a.busy if a.mode == "port" else 0
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(a.n):
-            dev = draw(rng, a.mode == "port", a.fractional)
+            dev = draw(rng, a.mode == "port", a.fractional, a.noise_free)
             busy = [busy_loop() for _ in range(n_busy)]
             t1 = time.time()
             try:
@@ -171,7 +180,9 @@ def main(argv=None) -> int:
             lp = out.get("loop") or {}
             row = {"i": i, "busy": len(busy), "truth": dev, "exit": code,
                    "identified": bool(out.get("device")),
-                   "safety_stop": bool(lp.get("safety_stop")),
+                   # (a record refused after a safety stop says so in its message)
+                   "safety_stop": bool(lp.get("safety_stop")) or "ended on a safety stop"
+                   in ((out.get("error") or {}).get("message") or ""),
                    "traceback": "Traceback" in err, "ok": ok, "seconds": time.time() - t1,
                    "error": (out.get("error") or {}).get("message"),
                    "estimate": {k: fit.get(k) for k in ("mass", "friction", "coulomb_pos",
@@ -201,7 +212,8 @@ def main(argv=None) -> int:
     inside = sum(sum(r["ok"].values()) for r in ident)
     total = sum(len(r["ok"]) for r in ident)
     summary = {"n": len(rows), "busy": n_busy, "mode": a.mode, "seed": a.seed,
-               "fractional": a.fractional, "identified": len(ident),
+               "fractional": a.fractional, "noise_free": a.noise_free,
+               "identified": len(ident),
                "safety_stops": sum(r["safety_stop"] for r in rows),
                "coverage_all": inside / max(total, 1), "coverage": cover,
                "load_before": os.getloadavg()[0],

@@ -14,7 +14,7 @@ import numpy as np
 
 from hapsim.analysis.device_fit_model import HOLDS, applied_force
 
-__all__ = ["correlation_guess", "moving_stretches", "fit_stretched", "search_candidates",
+__all__ = ["correlation_guess", "moving_stretches", "split_at_stops", "fit_stretched", "search_candidates",
            "FRACTION_GRID", "search_fraction", "refine"]
 
 #: ln m [kg] the fit searches within (1e-6 .. 1e6 kg: beyond, no device; the basis overflows).
@@ -134,6 +134,71 @@ def moving_stretches(x, q, W=5, margin=8, min_len=12, pieces=None):
                 dirs.append(int(sgn[k]))
             k = j
     return (np.array(starts, np.int64), np.array(ends, np.int64), np.array(dirs, np.int64))
+
+
+def split_at_stops(st, y, min_len=12, ratio=2.0):
+    """The stretches cut where the model's velocity comes within ``ratio`` periods of
+    reversing: where the device may have stopped for an instant inside a stretch.
+
+    A stretch's linear model holds the Coulomb friction at one sign throughout, but the
+    device's own model (:func:`hapsim.kernels.device_sim.simulate_device`, the mock's
+    rule) stops a velocity that would reverse within a period while the force cannot
+    break the handle loose: the positions still move one way (the centred difference of
+    :func:`moving_stretches` sees motion), the linear model cannot follow the stop, and
+    its residual there is far above a noise-free sensor's. Such a sample is one where
+    the model decelerates (``y[k+1] - 2 y[k] + y[k-1]`` against the motion) and its step
+    ``y[k+1] - y[k]`` is less than ``ratio`` times that deceleration -- at the current
+    deceleration the velocity reaches zero within ``ratio`` periods (one for the period
+    itself, one for the model's own error there). The model positions are smooth whatever
+    the sensor's noise or quantum, so a noisy or quantised record is not cut by them.
+
+    Parameters
+    ----------
+    st : tuple of ndarray of int64, each shape (s,)
+        ``(starts, ends, dirs)`` (:func:`moving_stretches`).
+    y : ndarray, shape (n_s,)
+        The fitted model's positions on the stretches, in their order [m].
+    min_len : int
+        Shortest piece kept [samples].
+    ratio : float > 0
+        Periods within which a reversal counts [periods].
+
+    Returns
+    -------
+    tuple of ndarray or None
+        The new ``(starts, ends, dirs)``; the samples ``k - 1 .. k + 2`` around each stop
+        ``k`` are left out. None when no stretch is cut.
+    """
+    starts, ends, dirs = st
+    out_s, out_e, out_d = [], [], []
+    cut = False
+    off = 0
+    for a, b, d in zip(starts, ends, dirs):
+        L = int(b - a)
+        seg = y[off:off + L]
+        off += L
+        stops = []
+        if L >= 3:
+            step = d * (seg[2:] - seg[1:-1])            # rows 1 .. L-2
+            dec = -d * (seg[2:] - 2.0 * seg[1:-1] + seg[:-2])
+            stops = list(np.nonzero((dec > 0) & (step < ratio * dec))[0] + 1)
+        if not stops:
+            out_s.append(a)
+            out_e.append(b)
+            out_d.append(d)
+            continue
+        cut = True
+        lo = 0
+        for k in stops + [L + 1]:
+            hi = min(k - 1, L)
+            if hi - lo >= min_len:
+                out_s.append(a + lo)
+                out_e.append(a + hi)
+                out_d.append(d)
+            lo = max(lo, k + 3)
+    if not cut:
+        return None
+    return (np.array(out_s, np.int64), np.array(out_e, np.int64), np.array(out_d, np.int64))
 
 
 class _Stretched:
