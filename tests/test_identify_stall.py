@@ -104,17 +104,21 @@ def test_stalls_no_longer_than_one_seen_never_take_the_device_out(seed):
     random host stalls: one of 0-100 ms while the device is at rest, then stalls no longer
     than the longest seen (or the prior, :data:`HOST_STALL_PRIOR_S`) at random moments:
     the device never leaves the envelope (the loop's safety stop). Measured over seeds
-    0-59: at most 5.7 mm of the 10."""
+    0-119: at most 6.0 mm of the 10; over 120-399, 8.8 mm (the excitation before
+    2026-11-28: 5.8 and 10.8 mm, 4 of 280 beyond 8 mm -- docs/identify.md)."""
     m, b0, d, st = _case(seed)
     xs = run_stalled(m, b0, d, st, seed)
     assert np.max(np.abs(xs)) < ENVELOPE, (m, b0, d, np.max(np.abs(xs)))
 
 
-@pytest.mark.parametrize("seed", [26, 34])
+@pytest.mark.parametrize("seed", [126, 219, 345])
 def test_an_engine_blind_to_the_stalls_takes_these_devices_out(seed):
     """The property above is not vacuous: the same loops with the engine reading no
-    clock (the stop ahead before it counted the stall) leave the envelope (13.6 and
-    16.1 mm; 2 of seeds 0-59)."""
+    clock (the stop ahead before it counted the stall) leave the envelope (15.1, 14.5 and
+    11.6 mm, the three farthest of seeds 120-499; with the clock 1.5-4.1 mm).
+    The excitation of 2026-11-28 raises its level only once the device has felt the full
+    push of the present one: blind to the clock, 2 of seeds 0-119 leave the envelope
+    (before: 7)."""
     m, b0, d, st = _case(seed)
     xs = run_stalled(m, b0, d, st, seed, clocked=False)
     assert np.max(np.abs(xs)) > ENVELOPE

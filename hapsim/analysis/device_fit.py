@@ -281,17 +281,22 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         if keep is not None:
             st, cands = _refit_without(st, keep, cands, x, f, T, late, holds, max_delay,
                                        known, seq)
-    if cands:
-        # a stretch whose model nearly stops inside it: cut there and fit again
+    for _ in range(3):
+        # a stretch whose model nearly stops inside it: cut there and fit again (the
+        # model after a cut is closer, and may show a stop the first one smoothed over)
+        if not cands:
+            break
         best = min(cands, key=lambda c: c["cost"])
         mod = best["_mod"]
         cut = split_at_stops(st, best_residual(best) + x[mod.idx])
-        if cut is not None and cut[0].size >= 3:
-            again = search_candidates(x, f, T, late, holds, max_delay, cut, best["delay"],
-                                      HOLDS[best["hold"]], math.exp(best["_res"].x[0]),
-                                      known, seq)
-            if again:
-                st, cands = cut, again
+        if cut is None or cut[0].size < 3:
+            break
+        again = search_candidates(x, f, T, late, holds, max_delay, cut, best["delay"],
+                                  HOLDS[best["hold"]], math.exp(best["_res"].x[0]),
+                                  known, seq)
+        if not again:
+            break
+        st, cands = cut, again
     if not cands:
         raise IdentificationError("no model could be fitted to the record")
     cands = _fraction_and_refine(cands, x, T, late, st, known, seq, f, holds)

@@ -24,7 +24,11 @@ from viscous friction), and early when the device is past 30 % of the envelope o
 it pushes towards (a relay: the steps move the device both ways and keep it centred without
 a stiff spring, which a long delay forbids). The gain ``g`` starts at 1/8 and grows by
 2^(1/4) every 100 ms (up to 1) while the device moved over less than 30 % of the
-envelope (every 25 ms while it has not yet moved 0.5 % of it: held by Coulomb friction at the start), and
+envelope (every 25 ms while it has not yet moved 0.5 % of it: held by Coulomb friction at the start),
+each time only once the device has felt the present level's full push (the PRBS along the
+square wave) for the longest delay (a level raised under the PRBS's weak half broke a light
+device loose far above its Coulomb friction, and behind a long delay it left the envelope
+before the reversal reached it), and
 halves each time the device is about to pass 60 % of the envelope (then 66 %, ...; its
 position ``d_max + 1`` samples ahead at its present velocity): a light device behind a long delay (the force reacts
 ``d`` samples after it moved) never leaves the envelope before the gain has found its
@@ -359,8 +363,16 @@ class ExcitationEngine:
       (the host's clock between two answers, less a period), at least
       :data:`HOST_STALL_PRIOR_S`;
     - *end*: over the last 100 ms the level ramps out and only brakes (against ``v``).
+      The overshoot coefficient of a reversal at least as fast as the one behind the
+      present coefficient replaces it (one measured at a crawl holds the delay's share
+      over a tiny velocity squared); a slower one replaces it only when larger, else the
+      present one fades by 30 %. On a real-time port the stop ahead is also at least where a
+      stall holding the present push leaves the device, ``e + v t_s + a t_s^2 / 2``
+      whatever the signs (from a turn the push alone carries it).
       The square wave reverses when ``s`` passes 40 % of the
-      envelope on the side it pushes towards, and every 250 ms; when ``s`` passes 70 %
+      envelope on the side it pushes towards (even a push towards the centre: the device
+      coming back fast would stop beyond the other side), and every 250 ms unless the
+      device is past 40 % on the side the push comes from; when ``s`` passes 70 %
       (then 77 %, ...) ``A`` halves once the device moves the way
       it is pushed again (the braking push keeps the level the stop ahead counted on: halved
       at once, the stop ahead grew and halved it again, down to nothing).
@@ -387,6 +399,10 @@ class ExcitationEngine:
         self._sub = max(int(0.025 * scene.rate_hz), 1)
         self._still = 0.005 * scene.envelope
         self._stuck = True
+        # the sample where the level's full push (the PRBS along the square wave) was
+        # first sent at this level and sign (-1: not yet)
+        self._shown = -1
+        self._reach = scene.max_delay + 1
         self._hi = -math.inf
         self._lo = math.inf
         self._W = _WINDOW
@@ -401,6 +417,7 @@ class ExcitationEngine:
         self._nend = min(max(int(_END_S * scene.rate_hz), 1), self._n // 4 or 1)
         self._n2 = 0.0
         self._cmeas = 0.0
+        self._vmeas = 0.0
         self._vf0 = 0.0
         self._xf0 = 0.0
         self._o = 0.0
@@ -481,7 +498,14 @@ class ExcitationEngine:
             a = (v - (ring[(k - W) % nr] - ring[(k - 2 * W) % nr]) / (W * T)) / (W * T)
             if a * v > 0.0:
                 s += 0.5 * a * ts * ts
+            # and where a stall holding the present push leaves the device, whatever its
+            # velocity's sign: from a turning point (v ~ 0, the push just reversed it) the
+            # push alone carries it ``a ts^2 / 2`` the way it pushes -- counted only along
+            # v above, a 79 ms stall at a turn carried a 0.7 kg device 7 mm
+            hold = lp - self._xc + v * ts + 0.5 * a * ts * ts
         s += lp - self._xc
+        if self._clock is not None and abs(hold) > abs(s):
+            s = hold
         # the overshoot after the last reversal: how far the device went on the way it
         # moved when the force turned
         if self._vf0 != 0.0:
@@ -490,7 +514,16 @@ class ExcitationEngine:
                 self._o = o
             if v * self._vf0 <= 0.0:           # it turned: one measurement
                 c = self._o / (self._vf0 * self._vf0)
-                self._cmeas = max(c, _FORGET * self._cmeas)
+                if abs(self._vf0) >= self._vmeas:
+                    # at least as fast as the one behind the coefficient: it replaces it
+                    # (a coefficient measured at a crawl holds the delay's share over a
+                    # tiny velocity squared -- 28 s^2/m on a damped 25 g device whose
+                    # stops at ten times that speed measured 2.7 -- and, faded by 30 % a
+                    # reversal, it halved the level until the device hardly moved)
+                    self._cmeas = c
+                    self._vmeas = abs(self._vf0)
+                else:
+                    self._cmeas = max(c, _FORGET * self._cmeas)
                 self._vf0 = 0.0
         as_ = s if s >= 0.0 else -s
         if as_ > self._edge and self._g > 1e-3 * self._amax:
@@ -505,19 +538,26 @@ class ExcitationEngine:
         if self._stuck and (self._hi - self._lo >= self._still and self._mass > 0.0):
             self._stuck = False            # broke loose: from now on the 100 ms steps only
         if k % self._win == self._win - 1 or (self._stuck and k % self._sub == self._sub - 1):
-            if self._hi - self._lo < self._calm and self._g < self._amax:
+            if (self._hi - self._lo < self._calm and self._g < self._amax
+                    and 0 <= self._shown <= k - self._reach):
                 # it moved less than 30 % of the envelope in 100 ms: excite more, by steps
                 # small enough that a device held by Coulomb friction breaks loose gently
+                # (held still, only once it has felt the level's full push for the longest
+                # delay: a level raised under the PRBS's weak half breaks it loose far
+                # above its Coulomb friction, and a light device behind a long delay then
+                # leaves the envelope before the reversal reaches it)
                 self._g = min(self._g * _GROW, self._amax)
+                self._shown = -1
             self._hi = -math.inf
             self._lo = math.inf
         # the square wave: its sign flips each half period (250 ms), and early when the
         # device would stop past 30 % of the envelope on the side it pushes towards
         sg = self._sign
-        if k % self._half == self._half - 1 or sg * s > self._calm:
-            if not sg * e < -self._calm:
+        if sg * s > self._calm or k % self._half == self._half - 1:
+            if sg * s > self._calm or not sg * e < -self._calm:
                 sg = -sg
                 self._sign = sg
+                self._shown = -1
                 self._vf = self._xf = 0.0
                 self._e0 = lp - self._xc
                 if self._vf0 == 0.0 and abs(v) > self._vdead and k >= _QUIET:
@@ -544,6 +584,8 @@ class ExcitationEngine:
                  if k < self._n else 0.0)
         else:
             r = self._g * (self._r[k] + sg * self._sq[k])
+            if self._shown < 0 and self._r[k] * sg > 0.0:
+                self._shown = k
         self._k = k + 1
         f = -self._kc * e - self._bc * (position - self._xp) + r
         self._xp = position
