@@ -163,6 +163,20 @@ def test_without_an_account_the_delay_is_found_across_lost_states(seed, frac, d,
     assert fit.friction.value == pytest.approx(b0, rel=1e-6, abs=1e-6)
 
 
+def _gapped_noisy_fit(rng):
+    """One seeded random device (m 0.02-2 kg log-uniform, b0 0-5 N s/m, fc 0-0.3 N, d
+    1-20, sensor noise 0.5-5 um) behind a link losing bursts of 30 % of its STATEs,
+    simulated and fitted from its force_seq account: ``((m, b0, fc, d, noise), seq,
+    fit)``."""
+    m = float(np.exp(rng.uniform(math.log(0.02), math.log(2.0))))
+    b0, fc, d = float(rng.uniform(0, 5)), float(rng.uniform(0, 0.3)), int(rng.integers(1, 21))
+    s = float(rng.uniform(0.5e-6, 5e-6))
+    lost = _lost(rng, 2000, 0.3)
+    seq, x, f, fseq, status = simulate(m, b0, fc, d, 2000, lost, rng, noise=s)
+    fit = fit_device(x, f, T, applied=account_from_force_seq(seq, f, fseq, status), seq=seq)
+    return (m, b0, fc, d, s), seq, fit
+
+
 def test_with_noise_every_truth_is_in_its_interval():
     """Seeded random devices (m 0.02-2 kg, b0 0-5, fc 0-0.3 N, d 1-20, sensor noise
     0.5-5 um) behind a link losing bursts of its STATEs: every truth inside its 99.9 %
@@ -170,15 +184,9 @@ def test_with_noise_every_truth_is_in_its_interval():
     through the encoder, tests/test_identify_coarse.py.)"""
     rng = np.random.default_rng(1919)
     for _ in range(3):
-        m = float(np.exp(rng.uniform(math.log(0.02), math.log(2.0))))
-        b0, fc, d = float(rng.uniform(0, 5)), float(rng.uniform(0, 0.3)), int(rng.integers(1, 21))
-        s = float(rng.uniform(0.5e-6, 5e-6))
-        lost = _lost(rng, 2000, 0.3)
-        seq, x, f, fseq, status = simulate(m, b0, fc, d, 2000, lost, rng, noise=s)
+        case, seq, fit = _gapped_noisy_fit(rng)
+        m, b0, fc, d, _ = case
         assert len(_pieces(seq)) >= 3
-        fit = fit_device(x, f, T, applied=account_from_force_seq(seq, f, fseq, status),
-                         seq=seq)
-        case = (m, b0, fc, d, s)
         assert fit.delay == d, case
         assert fit.mass.contains(m), (case, fit.mass)
         assert fit.friction.contains(b0), (case, fit.friction)
@@ -241,24 +249,20 @@ def test_intervals_hold_their_level_on_records_cut_into_short_stretches():
     """Coverage, the class behind the test above: 40 seeded random devices (its ranges)
     behind a link losing bursts of 30 % of its STATEs, 200 truths (m, b0, fc+, fc-, d).
     Each stretch's fitted state leaves its residual negatively autocorrelated, which the
-    Newey-West sum at lag 50 counted against the variance on the short stretches: 15 of
-    750 truths of this draw's family fell outside their 99.9 % intervals before the
-    heteroskedasticity-robust floor, 0 of 750 after (``/tmp`` trial of 150 devices, seed
-    7). At the intervals' level 0.2 misses are expected of 200; at most 1 is allowed (the
-    chance of 2 or more at the stated level: 1.7 %; with the earlier 2 % miss rate, 91 %)."""
+    Newey-West sum at lag 50 counted against the variance on the short stretches: before
+    the heteroskedasticity-robust floor (``hapsim.analysis.device_fit``, ``intervals``)
+    3 of these 200 truths fell outside their 99.9 % intervals (and 15 of 750 of 150 more
+    devices of the family, seed 7), after it 0 (and 0 of 750). At the intervals' level
+    0.2 misses are expected of 200; at most 1 is allowed (the chance of 2 or more at the
+    stated level: 1.7 %; at the earlier 2 % miss rate, 91 %)."""
     rng = np.random.default_rng(2929)
     misses = []
     for i in range(40):
-        m = float(np.exp(rng.uniform(math.log(0.02), math.log(2.0))))
-        b0, fc, d = float(rng.uniform(0, 5)), float(rng.uniform(0, 0.3)), int(rng.integers(1, 21))
-        s = float(rng.uniform(0.5e-6, 5e-6))
-        lost = _lost(rng, 2000, 0.3)
-        seq, x, f, fseq, status = simulate(m, b0, fc, d, 2000, lost, rng, noise=s)
-        fit = fit_device(x, f, T, applied=account_from_force_seq(seq, f, fseq, status),
-                         seq=seq)
+        case, _, fit = _gapped_noisy_fit(rng)
+        m, b0, fc, d, _ = case
         for name, ok in (("m", fit.mass.contains(m)), ("b0", fit.friction.contains(b0)),
                          ("fc+", fit.coulomb_pos.contains(fc)),
                          ("fc-", fit.coulomb_neg.contains(fc)), ("d", fit.delay == d)):
             if not ok:
-                misses.append((i, name, (m, b0, fc, d, s)))
+                misses.append((i, name, case))
     assert len(misses) <= 1, misses
