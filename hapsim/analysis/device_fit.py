@@ -17,8 +17,12 @@ own initial state (multiple shooting); for given ``(m, b0)`` the stretch states 
 ``(fc+, fc-)`` follow by linear least squares, so only ``(ln m, b0)`` are searched
 (variable projection: Golub & Pereyra 1973; ``scipy.optimize.least_squares``, started from
 the correlation of force steps with acceleration). The two best candidates are then refined
-with the nonlinear friction model (stick, reversal) over all parameters, and stretches the
-model misses by far (an unseen reversal) are dropped once. Unlike the equation error, whose
+with the nonlinear friction model (stick, reversal) over all parameters. Stretches the
+model misses by far (an unseen reversal) are dropped, before and after the refinement; a
+stretch is cut where the model's velocity comes within two periods of reversing (a stop
+for an instant the centred difference does not see: :func:`split_at_stops`), up to three
+times. The intervals are the wider of the Newey-West and the lag-0 ones (the stretch
+states' fit leaves the residual negatively autocorrelated). Unlike the equation error, whose
 regressors carry the sensor noise (errors in variables: biased), the output error is
 consistent for white sensor noise, also in closed loop: the forces are known exactly, the
 model output given them is the true position, the residual is the sensor error (L. Ljung,
@@ -407,8 +411,9 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         # floor, quantity by quantity: each stretch's fitted state leaves its residual
         # negatively autocorrelated over the stretch, which the Bartlett sum counts
         # against the variance -- on short stretches (a record cut by lost STATEs) the
-        # lag-50 estimate fell below the white noise's own, and 7 of 300 truths missed
-        # 99.9 % intervals (1 of 300 at lag 0; tests/test_identify_gaps.py)
+        # lag-50 estimate fell below the white noise's own: 8 of 300 truths missed their
+        # 99.9 % intervals, 1 with this floor (tools/identify_gap_coverage.py --n 100
+        # --seed 7 --quantum 0; tests/test_identify_gaps.py holds the class)
         covs = (hac_covariance(J_c, ym_c - x[mod_c.idx], lag, nn_c),
                 hac_covariance(J_c, ym_c - x[mod_c.idx], 0, nn_c))
         boot = None

@@ -14,8 +14,8 @@ import numpy as np
 
 from hapsim.analysis.device_fit_model import HOLDS, applied_force
 
-__all__ = ["correlation_guess", "moving_stretches", "split_at_stops", "fit_stretched", "search_candidates",
-           "FRACTION_GRID", "search_fraction", "refine"]
+__all__ = ["correlation_guess", "moving_stretches", "split_at_stops", "fit_stretched",
+           "search_candidates", "FRACTION_GRID", "search_fraction", "refine"]
 
 #: ln m [kg] the fit searches within (1e-6 .. 1e6 kg: beyond, no device; the basis overflows).
 _LM_RANGE = (math.log(1e-6), math.log(1e6))

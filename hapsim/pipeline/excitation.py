@@ -484,6 +484,7 @@ class ExcitationEngine:
             s2 = _OVERSHOOT_MARGIN * self._cmeas * va * abs(va)
             if abs(s2) < abs(s):
                 s = s2
+        hold = 0.0
         if self._clock is not None:
             # a stall of the host: the longest seen (or the prior), travelled at v
             now = self._clock()
@@ -541,11 +542,11 @@ class ExcitationEngine:
             if (self._hi - self._lo < self._calm and self._g < self._amax
                     and 0 <= self._shown <= k - self._reach):
                 # it moved less than 30 % of the envelope in 100 ms: excite more, by steps
-                # small enough that a device held by Coulomb friction breaks loose gently
-                # (held still, only once it has felt the level's full push for the longest
-                # delay: a level raised under the PRBS's weak half breaks it loose far
-                # above its Coulomb friction, and a light device behind a long delay then
-                # leaves the envelope before the reversal reaches it)
+                # small enough that a device held by Coulomb friction breaks loose gently,
+                # and only once it has felt the level's full push for the longest delay
+                # (a level raised under the PRBS's weak half breaks it loose far above its
+                # Coulomb friction, and a light device behind a long delay then leaves the
+                # envelope before the reversal reaches it)
                 self._g = min(self._g * _GROW, self._amax)
                 self._shown = -1
             self._hi = -math.inf
