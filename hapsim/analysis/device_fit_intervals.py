@@ -331,7 +331,9 @@ def chi2_ppf_1(p: float) -> float:
 def noise_estimate(y, xm, q, delta, z, dof, offs=None):
     """ML estimate and profile interval of the sensor noise (the notes of
     :mod:`hapsim.analysis.device_fit`, 'Intervals'); an unquantised record's from its
-    second differences (:func:`_noise_white`).
+    second differences (:func:`_noise_white`), and so is a quantised record's whose noise
+    is at least twice the quantum, less the quantiser's variance ``q^2/12`` (Widrow &
+    Kollar, *Quantization Noise*, 2008, Sec. 5.2 and 11.1).
 
     Parameters
     ----------
