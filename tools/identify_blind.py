@@ -23,7 +23,7 @@ nothing hides a model error, so a stop the model cannot follow shows as "not exp
 A row counts as identified when ``identify`` printed a device; a safety stop is the loop's
 ``safety_stop``; the coverage of a quantity is the share of identified devices whose truth
 lies inside the reported interval (d: the reported delay interval, ``delay_range`` or the
-real-valued ``delay_interval``, holds the truth).
+real-valued ``delay_estimate``, holds the truth).
 
 Prints one row per device (truth, estimate, interval, misses), the coverage per quantity
 (the share of devices whose truth lies in the reported interval; d: exact), the exit codes
@@ -137,7 +137,7 @@ def check(dev: dict, out: dict) -> dict:
 
 def _delay_inside(fit: dict, truth: float) -> bool:
     """The reported delay interval holds the truth (a real-valued one when reported)."""
-    iv = fit.get("delay_interval")
+    iv = fit.get("delay_estimate")
     if iv:
         return bool(iv["lo"] <= truth <= iv["hi"])
     lo, hi = fit.get("delay_range") or (fit["delay"], fit["delay"])
@@ -187,7 +187,7 @@ def main(argv=None) -> int:
                    "error": (out.get("error") or {}).get("message"),
                    "estimate": {k: fit.get(k) for k in ("mass", "friction", "coulomb_pos",
                                                         "coulomb_neg", "delay", "hold",
-                                                        "delay_interval", "delay_range",
+                                                        "delay_estimate", "delay_range",
                                                         "position_resolution", "noise",
                                                         "explained")},
                    "loop": {k: (out.get("loop") or {}).get(k)

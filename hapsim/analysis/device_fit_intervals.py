@@ -78,7 +78,10 @@ def delay_interval(cands, best, close, n_lr, s_best, crit, nu):
         t = 0.0 if not hb > ha else min(max((bound - ha) / (hb - ha), 0.0), 1.0)
         return total(a) + t * (total(b) - total(a))
     lo = cross(i0, i0 - 1) if i0 > 0 else total(zoh[i0])
-    hi = cross(i1, i1 + 1) if i1 + 1 < len(zoh) else total(zoh[i1])
+    # the top with no candidate beyond it (a device's account fixes the whole delay d:
+    # the fractions tried end at d + 0.75) is not ruled out up to d + 1, where the
+    # fraction's range ends
+    hi = cross(i1, i1 + 1) if i1 + 1 < len(zoh) else float(zoh[i1]["delay"] + 1)
     v = total(best)
     return Estimate(v, min(lo, v), max(hi, v), "periods")
 

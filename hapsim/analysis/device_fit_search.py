@@ -15,7 +15,7 @@ import numpy as np
 from hapsim.analysis.device_fit_model import HOLDS, applied_force
 
 __all__ = ["correlation_guess", "moving_stretches", "split_at_stops", "fit_stretched",
-           "search_candidates", "FRACTION_GRID", "search_fraction", "refine"]
+           "search_candidates", "FRACTION_GRID", "FRACTION_TOL", "search_fraction", "refine"]
 
 #: ln m [kg] the fit searches within (1e-6 .. 1e6 kg: beyond, no device; the basis overflows).
 _LM_RANGE = (math.log(1e-6), math.log(1e6))
@@ -534,6 +534,10 @@ DENSE_JACOBIAN_MAX = 200_000
 FRACTION_GRID = (0.25, 0.5, 0.75)
 #: Half-width of the bounded search around the grid's best [periods]: one grid step.
 _FRACTION_STEP = 0.25
+#: The bounded search's tolerance on the fraction [periods]: the fraction is not known
+#: better than this whatever the record (a noise-free one's likelihood interval is far
+#: narrower), and the intervals cover it (:func:`hapsim.analysis.device_fit.fit_device`).
+FRACTION_TOL = 2e-3
 
 
 def search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
@@ -620,7 +624,7 @@ def search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
         if hi - lo > 1e-3:
             minimize_scalar(lambda fr: (fit(fr) or {"cost": math.inf})["cost"],
                             bounds=(lo, hi), method="bounded",
-                            options={"xatol": 2e-3, "maxiter": 10})
+                            options={"xatol": FRACTION_TOL, "maxiter": 10})
     # the whole delays beside them on the same (refined) cost: the profile's ends
     near = set(bases) | {b + 1 for b in bases}
     for c in zoh:
