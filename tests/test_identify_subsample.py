@@ -130,3 +130,30 @@ def test_a_noise_free_sub_sample_delay_and_its_estimates_hold_their_truths(seed)
                         ("delay_estimate", dev["delay"])):
         e = getattr(fit, name)
         assert e.lo <= truth <= e.hi, (name, truth, e, dev)
+
+
+def test_the_frictions_interval_holds_the_fractions_uncertainty():
+    """Coverage over 30 random devices with a delay of 0-4 periods (the family of
+    ``tools/identify_subsample.py``, its seed 77: m 0.05-1 kg, b0 0-3 N s/m, Coulomb 0-0.2
+    N, noise 0-3 um; 2 s at 4 N, lockstep): the friction moves with the fraction, and an
+    interval taken at the best fraction alone missed the friction at the true one (b0
+    1.1645 against [1.1587, 1.1641] with the delay 1.3575 inside [1.331, 1.364]): 3 of
+    these 30 (8 of 240 over eight seeds). The intervals now also cover the estimates at
+    the delay interval's two ends: 0 of these 30 (1 of 240). At most 1 miss of the 90
+    truths (m, b0, d) is allowed."""
+    rng = np.random.default_rng(77)
+    misses = []
+    for i in range(30):
+        d = float(rng.uniform(0.0, 4.0))
+        dev = Device(mass=float(np.exp(rng.uniform(np.log(0.05), np.log(1.0)))),
+                     friction=float(rng.uniform(0.0, 3.0)),
+                     coulomb=float(rng.uniform(0.0, 0.2)), delay=d, hold="zoh",
+                     noise=float(rng.uniform(0.0, 3e-6)), force_limit=10.0)
+        fit, _ = identify(device=dev, transport="inprocess", duration=2.0, force_limit=4.0,
+                          max_delay=5, seed=i, progress=False, handle_signals=False)
+        for name, ok in (("d", fit.delay_estimate.contains(d)),
+                         ("m", fit.mass.contains(dev.mass)),
+                         ("b0", fit.friction.contains(dev.friction))):
+            if not ok:
+                misses.append((i, name, d, fit.delay_estimate, fit.friction))
+    assert len(misses) <= 1, misses

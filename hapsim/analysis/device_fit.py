@@ -98,8 +98,8 @@ from hapsim.analysis.device_fit_model import (
     HOLDS, LEVEL, POSITION_FLOOR, DeviceFit, Estimate, input_known, encoder_quantum, tick_runs,
     true_runs, applied_force)
 from hapsim.analysis.device_fit_search import (
-    FRACTION_TOL, correlation_guess, refine, search_candidates, search_fraction,
-    moving_stretches, split_at_stops)
+    FRACTION_TOL, correlation_guess, fraction_candidate, refine, search_candidates,
+    search_fraction, moving_stretches, split_at_stops)
 from hapsim.errors import ConfigError, IdentificationError
 
 __all__ = ["Estimate", "DeviceFit", "fit_device", "applied_force", "POSITION_FLOOR",
@@ -510,8 +510,24 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         # a fraction within the search's resolution of the best's: as good a model
         return (c["hold"] == best["hold"] and c["delay"] == best["delay"]
                 and abs(c.get("frac", 0.0) - f_best) <= FRACTION_TOL)
-    for c in cands:
-        if c is best or not (close(c) or resolved(c)):
+    # the estimates at the delay interval's ends: the mass and frictions move with the
+    # fraction, and an interval at the best's fraction alone missed the friction at the
+    # true one (1.1645 N s/m against [1.1587, 1.1641], the delay 1.3575 inside [1.331,
+    # 1.364]: 8 of 240 devices of tools/identify_subsample.py, seeds 2911, 5, 77, 11-15)
+    ends = []
+    if best["hold"] == "zoh" and any(c.get("frac", 0.0) > 0.0 for c in cands):
+        for e_ in (delay_estimate.lo, delay_estimate.hi):
+            d_e = int(math.floor(e_))
+            fr_e = e_ - d_e
+            if not FRACTION_TOL < fr_e < 1.0 - FRACTION_TOL or (
+                    known is not None and d_e != known[1]):
+                continue
+            u_e = known[0] if known is not None else applied_force(f, d_e, late, seq)
+            c_e = fraction_candidate(x, u_e, T, st, [best["_res"].x], d_e, fr_e)
+            if c_e is not None:
+                ends.append(c_e)
+    for c in cands + ends:
+        if c is best or not (close(c) or resolved(c) or any(c is e_ for e_ in ends)):
             continue
         pc = c["_ref"][1] if c.get("_ref") is not None else c["_mod"].full(c["_res"].x)[1]
         mc = math.exp(pc[0])

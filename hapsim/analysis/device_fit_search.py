@@ -15,7 +15,8 @@ import numpy as np
 from hapsim.analysis.device_fit_model import HOLDS, applied_force
 
 __all__ = ["correlation_guess", "moving_stretches", "split_at_stops", "fit_stretched",
-           "search_candidates", "FRACTION_GRID", "FRACTION_TOL", "search_fraction", "refine"]
+           "search_candidates", "FRACTION_GRID", "FRACTION_TOL", "search_fraction",
+           "fraction_candidate", "refine"]
 
 #: ln m [kg] the fit searches within (1e-6 .. 1e6 kg: beyond, no device; the basis overflows).
 _LM_RANGE = (math.log(1e-6), math.log(1e6))
@@ -540,6 +541,49 @@ _FRACTION_STEP = 0.25
 FRACTION_TOL = 2e-3
 
 
+def fraction_candidate(x, u, T, st, start, d, fr):
+    """One zero-order-hold candidate at the delay ``d + fr``, on the refined cost.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n,)
+        Positions [m].
+    u : ndarray, shape (n,)
+        The force applied at the whole delay ``d`` [N].
+    T : float
+        Sample period [s].
+    st : tuple of ndarray
+        The stretches (:func:`moving_stretches`).
+    start : list of ndarray
+        Starting points ``(ln m, b0)`` (:func:`fit_stretched`).
+    d : int
+        Whole delay [samples].
+    fr : float in [0, 1)
+        Fraction [periods].
+
+    Returns
+    -------
+    dict or None
+        The candidate (``hold``, ``delay``, ``frac``, ``cost``, ``_mod``, ``_res``,
+        ``_ref``), None when the fit fails.
+    """
+    mod, res = fit_stretched(x, u, T, HOLDS["zoh"], st, start, float(fr))
+    if res is None:
+        return None
+    c = {"hold": "zoh", "delay": d, "frac": float(fr), "cost": float(res.cost), "_mod": mod,
+         "_res": res}
+    if mod.coulomb:
+        # the profile over the fraction on the refined cost (Coulomb reversals inside a
+        # stretch), as the best whole delay's is: a refined best beside unrefined
+        # neighbours made every neighbour "ruled out" (intervals of zero width that
+        # missed the truth, 6 of 30 devices)
+        ref = refine(mod, res.x)
+        c["_ref"] = ref if ref is not None and ref[4] < c["cost"] else None
+        if c["_ref"] is not None:
+            c["cost"] = c["_ref"][4]
+    return c
+
+
 def search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
     """Sub-sample delays ``d + frac`` for the zero-order hold (issue 29 item 3): the
     split hold (:mod:`hapsim.analysis.subsample`) fitted at ``frac`` on
@@ -596,19 +640,7 @@ def search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
             fr = float(fr)
             if fr in seen:
                 return seen[fr]
-            mod, res = fit_stretched(x, u, T, HOLDS["zoh"], st, start, fr)
-            c = None if res is None else {"hold": "zoh", "delay": d, "frac": fr,
-                                          "cost": float(res.cost), "_mod": mod,
-                                          "_res": res}
-            if c is not None and mod.coulomb:
-                # the profile over the fraction on the refined cost (Coulomb reversals
-                # inside a stretch), as the best whole delay's is: a refined best beside
-                # unrefined neighbours made every neighbour "ruled out" (intervals of
-                # zero width that missed the truth, 6 of 30 devices)
-                ref = refine(mod, res.x)
-                c["_ref"] = ref if ref is not None and ref[4] < c["cost"] else None
-                if c["_ref"] is not None:
-                    c["cost"] = c["_ref"][4]
+            c = fraction_candidate(x, u, T, st, start, d, fr)
             seen[fr] = c
             if c is not None:
                 new.append(c)
