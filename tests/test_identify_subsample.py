@@ -39,6 +39,17 @@ def test_a_hidden_delay_of_1_3_periods_is_stated_within_its_interval():
     assert fit.device_delay() == pytest.approx(1.3, abs=0.05)
 
 
+def _random_device(rng):
+    """``(d, device)``: m 0.05-1 kg log-uniform, b0 0-3 N s/m, Coulomb 0-0.2 N, d uniform
+    in [0, 4) periods, noise 0-3 um (the family of ``tools/identify_subsample.py``, its
+    draws in its order)."""
+    d = float(rng.uniform(0.0, 4.0))
+    return d, Device(mass=float(np.exp(rng.uniform(np.log(0.05), np.log(1.0)))),
+                     friction=float(rng.uniform(0.0, 3.0)),
+                     coulomb=float(rng.uniform(0.0, 0.2)), delay=d, hold="zoh",
+                     noise=float(rng.uniform(0.0, 3e-6)), force_limit=10.0)
+
+
 def test_intervals_cover_random_sub_sample_delays():
     """Property over seeded random devices (m 0.05-1 kg, b0 0-3 N s/m, Coulomb 0-0.2 N,
     d uniform in [0, 4) periods, noise 0-3 um): the delay, mass and friction intervals
@@ -47,11 +58,7 @@ def test_intervals_cover_random_sub_sample_delays():
     rng = np.random.default_rng(29)
     miss = {"d": 0, "m": 0, "b0": 0}
     for i in range(10):
-        d = float(rng.uniform(0.0, 4.0))
-        dev = Device(mass=float(np.exp(rng.uniform(np.log(0.05), np.log(1.0)))),
-                     friction=float(rng.uniform(0.0, 3.0)),
-                     coulomb=float(rng.uniform(0.0, 0.2)), delay=d, hold="zoh",
-                     noise=float(rng.uniform(0.0, 3e-6)), force_limit=10.0)
+        d, dev = _random_device(rng)
         fit, _ = _identify(dev, i)
         assert fit.delay == int(np.floor(d))
         miss["d"] += not fit.delay_estimate.contains(d)
@@ -144,13 +151,8 @@ def test_the_frictions_interval_holds_the_fractions_uncertainty():
     rng = np.random.default_rng(77)
     misses = []
     for i in range(30):
-        d = float(rng.uniform(0.0, 4.0))
-        dev = Device(mass=float(np.exp(rng.uniform(np.log(0.05), np.log(1.0)))),
-                     friction=float(rng.uniform(0.0, 3.0)),
-                     coulomb=float(rng.uniform(0.0, 0.2)), delay=d, hold="zoh",
-                     noise=float(rng.uniform(0.0, 3e-6)), force_limit=10.0)
-        fit, _ = identify(device=dev, transport="inprocess", duration=2.0, force_limit=4.0,
-                          max_delay=5, seed=i, progress=False, handle_signals=False)
+        d, dev = _random_device(rng)
+        fit, _ = _identify(dev, i)
         for name, ok in (("d", fit.delay_estimate.contains(d)),
                          ("m", fit.mass.contains(dev.mass)),
                          ("b0", fit.friction.contains(dev.friction))):
