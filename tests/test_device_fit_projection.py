@@ -13,7 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from hapsim.analysis.device_fit_search import _Stretched, moving_stretches
+from hapsim.analysis.device_fit_search import _Stretched
+from hapsim.analysis.device_fit_stretches import moving_stretches
 from hapsim.kernels.device_sim import simulate_device, stretch_basis
 from tolerance import measured
 

@@ -22,7 +22,7 @@ import sys
 import numpy as np
 import pytest
 
-from hapsim.analysis.device_fit_search import moving_stretches
+from hapsim.analysis.device_fit_stretches import moving_stretches
 from hapsim.pipeline.excitation import LEVEL_SHARE, PRBS_SHARE
 
 from intervals import assert_within  # same directory (pytest prepend import mode)
@@ -41,7 +41,7 @@ def test_the_excitation_moves_every_device_clearly_inside_the_envelope(seed):
     the device never leaves the envelope (what the loop's safety stop checks), the force
     sent never reaches the limit (the other safety stop), and the record holds the 100
     samples of clear motion the fit needs (the fit's own rule,
-    :func:`hapsim.analysis.device_fit_search.moving_stretches`)."""
+    :func:`hapsim.analysis.device_fit_stretches.moving_stretches`)."""
     rng = np.random.default_rng(1000 + seed)
     lm, b0, fc = rng.uniform(math.log(0.02), math.log(2.0)), rng.uniform(0, 5), rng.uniform(0, .5)
     d, noise = int(rng.integers(0, 21)), float(rng.choice([0.0, 20e-6, 50e-6]))

@@ -1,6 +1,6 @@
 """A handle that stops for an instant inside a stretch of motion: ``identify`` still explains it.
 
-A stretch of clear motion (:func:`hapsim.analysis.device_fit_search.moving_stretches`) is
+A stretch of clear motion (:func:`hapsim.analysis.device_fit_stretches.moving_stretches`) is
 fitted by a linear model that holds the Coulomb friction at one sign. A device with Coulomb
 friction can stop inside such a stretch without the centred difference seeing it: its
 velocity would reverse within a period while the force cannot break it loose (the mock's
@@ -22,7 +22,7 @@ import math
 import numpy as np
 import pytest
 
-from hapsim.analysis.device_fit_search import split_at_stops
+from hapsim.analysis.device_fit_stretches import split_at_stops
 from hapsim.errors import HapsimError
 from hapsim.scene import Device
 

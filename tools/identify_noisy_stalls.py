@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the rows and totals here")
     a = ap.parse_args(argv)
     import hapsim.analysis.device_fit as dfm
-    from hapsim.analysis.device_fit_search import moving_stretches
+    from hapsim.analysis.device_fit_stretches import moving_stretches
     from hapsim.errors import IdentificationError
     from test_identify_stall import N, T, _case, run_stalled
 

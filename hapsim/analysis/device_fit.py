@@ -99,7 +99,8 @@ from hapsim.analysis.device_fit_model import (
     true_runs, applied_force)
 from hapsim.analysis.device_fit_search import (
     FRACTION_TOL, correlation_guess, fraction_candidate, refine, search_candidates,
-    search_fraction, moving_stretches, split_at_stops)
+    search_fraction)
+from hapsim.analysis.device_fit_stretches import moving_stretches, split_at_stops
 from hapsim.errors import ConfigError, IdentificationError
 
 __all__ = ["Estimate", "DeviceFit", "fit_device", "applied_force", "POSITION_FLOOR",
@@ -121,13 +122,12 @@ def _stretches_fitted(r, offs, share=0.0):
     return keep
 
 
-def _refit_without(st, keep, cands, x, f, T, late, holds, max_delay, known, seq):
-    """The candidates' search again on the stretches ``keep`` names, started from the
-    best candidate: ``(stretches, candidates)`` (the candidates empty when none fits)."""
+def _refit_on(st, cands, x, f, T, late, holds, max_delay, known, seq):
+    """The candidates' search again on the stretches ``st``, started from the best of
+    ``cands``: the new candidates (empty when none fits)."""
     b_ = min(cands, key=lambda c: c["cost"])
-    st = tuple(a_[keep] for a_ in st)
-    return st, search_candidates(x, f, T, late, holds, max_delay, st, b_["delay"],
-                                 HOLDS[b_["hold"]], math.exp(b_["_res"].x[0]), known, seq)
+    return search_candidates(x, f, T, late, holds, max_delay, st, b_["delay"],
+                             HOLDS[b_["hold"]], math.exp(b_["_res"].x[0]), known, seq)
 
 
 def _fraction_and_refine(cands, x, T, late, st, known, seq, f, holds):
@@ -283,8 +283,8 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         best = min(cands, key=lambda c: c["cost"])
         keep = _stretches_fitted(best_residual(best), best["_mod"].offs)
         if keep is not None:
-            st, cands = _refit_without(st, keep, cands, x, f, T, late, holds, max_delay,
-                                       known, seq)
+            st = tuple(a_[keep] for a_ in st)
+            cands = _refit_on(st, cands, x, f, T, late, holds, max_delay, known, seq)
     for _ in range(3):
         # a stretch whose model nearly stops inside it: cut there and fit again (the
         # model after a cut is closer, and may show a stop the first one smoothed over)
@@ -295,9 +295,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         cut = split_at_stops(st, best_residual(best) + x[mod.idx])
         if cut is None or cut[0].size < 3:
             break
-        again = search_candidates(x, f, T, late, holds, max_delay, cut, best["delay"],
-                                  HOLDS[best["hold"]], math.exp(best["_res"].x[0]),
-                                  known, seq)
+        again = _refit_on(cut, cands, x, f, T, late, holds, max_delay, known, seq)
         if not again:
             break
         st, cands = cut, again
@@ -312,8 +310,8 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     best = min(cands, key=lambda c: c["cost"])
     keep = _stretches_fitted(best_residual(best), best["_mod"].offs, share=0.75)
     if keep is not None:
-        st_k, again = _refit_without(st, keep, cands, x, f, T, late, holds, max_delay,
-                                     known, seq)
+        st_k = tuple(a_[keep] for a_ in st)
+        again = _refit_on(st_k, cands, x, f, T, late, holds, max_delay, known, seq)
         if again:
             st, cands = st_k, _fraction_and_refine(again, x, T, late, st_k, known, seq, f,
                                                    holds)
@@ -526,9 +524,8 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
             c_e = fraction_candidate(x, u_e, T, st, [best["_res"].x], d_e, fr_e)
             if c_e is not None:
                 ends.append(c_e)
-    for c in cands + ends:
-        if c is best or not (close(c) or resolved(c) or any(c is e_ for e_ in ends)):
-            continue
+    covered = [c for c in cands if c is not best and (close(c) or resolved(c))] + ends
+    for c in covered:
         pc = c["_ref"][1] if c.get("_ref") is not None else c["_mod"].full(c["_res"].x)[1]
         mc = math.exp(pc[0])
         mass = Estimate(m, min(mass.lo, mc * mass.lo / m), max(mass.hi, mc * mass.hi / m), "kg")

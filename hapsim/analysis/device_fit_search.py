@@ -14,8 +14,7 @@ import numpy as np
 
 from hapsim.analysis.device_fit_model import HOLDS, applied_force
 
-__all__ = ["correlation_guess", "moving_stretches", "split_at_stops", "fit_stretched",
-           "search_candidates", "FRACTION_GRID", "FRACTION_TOL", "search_fraction",
+__all__ = ["correlation_guess", "fit_stretched", "search_candidates", "FRACTION_GRID", "FRACTION_TOL", "search_fraction",
            "fraction_candidate", "refine"]
 
 #: ln m [kg] the fit searches within (1e-6 .. 1e6 kg: beyond, no device; the basis overflows).
@@ -73,133 +72,6 @@ def correlation_guess(x, f, T, max_delay, pieces=None):
     s = c[j] + (nxt if zoh else 0.0)
     m = T * T / s if s > 0 else 0.1
     return max(min(j - 1, int(max_delay)), 0), (0 if zoh else 1), float(m)
-
-
-def moving_stretches(x, q, W=5, margin=8, min_len=12, pieces=None):
-    """Stretches of samples where the device clearly moves one way.
-
-    The velocity sign is read from ``x[n+W] - x[n-W]``, trusted when that exceeds the
-    sensor's reach ``1.5 q + 4 sigma_w`` (``sigma_w``: white noise from the median
-    absolute second difference); ``margin`` (> W: the centred difference sees W samples
-    ahead and behind) samples are dropped at each end. Inside a stretch the Coulomb
-    friction is a constant force (no sticking: the velocity keeps its sign), so the model
-    is linear there.
-
-    Parameters
-    ----------
-    x : ndarray, shape (n,)
-        Positions [m].
-    q : float >= 0
-        Encoder quantum [m] (0: none).
-    W, margin, min_len : int
-        Half-width of the centred difference, samples dropped at each end, shortest
-        stretch kept [samples].
-    pieces : list of (int, int), optional
-        Row ranges of consecutive ticks with a known input (default: the whole record); a
-        stretch never leaves its piece (a lost STATE, a force not known: the model
-        restarts from a state of its own).
-
-    Returns
-    -------
-    tuple of ndarray of int64, each shape (s,)
-        ``(starts, ends, dirs)``: the stretches' rows ``starts[i] .. ends[i] - 1`` and
-        their directions (+1, -1).
-    """
-    n = x.size
-    if pieces is None:
-        pieces = [(0, n)]
-    d2 = np.concatenate([np.diff(x[a:b], 2) for a, b in pieces if b - a > 2] or [[0.0]])
-    sig = 1.4826 * float(np.median(np.abs(d2 - np.median(d2)))) / math.sqrt(6.0)
-    thr = 1.5 * q + 4.0 * sig + 1e-12
-    starts, ends, dirs = [], [], []
-    for p0, p1 in pieces:
-        xp = x[p0:p1]
-        m_ = xp.size
-        if m_ <= 2 * W:
-            continue
-        dv = np.zeros(m_)
-        dv[W:m_ - W] = xp[2 * W:] - xp[:m_ - 2 * W]
-        sgn = np.where(dv > thr, 1, np.where(dv < -thr, -1, 0))
-        k = 0
-        while k < m_:
-            if sgn[k] == 0:
-                k += 1
-                continue
-            j = k
-            while j < m_ and sgn[j] == sgn[k]:
-                j += 1
-            a_, b_ = k + margin, j - margin
-            if b_ - a_ >= min_len:
-                starts.append(p0 + a_)
-                ends.append(p0 + b_)
-                dirs.append(int(sgn[k]))
-            k = j
-    return (np.array(starts, np.int64), np.array(ends, np.int64), np.array(dirs, np.int64))
-
-
-def split_at_stops(st, y, min_len=12, ratio=2.0):
-    """The stretches cut where the model's velocity comes within ``ratio`` periods of
-    reversing: where the device may have stopped for an instant inside a stretch.
-
-    A stretch's linear model holds the Coulomb friction at one sign throughout, but the
-    device's own model (:func:`hapsim.kernels.device_sim.simulate_device`, the mock's
-    rule) stops a velocity that would reverse within a period while the force cannot
-    break the handle loose: the positions still move one way (the centred difference of
-    :func:`moving_stretches` sees motion), the linear model cannot follow the stop, and
-    its residual there is far above a noise-free sensor's. Such a sample is one where
-    the model decelerates (``y[k+1] - 2 y[k] + y[k-1]`` against the motion) and its step
-    ``y[k+1] - y[k]`` is less than ``ratio`` times that deceleration -- at the current
-    deceleration the velocity reaches zero within ``ratio`` periods (one for the period
-    itself, one for the model's own error there). The model positions are smooth whatever
-    the sensor's noise or quantum, so a noisy or quantised record is not cut by them.
-
-    Parameters
-    ----------
-    st : tuple of ndarray of int64, each shape (s,)
-        ``(starts, ends, dirs)`` (:func:`moving_stretches`).
-    y : ndarray, shape (n_s,)
-        The fitted model's positions on the stretches, in their order [m].
-    min_len : int
-        Shortest piece kept [samples].
-    ratio : float > 0
-        Periods within which a reversal counts [periods].
-
-    Returns
-    -------
-    tuple of ndarray or None
-        The new ``(starts, ends, dirs)``; the samples ``k - 1 .. k + 2`` around each stop
-        ``k`` are left out. None when no stretch is cut.
-    """
-    starts, ends, dirs = st
-    out_s, out_e, out_d = [], [], []
-    cut = False
-    off = 0
-    for a, b, d in zip(starts, ends, dirs):
-        L = int(b - a)
-        seg = y[off:off + L]
-        off += L
-        stops = []
-        if L >= 3:
-            step = d * (seg[2:] - seg[1:-1])            # rows 1 .. L-2
-            dec = -d * (seg[2:] - 2.0 * seg[1:-1] + seg[:-2])
-            stops = list(np.nonzero((dec > 0) & (step < ratio * dec))[0] + 1)
-        if not stops:
-            out_s.append(a)
-            out_e.append(b)
-            out_d.append(d)
-            continue
-        cut = True
-        lo = 0
-        for k in stops + [L + 1]:
-            hi = min(k - 1, L)
-            if hi - lo >= min_len:
-                out_s.append(a + lo)
-                out_e.append(a + hi)
-                out_d.append(d)
-            lo = max(lo, k + 3)
-    if not cut:
-        return None
-    return (np.array(out_s, np.int64), np.array(out_e, np.int64), np.array(out_d, np.int64))
 
 
 class _Stretched:
@@ -391,7 +263,7 @@ def fit_stretched(x, u, T, hold, st, starts, frac=0.0):
     hold : int
         The hold's code (:data:`~hapsim.analysis.device_fit_model.HOLDS`).
     st : tuple of ndarray
-        ``(starts, ends, dirs)`` of :func:`moving_stretches`.
+        ``(starts, ends, dirs)`` of :func:`~hapsim.analysis.device_fit_stretches.moving_stretches`.
     starts : sequence of (float, float)
         Starting ``(ln m [ln kg], b0 [N s/m])``.
     frac : float in [0, 1)
@@ -487,7 +359,7 @@ def search_candidates(x, f, T, late, holds, max_delay, st, d0, h0, m0, known=Non
     max_delay : int >= 0
         Largest delay tried [samples].
     st : tuple of ndarray
-        ``(starts, ends, dirs)`` of :func:`moving_stretches`.
+        ``(starts, ends, dirs)`` of :func:`~hapsim.analysis.device_fit_stretches.moving_stretches`.
     d0, h0, m0 : int, int, float
         The guess of :func:`correlation_guess`: delay [samples], hold code, mass [kg].
     known : tuple (ndarray, int), optional
@@ -553,7 +425,7 @@ def fraction_candidate(x, u, T, st, start, d, fr):
     T : float
         Sample period [s].
     st : tuple of ndarray
-        The stretches (:func:`moving_stretches`).
+        The stretches (:func:`~hapsim.analysis.device_fit_stretches.moving_stretches`).
     start : list of ndarray
         Starting points ``(ln m, b0)`` (:func:`fit_stretched`).
     d : int
@@ -603,7 +475,7 @@ def search_fraction(x, T, late, st, cands, known=None, seq=None, f=None):
     late : array_like of bool, shape (n,), or None
         Rows the device reported holding an older force.
     st : tuple of ndarray
-        ``(starts, ends, dirs)`` of :func:`moving_stretches`.
+        ``(starts, ends, dirs)`` of :func:`~hapsim.analysis.device_fit_stretches.moving_stretches`.
     cands : list of dict
         The whole delays' candidates (:func:`search_candidates`); those near the new ones
         get their refinement (``_ref``, ``cost``) here.
