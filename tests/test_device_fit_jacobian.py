@@ -105,7 +105,8 @@ def test_the_compiled_refinement_jacobian_is_the_block_difference_bit_for_bit(ho
     device model (Coulomb friction, reversals, a quantiser), at the start and at points
     around it, under the plain and the split zero-order hold and the idealised image."""
     from hapsim.analysis.device_fit_search import (
-        _refine_difference, _refine_residual, _Stretched, moving_stretches)
+        _refine_difference, _refine_residual, _Stretched)
+    from hapsim.analysis.device_fit_stretches import moving_stretches
     from hapsim.kernels.device_sim import simulate_device
     rng = np.random.default_rng(15 + hold)
     n, T = 1500, 1e-3
