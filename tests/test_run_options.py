@@ -109,6 +109,23 @@ def test_run_scene_checks_a_copy_with_the_changes():
         run_scene(scene, opts, no_such_option=1)
 
 
+@pytest.mark.parametrize("transport", ["inprocess", "sim"])
+def test_a_driver_with_an_in_process_transport_is_refused_naming_the_valid_ones(transport):
+    """The in-process transports run hapsim's own mock; a driver's board is reached over a
+    port. Every driver asked for one is refused before any work, with the valid choices
+    (it was an AttributeError after the whole run: the run had gone to the driver's pty and
+    looked for an in-process mock's account)."""
+    from hapsim.drivers import DEFAULT, DRIVERS
+    assert len(DRIVERS) >= 4                # framed, firefader, haply, hapkit-serial
+    for name in DRIVERS:
+        if name == DEFAULT:
+            continue                # hapsim's own protocol: the in-process mock is its own
+        with pytest.raises(ConfigError, match="valid with a driver: pty, serial") as err:
+            RunOptions(driver=name, transport=transport,
+                       lockstep=transport == "inprocess").check()
+        assert err.value.key == "transport"
+
+
 def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
     """``hapsim run`` is :func:`hapsim.api.run` with its command line's options: the JSON it
     prints is the API's report, its text the report's ``text()``, its exit code the

@@ -129,6 +129,7 @@ class RunOptions:
         on a pseudo-terminal). ``"inprocess"`` (lockstep only) calls the mock directly;
         ``"sim"`` (real-time only) runs the real-time mock in-process on a virtual clock
         (:class:`~hapsim.emulated.links.SimTransport`: fast, deterministic fault tests).
+        Both run hapsim's own mock: with a ``driver`` they are refused (ConfigError).
     seed : int
         Mock sensor-noise seed.
     stop : StopFlag, optional
@@ -414,6 +415,11 @@ class RunOptions:
             from hapsim.drivers import get_driver
             # unknown name or bad parameters: ConfigError before any work
             get_driver(self.driver, **(self.driver_options or {}))
+            if tp in ("inprocess", "sim"):
+                raise ConfigError(f"transport {tp!r} runs hapsim's own mock in this process; "
+                                  f"the {self.driver} driver talks to its board over a port "
+                                  "(its emulated board when no port is given); valid with a "
+                                  "driver: pty, serial", key="transport")
             if not self.plan.empty:
                 raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
                                   "has none", key="--faults")
