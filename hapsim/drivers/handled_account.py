@@ -7,11 +7,17 @@ from __future__ import annotations
 
 import time
 
-__all__ = ["HandledAccount", "CLAIM_QUIET_S"]
+__all__ = ["HandledAccount", "CLAIM_QUIET_S", "LOCKSTEP_WRITE_TIMEOUT_S"]
 
 #: A lockstep mock's account standing still this long [s] when the transport takes the
 #: port (an earlier user's bytes handled and landed: :meth:`HandledAccount._claim`).
 CLAIM_QUIET_S = 0.03
+#: How long a write to a lockstep mock may block [s]. A board on its own clock that takes
+#: no byte for 1 s is lost; a lockstep mock is a process paced by the writes, which a
+#: loaded host can deschedule for over a second (a CI pass at nice 19: "write timeout",
+#: the run lost): late, not lost. (A mock that died is found by the reads between the
+#: writes: its pty's master reads EIO once no slave is open.)
+LOCKSTEP_WRITE_TIMEOUT_S = 30.0
 
 
 class HandledAccount:

@@ -87,7 +87,7 @@ import time
 from collections import deque
 
 import firmware_protocol as fp
-from hapsim.drivers.handled_account import HandledAccount
+from hapsim.drivers.handled_account import LOCKSTEP_WRITE_TIMEOUT_S, HandledAccount
 from hapsim.drivers.host_watchdog import Watched
 from hapsim.drivers.late_replies import LateReplies
 from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, SILENCE_LOST_S, Resynchronising
@@ -208,7 +208,9 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         from hapsim.drivers.urlhandler import serial_for_url
         try:
             self._ser = serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
-                                       timeout=read_timeout, write_timeout=1.0)
+                                       timeout=read_timeout,
+                                       write_timeout=(1.0 if handled is None
+                                                      else LOCKSTEP_WRITE_TIMEOUT_S))
         except (OSError, ValueError) as exc:        # (serial.SerialException is an OSError)
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.driver = driver
