@@ -6,9 +6,36 @@ wire's rounding) and a known force disturbance convolved through the loop (docs/
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import numpy as np
 
 __all__ = ["sensor_inputs", "sensor_error_response", "force_error_response", "disturbance_response"]
+
+#: Responses kept (the newest): one run's measurement asks for the same scene's two
+#: responses at the record's length from four places per fit (the fit, its wire and
+#: late-tick terms, the unseen holds' search), at each latency its search tries.
+_KEPT = 16
+_kept: OrderedDict = OrderedDict()
+
+
+def _remembered(kind: str, scene, n: int, compute) -> np.ndarray:
+    """``compute()``, or the array computed for the same scene object and length before.
+
+    Keyed by the scene's identity (scenes are frozen dataclasses; the entry holds the
+    scene, so its id is not reused while kept). The array returned is read-only: every
+    caller shares it."""
+    key = (kind, id(scene), int(n))
+    hit = _kept.get(key)
+    if hit is not None and hit[0] is scene:
+        _kept.move_to_end(key)
+        return hit[1]
+    out = compute()
+    out.setflags(write=False)
+    _kept[key] = (scene, out)
+    while len(_kept) > _KEPT:
+        _kept.popitem(last=False)
+    return out
 
 
 def sensor_inputs(scene):
@@ -66,22 +93,25 @@ def sensor_error_response(scene, n: int) -> np.ndarray:
     Returns
     -------
     ndarray, shape (n,)
-        Logged-position response to a unit sensor error at sample 0 [m/m].
+        Logged-position response to a unit sensor error at sample 0 [m/m]; read-only
+        (the same scene object and length share one array).
 
     Raises
     ------
     ConfigError
         As :func:`hapsim.analysis.network.closed_loop`.
     """
+    return _remembered("sensor", scene, n, lambda: _sensor_response(scene, n))
+
+
+def _sensor_response(scene, n: int) -> np.ndarray:
+    from hapsim.kernels.impulse import first_state_response
+
     A, g, h, _ = sensor_inputs(scene)
-    out = np.zeros(max(n, 0))
-    if n <= 0:        # an empty record (a run refused before its first STATE)
-        return out
-    out[0] = 1.0
-    s = g.copy()
-    for i in range(1, n):
-        out[i] = s[0]
-        s = A @ s + (h if i == 1 else 0.0)
+    out = first_state_response(np.ascontiguousarray(A, float), np.asarray(g, float),
+                               np.asarray(h, float), max(int(n), 0))
+    if out.size:      # (empty: a run refused before its first STATE)
+        out[0] = 1.0
     return out
 
 
@@ -103,23 +133,26 @@ def force_error_response(scene, n: int) -> np.ndarray:
     Returns
     -------
     ndarray, shape (n,)
+        Read-only (the same scene object and length share one array).
 
     Raises
     ------
     ConfigError
         As :func:`hapsim.analysis.network.closed_loop`.
     """
-    from hapsim.analysis.network import closed_loop, force_input
+    return _remembered("force", scene, n, lambda: _force_response(scene, n))
 
-    h = np.zeros(max(int(n), 0))
-    if h.size < 2:
-        return h
+
+def _force_response(scene, n: int) -> np.ndarray:
+    from hapsim.analysis.network import closed_loop, force_input
+    from hapsim.kernels.impulse import first_state_response
+
+    if int(n) < 2:
+        return np.zeros(max(int(n), 0))
     A, _ = closed_loop(scene)
-    s = force_input(scene)
-    for k in range(1, h.size):
-        h[k] = s[0]
-        s = A @ s
-    return h
+    b = np.asarray(force_input(scene), float)
+    return first_state_response(np.ascontiguousarray(A, float), b, np.zeros_like(b),
+                                int(n))
 
 
 def disturbance_response(scene, w, *, starts=None, response=None) -> np.ndarray:
