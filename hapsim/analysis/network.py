@@ -46,6 +46,7 @@ case the scene can reach; links given as a felt ``target`` need their calibrated
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 
 import numpy as np
 
@@ -58,6 +59,11 @@ from hapsim.scene import INTEGRATORS
 
 __all__ = ["INTEGRATORS", "device_body", "body_stiffness", "plant_rows", "split_plant_rows",
            "closed_loop", "force_input", "port_io", "MAX_STATES", "state_count", "check_size"]
+
+#: Closed loops kept (the newest), per scene object, integrator and gain
+#: (:func:`closed_loop`; the nominal hand and no calibration overrides).
+_KEPT = 32
+_kept: OrderedDict = OrderedDict()
 
 #: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
 #: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
@@ -94,7 +100,9 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
         hold, ``d`` samples of delay, N moving masses), ``2N`` without. Layout and timing:
         module docstring.
     state_names : list of str, length n
-        What each state is.
+        What each state is. Both are the caller's own copies: with the nominal hand and
+        no ``calibrated``, the loop is built once per scene object (frozen), integrator
+        and gain, and the newest :data:`_KEPT` are kept.
 
     Raises
     ------
@@ -105,6 +113,24 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
         device beyond :data:`hapsim.analysis.loop.MAX_PRODUCT`.
     """
     integrator = integrator or getattr(scene, "integrator", None) or "centred"
+    if calibrated is not None or member is not None:
+        return _closed_loop(scene, integrator, calibrated, gain, member)
+    # a measurement asks for the same model's loop many times (its responses, poles and
+    # search): kept per scene object (frozen), returned as a copy the caller may change
+    key = (id(scene), integrator, float(gain))
+    hit = _kept.get(key)
+    if hit is None or hit[0] is not scene:
+        hit = (scene, *_closed_loop(scene, integrator, None, gain, None))
+        _kept[key] = hit
+        while len(_kept) > _KEPT:
+            _kept.popitem(last=False)
+    else:
+        _kept.move_to_end(key)
+    return hit[1].copy(), list(hit[2])
+
+
+def _closed_loop(scene, integrator, calibrated, gain, member):
+    """:func:`closed_loop`'s matrix, built."""
     check_integrator(integrator, scene)
     check_size(scene)
     net = network(scene, calibrated, gain=gain)
