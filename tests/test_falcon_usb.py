@@ -324,14 +324,23 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
     # (a reply read after the host's watchdog wrote its zero command may answer that
     # command, an earlier tick's counts than the truth: not compared, the watchdog's
     # rows; beside the suite's load 11 of 40 were, none missing)
+    # (a host the machine stalled past the late-stop rule's bound ends the loop there, a
+    # safety stop said in the link's verdict: the rows up to it are the record; once in
+    # a fresh clone's CI, beside the numerical pass: stopped at packet 2, the watchdog's
+    # zero written at rows 1 and 2)
     t = out["truth"]
-    wd_rows = {r for r in out["watchdog"].get("rows", []) if r < 40}
-    assert 40 - out["missing"] - len(wd_rows) <= t["compared"] <= 40 - out["missing"], (
-        t, out["missing"], sorted(wd_rows))
-    assert t["exact"] == t["compared"] > 0 and t["max_error_counts"] == 0, t
+    stopped = out.get("stopped")
+    assert not stopped or stopped[1].startswith("safety: the host was"), stopped
+    rows = 40 if not stopped else int(stopped[0]) + 1
+    wd_rows = {r for r in out["watchdog"].get("rows", []) if r < rows}
+    assert rows - out["missing"] - len(wd_rows) <= t["compared"] <= rows - out["missing"], (
+        t, out["missing"], sorted(wd_rows), stopped)
+    assert t["exact"] == t["compared"] and t["max_error_counts"] in (0, None), t
+    assert t["compared"] > 0 or stopped, t
     assert out["verdict"] == "ok" or (
         out["verdict"] == "degraded"
-        and ("stalled" in out["reason"] or "packets/s, below" in out["reason"])), out["reason"]
+        and ("stalled" in out["reason"] or "packets/s, below" in out["reason"]
+             or "stopped at packet" in out["reason"])), out["reason"]
     # the felt matrices: never a verdict the stated uncertainty does not cover; on the
     # sphere the Falcon's counts are too coarse, and the report says so with the figures
     # (hapsim.emulated.falcon_felt.felt_feasibility; tests/test_falcon_felt.py)
