@@ -207,10 +207,9 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                  handled=None) -> None:
         from hapsim.drivers.urlhandler import serial_for_url
         try:
+            wt = 1.0 if handled is None else LOCKSTEP_WRITE_TIMEOUT_S   # (a lockstep mock)
             self._ser = serial_for_url(port, baudrate=driver.baud, rtscts=driver.rtscts,
-                                       timeout=read_timeout,
-                                       write_timeout=(1.0 if handled is None
-                                                      else LOCKSTEP_WRITE_TIMEOUT_S))
+                                       timeout=read_timeout, write_timeout=wt)
         except (OSError, ValueError) as exc:        # (serial.SerialException is an OSError)
             raise DeviceError(f"cannot open port {port}: {exc}") from None
         self.driver = driver
