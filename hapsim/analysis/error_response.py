@@ -6,6 +6,7 @@ wire's rounding) and a known force disturbance convolved through the loop (docs/
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -17,6 +18,7 @@ __all__ = ["sensor_inputs", "sensor_error_response", "force_error_response", "di
 #: late-tick terms, the unseen holds' search), at each latency its search tries.
 _KEPT = 16
 _kept: OrderedDict = OrderedDict()
+_kept_lock = threading.Lock()          # (a live view measures in a thread of its own)
 
 
 def _remembered(kind: str, scene, n: int, compute) -> np.ndarray:
@@ -26,15 +28,17 @@ def _remembered(kind: str, scene, n: int, compute) -> np.ndarray:
     scene, so its id is not reused while kept). The array returned is read-only: every
     caller shares it."""
     key = (kind, id(scene), int(n))
-    hit = _kept.get(key)
-    if hit is not None and hit[0] is scene:
-        _kept.move_to_end(key)
-        return hit[1]
+    with _kept_lock:
+        hit = _kept.get(key)
+        if hit is not None and hit[0] is scene:
+            _kept.move_to_end(key)
+            return hit[1]
     out = compute()
     out.setflags(write=False)
-    _kept[key] = (scene, out)
-    while len(_kept) > _KEPT:
-        _kept.popitem(last=False)
+    with _kept_lock:
+        _kept[key] = (scene, out)
+        while len(_kept) > _KEPT:
+            _kept.popitem(last=False)
     return out
 
 

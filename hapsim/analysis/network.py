@@ -46,6 +46,7 @@ case the scene can reach; links given as a felt ``target`` need their calibrated
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 
 import numpy as np
@@ -64,6 +65,7 @@ __all__ = ["INTEGRATORS", "device_body", "body_stiffness", "plant_rows", "split_
 #: (:func:`closed_loop`; the nominal hand and no calibration overrides).
 _KEPT = 32
 _kept: OrderedDict = OrderedDict()
+_kept_lock = threading.Lock()          # (a live view measures in a thread of its own)
 
 #: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
 #: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
@@ -118,14 +120,16 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     # a measurement asks for the same model's loop many times (its responses, poles and
     # search): kept per scene object (frozen), returned as a copy the caller may change
     key = (id(scene), integrator, float(gain))
-    hit = _kept.get(key)
+    with _kept_lock:
+        hit = _kept.get(key)
+        if hit is not None and hit[0] is scene:
+            _kept.move_to_end(key)
     if hit is None or hit[0] is not scene:
         hit = (scene, *_closed_loop(scene, integrator, None, gain, None))
-        _kept[key] = hit
-        while len(_kept) > _KEPT:
-            _kept.popitem(last=False)
-    else:
-        _kept.move_to_end(key)
+        with _kept_lock:
+            _kept[key] = hit
+            while len(_kept) > _KEPT:
+                _kept.popitem(last=False)
     return hit[1].copy(), list(hit[2])
 
 

@@ -16,7 +16,7 @@ CLAIM_QUIET_S = 0.03
 #: no byte for 1 s is lost; a lockstep mock is a process paced by the writes, which a
 #: loaded host can deschedule for over a second (a CI pass at nice 19: "write timeout",
 #: the run lost): late, not lost. (A mock that died is found by the reads between the
-#: writes: its pty's master reads EIO once no slave is open.)
+#: writes: its pty reads as disconnected once no slave is open.)
 LOCKSTEP_WRITE_TIMEOUT_S = 30.0
 
 
