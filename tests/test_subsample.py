@@ -491,7 +491,8 @@ def test_whole_delays_never_touch_the_split_hold(monkeypatch):
     # poles another test of this worker computed are kept (loop_poles.roots_w): start
     # empty, so every pole here is computed under the patches
     import hapsim.analysis.loop_poles as loop_poles
-    monkeypatch.setattr(loop_poles, "_ROOTS", {})
+    from hapsim.analysis.kept import Kept
+    monkeypatch.setattr(loop_poles, "_ROOTS", Kept(loop_poles._ROOTS.size))
     from hapsim.cli import main
     configs = sorted((pathlib.Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
     seen = 0

@@ -339,7 +339,8 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         return n_fr * math.log(max(c["cost"], 0.5 * nu * POSITION_FLOOR ** 2) / s_best) <= crit
 
     delay_estimate = delay_interval(cands, best, close_fr, n_fr, s_best, crit, nu)
-    if any(c.get("frac", 0.0) > 0.0 for c in cands):
+    fractional = any(c.get("frac", 0.0) > 0.0 for c in cands)
+    if fractional:
         # the fraction's search resolves it to FRACTION_TOL: on a noise-free record the
         # likelihood's interval is far narrower, and 5 of 120 in-process devices with a
         # sub-sample delay missed their truths by less (tools/identify_blind.py --mode
@@ -513,7 +514,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     # true one (1.1645 N s/m against [1.1587, 1.1641], the delay 1.3575 inside [1.331,
     # 1.364]: 8 of 240 devices of tools/identify_subsample.py, seeds 2911, 5, 77, 11-15)
     ends = []
-    if best["hold"] == "zoh" and any(c.get("frac", 0.0) > 0.0 for c in cands):
+    if best["hold"] == "zoh" and fractional:
         for e_ in (delay_estimate.lo, delay_estimate.hi):
             d_e = int(math.floor(e_))
             fr_e = e_ - d_e

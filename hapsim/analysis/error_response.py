@@ -6,40 +6,25 @@ wire's rounding) and a known force disturbance convolved through the loop (docs/
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
-
 import numpy as np
+
+from hapsim.analysis.kept import Kept
 
 __all__ = ["sensor_inputs", "sensor_error_response", "force_error_response", "disturbance_response"]
 
-#: Responses kept (the newest): one run's measurement asks for the same scene's two
-#: responses at the record's length from four places per fit (the fit, its wire and
-#: late-tick terms, the unseen holds' search), at each latency its search tries.
-_KEPT = 16
-_kept: OrderedDict = OrderedDict()
-_kept_lock = threading.Lock()          # (a live view measures in a thread of its own)
+#: Responses kept: one run's measurement asks for the same scene's two responses at the
+#: record's length from four places per fit (the fit, its wire and late-tick terms, the
+#: unseen holds' search), at each latency its search tries. Shared, read-only.
+_KEPT = Kept(16)
 
 
 def _remembered(kind: str, scene, n: int, compute) -> np.ndarray:
-    """``compute()``, or the array computed for the same scene object and length before.
-
-    Keyed by the scene's identity (scenes are frozen dataclasses; the entry holds the
-    scene, so its id is not reused while kept). The array returned is read-only: every
-    caller shares it."""
-    key = (kind, id(scene), int(n))
-    with _kept_lock:
-        hit = _kept.get(key)
-        if hit is not None and hit[0] is scene:
-            _kept.move_to_end(key)
-            return hit[1]
-    out = compute()
-    out.setflags(write=False)
-    with _kept_lock:
-        _kept[key] = (scene, out)
-        while len(_kept) > _KEPT:
-            _kept.popitem(last=False)
-    return out
+    """``compute()`` made read-only, kept by the scene object and length (:class:`Kept`)."""
+    def made():
+        out = compute()
+        out.setflags(write=False)
+        return out
+    return _KEPT.get((kind, id(scene), int(n)), made, owner=scene)
 
 
 def sensor_inputs(scene):

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from hapsim.analysis.kept import Kept
 from hapsim.analysis.loop import LoopModel, char_eval, char_parts, check_delay, w_to_z
 from hapsim.scene_schema import check_product
 
@@ -130,20 +131,14 @@ def roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:
     """
     check_delay(loop.delay_whole)
     key = (repr(loop), float(kappa).hex(), float(beta).hex())
-    got = _ROOTS.get(key)
-    if got is None:
-        got = _roots_w(loop, kappa, beta)
-        if len(_ROOTS) >= 512:
-            _ROOTS.clear()
-        _ROOTS[key] = got
-    return got.copy()
+    return _ROOTS.get(key, lambda: _roots_w(loop, kappa, beta)).copy()
 
 
 #: :func:`roots_w`'s answers by the loop's repr (every field, floats to the bit) and the
 #: gains' bits: render, check, the run's prediction and the stability limit's interval
 #: tests ask for the same poles of the same loop again (40 % of the calls in
 #: test_long_delay's random loops); the same inputs, the same poles.
-_ROOTS: dict = {}
+_ROOTS = Kept(512)
 
 
 def _roots_w(loop: LoopModel, kappa: float, beta: float) -> np.ndarray:

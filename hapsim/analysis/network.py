@@ -46,13 +46,12 @@ case the scene can reach; links given as a felt ``target`` need their calibrated
 from __future__ import annotations
 
 import math
-import threading
-from collections import OrderedDict
 
 import numpy as np
 
 from hapsim.analysis.body import is_compliant, ideal_shift, body_stiffness, device_body
 from hapsim.analysis.loop import MAX_PRODUCT, check_product, zoh_state_space
+from hapsim.analysis.kept import Kept
 from hapsim.errors import ConfigError
 from hapsim.analysis.virtual_network import (check_integrator, link_values, multirate_blocks,
                                              network, virtual_blocks, virtual_state_names)
@@ -63,9 +62,7 @@ __all__ = ["INTEGRATORS", "device_body", "body_stiffness", "plant_rows", "split_
 
 #: Closed loops kept (the newest), per scene object, integrator and gain
 #: (:func:`closed_loop`; the nominal hand and no calibration overrides).
-_KEPT = 32
-_kept: OrderedDict = OrderedDict()
-_kept_lock = threading.Lock()          # (a live view measures in a thread of its own)
+_KEPT = Kept(32)
 
 #: Largest closed-loop state the analysis builds: every eigenvalue (and, with a port, both
 #: eigenvector sets) of a dense n-square matrix, O(n^3) time and 16 n^2 bytes per matrix:
@@ -104,7 +101,7 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
     state_names : list of str, length n
         What each state is. Both are the caller's own copies: with the nominal hand and
         no ``calibrated``, the loop is built once per scene object (frozen), integrator
-        and gain, and the newest :data:`_KEPT` are kept.
+        and gain, and the newest 32 are kept (:class:`hapsim.analysis.kept.Kept`).
 
     Raises
     ------
@@ -119,18 +116,10 @@ def closed_loop(scene, integrator: str | None = None, *, calibrated=None,
         return _closed_loop(scene, integrator, calibrated, gain, member)
     # a measurement asks for the same model's loop many times (its responses, poles and
     # search): kept per scene object (frozen), returned as a copy the caller may change
-    key = (id(scene), integrator, float(gain))
-    with _kept_lock:
-        hit = _kept.get(key)
-        if hit is not None and hit[0] is scene:
-            _kept.move_to_end(key)
-    if hit is None or hit[0] is not scene:
-        hit = (scene, *_closed_loop(scene, integrator, None, gain, None))
-        with _kept_lock:
-            _kept[key] = hit
-            while len(_kept) > _KEPT:
-                _kept.popitem(last=False)
-    return hit[1].copy(), list(hit[2])
+    A, names = _KEPT.get((id(scene), integrator, float(gain)),
+                         lambda: _closed_loop(scene, integrator, None, gain, None),
+                         owner=scene)
+    return A.copy(), list(names)
 
 
 def _closed_loop(scene, integrator, calibrated, gain, member):
