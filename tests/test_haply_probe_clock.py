@@ -123,3 +123,29 @@ def test_lockstep_counts_writes_as_before():
     j = Joint({})
     assert probe(j, clock=False).relative == 1
     assert PULSE_S * RATE >= 1
+
+
+class LossyJoint(Joint):
+    """The same joint, each reply lost (NaN: read after its wait, or its bytes lost) with
+    probability ``p``; every write still reaches the board."""
+
+    def __init__(self, p: float, seed: int, sign: int = 1):
+        super().__init__({}, sign)
+        self.rng = np.random.default_rng(seed)
+        self.p = p
+
+    def send(self, data: bytes) -> float:
+        x = super().send(data)
+        return math.nan if self.rng.random() < self.p else x
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_missing_replies_say_nothing_of_the_motion_while_settling(seed):
+    """One reply in ten missing, at random (a loaded host): the joint at rest still
+    settles and its wiring is found. A missing reply reset the count of replies at rest
+    before (80 in a row needed: with one in ten missing, ~45,000 replies expected against
+    the 3,000 of the settling's time: "did not come to rest"; once in a fresh clone's CI,
+    tests/test_haply2_realtime.py)."""
+    for sign in (1, -1):
+        joint = LossyJoint(0.1, seed, sign)
+        assert probe(joint, clock=True).relative == sign

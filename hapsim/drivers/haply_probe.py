@@ -259,13 +259,15 @@ def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: 
     x = math.nan
 
     def settle():
-        """Zero torque until the angle has not moved for ``n_still`` replies."""
+        """Zero torque until the angle has not moved for ``n_still`` replies (a reply that
+        did not come says nothing of the motion: neither counted nor a reset; a loaded
+        host misses one now and then, and a reset at each kept a resting 2DIY joint
+        "not at rest" for the whole 3 s, once in a fresh clone's CI)."""
         nonlocal x
         ref, still = math.nan, 0
         for _ in range(n_settle):
             x = send(zero)
             if not math.isfinite(x):
-                still = 0
                 continue
             if math.isfinite(ref) and abs(x - ref) < count / 2:
                 still += 1
