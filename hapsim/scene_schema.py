@@ -15,6 +15,7 @@ Paths: ``rate_hz`` (top level), ``device.friction`` (a key of a section),
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -708,6 +709,13 @@ def section_keys(section: str, kind: str | None = None) -> tuple[Key, ...]:
     tuple of Key
         The rows (empty for an unknown section).
     """
+    return _section_keys(section, kind)
+
+
+@functools.lru_cache(maxsize=None)
+def _section_keys(section: str, kind: str | None) -> tuple[Key, ...]:
+    # the table is fixed at import: a scene's check (every Scene made, a measurement's
+    # searches make thousands) asks for the same few sections each time
     return tuple(k for k in _KEYS if k.section == section
                  and (kind is None or not k.kinds or kind in k.kinds))
 

@@ -491,7 +491,15 @@ def w_to_z(p):
     out = np.array([0.0])
     zm1 = np.array([1.0, -1.0])
     for c in p:
-        out = np.polyadd(np.polymul(out, zm1), [c])
+        # np.polyadd(np.polymul(out, zm1), [c]), the same operations without its two
+        # np.poly1d (their trim_zeros were three quarters of this function's time, and a
+        # loop's poles ask for it three times): polymul convolves the factors with their
+        # leading zeros dropped ([0.0] for none left), polyadd adds [c] zero-padded
+        nz = np.flatnonzero(out)
+        prod = np.convolve(out[nz[0]:] if nz.size else np.zeros(1), zm1)
+        pad = np.zeros(prod.size)
+        pad[-1] = c
+        out = prod + pad
     return np.trim_zeros(out, "f") if np.any(out) else np.array([0.0])
 
 

@@ -50,6 +50,7 @@ import math
 import numpy as np
 
 from hapsim.analysis.hand import rigid_matrices, zoh_matrices
+from hapsim.analysis.kept import Kept
 from hapsim.errors import ConfigError
 
 __all__ = ["split_delay", "split_hold", "split_hold_body", "held_plant",
@@ -179,8 +180,20 @@ def split_hold_body(mass: float, friction: float, period: float, fraction: float
     if not (float(mass) > 0 and float(friction) >= 0):
         raise ConfigError(f"need mass > 0 and friction >= 0, got mass={mass!r}, "
                           f"friction={friction!r}", key="device")
-    A, b = rigid_matrices(mass, friction, 0.0)
-    return split_hold(A, b, period, fraction)
+    args = (float(mass), float(friction), float(period), float(fraction))
+
+    def made():
+        A, b = rigid_matrices(*args[:2], 0.0)
+        return split_hold(A, b, *args[2:])
+    # a loop's poles ask for it twice (its characteristic polynomial and its state
+    # space), a measurement's searches for the same body many times: kept by the exact
+    # bits of its arguments (float.hex tells -0.0 from 0.0), copies handed out
+    kept = _BODIES.get(tuple(v.hex() for v in args), made)
+    return tuple(a.copy() for a in kept)
+
+
+#: The rigid bodies' split holds asked for lately (:func:`split_hold_body`).
+_BODIES = Kept(256)
 
 
 def held_plant(Phi, Gamma0, Gamma1):
