@@ -3,8 +3,9 @@ newest kept, safe between threads (a live view measures in a thread of its own).
 
 A run's measurement asks for the same model's closed loop, impulse responses and poles
 many times over (its responses, fits and latency search): :func:`hapsim.analysis.network.
-closed_loop`, :mod:`hapsim.analysis.error_response` and
-:func:`hapsim.analysis.loop_poles.roots_w` keep them here.
+closed_loop`, :mod:`hapsim.analysis.error_response`,
+:func:`hapsim.analysis.loop_poles.roots_w` and
+:func:`hapsim.analysis.subsample.split_hold_body` keep them here.
 """
 
 from __future__ import annotations
