@@ -148,13 +148,18 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None, latency_s: float =
 
 
 
-def predict(scene: Scene) -> dict:
+def predict(scene: Scene, *, limit: bool = True) -> dict:
     """Predicted closed loop of a (calibrated) scene coupled to its device.
 
     Parameters
     ----------
     scene : Scene
         Calibrated scene with a port and a device.
+    limit : bool, optional
+        Compute ``stiffness_limit`` (the report's K_max; two thirds of a prediction's
+        time). False: left None, for a caller that reads the pair and the stability only
+        (the ~20 latencies a render-latency search and its spread predict at,
+        :mod:`hapsim.pipeline.render_latency`; the run's own prediction has it).
 
     Returns
     -------
@@ -183,7 +188,8 @@ def predict(scene: Scene) -> dict:
            "port_K": float(sum(lk.stiffness for lk in _links_at_port(scene))),
            "port_B": float(B_port)}
     try:
-        out["stiffness_limit"] = float(an["stability_limit"](loop, B_port))
+        if limit:
+            out["stiffness_limit"] = float(an["stability_limit"](loop, B_port))
     except Exception:  # the limit is advisory in the report
         out["stiffness_limit"] = None
     single = len(scene.links) == 1 and len(plinks) == 1 and all(

@@ -161,7 +161,7 @@ def timed_prediction(scene, driver) -> tuple:
     ks, bs, unstable = [], [], []
     # an unstable loop (refused, or run with allow_unstable) has no felt pair to spread
     for r in np.linspace(lo, hi, SPREAD_POINTS) if pred.get("stable") is not False else ():
-        p = predict(timed_scene(scene, float(r)))
+        p = predict(timed_scene(scene, float(r)), limit=False)   # (the pair, stability)
         if p.get("stable") is False:
             unstable.append((float(p["spectral_radius"]), float(r)))
         if p.get("k") is None or pred.get("k") is None:
@@ -247,7 +247,7 @@ def _unstable_later(scene, extra_s: float) -> dict | None:
     delay (:func:`timed_scene`) where it is unstable there; None where it is stable."""
     from hapsim.analysis.prediction import predict
     at = timed_scene(scene, extra_s)
-    p = predict(at)
+    p = predict(at, limit=False)
     if p.get("stable") is not False:
         return None
     return {"delay": float(at.device.delay), "spectral_radius": float(p["spectral_radius"])}
@@ -472,7 +472,7 @@ def latency_search(prep, measure_at) -> dict:
         r = float(min(max(r, lo), hi))
         if r not in cache:
             model = timed_scene(prep.scene, r)
-            p = predict(model)
+            p = predict(model, limit=False)     # (the run's is predicted whole below)
             m = measure_at(dataclasses.replace(prep, model_scene=model, pred=p), False)
             g = score = None
             if all(m.get(q) is not None and p.get(q) is not None for q in ("k", "b")):
@@ -676,7 +676,8 @@ def _latency_spread(prep, m: dict, p: dict, r: float, bounds, measure_at) -> Non
     far = lo if abs(r - lo) >= abs(hi - r) else hi
     near = hi if far == lo else lo
     model = timed_scene(prep.scene, far)
-    me = measure_at(dataclasses.replace(prep, model_scene=model, pred=predict(model)),
+    me = measure_at(dataclasses.replace(prep, model_scene=model,
+                                        pred=predict(model, limit=False)),
                     "spread")
     if "k" not in me or me.get("k_interval") is None:
         m["latency_spread"] = {"at_latency": at, "ends": [], "not_measured_s": [far]}
