@@ -228,7 +228,7 @@ def _varpro(spec, y, offset, lens=None):
     return out, cost
 
 
-def _covariance(spec, y, offset, response=None, lens=None):
+def _covariance(spec, y, offset, response=None, lens=None, proj=None):
     """Residual rms, unit covariances of the nonlinear parameters and the fitted linear
     coefficients (a list, one array per stretch). The covariances: ``(white, coloured)``;
     white = the nonlinear block of ``(J^T J)^-1`` (J over all parameters, every stretch's
@@ -238,10 +238,12 @@ def _covariance(spec, y, offset, response=None, lens=None):
     variables separate", SIAM J. Numer. Anal. 10(2), 1973); coloured = the sandwich with
     the filter ``response`` applied stretch by stretch (None: the white one). An error
     before a stretch reaches it as a free response of the loop, which the stretch's own
-    initial condition absorbs: the filter starts again at every stretch."""
+    initial condition absorbs: the filter starts again at every stretch. ``proj``:
+    :func:`_projection` of the same ``spec``, ``y``, ``offset`` and ``lens``, made once by
+    a caller that asks for several covariances of one fit."""
     p = _theta(spec).size
-    r, jts, G, n_lin, cs = _projected(spec, y, offset, lens)
-    inv = np.linalg.pinv(G)
+    r, jts, G, n_lin, cs, inv = (proj if proj is not None
+                                 else _projection(spec, y, offset, lens))
     dof = max(y.size - p - n_lin, 1)
     col = inv
     if response is not None:
@@ -254,6 +256,15 @@ def _covariance(spec, y, offset, response=None, lens=None):
             S += FtJ.T @ FtJ
         col = inv @ S @ inv
     return (float(np.sqrt(np.sum(r * r) / dof)), (inv, col), cs)
+
+
+def _projection(spec, y, offset, lens=None):
+    """:func:`_projected`'s ``(r, jts, G, n_lin, cs)`` and ``pinv(G)``: what every
+    covariance of one fit (:func:`_covariance`, the wire's shares in :func:`_with_wire`,
+    :func:`_bounded_share`) is made from, the same arrays for each (a fit's covariances
+    made it once each: three to five times a measurement)."""
+    r, jts, G, n_lin, cs = _projected(spec, y, offset, lens)
+    return r, jts, G, n_lin, cs, np.linalg.pinv(G)
 
 
 def _projected(spec, y, offset, lens=None):
@@ -412,7 +423,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         if z is not None and np.all(np.isfinite(z)):
             spec = _spec(z[np.abs(z) > 0])
             try:
-                rms, cov, _ = _covariance(spec, y, offset, None, lens)
+                proj = _projection(spec, y, offset, lens)
+                rms, cov, _ = _covariance(spec, y, offset, None, lens, proj)
             except np.linalg.LinAlgError:
                 # a pencil pole growing past the float range over a stretch (a record
                 # that is not the loop's free response exactly): no exact fit; the
@@ -430,7 +442,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                 out = _with_wire(_result(spec, fi, cov, rms, 0.0, mass, period, y, offset,
                                          method="pencil", skipped=0, lens=lens),
                                  spec, fi, y, offset, wire, mass, period, lens, bounded,
-                                 late_bounded)
+                                 late_bounded, proj)
                 out["record_amplitude"] = amp0
                 return out
     # ---- robust path
@@ -495,7 +507,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         if all(np.isfinite(_theta(sp))) and (best is None or cost < best[1]):
             best = (sp, cost)
     spec = best[0]
-    rms, cov, c = _covariance(spec, yw, offset, sensor_response, lens_w)
+    proj = _projection(spec, yw, offset, lens_w)
+    rms, cov, c = _covariance(spec, yw, offset, sensor_response, lens_w, proj)
     if fit is not None:
         fit.update(spec=[list(sp_) for sp_ in spec], kept=list(kept))
     out = _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
@@ -507,22 +520,22 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                           for e, r in bounded],
                       None if not late_bounded else [
                           (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
-                          for e, r in late_bounded])
+                          for e, r in late_bounded], proj)
     out["record_amplitude"] = amp0
     return out
 
 
-def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
+def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None, proj=None):
     """Worst-case (k, b) error of bounded errors at given rows (:func:`measure_felt`'s
     ``bounded``): ``sum_j e_j |s_j|`` with ``s_j = sum_m S_(j+m) h_m`` the fit's first-order
     response to a unit error at row ``j`` filtered by ``h`` (``S = g' (J'J)^-1 J'``, the
     linearised least-squares estimate's sensitivity to the record; Seber & Wild 1989,
     Sec. 2.1), its nonlinear rows ``g' (Jt'Jt)^-1 Jt'`` with ``Jt`` projected off each
-    stretch's linear columns; the filter starts again at every stretch of ``lens``."""
+    stretch's linear columns; the filter starts again at every stretch of ``lens``.
+    ``proj``: :func:`_projection`'s, as :func:`_covariance` takes it."""
     from hapsim.analysis.fftconv import fftconvolve
     n = y.size
-    _, jts, G, _, _ = _projected(spec, y, offset, lens)
-    A = np.linalg.pinv(G)
+    _, jts, G, _, _, A = proj if proj is not None else _projection(spec, y, offset, lens)
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     g_k, g_b = _kb_gradients(spec, fi, i, mass=mass, period=period)
     bounds = _bounds(n, lens)
@@ -552,17 +565,17 @@ def _bounded_share(spec, fi, y, offset, bounded, mass, period, lens=None):
 
 
 def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None, bounded=None,
-               late_bounded=None):
+               late_bounded=None, proj=None):
     """``out`` with the wire's share of the uncertainty (:func:`measure_felt`'s ``wire``):
     ``k_sd_wire``, ``b_sd_wire``, and ``k_unc``, ``b_unc`` covering them too; with
     ``bounded``, the worst case of those errors (``k_bound_rows``, ``b_bound_rows``) added
     to ``k_unc``, ``b_unc``; with ``late_bounded``, theirs (``k_bound_late``,
-    ``b_bound_late``) apart."""
+    ``b_bound_late``) apart. ``proj``: the fit's :func:`_projection`, made once."""
     if late_bounded and "k" in out:
         out["k_bound_late"], out["b_bound_late"] = _bounded_share(
-            spec, fi, y, offset, late_bounded, mass, period, lens)
+            spec, fi, y, offset, late_bounded, mass, period, lens, proj)
     if bounded and "k" in out:
-        bk, bb = _bounded_share(spec, fi, y, offset, bounded, mass, period, lens)
+        bk, bb = _bounded_share(spec, fi, y, offset, bounded, mass, period, lens, proj)
         out["k_bound_rows"], out["b_bound_rows"] = bk, bb
         out["k_unc"] += bk
         out["b_unc"] += bb
@@ -574,7 +587,7 @@ def _with_wire(out, spec, fi, y, offset, wire, mass, period, lens=None, bounded=
     for sd, resp in wire:
         if not sd > 0:
             continue
-        _, (_, col), _ = _covariance(spec, y, offset, resp, lens)
+        _, (_, col), _ = _covariance(spec, y, offset, resp, lens, proj)
         vk += sd * sd * max(float(g_k @ col @ g_k), 0.0)
         vb += sd * sd * max(float(g_b @ col @ g_b), 0.0)
     out["k_sd_wire"], out["b_sd_wire"] = math.sqrt(vk), math.sqrt(vb)
