@@ -216,3 +216,20 @@ def test_a_host_late_row_stays_a_cut_when_the_account_takes_ticks_out():
     pos, late, info = late_accounted(sc, cols, None, drv)
     assert info.get("late_accounted", 0) >= 1     # the damaged command taken out
     assert late is not None and late[60] and np.count_nonzero(late) == 1
+
+
+def test_the_array_quantisation_is_the_commands_force_bit_for_bit():
+    """HapkitSerial.applied_forces (the account's forces, at numpy's speed) against
+    applied_force, which packs each command's float with struct: random forces over 40
+    decades either side of the limit, exactly at it, -0.0, subnormals, binary32 ties and
+    NaN/inf, byte for byte."""
+    drv = HapkitSerial()
+    rng = np.random.default_rng(13)
+    lim = float(drv.force_limit)
+    f = np.concatenate([
+        rng.standard_normal(4000) * 10.0 ** rng.integers(-40, 3, 4000),
+        [lim, -lim, np.nextafter(lim, 10), -np.nextafter(lim, 10), 0.0, -0.0, 5e-324,
+         -1e-310, np.inf, -np.inf, np.nan, 1.0 + 2.0 ** -24, 1.0 + 3 * 2.0 ** -24]])
+    want = np.array([drv.applied_force(float(v)) for v in f])
+    got = drv.applied_forces(f)
+    assert got.dtype == np.float64 and got.tobytes() == want.tobytes()
