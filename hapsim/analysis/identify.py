@@ -197,7 +197,7 @@ def _varpro(spec, y, offset, lens=None):
     finite-difference Jacobian solved the least squares once per parameter (~100 for
     string.yaml's 51 modes: 26 CPU-s a measurement).
     """
-    from scipy.optimize import leastsq
+    from hapsim.analysis.lm import levenberg_marquardt
 
     theta0 = _theta(spec)
     scale = float(np.max(np.abs(y))) or 1.0
@@ -211,15 +211,11 @@ def _varpro(spec, y, offset, lens=None):
         return _compiled("jacobian", spec, th, ys, offset, layout=layout)
 
     try:
-        # MINPACK's lmder, as least_squares(method="lm", x_scale="jac") calls it (diag
-        # None, factor 100, the same tolerances and evaluations), without its
-        # VectorFunction's bookkeeping around every evaluation (a fifth of a fit's time):
-        # the same iterates bit for bit (tests/test_identify_varpro_minpack.py). Its
-        # refusals kept: fewer residuals than poles, residuals not finite at the start
-        if ys.size < theta0.size or not np.all(np.isfinite(res(theta0))):
-            raise ValueError("no Levenberg-Marquardt fit from these poles")
-        th = leastsq(res, theta0, Dfun=jac, full_output=True, xtol=1e-14, ftol=1e-14,
-                     gtol=1e-14, maxfev=200 * (theta0.size + 1), factor=100.0)[0]
+        # least_squares(method="lm", x_scale="jac")'s iterates bit for bit, without its
+        # bookkeeping round every evaluation (a fifth of a fit's time; its refusals kept:
+        # tests/test_identify_varpro_minpack.py)
+        th = levenberg_marquardt(res, jac, theta0, tol=1e-14,
+                                 max_nfev=200 * (theta0.size + 1)).x
     except (ValueError, np.linalg.LinAlgError):
         th = theta0
     out, i = [], 0
