@@ -32,14 +32,7 @@ def _reference(spec, y, offset, lens=None):
                            ftol=1e-14, gtol=1e-14, max_nfev=200 * (theta0.size + 1)).x
     except (ValueError, np.linalg.LinAlgError):
         th = theta0
-    out, i = [], 0
-    for kind, *_ in spec:
-        if kind == "pair":
-            out.append(["pair", th[i], abs(th[i + 1])])
-            i += 2
-        else:
-            out.append(["real", th[i]])
-            i += 1
+    out = idf._spec_at(spec, th)
     return out, float(np.sum(res(idf._theta(out)) ** 2)) * scale * scale
 
 

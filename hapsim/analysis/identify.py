@@ -218,6 +218,14 @@ def _varpro(spec, y, offset, lens=None):
                                  max_nfev=200 * (theta0.size + 1)).x
     except (ValueError, np.linalg.LinAlgError):
         th = theta0
+    out = _spec_at(spec, th)
+    cost = float(np.sum(res(_theta(out)) ** 2)) * scale * scale
+    return out, cost
+
+
+def _spec_at(spec, th):
+    """``spec``'s modes with the nonlinear parameters ``th`` (:func:`_theta`'s order), a
+    pair's frequency taken positive."""
     out, i = [], 0
     for kind, *_ in spec:
         if kind == "pair":
@@ -226,8 +234,7 @@ def _varpro(spec, y, offset, lens=None):
         else:
             out.append(["real", th[i]])
             i += 1
-    cost = float(np.sum(res(_theta(out)) ** 2)) * scale * scale
-    return out, cost
+    return out
 
 
 def _covariance(spec, y, offset, response=None, lens=None, proj=None):
