@@ -110,12 +110,18 @@ def test_ci_fails_loudly_on_any_failing_step(tmp_path, venv, pip, readme, numeri
         assert first == ["-m pytest -q |   "], calls      # the host's own kernels first
         assert "beside" in calls, calls     # it ran while the first pass had not ended
     assert not list(tmp_path.glob("tmp.*")), "the run's files are left"
-    # whatever the outcome, the second pass's process group is gone with CI (its command
-    # line names the run's files, under TMPDIR)
+    # whatever the outcome, the second pass's process group is gone with CI
+    _nothing_left(tmp_path, 2.0)
+
+
+def _nothing_left(tmp_path, within: float) -> None:
+    """No process names ``tmp_path`` (the run's files, under TMPDIR, are on the second
+    pass's command line) ``within`` seconds after CI ended."""
     import time
-    for _ in range(40):
+    end = time.monotonic() + within
+    while True:
         ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
-        if str(tmp_path) not in ps:
+        if str(tmp_path) not in ps or time.monotonic() > end:
             break
         time.sleep(0.05)
     assert str(tmp_path) not in ps, ps
@@ -158,10 +164,4 @@ def test_a_second_pass_the_trap_missed_ends_with_ci(tmp_path):
            f"*) exec {shutil.which('cat')} \"$@\";; esac\n")
     res, _, _ = _stubbed_ci(tmp_path, 1, 0, 0, 0, {"cat": cat}, timeout=20)
     assert res.returncode == 1 and "ci: FAILED" in res.stderr, (res.returncode, res.stderr)
-    import time
-    for _ in range(100):
-        ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
-        if str(tmp_path) not in ps:
-            break
-        time.sleep(0.1)
-    assert str(tmp_path) not in ps, ps
+    _nothing_left(tmp_path, 10.0)
