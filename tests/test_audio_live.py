@@ -22,6 +22,7 @@ import pytest
 
 from hapsim.engine import Engine
 from hapsim.scene import load_scene
+from recording import assert_periods_match
 
 #: pytest-xdist (the README command runs several workers): a private jackd (dummy backend) per module:
 #: two at once on 2 cores drop frames.
@@ -164,15 +165,20 @@ def jack_server():
 
 
 class Recorder:
-    """A JACK client of the test's own recording its input port into a numpy buffer."""
+    """A JACK client of the test's own recording its input port into a numpy buffer (one
+    whole period per callback), late on purpose if asked."""
 
-    def __init__(self, server, seconds=3.0):
+    def __init__(self, server, seconds=3.0, late_every=0, late_s=0.0):
         import jack
 
         self.client = jack.Client("rec", no_start_server=True, servername=server)
         self.buf = np.zeros(int(seconds * self.client.samplerate), dtype=np.float32)
         self.n = 0
         self.armed = True          # recording (a test may arm it later)
+        #: Late on purpose: every ``late_every``-th armed cycle sleeps ``late_s`` [s]
+        #: before it copies its period (0: never); the armed cycles and late ones so far.
+        self.late_every, self.late_s = int(late_every), float(late_s)
+        self.cycles = self.lates = 0
         self.inp = self.client.inports.register("in")
         self.client.set_process_callback(self._process)
         self.client.activate()
@@ -180,6 +186,10 @@ class Recorder:
     def _process(self, frames):
         if not self.armed:
             return
+        self.cycles += 1
+        if self.late_every and self.cycles % self.late_every == 0:
+            time.sleep(self.late_s)      # late on purpose, as a loaded machine makes it
+            self.lates += 1
         k = min(frames, self.buf.size - self.n)
         if k > 0:
             self.buf[self.n:self.n + k] = self.inp.get_array()[:k]
@@ -198,7 +208,10 @@ def without_xrun_periods(bad, n, xruns, block):
     (seen at load 9 and beside two CPU-bound processes: one period, 128 or 256 frames,
     per xrun; every other frame exact). So the frames off must fall in at most ``xruns``
     stretches, each shorter than one ``block``; this is asserted, and those frames are
-    left out of what is compared.
+    left out of what is compared. (A recording client that was late itself also loses
+    the next period, moving every later frame: :func:`recording.assert_periods_match`
+    allows that where the recording keeps its periods; this is for recordings whose
+    silences were dropped, which keep no period boundaries.)
 
     Parameters
     ----------
@@ -273,20 +286,11 @@ def test_two_private_servers_at_once_take_two_names_of_the_pool():
         a.close()
 
 
-@pytest.mark.parametrize("callback", ["native", "python"])
-def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeypatch):
-    """The JACK callback's frames (recorded by a client of ours through a real connection)
-    are the offline engine's frames for the same gesture, to float32 round-off: the live
-    audio part is the same multi-rate model. Both callbacks: the native one (a numba
-    cfunc, no GIL: the default) and JACK-Client's Python one (HAPSIM_JACK_PYTHON_CALLBACK).
-    xruns are counted (printed; the machine is shared, so their number is not asserted);
-    where the server counted some, the frames may differ within one period per xrun."""
+def live_pluck(server, rec):
+    """The pluck gesture played live through ``server`` and recorded by ``rec`` (a
+    :class:`Recorder`, armed here); the recording, the offline rendering (shape (k, 1)),
+    the :class:`hapsim.audio.live.JackOutput` (closed), its period and the live stats."""
     from hapsim.audio.live import JackOutput, LiveSound
-
-    if callback == "python":
-        monkeypatch.setenv("HAPSIM_JACK_PYTHON_CALLBACK", "1")
-    else:
-        monkeypatch.delenv("HAPSIM_JACK_PYTHON_CALLBACK", raising=False)
 
     scene = load_scene(SCENE)
     g = pluck_gesture()
@@ -297,9 +301,8 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
     eng = Engine(scene)
     eng.set_port_position(g[0], at_rest=True)
     live = LiveSound(eng)
-    rec = Recorder(jack_server, seconds=3.0)
     rec.armed = False
-    out = JackOutput(live, server=jack_server)
+    out = JackOutput(live, server=server)
     # the server's period, read while the client is open (after close() it is 0, which
     # made the xrun branch below allow no frame off: a CI run with 3 xruns failed so)
     block = int(out.client.blocksize)
@@ -320,6 +323,41 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
         out.close()
         rec.close()
     st = live.stats()
+    assert st["consumed"] == g.size == st["pushed"]
+    return rec.buf[:rec.n], ref, out, block, st
+
+
+def assert_pluck_heard(got, ref, block, xruns):
+    """The recording ``got`` is the offline rendering ``ref`` from its first sound on:
+    every recorded period to 16 binary32 roundings of the peak, but for what ``xruns``
+    may do (:func:`recording.assert_periods_match`); its counts."""
+    nz = np.nonzero(np.abs(got) > 0)[0]
+    assert nz.size > 0, "the live output is silent"
+    r0 = np.nonzero(np.abs(ref[:, 0]) > 0)[0][0]
+    assert min(got.size - nz[0], ref.shape[0] - r0) > 0.3 * 48000
+    # measured 0 (generic 0), both callbacks: the live frames are the offline ones, bit
+    # for bit, on both targets; the bound allowed is 16 binary32 roundings of the peak
+    # (16 eps32 = 1.9e-6: the frames are float32, mixed in float32 by the native callback)
+    atol = 16 * np.finfo(np.float32).eps * np.max(np.abs(ref))
+    assert isinstance(xruns, int) and xruns >= 0
+    return assert_periods_match(got[nz[0]:], ref[r0:, 0].astype(np.float32),
+                                int(nz[0]) % block, block, xruns, atol)
+
+
+@pytest.mark.parametrize("callback", ["native", "python"])
+def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeypatch):
+    """The JACK callback's frames (recorded by a client of ours through a real connection)
+    are the offline engine's frames for the same gesture, to float32 round-off: the live
+    audio part is the same multi-rate model. Both callbacks: the native one (a numba
+    cfunc, no GIL: the default) and JACK-Client's Python one (HAPSIM_JACK_PYTHON_CALLBACK).
+    xruns are counted (printed; the machine is shared, so their number is not asserted);
+    where the server counted some, the recording may have garbled a period and lost the
+    next one per xrun (:mod:`recording`, measured), every other period exact."""
+    if callback == "python":
+        monkeypatch.setenv("HAPSIM_JACK_PYTHON_CALLBACK", "1")
+    else:
+        monkeypatch.delenv("HAPSIM_JACK_PYTHON_CALLBACK", raising=False)
+    got, ref, out, block, st = live_pluck(jack_server, Recorder(jack_server, seconds=3.0))
     print(f"live JACK run ({callback} callback): {st}, xruns {out.xruns}")
     if callback == "native":
         assert out.native is not None and out.python_reason is None
@@ -327,30 +365,24 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
         assert out.callback_priority is not None
     else:
         assert out.native is None and "HAPSIM_JACK_PYTHON_CALLBACK" in out.python_reason
-    assert st["consumed"] == g.size == st["pushed"]
-    got = rec.buf[:rec.n]
-    nz = np.nonzero(np.abs(got) > 0)[0]
-    assert nz.size > 0, "the live output is silent"
-    r0 = np.nonzero(np.abs(ref[:, 0]) > 0)[0][0]
-    seg = got[nz[0]:]
-    m = min(seg.size, ref.shape[0] - r0)
-    assert m > 0.3 * 48000
-    # measured 0 (generic 0), both callbacks: the live frames are the offline ones, bit
-    # for bit, on both targets; the bound allowed is 16 binary32 roundings of the peak
-    # (16 eps32 = 1.9e-6: the frames are float32, mixed in float32 by the native callback)
-    want = ref[r0:r0 + m, 0].astype(np.float32)
-    atol = 16 * np.finfo(np.float32).eps * np.max(np.abs(ref))
-    assert isinstance(out.xruns, int) and out.xruns >= 0
-    bad = np.abs(seg[:m] - want) > atol
-    if out.xruns == 0 or not bad.any():
-        np.testing.assert_allclose(seg[:m], want, rtol=0, atol=atol)
-    else:
-        # an xrun of the server (a loaded machine: the dummy backend's cycle missed) can
-        # leave the recorder one period that is not the one the callback wrote (seen at
-        # load 9: 256 frames of one period, all the others exact): the frames may differ
-        # within one period per xrun counted, never more, and the rest is exact
-        print(f"{int(bad.sum())} frames off in {out.xruns} xruns of {block}-frame periods")
-        assert block > 0 and bad.sum() <= out.xruns * block, (int(bad.sum()), out.xruns, block)
+    seen = assert_pluck_heard(got, ref, block, out.xruns)
+    if seen["moved"] or seen["garbled"]:
+        print(f"{out.xruns} xruns of {block}-frame periods: {seen}")
+
+
+def test_a_recorder_made_late_loses_periods_and_the_rest_is_the_rendering(jack_server):
+    """What a loaded machine does to the recording client, done on purpose: its callback
+    sleeps 12 ms (over two 5.3 ms periods) every 40th cycle. The server reports xruns,
+    the recording lost periods (measured: one garbled and one lost per late callback,
+    :mod:`recording`), and every other recorded period is still the offline rendering;
+    the comparison without that allowance (no xrun) fails, so the lateness took effect."""
+    rec = Recorder(jack_server, seconds=3.0, late_every=40, late_s=0.012)
+    got, ref, out, block, _ = live_pluck(jack_server, rec)
+    assert rec.lates >= 2 and out.xruns >= 1, (rec.lates, out.xruns)
+    seen = assert_pluck_heard(got, ref, block, out.xruns)
+    print(f"{rec.lates} late callbacks, {out.xruns} xruns: {seen}")
+    with pytest.raises(AssertionError, match="xruns reported"):
+        assert_pluck_heard(got, ref, block, 0)
 
 
 def test_gain_ramps_without_a_step_and_pause_silences():
@@ -905,7 +937,7 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
     JACK callback; the frames a client of ours recorded through a real connection are
     the offline rendering's (hapsim simulate --audio), bit for bit in float32, every frame
     read once (none skipped); xruns counted (printed, not asserted: shared machine; an
-    xrun may leave the recording client one period of other frames, and no more).
+    xrun may leave the recording client a garbled period and a lost one, and no more).
     Should the producer fall behind (underruns, counted), the frames played between the
     silences are still the offline ones in order. In both precisions (single: the
     engine's float32 velocity form, its own compiled chunk)."""
@@ -951,8 +983,13 @@ def test_live_nd_membrane_equals_offline_rendering(jack_server, precision):
         m = min(a.size, b.size)
         assert m > 0.4 * 48000 - st["underruns"]
     # the rest stays the offline rendering, in order
-    keep = without_xrun_periods(np.flatnonzero(a[:m] != b[:m]), m, out.xruns, out.blocksize)
-    np.testing.assert_array_equal(a[:m][keep], b[:m][keep])
+    if st["underruns"] == 0:             # whole periods as recorded (tests/recording.py)
+        assert_periods_match(a, b, int(nz[0]) % out.blocksize, out.blocksize, out.xruns,
+                             0.0)
+    else:
+        keep = without_xrun_periods(np.flatnonzero(a[:m] != b[:m]), m, out.xruns,
+                                    out.blocksize)
+        np.testing.assert_array_equal(a[:m][keep], b[:m][keep])
 
 
 def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
