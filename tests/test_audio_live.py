@@ -286,10 +286,13 @@ def test_two_private_servers_at_once_take_two_names_of_the_pool():
         a.close()
 
 
-def live_pluck(server, rec):
-    """The pluck gesture played live through ``server`` and recorded by ``rec`` (a
-    :class:`Recorder`, armed here); the recording, the offline rendering (shape (k, 1)),
-    the :class:`hapsim.audio.live.JackOutput` (closed), its period and the live stats."""
+def live_pluck(server, **recorder):
+    """The pluck gesture played live through ``server`` and recorded by a
+    :class:`Recorder` (``recorder``: its keywords), made and armed once the offline
+    rendering is done (it records from its start: while a cold cache compiled the
+    rendering, it filled its buffer with silence); the recording, the offline rendering
+    (shape (k, 1)), the :class:`hapsim.audio.live.JackOutput` (closed), its period, the
+    live stats and the recorder (closed)."""
     from hapsim.audio.live import JackOutput, LiveSound
 
     scene = load_scene(SCENE)
@@ -301,6 +304,7 @@ def live_pluck(server, rec):
     eng = Engine(scene)
     eng.set_port_position(g[0], at_rest=True)
     live = LiveSound(eng)
+    rec = Recorder(server, seconds=3.0, **recorder)
     rec.armed = False
     out = JackOutput(live, server=server)
     # the server's period, read while the client is open (after close() it is 0, which
@@ -324,7 +328,7 @@ def live_pluck(server, rec):
         rec.close()
     st = live.stats()
     assert st["consumed"] == g.size == st["pushed"]
-    return rec.buf[:rec.n], ref, out, block, st
+    return rec.buf[:rec.n], ref, out, block, st, rec
 
 
 def assert_pluck_heard(got, ref, block, xruns):
@@ -357,7 +361,7 @@ def test_live_jack_sound_equals_offline_rendering(jack_server, callback, monkeyp
         monkeypatch.setenv("HAPSIM_JACK_PYTHON_CALLBACK", "1")
     else:
         monkeypatch.delenv("HAPSIM_JACK_PYTHON_CALLBACK", raising=False)
-    got, ref, out, block, st = live_pluck(jack_server, Recorder(jack_server, seconds=3.0))
+    got, ref, out, block, st, _ = live_pluck(jack_server)
     print(f"live JACK run ({callback} callback): {st}, xruns {out.xruns}")
     if callback == "native":
         assert out.native is not None and out.python_reason is None
@@ -376,8 +380,7 @@ def test_a_recorder_made_late_loses_periods_and_the_rest_is_the_rendering(jack_s
     the recording lost periods (measured: one garbled and one lost per late callback,
     :mod:`recording`), and every other recorded period is still the offline rendering;
     the comparison without that allowance (no xrun) fails, so the lateness took effect."""
-    rec = Recorder(jack_server, seconds=3.0, late_every=40, late_s=0.012)
-    got, ref, out, block, _ = live_pluck(jack_server, rec)
+    got, ref, out, block, _, rec = live_pluck(jack_server, late_every=40, late_s=0.012)
     assert rec.lates >= 2 and out.xruns >= 1, (rec.lates, out.xruns)
     seen = assert_pluck_heard(got, ref, block, out.xruns)
     print(f"{rec.lates} late callbacks, {out.xruns} xruns: {seen}")
