@@ -14,97 +14,122 @@ allowance (:func:`without_xrun_periods`: one period of frames off per xrun, the 
 place) assumed an xrun garbles a period but never moves the frames after it.
 
 :func:`assert_periods_match` allows what was measured: each period the client recorded
-must equal the reference frame for frame, at an offset that moves only by whole periods;
-each period moved and each period matching at no offset is one anomaly, and there may be
-at most two per xrun reported (a late client garbles one period and loses the next).
-With no xrun, every frame is compared in place.
+must equal the reference frame for frame, at an offset found by its content (the first
+period with sound, which may itself be garbled, so no frame is taken as the sound's start)
+and moving afterwards only by whole periods; each period moved and each period matching at
+no offset is one anomaly, and there may be at most two per xrun reported (a late client
+garbles one period and loses the next). With no xrun, every frame is compared in place.
 """
 from __future__ import annotations
 
 import numpy as np
 
 
-def assert_periods_match(seg, ref, phase, block, xruns, atol):
+def assert_periods_match(rec, ref, block, xruns, atol):
     """Every recorded period is the reference's, at an offset moved only by xruns.
 
     Parameters
     ----------
-    seg : numpy.ndarray, shape (n,)
-        The recording from its first frame to compare on; ``seg[0]`` is ``ref[0]`` when
-        nothing was lost before it.
+    rec : numpy.ndarray, shape (n,)
+        The whole recording, from the recording client's first armed period (it copies
+        one whole period per callback: period ``p`` is ``rec[p * block:(p + 1) * block]``).
     ref : numpy.ndarray, shape (r,)
-        The reference frames (the offline rendering), from the one ``seg[0]`` should be.
-    phase : int
-        Where ``seg[0]`` lies in the recording client's period: the recording's index of
-        ``seg[0]`` modulo ``block`` (the client copies one whole period per callback).
+        The reference frames (the offline rendering); silence before its first frame, none
+        compared after its last.
     block : int
         The server's period [frames], > 0.
     xruns : int
         Xruns the server reported while the recording ran.
     atol : float
-        Largest difference of one frame from its reference (a derived round-off bound).
+        Largest difference of one frame from its reference (a derived round-off bound);
+        a frame no larger is silence.
 
     Returns
     -------
     dict
+        ``offset`` (the recording's index of ``ref[0]`` where the first sound matched),
         ``compared`` (frames compared equal), ``moved`` (periods the offset moved, summed
         in absolute value) and ``garbled`` (periods matching at no offset).
 
     Raises
     ------
     AssertionError
-        More than ``2 * xruns`` anomalies (with no xrun: any frame off), a period that
-        moved or matched nowhere named with its first frame, or nothing compared.
+        More than ``2 * xruns`` anomalies (with no xrun: any frame off), listed with the
+        first frame of each; or no sound recorded that matches the reference anywhere.
     """
-    seg = np.asarray(seg)
+    rec = np.asarray(rec)
     ref = np.asarray(ref)
     budget = 2 * int(xruns)
-    assert block > 0 and 0 <= phase < block, (block, phase)
-    edges = [0, *range(block - phase if phase else block, seg.size, block), seg.size]
-    periods = list(zip(edges[:-1], edges[1:]))
+    assert block > 0, block
+    periods = [(a, min(a + block, rec.size)) for a in range(0, rec.size, block)]
 
-    def at(p, k):
-        # frames compared equal when period p is ref's moved by k periods (0: one differs;
-        # None: the reference holds none of its frames there)
+    def at(p, d):
+        # frames compared equal when period p holds ref from the recording's index d on
+        # (0: one differs; None: the reference holds none of its frames there)
         a, e = periods[p]
-        lo, hi = max(a, -k * block), min(e, ref.size - k * block)
+        lo, hi = a, min(e, ref.size + d)
         if lo >= hi:
             return None
-        ok = np.all(np.abs(seg[lo:hi] - ref[lo + k * block:hi + k * block]) <= atol)
-        return hi - lo if ok else 0
+        j = np.arange(lo, hi) - d
+        want = np.where(j >= 0, ref[np.clip(j, 0, ref.size - 1)], 0)
+        return hi - lo if np.all(np.abs(rec[lo:hi] - want) <= atol) else 0
 
-    shift = moved = garbled = compared = 0
+    def found(p):
+        # where period p's first sound is in the reference: the offsets its frames match at
+        a, e = periods[p]
+        loud = np.flatnonzero(np.abs(rec[a:e]) > atol)
+        if not loud.size:
+            return None
+        i = a + int(loud[0])
+        for j in np.flatnonzero(np.abs(ref - rec[i]) <= atol):
+            if at(p, i - int(j)):
+                return i - int(j)
+        return None
+
+    offset = shift = None
+    moved = garbled = compared = 0
     events = []
-    for p, (a, _) in enumerate(periods):
-        if a + shift * block >= ref.size:
+    for p, (a, e) in enumerate(periods):
+        if shift is None:
+            if not np.any(np.abs(rec[a:e]) > atol):
+                continue                 # silence before the sound
+            shift = offset = found(p)
+            if shift is None:
+                garbled += 1
+                events.append(f"period at frame {a} matches the reference nowhere")
+            else:
+                compared += at(p, shift)
+        elif a - shift >= ref.size:
             break                        # past the reference's end: nothing more to compare
-        got = at(p, shift)
-        if got is None or got:
-            compared += got or 0
-            continue
-        # a period off: where do this one and the next one sit? A late recording client
-        # garbles the period it copies (it may hold frames of a later one) and loses the
-        # next, so the offset the next period takes is the one the recording moved to
-        left = budget - moved - garbled
-        tries = sorted((k for k in range(shift - left, shift + left + 1) if k != shift),
-                       key=lambda k: (abs(k - shift), k))
-        here = next((k for k in tries if at(p, k)), None)
-        after = (None if p + 1 == len(periods) else
-                 next((k for k in [shift, *tries] if at(p + 1, k)), None))
-        if here is not None and (after is None or after == here):
-            moved += abs(here - shift)
-            events.append(f"moved {here - shift:+d} period(s) at frame {a}")
-            shift = here
-            compared += at(p, shift)
         else:
-            garbled += 1
-            events.append(f"period at frame {a} matches no offset the next one takes")
-            if after is not None and after != shift:
-                moved += abs(after - shift)
-                events.append(f"moved {after - shift:+d} period(s) after frame {a}")
-                shift = after
+            got = at(p, shift)
+            if got is None or got:
+                compared += got or 0
+                continue
+            # a period off: where do this one and the next one sit? A late recording
+            # client garbles the period it copies (it may hold frames of a later one) and
+            # loses the next, so the offset the next period takes is where it moved to
+            left = budget - moved - garbled
+            tries = sorted((shift + m * block for m in range(-left, left + 1) if m),
+                           key=lambda d: (abs(d - shift), d))
+            here = next((d for d in tries if at(p, d)), None)
+            after = (None if p + 1 == len(periods) else
+                     next((d for d in [shift, *tries] if at(p + 1, d)), None))
+            if here is not None and (after is None or after == here):
+                moved += abs(here - shift) // block
+                events.append(f"moved {(shift - here) // block:+d} period(s) at frame {a}")
+                shift = here
+                compared += at(p, shift)
+            else:
+                garbled += 1
+                events.append(f"period at frame {a} matches no offset the next one takes")
+                if after is not None and after != shift:
+                    moved += abs(after - shift) // block
+                    events.append(f"moved {(shift - after) // block:+d} period(s) after "
+                                  f"frame {a}")
+                    shift = after
         assert moved + garbled <= budget, (
             f"{moved} period(s) moved and {garbled} garbled with {xruns} xruns reported "
             f"(at most 2 per xrun): {events[:8]}")
-    assert compared > 0, "no recorded frame was compared"
-    return {"compared": compared, "moved": moved, "garbled": garbled}
+    assert compared > 0, "no recorded sound matches the reference anywhere"
+    return {"offset": offset, "compared": compared, "moved": moved, "garbled": garbled}
