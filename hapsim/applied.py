@@ -333,8 +333,9 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
     force_scale : float
         Actuator resolution [N] (0: none): without ``quantise``, the nearest multiple.
     quantise : callable, optional
-        The driver's own rule, forces sent [N] -> forces the device receives [N] (its
-        :meth:`~hapsim.drivers.base.Driver.applied_force`, the arithmetic its protocol
+        The driver's own rule on the whole array, forces sent [N], shape (n,) -> forces
+        the device receives [N], shape (n,) (its
+        :meth:`~hapsim.drivers.base.Driver.applied_forces`, the arithmetic its protocol
         encodes with); it replaces ``force_scale``'s nearest multiple.
     stage_half_width : array_like, shape (n,), optional
         How far each force in ``force`` is uncertain [N] (a board's output stage whose
@@ -358,7 +359,7 @@ def account_from_timing(force, delay: int, *, late=None, ambiguous=None,
     if d < 0:
         raise ValueError(f"delay must be >= 0, got {delay!r}")
     if quantise is not None:
-        f = np.array([quantise(float(v)) for v in f], dtype=np.float64).reshape(f.shape)
+        f = np.asarray(quantise(f), dtype=np.float64).reshape(f.shape)
     elif force_scale and force_scale > 0:
         f = np.round(f / force_scale) * force_scale
     lt = np.zeros(n, bool) if late is None else np.asarray(late, bool)

@@ -218,14 +218,19 @@ def test_a_host_late_row_stays_a_cut_when_the_account_takes_ticks_out():
     assert late is not None and late[60] and np.count_nonzero(late) == 1
 
 
-def test_the_array_quantisation_is_the_commands_force_bit_for_bit():
-    """HapkitSerial.applied_forces (the account's forces, at numpy's speed) against
-    applied_force, which packs each command's float with struct: random forces over 40
-    decades either side of the limit, exactly at it, -0.0, subnormals, binary32 ties and
-    NaN/inf, byte for byte."""
-    drv = HapkitSerial()
+@pytest.mark.parametrize("driver", ["hapkit_serial", "haply", "firefader"])
+def test_the_array_quantisation_is_the_commands_force_bit_for_bit(driver):
+    """A driver's applied_forces (the timing account's forces, at numpy's speed where it
+    has its own: the binary32 wire of the HapkitSerial sketch and of the Haply M3) against
+    its applied_force, which packs each command (struct): random forces over 40 decades
+    either side of the limit, exactly at it, -0.0, subnormals, binary32 ties and NaN/inf,
+    byte for byte. The FireFader keeps the base class's call per force (its counts)."""
+    from hapsim.drivers.firefader import FireFader
+    from hapsim.drivers.haply import MAX_TORQUE, HaplyM3
+    drv, lim = {"hapkit_serial": (HapkitSerial(), None), "haply": (HaplyM3(), MAX_TORQUE),
+                "firefader": (FireFader(), 1.0)}[driver]
+    lim = float(drv.force_limit) if lim is None else lim
     rng = np.random.default_rng(13)
-    lim = float(drv.force_limit)
     f = np.concatenate([
         rng.standard_normal(4000) * 10.0 ** rng.integers(-40, 3, 4000),
         [lim, -lim, np.nextafter(lim, 10), -np.nextafter(lim, 10), 0.0, -0.0, 5e-324,

@@ -411,7 +411,7 @@ def test_the_timing_account_applies_the_drivers_own_rounding(full_scale, halves,
     from hapsim.drivers.firefader import FireFader
     drv = FireFader(full_scale=full_scale)
     f = np.array(halves, float) / 2 * drv.force_scale
-    acc = account_from_timing(f, d, force_scale=drv.force_scale, quantise=drv.applied_force)
+    acc = account_from_timing(f, d, force_scale=drv.force_scale, quantise=drv.applied_forces)
     want = np.array([drv.applied_force(v) for v in f])
     np.testing.assert_array_equal(acc.applied[d:], want[:f.size - d])
     assert np.all(acc.applied[:d] == 0.0)

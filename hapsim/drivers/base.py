@@ -563,6 +563,27 @@ class Driver:
         quantisation and clamp): what identification must fit against."""
         return float(force)
 
+    def applied_forces(self, force):
+        """:meth:`applied_force` of every force of an array (the timing account's
+        ``quantise``: :func:`hapsim.applied.account_from_timing`). This default calls it
+        once per force; a driver whose rule numpy computes as well overrides it (tested
+        equal to it, bit for bit).
+
+        Parameters
+        ----------
+        force : array_like of float, shape (n,)
+            Forces sent [N].
+
+        Returns
+        -------
+        ndarray of float64, shape (n,)
+            The forces the device receives [N].
+        """
+        import numpy as np
+        f = np.asarray(force, float)
+        return np.array([self.applied_force(float(v)) for v in f.ravel()],
+                        dtype=np.float64).reshape(f.shape)
+
     def output_stage(self, force):
         """What the board's firmware makes of the forces its commands carry before its
         motor gets them, or None (the default: the command's value is applied as it is).
@@ -674,7 +695,7 @@ class Driver:
             acc = account_from_timing(stage[0], d, ambiguous=amb, stage_half_width=stage[1])
         else:
             acc = account_from_timing(force, d, ambiguous=amb, force_scale=self.force_scale,
-                                      quantise=self.applied_force if self.force_scale > 0
+                                      quantise=self.applied_forces if self.force_scale > 0
                                       else None)
         # the rows whose force no account can name (an unframed board's parser out of
         # step): not known, so identify's fit and run's measurement both leave them out
@@ -686,3 +707,29 @@ class Driver:
     def decoder(self):
         """A fresh decoder: ``feed(data) -> list of positions [m]``, ``stats`` dict."""
         raise NotImplementedError
+
+
+def binary32_commands(force, limit: float):
+    """The values of commands that carry each force as a binary32 float, clamped to
+    ``limit`` (NaN and infinities: 0): the HapkitSerial sketch's and the Haply M3's wire
+    rule, their drivers' ``applied_force`` (a ``struct`` pack of each command) at numpy's
+    speed. numpy's cast to float32 rounds to nearest even, as C's conversion ``struct``
+    packs with does: the same numbers bit for bit (tests/test_hapkit_serial_account.py).
+
+    Parameters
+    ----------
+    force : array_like of float, shape (n,)
+        Forces sent [N] (or torques [N m]).
+    limit : float
+        The clamp, > 0, in the same unit.
+
+    Returns
+    -------
+    ndarray of float64, shape (n,)
+        The values the commands carry.
+    """
+    import numpy as np
+    f = np.asarray(force, float)
+    f = np.where(np.isfinite(f), f, 0.0)
+    lim = float(limit)
+    return np.maximum(np.minimum(f, lim), -lim).astype(np.float32).astype(np.float64)

@@ -533,7 +533,7 @@ class FireFader(Driver):
         from hapsim.applied import account_from_timing
         if acc is None:
             acc = account_from_timing(force, d, force_scale=self.force_scale,
-                                      quantise=self.applied_force)
+                                      quantise=self.applied_forces)
         f = np.asarray(force, float)
         n = f.size
         # commands seq[0] .. seq[-1] + 1: row j answers command seq[j]; the force computed
@@ -610,7 +610,7 @@ class FireFader(Driver):
             return acc
         est = np.flatnonzero((np.asarray(flags) & FLAG_ESTIMATED) != 0)
         n = acc.applied.size
-        fq = np.array([self.applied_force(float(v)) for v in np.asarray(force, float)])
+        fq = self.applied_forces(force)
         for e in est:
             r = e + d                          # the force of command e + 1 (row e's) acts
             if r >= n:

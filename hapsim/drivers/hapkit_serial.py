@@ -35,7 +35,8 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import FLAG_ESTIMATED, AlignedDecoder, Driver, MappedDecoder
+from hapsim.drivers.base import (FLAG_ESTIMATED, AlignedDecoder, Driver, MappedDecoder,
+                                 binary32_commands)
 from hapsim.drivers.sketch_timing import (FIRMWARE_TICK_S, PERIOD_TICKS_TOL,  # noqa: F401
                                           RENDER_LATENCY_S, RENDER_S, SketchTiming,
                                           whole_ticks)
@@ -402,10 +403,8 @@ class HapkitSerial(SketchTiming, Driver):
         return _FF.unpack(self.encode_force(force)[2:])[1]
 
     def applied_forces(self, force):
-        """:meth:`applied_force` of every force of an array, at numpy's speed: NaN and
-        infinities 0, clamped to the limit, rounded to binary32 (numpy's cast is C's, as
-        ``struct``'s packing is; the same numbers bit for bit:
-        tests/test_hapkit_serial_account.py).
+        """:meth:`applied_force` of every force of an array, at numpy's speed
+        (:func:`hapsim.drivers.base.binary32_commands` at the force limit).
 
         Parameters
         ----------
@@ -417,11 +416,7 @@ class HapkitSerial(SketchTiming, Driver):
         ndarray of float, shape (n,)
             The forces the commands carry [N].
         """
-        import numpy as np
-        f = np.asarray(force, float)
-        f = np.where(np.isfinite(f), f, 0.0)
-        lim = float(self.force_limit)
-        return np.maximum(np.minimum(f, lim), -lim).astype(np.float32).astype(np.float64)
+        return binary32_commands(force, self.force_limit)
 
     def realign_bytes(self, frames) -> bytes:
         """The bytes that put the sketch back in step, from the replies it sent out of step
@@ -608,7 +603,7 @@ class HapkitSerial(SketchTiming, Driver):
         if d is None or log is None or log.n == 0 or flags is None or pos is None:
             return super().account(columns, force)
         # the forces sent as the sketch receives them (binary32, clamped), on time
-        base = account_from_timing(self.applied_forces(force), d)   # (quantised already)
+        base = account_from_timing(force, d, quantise=self.applied_forces)
         f_on = base.applied.astype(np.float32)
         tp_on = sketch_tp(f_on)
         est = (np.asarray(flags) & FLAG_ESTIMATED) != 0

@@ -49,7 +49,7 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import Driver, MappedDecoder
+from hapsim.drivers.base import Driver, MappedDecoder, binary32_commands
 from hapsim.drivers.haply_reply import DESYNC_BYTES, ReplyDecoder
 
 __all__ = ["HaplyM3", "DEFAULT_ID", "MAX_TORQUE", "setup_packet", "write_packet", "reply_packet",
@@ -511,6 +511,22 @@ class HaplyM3(Driver):
     def applied_force(self, force: float) -> float:
         """The torque the board receives [N m]: clamped, rounded to binary32."""
         return _F.unpack(self.encode_force(force)[2:])[0]
+
+    def applied_forces(self, force):
+        """:meth:`applied_force` of every torque of an array, at numpy's speed
+        (:func:`hapsim.drivers.base.binary32_commands` at the board's limit).
+
+        Parameters
+        ----------
+        force : array_like of float, shape (n,)
+            Torques sent [N m].
+
+        Returns
+        -------
+        ndarray of float, shape (n,)
+            The torques the writes carry [N m].
+        """
+        return binary32_commands(force, MAX_TORQUE)
 
     def output_stage(self, force):
         """The torque the board's motor gets for the torques sent

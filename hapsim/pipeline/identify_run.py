@@ -252,7 +252,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     fs = 0.0
     account = None
     if use_driver:          # what the device was sent: the protocol's quantised force
-        force = np.array([drv.applied_force(v) for v in force])
+        force = drv.applied_forces(force)
         # a driver's protocol names no applied force: its own timing may (issue 20)
         hook = getattr(drv, "account", None)
         account = hook(cols, force) if hook is not None else None
