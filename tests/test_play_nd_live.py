@@ -12,6 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
+from recording import assert_periods_match
 from test_audio_live import Recorder, dummy_jackd, without_xrun_periods
 from test_osc import PATCH, Client, Sink, play_daemon, run_patch, stop, wait_for
 from test_play_nd import (F32_OF_SCALE, SCENE, assert_float32_roundoff, hand_of_scene,
@@ -35,14 +36,29 @@ def start_play(server, *extra):
     return play_daemon(SCENE, server, *extra)
 
 
-def assert_heard(seg, ref, sound):
-    """The recorded frames ``seg`` are the rendering ``ref`` (both shape (m,)) to float32
-    round-off, but for one period per xrun the server reported (``sound``: the report's,
-    :func:`test_audio_live.without_xrun_periods`; seen once in a fresh-clone suite: 128
+def assert_heard(got, i0, j, length, ref, sound):
+    """The recording ``got`` is the rendering ``ref`` (shape (r,)) to float32 round-off,
+    from its first sound (at ``i0``, the rendering's ``j``: :func:`aligned`) for
+    ``length`` frames, but for what the xruns the server reported (``sound``: the
+    report's) may do: with every period recorded, :func:`recording.assert_periods_match`
+    (a late recording client garbles a period and loses the next, measured); where the
+    producer was late (underruns), its silences dropped and one period off per xrun
+    (:func:`test_audio_live.without_xrun_periods`; seen once in a fresh-clone suite: 128
     frames of one period off, every later frame in order)."""
-    bad = np.flatnonzero(np.abs(seg - ref) > F32_OF_SCALE * np.max(np.abs(ref)))
+    atol = F32_OF_SCALE * np.max(np.abs(ref))
+    if not sound["underruns"]:
+        seen = assert_periods_match(got[:i0 + length], ref, sound["block"], sound["xruns"],
+                                    atol)
+        assert seen["compared"] > length - 2000, seen
+        return
+    seg = got[i0:i0 + length]
+    seg = seg[seg != 0]                  # silences where the producer was late
+    m = min(seg.size, ref.size - j)
+    assert m > length - 2000
+    seg, want = seg[:m], ref[j:j + m]
+    bad = np.flatnonzero(np.abs(seg - want) > atol)
     keep = without_xrun_periods(bad, seg.size, sound["xruns"], sound["block"])
-    assert_float32_roundoff(seg[keep, None], ref[keep, None])
+    assert_float32_roundoff(seg[keep, None], want[keep, None])
 
 
 def aligned(got, ref, window=400):
@@ -121,12 +137,7 @@ def test_python_osc_changes_the_2d_scene_and_the_recorded_sound_follows(jack8k):
                                atol=1e-15)
     i0, j = aligned(got, ref[:, 0])
     assert j < start[0], "the recording began after the change"
-    seg = got[i0:i0 + n - j]
-    if rep["sound"]["underruns"]:            # silences where the producer was late
-        seg = seg[seg != 0]
-    m = min(seg.size, n - j)
-    assert m > n - j - 2000
-    assert_heard(seg[:m], ref[j:j + m, 0], rep["sound"])
+    assert_heard(got, i0, j, n - j, ref[:, 0], rep["sound"])
 
 
 def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
@@ -152,12 +163,9 @@ def test_plucks_every_quarter_second_are_recorded_at_their_samples(jack8k):
     got = rec.buf[:rec.n]
     ref = reference(sc, 20000, hand=h, direction=e, every=2000)[:, :1]
     i0, j = aligned(got, ref[:, 0])
-    seg = got[i0:i0 + 8000]
-    if rep["sound"]["underruns"]:
-        seg = seg[seg != 0]
-    m = min(seg.size, 20000 - j)
-    assert m > 4000 and (j + m) // 2000 > j // 2000 + 1      # two plucks at least heard
-    assert_heard(seg[:m], ref[j:j + m, 0], rep["sound"])
+    length = min(8000, 20000 - j)
+    assert length > 4000 and (j + length) // 2000 > j // 2000 + 1   # two plucks heard
+    assert_heard(got, i0, j, length, ref[:, 0], rep["sound"])
 
 
 def test_pd_patch_changes_a_plane_of_the_2d_scene(jack8k, tmp_path):
