@@ -305,3 +305,54 @@ def test_two_faders_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs):  
         assert sum(s["direction"] is not None for s in rep.statements) in (0, 4)
         assert len(rt["usable"]) == 5
     assert math.isfinite(took)
+
+
+class _ZeroingWatchdog:
+    """The host's watchdog as record_faders sees it, its zero writes made where asked:
+    just before the host's write number ``at`` (a stall of the whole bound ends there),
+    the zero packet written to the port and reported by that host write, as
+    :meth:`hapsim.drivers.torque_watchdog.TorqueWatchdog.write` reports it."""
+
+    def __init__(self, at):
+        self.at, self.n, self.fired = set(at), 0, 0
+
+    def arm(self, on=True):
+        pass
+
+    def write(self, ser, data, holding):
+        self.n += 1
+        times = ()
+        if self.n in self.at:
+            ser.write(ff.encode_packet(0, 0))
+            self.fired += 1
+            times = (time.monotonic_ns(),)
+        ser.write(data)
+        return times
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_watchdog_zero_write_answered_with_the_hosts_next_is_read_as_its_own(seed):
+    """Lockstep by name: the board answers each command at once, so when the host's
+    watchdog made a zero write in a stall, the host's next read finds two records, the
+    zero write's and its own write's (as a host descheduled between its write and its
+    read finds them on the board's own clock). Each is the answer to one command: the
+    run takes them in order and ends by its duration, every zero write's record dropped
+    (it stopped with "no record within 0.5 s (the board lost)" when a read kept the last
+    record of those waiting: a fresh-clone suite's two-fader run did so after a 190 ms
+    stall of its host)."""
+    from hapsim.emulated.firefader_board import FireFaderDevice
+    from hapsim.lockstep import excitation_starts
+    from hapsim.pipeline.faders_run import record_faders
+    rng = np.random.default_rng(seed)
+    sc = random_faders(rng)
+    drv = ff.FireFader()
+    starts = excitation_starts(2, 4e-3, sc.period)
+    (_, da), (_, db) = sc.devices
+    dev = FireFaderDevice(da, sc.rate_hz, None, clock="lockstep", device_b=db,
+                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
+                          **drv.mock_hardware())
+    wd = _ZeroingWatchdog(rng.choice(np.arange(2, 200), size=6, replace=False))
+    run = record_faders(InProcessLink(dev), sc, 60, len(starts),
+                        force_scale=drv.force_scale, pace=False, watchdog=wd)
+    assert run["stop"] == "end" and len(run["records"]) == len(starts), run["stop"]
+    assert wd.fired == 6 and run["watchdog_zeroed"] == 6

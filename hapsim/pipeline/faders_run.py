@@ -59,6 +59,7 @@ before it starts (:func:`faders_feasibility`).
 
 from __future__ import annotations
 
+import collections
 import math
 import select
 import time
@@ -153,22 +154,66 @@ def faders_refusal(scene, options) -> str | None:
     return None
 
 
-def _read_record(ser, dec, timeout: float):
-    """The next record's two pot counts, or None when none came within ``timeout`` [s]."""
-    end = time.monotonic() + timeout
-    while True:
-        n = ser.in_waiting
-        if n:
-            recs = dec.feed(ser.read(n))
-            if recs:
-                return recs[-1][0], recs[-1][1]
-        left = end - time.monotonic()
-        if left <= 0:
-            return None
-        if hasattr(ser, "fileno"):
+class _Records:
+    """The board's records as they come, one per command, in order.
+
+    A read may find several records waiting: the answer to a zero write the host's
+    watchdog made in a stall and the answer to the host's own write after it, when the
+    host was descheduled between that write and its read. Each is the answer to one
+    command, so each is taken by the read for that command; a read that kept only the
+    last of them left the next read waiting for a record that had come already (a
+    fresh-clone suite's two-fader run stopped so: "no record within 0.5 s (the board
+    lost)" after a 190 ms stall of its host).
+
+    Parameters
+    ----------
+    dec : hapsim.drivers.firefader.RecordDecoder
+        The stream's decoder.
+    """
+
+    def __init__(self, dec) -> None:
+        self.dec = dec
+        self.pending: collections.deque = collections.deque()
+
+    def next(self, ser, timeout: float):
+        """The next record's two pot counts, or None when none came within ``timeout``.
+
+        Parameters
+        ----------
+        ser : serial.Serial or serial-like
+            The port (``in_waiting``, ``read``; ``fileno`` to wait on it).
+        timeout : float
+            Longest wait [s] (an in-process link without ``fileno``: none, its answer is
+            there or not).
+
+        Returns
+        -------
+        (int, int) or None
+        """
+        end = time.monotonic() + timeout
+        while not self.pending:
+            n = ser.in_waiting
+            if n:
+                self.pending.extend(self.dec.feed(ser.read(n)))
+                if self.pending:
+                    break
+            left = end - time.monotonic()
+            if left <= 0 or not hasattr(ser, "fileno"):
+                return None
             select.select([ser.fileno()], [], [], min(left, 0.01))
-        else:                                 # an in-process link: its answer is there
-            return None
+        rec = self.pending.popleft()
+        return rec[0], rec[1]
+
+    def clear(self, ser) -> None:
+        """Every record not read yet dropped, with the port's input (before a record's
+        start: the pause's answers).
+
+        Parameters
+        ----------
+        ser : serial.Serial or serial-like
+        """
+        ser.reset_input_buffer()
+        self.pending.clear()
 
 
 def _zero(ser, dec) -> bool:
@@ -177,7 +222,7 @@ def _zero(ser, dec) -> bool:
     from hapsim.drivers.firefader import encode_packet
     ser.write(encode_packet(0, 0))
     ser.flush()
-    return _read_record(ser, dec, REPLY_TIMEOUT_S) is not None
+    return _Records(dec).next(ser, REPLY_TIMEOUT_S) is not None
 
 
 def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
@@ -239,7 +284,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     def drain(times):
         # the watchdog's zero writes went out before this write: their records first
         for _ in times:
-            _read_record(ser, dec, REPLY_TIMEOUT_S)
+            records.next(ser, REPLY_TIMEOUT_S)
             zeroed[0] += 1
 
     def put(pk):                            # (a zero packet holds no force)
@@ -249,7 +294,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     P = 2
     lim = np.array([float(d.force_limit) for _, d in scene.devices])
     fs = force_scale * 127.0
-    dec = RecordDecoder()
+    records = _Records(RecordDecoder())
     zero = encode_packet(0, 0)
     host = LockstepPorts(scene)              # the links' law: host.forces()
     wait = sleep_until_ns if pace else (lambda ns: None)
@@ -258,7 +303,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     while got < arming:                      # (the Nano's bootloader eats the first ones)
         wait(t0 + w * Tns)
         ser.write(zero)
-        got += _read_record(ser, dec, 2 * T) is not None
+        got += records.next(ser, 2 * T) is not None
         w += 1
         if w * T > ARM_TIMEOUT_S or (not pace and w > 2 * arming):
             raise DeviceError(f"the FireFader sent {got} of {arming} records in "
@@ -276,7 +321,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
             time.sleep(PAUSE_S)              # the silence rule: forces off, the hand
         else:
             ser.idle(PAUSE_S)
-        ser.reset_input_buffer()
+        records.clear(ser)
         pos = np.full((samples, P), np.nan)
         frc = np.zeros((samples, P))
         late = np.zeros(samples)
@@ -298,7 +343,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
             if lag > LATE_STOP_S:
                 stop = f"host late: a write {lag * 1e3:.0f} ms behind its time"
                 break
-            rec = _read_record(ser, dec, REPLY_TIMEOUT_S)
+            rec = records.next(ser, REPLY_TIMEOUT_S)
             if rec is None:
                 stop = f"no record within {REPLY_TIMEOUT_S:g} s (the board lost)"
                 break
@@ -328,7 +373,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
                 hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
             clamped[k] = hit
         put(zero)                             # both faders at zero force, its record
-        _read_record(ser, dec, REPLY_TIMEOUT_S)
+        records.next(ser, REPLY_TIMEOUT_S)
         out.append({"position": pos, "force": frc, "late": late, "clamped": clamped})
         if progress is not None:
             progress(j + 1, starts)
