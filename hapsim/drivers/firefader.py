@@ -61,11 +61,14 @@ force stays) and streams records unprompted; the transport says which firmware a
 
 from __future__ import annotations
 
+import collections
 import math
+import select
+import time
 
 from hapsim.drivers.base import FLAG_ESTIMATED, Driver, MappedDecoder
 
-__all__ = ["FireFader", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",
+__all__ = ["FireFader", "Records", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",
            "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
            "force_counts", "RecordDecoder", "PacketDecoder", "HAND_PASSES"]
 
@@ -384,6 +387,68 @@ class PacketDecoder(_StartByteDecoder):
 
     def __init__(self) -> None:
         super().__init__(HOST_START, 2, _signed_force)
+
+
+class Records:
+    """The board's records as they come, one per command, in order.
+
+    A read may find several records waiting: the answer to a zero write the host's
+    watchdog made in a stall and the answer to the host's own write after it, when the
+    host was descheduled between that write and its read. Each is the answer to one
+    command, so each is taken by the read for that command; a read that kept only the
+    last of them left the next read waiting for a record that had come already (a
+    fresh-clone suite's two-fader run stopped so: "no record within 0.5 s (the board
+    lost)" after a 190 ms stall of its host: :mod:`hapsim.pipeline.faders_run`).
+
+    Parameters
+    ----------
+    dec : hapsim.drivers.firefader.RecordDecoder
+        The stream's decoder.
+    """
+
+    def __init__(self, dec) -> None:
+        self.dec = dec
+        self.pending: collections.deque = collections.deque()
+
+    def next(self, ser, timeout: float):
+        """The next record's two pot counts, or None when none came within ``timeout``.
+
+        Parameters
+        ----------
+        ser : serial.Serial or serial-like
+            The port (``in_waiting``, ``read``; ``fileno`` to wait on it).
+        timeout : float
+            Longest wait [s] (an in-process link without ``fileno``: none, its answer is
+            there or not).
+
+        Returns
+        -------
+        (int, int) or None
+        """
+        end = time.monotonic() + timeout
+        while not self.pending:
+            n = ser.in_waiting
+            if n:
+                self.pending.extend(self.dec.feed(ser.read(n)))
+                if self.pending:
+                    break
+            left = end - time.monotonic()
+            if left <= 0 or not hasattr(ser, "fileno"):
+                return None
+            select.select([ser.fileno()], [], [], min(left, 0.01))
+        rec = self.pending.popleft()
+        return rec[0], rec[1]
+
+    def clear(self, ser) -> None:
+        """Every record not read yet dropped, with the port's input (before a record's
+        start: the pause's answers).
+
+        Parameters
+        ----------
+        ser : serial.Serial or serial-like
+        """
+        ser.reset_input_buffer()
+        self.pending.clear()
 
 
 class FireFader(Driver):

@@ -404,18 +404,8 @@ class HapkitSerial(SketchTiming, Driver):
 
     def applied_forces(self, force):
         """:meth:`applied_force` of every force of an array, at numpy's speed
-        (:func:`hapsim.drivers.base.binary32_commands` at the force limit).
-
-        Parameters
-        ----------
-        force : array_like of float, shape (n,)
-            Forces sent [N].
-
-        Returns
-        -------
-        ndarray of float, shape (n,)
-            The forces the commands carry [N].
-        """
+        (:func:`hapsim.drivers.base.binary32_commands` at the force limit; arguments, shapes and
+        units as :meth:`hapsim.drivers.base.Driver.applied_forces`)."""
         return binary32_commands(force, self.force_limit)
 
     def realign_bytes(self, frames) -> bytes:

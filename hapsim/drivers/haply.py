@@ -513,19 +513,9 @@ class HaplyM3(Driver):
         return _F.unpack(self.encode_force(force)[2:])[0]
 
     def applied_forces(self, force):
-        """:meth:`applied_force` of every torque of an array, at numpy's speed
-        (:func:`hapsim.drivers.base.binary32_commands` at the board's limit).
-
-        Parameters
-        ----------
-        force : array_like of float, shape (n,)
-            Torques sent [N m].
-
-        Returns
-        -------
-        ndarray of float, shape (n,)
-            The torques the writes carry [N m].
-        """
+        """:meth:`applied_force` of every force of an array, at numpy's speed
+        (:func:`hapsim.drivers.base.binary32_commands` at the board's limit; arguments, shapes and
+        units as :meth:`hapsim.drivers.base.Driver.applied_forces`)."""
         return binary32_commands(force, MAX_TORQUE)
 
     def output_stage(self, force):

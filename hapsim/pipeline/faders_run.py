@@ -59,9 +59,7 @@ before it starts (:func:`faders_feasibility`).
 
 from __future__ import annotations
 
-import collections
 import math
-import select
 import time
 
 import numpy as np
@@ -154,75 +152,13 @@ def faders_refusal(scene, options) -> str | None:
     return None
 
 
-class _Records:
-    """The board's records as they come, one per command, in order.
-
-    A read may find several records waiting: the answer to a zero write the host's
-    watchdog made in a stall and the answer to the host's own write after it, when the
-    host was descheduled between that write and its read. Each is the answer to one
-    command, so each is taken by the read for that command; a read that kept only the
-    last of them left the next read waiting for a record that had come already (a
-    fresh-clone suite's two-fader run stopped so: "no record within 0.5 s (the board
-    lost)" after a 190 ms stall of its host).
-
-    Parameters
-    ----------
-    dec : hapsim.drivers.firefader.RecordDecoder
-        The stream's decoder.
-    """
-
-    def __init__(self, dec) -> None:
-        self.dec = dec
-        self.pending: collections.deque = collections.deque()
-
-    def next(self, ser, timeout: float):
-        """The next record's two pot counts, or None when none came within ``timeout``.
-
-        Parameters
-        ----------
-        ser : serial.Serial or serial-like
-            The port (``in_waiting``, ``read``; ``fileno`` to wait on it).
-        timeout : float
-            Longest wait [s] (an in-process link without ``fileno``: none, its answer is
-            there or not).
-
-        Returns
-        -------
-        (int, int) or None
-        """
-        end = time.monotonic() + timeout
-        while not self.pending:
-            n = ser.in_waiting
-            if n:
-                self.pending.extend(self.dec.feed(ser.read(n)))
-                if self.pending:
-                    break
-            left = end - time.monotonic()
-            if left <= 0 or not hasattr(ser, "fileno"):
-                return None
-            select.select([ser.fileno()], [], [], min(left, 0.01))
-        rec = self.pending.popleft()
-        return rec[0], rec[1]
-
-    def clear(self, ser) -> None:
-        """Every record not read yet dropped, with the port's input (before a record's
-        start: the pause's answers).
-
-        Parameters
-        ----------
-        ser : serial.Serial or serial-like
-        """
-        ser.reset_input_buffer()
-        self.pending.clear()
-
-
 def _zero(ser, dec) -> bool:
     """Both faders at zero force: a zero packet, and its record waited for (the board has
     run its pass). Returns whether the record came."""
-    from hapsim.drivers.firefader import encode_packet
+    from hapsim.drivers.firefader import Records, encode_packet
     ser.write(encode_packet(0, 0))
     ser.flush()
-    return _Records(dec).next(ser, REPLY_TIMEOUT_S) is not None
+    return Records(dec).next(ser, REPLY_TIMEOUT_S) is not None
 
 
 def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
@@ -274,7 +210,8 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
         No record during the arming.
     """
     from hapsim.drivers.firefader import (CENTRE, FORCE_MAX, HAND_PASSES, METRES_PER_COUNT,
-                                          RecordDecoder, encode_packet, force_counts)
+                                          RecordDecoder, Records, encode_packet,
+                                          force_counts)
     from hapsim.host.realtime import sleep_until_ns
     from hapsim.lockstep_ports import LockstepPorts
     T = scene.period
@@ -294,7 +231,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     P = 2
     lim = np.array([float(d.force_limit) for _, d in scene.devices])
     fs = force_scale * 127.0
-    records = _Records(RecordDecoder())
+    records = Records(RecordDecoder())
     zero = encode_packet(0, 0)
     host = LockstepPorts(scene)              # the links' law: host.forces()
     wait = sleep_until_ns if pace else (lambda ns: None)
