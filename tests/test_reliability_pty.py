@@ -203,8 +203,14 @@ def test_kill_9_loses_at_most_100_ms_of_telemetry(tmp_path, wall):
     n = cols["seq"].size
     assert n >= rows and info["chunks"] >= 1
     # every complete chunk, in order (STATEs skipped by the backlog policy, when two were
-    # waiting at once on a loaded machine, leave gaps in seq; no row is out of order)
-    assert cols["seq"][0] == 0 and (np.diff(cols["seq"]) >= 1).all()
+    # waiting at once on a loaded machine, leave gaps in seq; no row is out of order).
+    # A loss and its recovery, journaled (a mock starved 50 ms on a loaded machine: seen
+    # beside a CPU-bound process), re-arms the device, whose seq starts again at 0 there
+    seq = cols["seq"]
+    again = np.flatnonzero(np.diff(seq) < 1) + 1
+    recovered = [e for e in info["events"] if e["event"] == "recovered"]
+    assert seq[0] == 0 and len(again) == len(recovered) and not np.any(seq[again]), (
+        again, info["events"])
     # STATEs the mock sent after the last row on disk: at most 100 ms at 1 kHz
     lost = report["ticks"] - (int(cols["seq"][-1]) + 1)
     assert 0 <= lost <= 100, (report["ticks"], n)
