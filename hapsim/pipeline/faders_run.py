@@ -152,13 +152,13 @@ def faders_refusal(scene, options) -> str | None:
     return None
 
 
-def _zero(ser, dec) -> bool:
+def _zero(ser) -> bool:
     """Both faders at zero force: a zero packet, and its record waited for (the board has
     run its pass). Returns whether the record came."""
-    from hapsim.drivers.firefader import Records, encode_packet
+    from hapsim.drivers.firefader import RecordDecoder, Records, encode_packet
     ser.write(encode_packet(0, 0))
     ser.flush()
-    return Records(dec).next(ser, REPLY_TIMEOUT_S) is not None
+    return Records(RecordDecoder()).next(ser, REPLY_TIMEOUT_S) is not None
 
 
 def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
@@ -708,8 +708,7 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
             if wd is not None:
                 wd.close()
             try:
-                from hapsim.drivers.firefader import RecordDecoder
-                _zero(ser, RecordDecoder())    # both faders at zero force, its pass run
+                _zero(ser)                     # both faders at zero force, its pass run
             except Exception:  # best effort: the port may be gone
                 pass
             ser.close()
