@@ -43,7 +43,7 @@ import math
 import numpy as np
 
 __all__ = ["SETTLED", "SINGULAR", "MAX_PASSES", "RESTARTS", "pair_of", "device_at_pair",
-           "through_measured_loop"]
+           "frictionless_near_pair", "through_measured_loop"]
 
 #: A fixed point is reached when the loop's pair and the pair measured through it differ
 #: by less than this fraction of the stated half-widths.
@@ -110,12 +110,9 @@ def device_at_pair(scene, pair, mass: float, start=None):
         None when no device with a positive mass renders the pair (an overdamped pair,
         or Newton's method not converging in 40 steps).
     """
-    k, b = float(pair[0]), float(pair[1])
-    re = -b / (2.0 * mass)
-    im2 = k / mass - re * re
-    if not (math.isfinite(im2) and im2 > 0):
+    target = _target_pole(scene, pair, mass)
+    if target is None:
         return None
-    target = cmath.exp(complex(re, math.sqrt(im2)) * scene.period)
     dev = start if start is not None else scene.device
     x = np.array([float(dev.mass), float(dev.friction)])
 
@@ -153,13 +150,80 @@ def device_at_pair(scene, pair, mass: float, start=None):
             step = np.linalg.solve(J, r)
         except np.linalg.LinAlgError:
             return None
-        # never through a zero mass: halve the step
-        while x[0] - step[0] <= 0:
+        # never through a zero mass or a negative friction (no such device: the scene
+        # refuses it, and an iterate there ended the search): halve the step, and give
+        # up where it has no length left (a pair only a negative friction renders)
+        for _ in range(60):
+            if x[0] - step[0] > 0 and x[1] - step[1] >= 0:
+                break
             step = step / 2.0
+        else:
+            return None
         x = x - step
     else:
         return None
     return dataclasses.replace(dev, mass=float(x[0]), friction=float(x[1]))
+
+
+def frictionless_near_pair(scene, pair, mass: float, start=None):
+    """The scene's device without friction whose loop renders the felt pole nearest
+    ``pair``'s: where :func:`device_at_pair` finds no device because the pair needs a
+    negative friction (a loop the record measures at or near ``b0 = 0``).
+
+    The mass minimises ``|z(m) - z*|``, ``z*`` the pair's sampled pole (Brent's bounded
+    search, ``scipy.optimize.minimize_scalar``, over a quarter to four times the start's
+    mass): the pole's distance, not the pair's, so that k and b weigh as the loop does.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's model (its links, rate, delay and hold kept).
+    pair : array_like, shape (2,)
+        The wanted felt (k [N/m], b [N s/m]), expressed with ``mass``.
+    mass : float
+        The mass [kg] the pair is expressed with.
+    start : hapsim.scene.Device, optional
+        Its mass bounds the search (default the scene's device).
+
+    Returns
+    -------
+    hapsim.scene.Device or None
+        The device (friction 0), or None when the pair is no underdamped pole or no mass
+        in the bounds gives the loop a felt pair.
+    """
+    from scipy.optimize import minimize_scalar
+
+    from hapsim.analysis.prediction import predicted_poles
+    target = _target_pole(scene, pair, mass)
+    if target is None:
+        return None
+    dev = start if start is not None else scene.device
+
+    def device(v):
+        return dataclasses.replace(dev, mass=float(v), friction=0.0)
+
+    def dist(v):
+        try:
+            z = predicted_poles(dataclasses.replace(scene, device=device(v)))[1]
+        except Exception:           # (a mass the scene refuses: no such device)
+            return math.inf
+        return math.inf if z is None else abs(complex(z) - target)
+
+    m0 = float(dev.mass)
+    got = minimize_scalar(dist, bounds=(0.25 * m0, 4.0 * m0), method="bounded",
+                          options={"xatol": 1e-12 * m0})
+    return device(got.x) if math.isfinite(float(got.fun)) else None
+
+
+def _target_pole(scene, pair, mass: float):
+    """The sampled felt pole of ``pair`` (k, b) expressed with ``mass``, or None for an
+    overdamped pair."""
+    k, b = float(pair[0]), float(pair[1])
+    re = -b / (2.0 * mass)
+    im2 = k / mass - re * re
+    if not (math.isfinite(im2) and im2 > 0):
+        return None
+    return cmath.exp(complex(re, math.sqrt(im2)) * scene.period)
 
 
 def _pair(m: dict):
@@ -242,6 +306,20 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
             return None
         return d, got
 
+    def frictionless(p):
+        """As :func:`at`, through the frictionless loop nearest pair ``p``
+        (:func:`frictionless_near_pair`)."""
+        nonlocal passes, why
+        d = frictionless_near_pair(scene, p, mass, dev)
+        if d is None or pair_of(dataclasses.replace(scene, device=d), mass) is None:
+            return None
+        got = fit_at(d)
+        passes += 1
+        if "k" not in got:
+            why = str(got.get("error") or got.get("verdict") or "")
+            return None
+        return d, got
+
     def near(what):
         # the measurement's own reason at the last loop tried, when it gave one
         return what + (f" (there: {why})" if why else "")
@@ -258,13 +336,16 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
         """dM/dp at ``p`` by finite differences of steps ``h``, and the points made."""
         A, pts = np.empty((2, 2)), []
         for i in range(2):
-            q = p.copy()
-            q[i] += h[i]
-            got = at(q)
-            if got is None:
+            for step in (h[i], -h[i]):
+                q = p.copy()
+                q[i] += step
+                got = at(q)
+                if got is not None:
+                    break
+            else:
                 return None, pts
             pts.append((q, got[0], got[1]))
-            A[:, i] = (_pair(got[1]) - _pair(m)) / h[i]
+            A[:, i] = (_pair(got[1]) - _pair(m)) / step
         return A, pts
 
     # the secant slopes, steps of the departure's size (at least 3 half-widths), then
@@ -309,13 +390,24 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
             for lam in (1.0, 0.5, 0.25, 0.125):
                 got = at(p + lam * step)
                 if got is not None:
+                    pn = p + lam * step
                     break
             else:
-                return failed(near(f"no device near the pair {(p + step).tolist()} "
-                                   f"gives a measurement"))
-            pn = p + lam * step
+                # every fraction of the step needs a negative friction (the loop the
+                # record measures at or near b0 = 0: its fixed point on that edge, which
+                # Broyden's steps overshoot): the frictionless loop nearest the step's
+                # pair, taken at its own pair
+                got = frictionless(p + step)
+                if got is None:
+                    return failed(near(f"no device near the pair {(p + step).tolist()} "
+                                       f"gives a measurement"))
+                pn = pair_of(dataclasses.replace(scene, device=got[0]), mass)
+                if not np.any(pn != p):
+                    return failed(f"no fixed point in {passes} fits (the pair measured "
+                                  f"is {F.tolist()} from the loop's last, at b0 = 0)")
             Fn = _pair(got[1]) - pn
-            J = J + np.outer((Fn - F) - J @ (pn - p), pn - p) / float((pn - p) @ (pn - p))
+            if np.any(pn != p):         # (a step of no length: no secant to update by)
+                J = J + np.outer((Fn - F) - J @ (pn - p), pn - p) / float((pn - p) @ (pn - p))
             p, F, d, m = pn, Fn, got[0], got[1]
             seen.append((float(np.max(np.abs(F) / u)), p, F, m, d))
             if settled(F, m):
