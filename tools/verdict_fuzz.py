@@ -34,7 +34,8 @@ the 1-D verdict takes the rounding by draws of its phase with the quantisers in 
 ``--protocol framed-counts`` (hapsim's mock with an encoder of 8-40 counts over the start,
 its zero anywhere in a count: 1 of 44 measurable matching loops "differed" before) checks
 the class. Each matching run's departure over the draws' largest is kept (``ratios``,
-``ratio_max``): the measure of the draws' margin, ``PAIR_MARGIN``.
+``ratio_max``): the measure of the draws' margin, ``PAIR_MARGIN``; every run without a
+verdict, with its reason (``unmeasured``).
 
 On the wall clock (2026-11-28, ``--clock wall --cases 15 --seed 7``, nothing beside): no
 wrong verdict in 150 runs, but 17 lost ("not measurable"; 14 of them of heavier devices)
@@ -183,7 +184,7 @@ def main(argv=None) -> int:
         ap.error(f"--cases must be >= 1, got {a.cases}")
     out = {"command": command_line(__file__, argv), "hidden": HIDDEN, "clock": a.clock,
            "counts": {},
-           "wrong": [], "ratios": {}}
+           "wrong": [], "unmeasured": [], "ratios": {}}
     for protocol in a.protocol or PROTOCOLS:
         rng = random.Random(f"{a.seed}:{protocol}")
         counts = out["counts"].setdefault(protocol, {
@@ -201,6 +202,9 @@ def main(argv=None) -> int:
                         if v.startswith("measured differs") else "refused"
                         if v.startswith("refused") else "not measurable")
                 counts[f"{side} {kind}"] = counts.get(f"{side} {kind}", 0) + 1
+                if kind in ("not measurable", "refused"):
+                    out["unmeasured"].append({"protocol": protocol, "case": i,
+                                              "side": side, "reason": v})
                 if (side, kind) in (("matching", "differs"), ("heavier", "within")):
                     out["wrong"].append({"protocol": protocol, "case": i, "side": side,
                                          "loop": case, "verdict": v})

@@ -107,8 +107,9 @@ def device_at_pair(scene, pair, mass: float, start=None):
     Returns
     -------
     hapsim.scene.Device or None
-        None when no device with a positive mass renders the pair (an overdamped pair,
-        or Newton's method not converging in 40 steps).
+        None when no device with a positive mass and a friction >= 0 renders the pair
+        (an overdamped pair, a pair only a negative friction renders, or Newton's method
+        not converging in 40 steps).
     """
     target = _target_pole(scene, pair, mass)
     if target is None:
@@ -292,26 +293,14 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
 
     why = ""                        # the last fit through a loop that measured nothing
 
-    def at(p):
-        """The measurement through the loop of pair ``p``, or None (no such device, or no
-        measurement through its loop: its reason kept for the error)."""
+    def at(p, find=device_at_pair):
+        """The measurement through the loop of pair ``p``, its device found by ``find``
+        (:func:`device_at_pair`, or :func:`frictionless_near_pair`: the nearest), or None
+        (no such device, or no measurement through its loop: its reason kept for the
+        error)."""
         nonlocal passes, why
-        d = device_at_pair(scene, p, mass, dev)
+        d = find(scene, p, mass, dev)
         if d is None:
-            return None
-        got = fit_at(d)
-        passes += 1
-        if "k" not in got:
-            why = str(got.get("error") or got.get("verdict") or "")
-            return None
-        return d, got
-
-    def frictionless(p):
-        """As :func:`at`, through the frictionless loop nearest pair ``p``
-        (:func:`frictionless_near_pair`)."""
-        nonlocal passes, why
-        d = frictionless_near_pair(scene, p, mass, dev)
-        if d is None or pair_of(dataclasses.replace(scene, device=d), mass) is None:
             return None
         got = fit_at(d)
         passes += 1
@@ -397,11 +386,12 @@ def through_measured_loop(scene, measured: dict, fit_at, start=None) -> dict:
                 # record measures at or near b0 = 0: its fixed point on that edge, which
                 # Broyden's steps overshoot): the frictionless loop nearest the step's
                 # pair, taken at its own pair
-                got = frictionless(p + step)
-                if got is None:
+                got = at(p + step, frictionless_near_pair)
+                pn = None if got is None else pair_of(
+                    dataclasses.replace(scene, device=got[0]), mass)
+                if pn is None:
                     return failed(near(f"no device near the pair {(p + step).tolist()} "
                                        f"gives a measurement"))
-                pn = pair_of(dataclasses.replace(scene, device=got[0]), mass)
                 if not np.any(pn != p):
                     return failed(f"no fixed point in {passes} fits (the pair measured "
                                   f"is {F.tolist()} from the loop's last, at b0 = 0)")
