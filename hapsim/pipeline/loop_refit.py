@@ -177,12 +177,9 @@ def frictionless_near_pair(scene, pair, mass: float, start=None):
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene
-        The run's model (its links, rate, delay and hold kept).
-    pair : array_like, shape (2,)
-        The wanted felt (k [N/m], b [N s/m]), expressed with ``mass``.
-    mass : float
-        The mass [kg] the pair is expressed with.
+    scene, pair, mass
+        As :func:`device_at_pair` (the model, the wanted felt (k [N/m], b [N s/m]) and
+        the mass [kg] it is expressed with).
     start : hapsim.scene.Device, optional
         Its mass bounds the search (default the scene's device).
 
