@@ -356,3 +356,48 @@ def test_a_watchdog_zero_write_answered_with_the_hosts_next_is_read_as_its_own(s
                         force_scale=drv.force_scale, pace=False, watchdog=wd)
     assert run["stop"] == "end" and len(run["records"]) == len(starts), run["stop"]
     assert wd.fired == 6 and run["watchdog_zeroed"] == 6
+
+
+class _MergingWatchdog(_ZeroingWatchdog):
+    """As :class:`_ZeroingWatchdog`, the zero packet and the host's in one write: the
+    board finds both waiting for its pass and merges them (one record)."""
+
+    def write(self, ser, data, holding):
+        self.n += 1
+        if self.n in self.at:
+            ser.write(ff.encode_packet(0, 0) + data)
+            self.fired += 1
+            return (time.monotonic_ns(),)
+        ser.write(data)
+        return ()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_zero_write_the_board_merged_with_the_hosts_stops_the_run_by_its_cause(seed):
+    """Lockstep by name: the watchdog's zero packet and the host's next wait together for
+    the board's pass, and the ``.ino`` runs one pass for both (the last counts), so one
+    record answers two commands. The records say nothing of whose they are: the run stops,
+    said as the host's lateness with the count of records, and keeps what it measured.
+    It waited 0.5 s for a record that never came and stopped with "no record within
+    0.5 s (the board lost)" (a fresh-clone CI's two-fader run over the mock's port after
+    a 180 ms stall of its host)."""
+    from hapsim.emulated.firefader_board import FireFaderDevice
+    from hapsim.lockstep import excitation_starts
+    from hapsim.pipeline.faders_run import record_faders
+    rng = np.random.default_rng(seed)
+    sc = random_faders(rng)
+    drv = ff.FireFader()
+    starts = excitation_starts(2, 4e-3, sc.period)
+    (_, da), (_, db) = sc.devices
+    dev = FireFaderDevice(da, sc.rate_hz, None, clock="lockstep", device_b=db,
+                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
+                          **drv.mock_hardware())
+    at = int(rng.integers(100, 150))
+    wd = _MergingWatchdog([at])
+    t = time.monotonic()
+    run = record_faders(InProcessLink(dev), sc, 60, len(starts),
+                        force_scale=drv.force_scale, pace=False, watchdog=wd)
+    assert wd.fired == 1 and dev.merged >= 1
+    assert run["stop"].startswith("host late: the watchdog zeroed the forces"), run["stop"]
+    assert "answered 1 of the 2 packets" in run["stop"], run["stop"]
+    assert time.monotonic() - t < 60.0 and run["records"], run

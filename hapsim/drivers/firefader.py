@@ -439,6 +439,38 @@ class Records:
         rec = self.pending.popleft()
         return rec[0], rec[1]
 
+    def more(self, ser, n: int, within: float):
+        """Up to ``n`` more records, those that come within ``within`` [s]: the answers to
+        the commands written beside one already answered (the host watchdog's zero writes
+        in a stall). The ``.ino`` runs one pass for the packets that waited for it, the
+        last counting (``loop``, lines 283-315: :class:`hapsim.emulated.firefader_board.
+        FireFaderDevice`), so fewer may come; the records say nothing of which command
+        they answer, so the caller cannot then tell which is whose.
+
+        Parameters
+        ----------
+        ser : serial.Serial or serial-like
+        n : int
+            The records owed.
+        within : float
+            Longest wait [s], from now, for all of them.
+
+        Returns
+        -------
+        rec : (int, int) or None
+            The last record taken (None: none came).
+        got : int
+            How many came, ``<= n``.
+        """
+        end = time.monotonic() + within
+        rec, got = None, 0
+        while got < n:
+            nxt = self.next(ser, max(0.0, end - time.monotonic()))
+            if nxt is None:
+                break
+            rec, got = nxt, got + 1
+        return rec, got
+
     def clear(self, ser) -> None:
         """Every record not read yet dropped, with the port's input (before a record's
         start: the pause's answers).

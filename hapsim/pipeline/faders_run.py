@@ -112,6 +112,11 @@ FADERS_TAKES = ("port", "driver", "allow_unstable", "rt_priority", "seed")
 #: The host's wait for a reply before the run is stopped [s] (the board answers within
 #: ~3 ms: :meth:`hapsim.drivers.firefader.FireFader.round_trip_s`).
 REPLY_TIMEOUT_S = 0.5
+#: After the record of a write the host's watchdog preceded with zero writes, how long
+#: the others may take [periods]: the ``.ino`` answers each packet's pass within ~3 ms
+#: (its reads and the 7-byte record at 57600 baud), a period at most of its rates, so
+#: two passes back to back; a record not come by then is taken as merged.
+MERGE_WAIT_PERIODS = 3
 #: The host's silence between records [s]: beyond the hand's patience (0.3 s).
 PAUSE_S = 0.4
 
@@ -218,16 +223,15 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     Tns = int(round(T * 1e9))
     zeroed = [0]
 
-    def drain(times):
-        # the watchdog's zero writes went out before this write: their records first
-        for _ in times:
-            records.next(ser, REPLY_TIMEOUT_S)
-            zeroed[0] += 1
-
-    def put(pk):                            # (a zero packet holds no force)
+    def put(pk):
+        # the commands now owed a record: pk and the watchdog's zero writes that went out
+        # before it (a zero packet holds no force)
         if watchdog is None:
-            return ser.write(pk)
-        drain(watchdog.write(ser, pk, pk != zero))
+            ser.write(pk)
+            return 1
+        n = len(watchdog.write(ser, pk, pk != zero))
+        zeroed[0] += n
+        return 1 + n
     P = 2
     lim = np.array([float(d.force_limit) for _, d in scene.devices])
     fs = force_scale * 127.0
@@ -274,7 +278,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
             wait(due)
             pk = (zero if k <= 0 else
                   encode_packet(*(max(force_counts(v, fs), -FORCE_MAX) for v in f)))
-            put(pk)
+            owed = put(pk)
             lag = (time.monotonic_ns() - due) * 1e-9 if pace else 0.0
             latest = max(latest, lag)
             if lag > LATE_STOP_S:
@@ -284,6 +288,20 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
             if rec is None:
                 stop = f"no record within {REPLY_TIMEOUT_S:g} s (the board lost)"
                 break
+            if owed > 1:
+                # the watchdog's zero writes in a stall, then this write: one record each,
+                # this write's the last, unless the board merged packets that waited for
+                # its pass; then no record says whose it is, and the run stops rather than
+                # take a reading a pass off its row
+                last, got = records.more(ser, owed - 1, MERGE_WAIT_PERIODS * T)
+                if got < owed - 1:
+                    stop = (f"host late: the watchdog zeroed the forces in a "
+                            f"{lag * 1e3:.0f} ms stall, and the board answered {1 + got} "
+                            f"of the {owed} packets within "
+                            f"{MERGE_WAIT_PERIODS * T * 1e3:.0f} ms (it merges those that "
+                            f"wait for its pass): which record is whose is lost")
+                    break
+                rec = last
             if k < 0:
                 continue
             for i in range(P):
@@ -309,8 +327,9 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
                 frc[k, i] = c * force_scale
                 hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
             clamped[k] = hit
-        put(zero)                             # both faders at zero force, its record
-        records.next(ser, REPLY_TIMEOUT_S)
+        owed = put(zero)                      # both faders at zero force, its record
+        if records.next(ser, REPLY_TIMEOUT_S) is not None:
+            records.more(ser, owed - 1, MERGE_WAIT_PERIODS * T)
         out.append({"position": pos, "force": frc, "late": late, "clamped": clamped})
         if progress is not None:
             progress(j + 1, starts)
