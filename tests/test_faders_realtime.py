@@ -285,7 +285,11 @@ def test_two_faders_on_the_boards_own_clock_beside_two_cpu_hogs(two_cpu_hogs):  
     assert wd["running"] and wd["zeroed"] == wd["fired"], wd
     assert rt["stop"] == "end" or rt["stop"].startswith(("host late", "safety:")), rt
     if rt["stop"].startswith("host late"):
-        assert rt["latest"] > LATE_STOP_S
+        # a write past the bound, or a zero write in a stall that the board merged with
+        # the host's next packet (one record for two: whose is lost)
+        assert rt["latest"] > LATE_STOP_S or (
+            rt["stop"].startswith("host late: the watchdog zeroed the forces")
+            and wd["zeroed"] >= 1), rt
     if rt["stop"].startswith("safety:"):
         # the workspace, after a stall of the host: the force held over it (or, past the
         # silence rule, none) carried the fader out; seen once beside another session's
