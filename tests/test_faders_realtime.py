@@ -334,6 +334,22 @@ class _ZeroingWatchdog:
         return times
 
 
+def _lockstep_faders(seed):
+    """A random two-fader scene and its board in lockstep (named), with the hand's starts:
+    ``(rng, scene, driver, starts, device)``."""
+    from hapsim.emulated.firefader_board import FireFaderDevice
+    from hapsim.lockstep import excitation_starts
+    rng = np.random.default_rng(seed)
+    sc = random_faders(rng)
+    drv = ff.FireFader()
+    starts = excitation_starts(2, 4e-3, sc.period)
+    (_, da), (_, db) = sc.devices
+    dev = FireFaderDevice(da, sc.rate_hz, None, clock="lockstep", device_b=db,
+                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
+                          **drv.mock_hardware())
+    return rng, sc, drv, starts, dev
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_watchdog_zero_write_answered_with_the_hosts_next_is_read_as_its_own(seed):
     """Lockstep by name: the board answers each command at once, so when the host's
@@ -344,17 +360,8 @@ def test_a_watchdog_zero_write_answered_with_the_hosts_next_is_read_as_its_own(s
     (it stopped with "no record within 0.5 s (the board lost)" when a read kept the last
     record of those waiting: a fresh-clone suite's two-fader run did so after a 190 ms
     stall of its host)."""
-    from hapsim.emulated.firefader_board import FireFaderDevice
-    from hapsim.lockstep import excitation_starts
     from hapsim.pipeline.faders_run import record_faders
-    rng = np.random.default_rng(seed)
-    sc = random_faders(rng)
-    drv = ff.FireFader()
-    starts = excitation_starts(2, 4e-3, sc.period)
-    (_, da), (_, db) = sc.devices
-    dev = FireFaderDevice(da, sc.rate_hz, None, clock="lockstep", device_b=db,
-                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
-                          **drv.mock_hardware())
+    rng, sc, drv, starts, dev = _lockstep_faders(seed)
     wd = _ZeroingWatchdog(rng.choice(np.arange(2, 200), size=6, replace=False))
     run = record_faders(InProcessLink(dev), sc, 60, len(starts),
                         force_scale=drv.force_scale, pace=False, watchdog=wd)
@@ -385,17 +392,8 @@ def test_a_zero_write_the_board_merged_with_the_hosts_stops_the_run_by_its_cause
     It waited 0.5 s for a record that never came and stopped with "no record within
     0.5 s (the board lost)" (a fresh-clone CI's two-fader run over the mock's port after
     a 180 ms stall of its host)."""
-    from hapsim.emulated.firefader_board import FireFaderDevice
-    from hapsim.lockstep import excitation_starts
     from hapsim.pipeline.faders_run import record_faders
-    rng = np.random.default_rng(seed)
-    sc = random_faders(rng)
-    drv = ff.FireFader()
-    starts = excitation_starts(2, 4e-3, sc.period)
-    (_, da), (_, db) = sc.devices
-    dev = FireFaderDevice(da, sc.rate_hz, None, clock="lockstep", device_b=db,
-                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
-                          **drv.mock_hardware())
+    rng, sc, drv, starts, dev = _lockstep_faders(seed)
     at = int(rng.integers(100, 150))
     wd = _MergingWatchdog([at])
     t = time.monotonic()
