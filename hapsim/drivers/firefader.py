@@ -439,36 +439,41 @@ class Records:
         rec = self.pending.popleft()
         return rec[0], rec[1]
 
-    def more(self, ser, n: int, within: float):
-        """Up to ``n`` more records, those that come within ``within`` [s]: the answers to
-        the commands written beside one already answered (the host watchdog's zero writes
-        in a stall). The ``.ino`` runs one pass for the packets that waited for it, the
-        last counting (``loop``, lines 283-315: :class:`hapsim.emulated.firefader_board.
-        FireFaderDevice`), so fewer may come; the records say nothing of which command
-        they answer, so the caller cannot then tell which is whose.
+    def answers(self, ser, owed: int, timeout: float, within: float):
+        """The record of a write, with those of the commands written beside it (the host
+        watchdog's zero writes in a stall): one each, the write's the last, unless the
+        ``.ino`` ran one pass for packets that waited for it, the last counting (``loop``,
+        lines 283-315: :class:`hapsim.emulated.firefader_board.FireFaderDevice`); then
+        fewer come, and the records say nothing of which command they answer.
 
         Parameters
         ----------
         ser : serial.Serial or serial-like
-        n : int
-            The records owed.
+        owed : int
+            The commands owed a record, >= 1.
+        timeout : float
+            Longest wait for the first record [s].
         within : float
-            Longest wait [s], from now, for all of them.
+            Longest wait for the others [s], from the first.
 
         Returns
         -------
         rec : (int, int) or None
-            The last record taken (None: none came).
+            The last record taken (None: none came within ``timeout``).
         got : int
-            How many came, ``<= n``.
+            How many came, ``<= owed``.
         """
-        end = time.monotonic() + within
-        rec, got = None, 0
-        while got < n:
-            nxt = self.next(ser, max(0.0, end - time.monotonic()))
-            if nxt is None:
-                break
-            rec, got = nxt, got + 1
+        rec = self.next(ser, timeout)
+        if rec is None:
+            return None, 0
+        got = 1
+        if owed > 1:
+            end = time.monotonic() + within
+            while got < owed:
+                nxt = self.next(ser, max(0.0, end - time.monotonic()))
+                if nxt is None:
+                    break
+                rec, got = nxt, got + 1
         return rec, got
 
     def clear(self, ser) -> None:

@@ -284,24 +284,20 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
             if lag > LATE_STOP_S:
                 stop = f"host late: a write {lag * 1e3:.0f} ms behind its time"
                 break
-            rec = records.next(ser, REPLY_TIMEOUT_S)
+            rec, got = records.answers(ser, owed, REPLY_TIMEOUT_S, MERGE_WAIT_PERIODS * T)
             if rec is None:
                 stop = f"no record within {REPLY_TIMEOUT_S:g} s (the board lost)"
                 break
-            if owed > 1:
-                # the watchdog's zero writes in a stall, then this write: one record each,
-                # this write's the last, unless the board merged packets that waited for
-                # its pass; then no record says whose it is, and the run stops rather than
-                # take a reading a pass off its row
-                last, got = records.more(ser, owed - 1, MERGE_WAIT_PERIODS * T)
-                if got < owed - 1:
-                    stop = (f"host late: the watchdog zeroed the forces in a "
-                            f"{lag * 1e3:.0f} ms stall, and the board answered {1 + got} "
-                            f"of the {owed} packets within "
-                            f"{MERGE_WAIT_PERIODS * T * 1e3:.0f} ms (it merges those that "
-                            f"wait for its pass): which record is whose is lost")
-                    break
-                rec = last
+            if got < owed:
+                # the watchdog's zero writes in a stall, then this write, and the board
+                # merged packets that waited for its pass: no record says whose it is, and
+                # the run stops rather than take a reading a pass off its row
+                stop = (f"host late: the watchdog zeroed the forces in a "
+                        f"{lag * 1e3:.0f} ms stall, and the board answered {got} "
+                        f"of the {owed} packets within "
+                        f"{MERGE_WAIT_PERIODS * T * 1e3:.0f} ms (it merges those that "
+                        f"wait for its pass): which record is whose is lost")
+                break
             if k < 0:
                 continue
             for i in range(P):
@@ -327,9 +323,8 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
                 frc[k, i] = c * force_scale
                 hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
             clamped[k] = hit
-        owed = put(zero)                      # both faders at zero force, its record
-        if records.next(ser, REPLY_TIMEOUT_S) is not None:
-            records.more(ser, owed - 1, MERGE_WAIT_PERIODS * T)
+        # both faders at zero force, its record
+        records.answers(ser, put(zero), REPLY_TIMEOUT_S, MERGE_WAIT_PERIODS * T)
         out.append({"position": pos, "force": frc, "late": late, "clamped": clamped})
         if progress is not None:
             progress(j + 1, starts)

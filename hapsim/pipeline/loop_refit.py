@@ -117,18 +117,8 @@ def device_at_pair(scene, pair, mass: float, start=None):
     dev = start if start is not None else scene.device
     x = np.array([float(dev.mass), float(dev.friction)])
 
-    from hapsim.analysis.prediction import predicted_poles
-
     def felt(v):
-        if not v[0] > 0:
-            return None
-        try:           # (a scene refuses a negative friction: no such device)
-            sc = dataclasses.replace(scene, device=dataclasses.replace(
-                dev, mass=float(v[0]), friction=float(v[1])))
-            z = predicted_poles(sc)[1]
-        except Exception:
-            return None
-        return None if z is None else complex(z)
+        return _felt_pole(scene, dev, v[0], v[1]) if v[0] > 0 else None
 
     for _ in range(40):
         z = felt(x)
@@ -190,27 +180,33 @@ def frictionless_near_pair(scene, pair, mass: float, start=None):
         in the bounds gives the loop a felt pair.
     """
     from scipy.optimize import minimize_scalar
-
-    from hapsim.analysis.prediction import predicted_poles
     target = _target_pole(scene, pair, mass)
     if target is None:
         return None
     dev = start if start is not None else scene.device
 
-    def device(v):
-        return dataclasses.replace(dev, mass=float(v), friction=0.0)
-
     def dist(v):
-        try:
-            z = predicted_poles(dataclasses.replace(scene, device=device(v)))[1]
-        except Exception:           # (a mass the scene refuses: no such device)
-            return math.inf
-        return math.inf if z is None else abs(complex(z) - target)
+        z = _felt_pole(scene, dev, v, 0.0)
+        return math.inf if z is None else abs(z - target)
 
     m0 = float(dev.mass)
     got = minimize_scalar(dist, bounds=(0.25 * m0, 4.0 * m0), method="bounded",
                           options={"xatol": 1e-12 * m0})
-    return device(got.x) if math.isfinite(float(got.fun)) else None
+    return (dataclasses.replace(dev, mass=float(got.x), friction=0.0)
+            if math.isfinite(float(got.fun)) else None)
+
+
+def _felt_pole(scene, dev, mass, friction):
+    """The felt pole of ``scene``'s loop with ``dev`` at ``mass`` [kg] and ``friction``
+    [N s/m], complex, or None (no felt pair, or a device the scene refuses: a negative
+    friction is no such device)."""
+    from hapsim.analysis.prediction import predicted_poles
+    try:
+        z = predicted_poles(dataclasses.replace(scene, device=dataclasses.replace(
+            dev, mass=float(mass), friction=float(friction))))[1]
+    except Exception:
+        return None
+    return None if z is None else complex(z)
 
 
 def _target_pole(scene, pair, mass: float):
