@@ -50,7 +50,8 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
     record_realtime`, two records of 300 ticks: the first one's hand starts from rest,
     the second's moves) on ``port`` with its watchdog (its robust write or not), the
     watchdog's pid printed; at the loop's ``at``-th tick the stray byte
-    written to the board, and then (``action``) ``"kill"``: SIGKILL of itself at once;
+    written to the board (the host's last write's time and the time just after the
+    stray byte's printed, monotonic ns), and then (``action``) ``"kill"``: SIGKILL of itself at once;
     ``"stop"``: SIGSTOP of itself once it has read the board's answers that made no
     reply (the watchdog told the board suspect; two ticks after the byte at the
     earliest, 50 at the latest: on a loaded machine the answers may come later); ``"stop at once"``: SIGSTOP of itself at
@@ -82,8 +83,8 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
         "    n[0] += 1",
         f"    if n[0] == {at}:",
         f"        ser.write({STRAY!r})",
+        "        print(wd._page.get('beat'), time.monotonic_ns(), flush=True)",
         f"        if {action!r} == 'kill':",
-        "            print(wd._page.get('beat'), time.monotonic_ns(), flush=True)",
         "            os.kill(os.getpid(), signal.SIGKILL)",
         f"    if n[0] >= {at} + 2 and {action!r} == 'stop' and not stopped[0] and (",
         f"            wd._page.get('suspect') or n[0] >= {at} + 50):",
@@ -116,9 +117,10 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
     writes the stray byte at its ``at``-th tick and is killed or stopped; a stopped host
     is killed 0.4 s later (its watchdog answered the silence: no write at its death).
     Returns the board's report (once the port is closed by all: the host, its
-    watchdog, this test), with ``host_silent_s``: for a killed host, its time from its
-    last write to its death [s] (a host descheduled in between was silent that long
-    before it died), and whether the watchdog process had gone."""
+    watchdog, this test), with ``host_silent_s``: the host's time from its last write to
+    just after the stray byte's [s] (a killed host's, to its death: a host descheduled
+    in between was silent that long before it died), and whether the watchdog process
+    had gone."""
     from hapsim.pipeline.haply2_embedded import Embedded2DIY
     child = Embedded2DIY(str(WALL), "gen3", amplitude=1e-4, cpr=2.0 ** 22,
                          rt_priority=BOARD_PRIORITY)
@@ -167,6 +169,40 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
             host.wait(10)
         child.close()
     return rep, gone
+
+
+def _stray_came_first(action: str, robust: bool = True, tries: int = 3):
+    """:func:`_faulted_host` for a test whose premise is that the stray byte reached the
+    board before the watchdog could write in the host's silence. A run whose host was
+    descheduled for the bound or more between its last write and the stray byte
+    (``host_silent_s``; the watchdog writes no sooner than the bound after the host's
+    last write, and the pty keeps the order of writes) may have had the zero command
+    first, taken by a board still in step (once in a fresh clone's CI: a hold of
+    23.6 ms, ended at the bound, where the stray byte's reset was to keep the torque on
+    until the robust write; made again with a 30 ms sleep before the stray byte). Such a
+    run is checked for what it shows (a robust watchdog's board ends at zero) and made
+    again, at most ``tries`` runs in all.
+
+    Returns
+    -------
+    rep, gone
+        As :func:`_faulted_host`, of the first run whose stray byte came first.
+    """
+    late = []
+    for _ in range(tries):
+        rep, gone = _faulted_host(action, robust)
+        assert rep is not None and gone, (rep, gone)
+        silent = rep.get("host_silent_s")
+        assert silent is not None, rep          # (the host printed its two times)
+        if silent < HOLD_BOUND_S:
+            return rep, gone
+        if robust:
+            assert rep["held_at_end"] == 0.0, rep
+        late.append(silent)
+    pytest.fail(f"in {tries} runs the host was descheduled for the bound "
+                f"({HOLD_BOUND_S * 1e3:g} ms) or more between its last write and the stray "
+                f"byte ({', '.join(f'{v * 1e3:.1f}' for v in late)} ms): the machine's "
+                "load, not the watchdog, but the test's premise could not be made")
 
 
 @pytest.mark.parametrize("action", ["kill", "stop"])
@@ -222,8 +258,7 @@ def test_a_lossy_2diy_link_stopped_in_the_bytes_that_lost_its_place_gets_the_rob
     ``ROBUST_AFTER`` bounds, a check and the latency, plus the robust write's own time
     and the board's lateness. (On a link that has lost nothing no robust write goes in a
     silence before evidence is read: docs/drivers.md, "The host's watchdog".)"""
-    rep, gone = _faulted_host("stop at once")
-    assert rep is not None and gone, (rep, gone)
+    rep, gone = _stray_came_first("stop at once")
     assert rep["held_at_end"] == 0.0, rep
     bound = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + rep["watchdog_latency_s"]
     assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (
@@ -242,8 +277,7 @@ def test_a_clean_2diy_link_stopped_in_its_first_lost_byte_is_zeroed_when_the_hos
     stopped host is killed, the watchdog's dying write is the robust one (the silence had
     the zero command alone) and the board is left at zero. (Before, the silence counted
     as answered and the dead host's torque stayed on.)"""
-    rep, gone = _faulted_host("stop clean")
-    assert rep is not None and gone, (rep, gone)
+    rep, gone = _stray_came_first("stop clean")
     assert rep["held_at_end"] == 0.0, rep
     # held through the stop, or (a host on a loaded machine that had taken the link for
     # lossy: a swallowed write's marker, a damaged reply) zeroed by the silence's robust
@@ -258,8 +292,7 @@ def test_a_2diy_whose_parser_lost_its_motors_holds_the_torque_on_the_zero_comman
     """The control: the same killed host with a watchdog that has only the zero command
     (the 2DIY's before): its write reaches no motor and the board holds the dead host's
     torque (so the test above can fail)."""
-    rep, gone = _faulted_host("kill", robust=False)
-    assert rep is not None and gone, (rep, gone)
+    rep, gone = _stray_came_first("kill", robust=False)
     assert rep["held_at_end"] > 0.0, rep
 
 
