@@ -119,6 +119,15 @@ def more_cycles(amps, lens, sigma: float, level: float, period: float, cycle_hz:
     return ("larger", math.exp(hi) if hi < 700.0 else math.inf)
 
 
+def _up(v: float, digits: int) -> float:
+    """``v`` rounded up to ``digits`` significant digits: a remedy shown is never short of
+    what it gives (a factor of 1.0004 read "1 times larger")."""
+    if not (math.isfinite(v) and v > 0.0):
+        return v
+    unit = 10.0 ** (math.floor(math.log10(v)) - digits + 1)
+    return float(f"{math.ceil(v / unit - 1e-9) * unit:.{digits + 1}g}")
+
+
 def more_cycles_hint(amps, lens, sigma: float, level: float, period: float,
                      cycle_hz: float, need: float, sensor: bool, *,
                      ends_record: bool = True) -> str:
@@ -145,10 +154,10 @@ def more_cycles_hint(amps, lens, sigma: float, level: float, period: float,
         return ""
     if how == "longer":
         return (f"; the record ended with the oscillation still above that level: about "
-                f"{v:.2g} s more of undisturbed free response (a longer run) would give "
+                f"{_up(v, 2):g} s more of undisturbed free response (a longer run) would give "
                 f"{need:g}")
     if how == "larger":
-        return (f"; a start about {v:.3g} times larger"
+        return (f"; a start about {_up(v, 3):g} times larger"
                 + (" (or a sensor step that much finer)" if sensor else
                    " (the residual staying as it is)")
                 + f" would give {need:g}")

@@ -743,7 +743,10 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
             out["error"] = (f"the oscillation ({amp:.3g} m at the window start) is below "
                             f"{what}: no measurement")
         elif out["cycles"] < MIN_CYCLES:
-            out["error"] = (f"only {out['cycles']:.2g} oscillation cycles above "
+            shown = float(f"{out['cycles']:.2g}")
+            if shown >= MIN_CYCLES:     # (1.47 cycles read "1.5", the count needed)
+                shown = math.floor(out["cycles"] * 10.0) / 10.0
+            out["error"] = (f"only {shown:g} oscillation cycles above "
                             f"{what}: too few for a measurement"
                             + more_cycles_hint(amps, ns, sig, level, period, hz, MIN_CYCLES,
                                                rms <= step, ends_record=ends))
