@@ -738,7 +738,7 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
                     f"order-{out['model_order']} linear loop's response, an input the "
                     f"account does not know acted)")
         else:
-            what = f"{MIN_QUANTA:g} sensor steps ({fl:.3g} m, the quantum or the noise)"
+            what = f"{MIN_QUANTA:g} sensor steps of {fl:.3g} m (the quantum or the noise)"
         if amp < MIN_QUANTA * fl:
             out["error"] = (f"the oscillation ({amp:.3g} m at the window start) is below "
                             f"{what}: no measurement")
