@@ -463,6 +463,45 @@ def test_the_wall_clock_board_reads_an_absent_byte_as_255_at_its_pass(later_s, a
         assert len(got) == 9 and got[0] == zero[1]
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_an_idle_board_takes_a_write_at_its_next_pass(seed):
+    """Firmware V1.5's ``loop()`` passes every 50 us whether a command waits or not
+    (``lastPublished`` set at each pass): writes that come at random times to an idle
+    board (the 2DIY's, and the M3's) are each taken at the first pass after they came,
+    less than a pass later, the passes on one grid from the set-up's end (before, an idle
+    board took a write the moment it came: the holds varied only as the host's writes
+    did, which the host sees; the pass's phase it does not)."""
+    from hapsim.drivers import haply as hp
+    from hapsim.emulated.driver_mock import HaplyDevice
+    from hapsim.emulated.haply2_board import PASS_S
+    from hapsim.scene import Device, Excitation
+    rng = np.random.default_rng(seed)
+    sc = _scene()
+    drv = Haply2DIY("gen2")
+    board = Haply2DIYBoard(sc, "gen2", clock="wall")
+    board.feed(drv.arm_bytes([math.degrees(v) for v in sc.device.joints]), 0.0)
+    m3 = HaplyDevice(Device(mass=1e-3, friction=1e-3, delay=1, force_limit=0.12), 1000.0,
+                     Excitation())
+    m3.feed(hp.setup_packet(1), 0.0)
+    zero = drv.write_bytes((0.0, 0.0))
+    arrivals = 0.05 + np.cumsum(rng.uniform(0.2e-3, 2e-3, 30))
+    phases = []
+    for dev, packet in ((board, zero), (m3, hp.write_packet(1, 0.0))):
+        grid = None
+        for t in arrivals:
+            assert dev.feed(packet, float(t))
+            took = dev.ready_at
+            # (the board's times are sums of 50 us steps from the arming: 1e-9 of a
+            # pass covers their round-off, derived from ~2,000 additions of 2^-52)
+            assert t - 1e-9 * PASS_S <= took < t + PASS_S, (t, took)
+            grid = took if grid is None else grid
+            k = (took - grid) / PASS_S
+            assert abs(k - round(k)) < 1e-6, (took, grid)
+            phases.append((took - t) / PASS_S)
+    # (the test's test: the waits spread over the pass, not all at 0)
+    assert max(phases) > 0.5, phases
+
+
 def test_a_silent_host_lets_the_wall_clock_board_read_its_absent_bytes():
     """A command byte alone, then silence: the board's pass reads the absent address as
     255 without waiting for bytes that never come (:meth:`Haply2DIYBoard.idle`), and its

@@ -32,8 +32,11 @@ and a start the lockstep prediction found inside a contact left it in real time.
 
 Its time (``clock="wall"``, the default): the board keeps its own time, the firmware's
 (``Haply_M3_Firmware_V1_5.ino`` of HaplyHaptics/Haply-Arduino-Firmware-Versions, read line
-by line; its ``.h`` beside it). ``loop()`` takes at most one command per pass and a pass
-at most every 50 us (lines 59-64: ``micros() - lastPublished >= 50``); a write sets the
+by line; its ``.h`` beside it). ``loop()`` takes at most one command per pass and passes
+every 50 us, a command waiting or not (lines 59-64: ``micros() - lastPublished >= 50``,
+``lastPublished`` set at each pass): a write that comes to an idle board waits up to 50 us
+for the next pass, by a phase the host does not see
+(:func:`hapsim.emulated.haply_firmware.pass_at`); a write sets the
 motors' duties (``write_states``, line 77) and the same pass answers it with the encoders
 read then (``read_states``, line 89), so the angles a reply carries are sampled when its
 write is taken and its torques act from then on, held until the next write (no watchdog).
@@ -65,7 +68,7 @@ from collections import deque
 import numpy as np
 
 from hapsim.drivers.haply2 import GENERATIONS, JOINT_PORTS
-from hapsim.emulated.haply_firmware import CommandDecoder
+from hapsim.emulated.haply_firmware import PASS_S, CommandDecoder, pass_at
 from hapsim.errors import ConfigError
 from hapsim.joint_device import LocalJointDeviceND
 from hapsim.lockstep import excitation_starts
@@ -76,8 +79,6 @@ __all__ = ["Haply2DIYBoard", "BoardLink", "in_hand_order", "PROBE_TORQUE", "PROB
 #: What building one ``Encoder`` takes on the board [s]: its constructor's
 #: ``delayMicroseconds(2000)`` (module notes).
 SETUP_S = 2e-3
-#: The firmware's shortest pass [s]: ``loop()`` runs when 50 us have passed since the last.
-PASS_S = 50e-6
 
 _F = struct.Struct("<f")
 _F32_MAX = 3.4028234663852886e38
@@ -168,7 +169,9 @@ class Haply2DIYBoard:
         self.parser = CommandDecoder(absent=255)
         self._seen = -math.inf                # the board's time its bytes are known to [s]
         if clock == "wall":
-            self.parser.ready = lambda: self._busy_until <= self._seen
+            # (the pass that reads a held command's absent bytes: the first after they
+            # came, at the last feed)
+            self.parser.ready = lambda: self._pass_at(self._last_now) <= self._seen
         if float(dev.delay) % 1.0:
             # its joint-space plant applies whole periods (no split hold there)
             raise ConfigError(f"a sub-sample delay ({float(dev.delay):g} periods) is not "
@@ -273,10 +276,18 @@ class Haply2DIYBoard:
     def _flush(self, now: float) -> bytes:
         """Wall clock: the passes before ``now`` [s] (no byte arrived before them since
         the last feed) read what the parser held, absent bytes as 255."""
-        if not self.parser.waiting or self._busy_until >= now:
+        if not self.parser.waiting:
+            return b""
+        at = self._pass_at(self._last_now)        # (the held bytes came at the last feed)
+        if at >= now:
             return b""
         self._seen = math.nextafter(now, -math.inf)
-        return self._run(b"", self._busy_until)
+        return self._run(b"", at)
+
+    def _pass_at(self, t: float) -> float:
+        """The firmware's first pass at or after ``t`` [s] (wall clock:
+        :func:`hapsim.emulated.haply_firmware.pass_at`)."""
+        return pass_at(t, self._busy_until)
 
     def commands(self) -> int:
         """Writes taken."""
@@ -373,7 +384,7 @@ class Haply2DIYBoard:
         from ``now`` [s] on (wall clock), and the replies to the writes."""
         out = bytearray()
         p = self.parser
-        t = max(now, self._busy_until) if self.wall is not None else now
+        t = self._pass_at(now) if self.wall is not None else now
         for cmd in p.commands(data):
             if self.wall is not None:
                 t = max(t, self._busy_until)  # one command a pass, after a set-up's waits

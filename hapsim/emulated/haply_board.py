@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 from hapsim.emulated.actuated import Actuated, offline_record
+from hapsim.emulated.haply_firmware import PASS_S, pass_at
 
 __all__ = ["HaplyDevice", "haply_offline_loop"]
 
@@ -35,9 +36,10 @@ class HaplyDevice(Actuated):
     ``new Encoder(...)``, whose constructor waits ``delayMicroseconds(2000)`` for the
     pins' R-C filter (``Arduino_Support_Libraries/Encoder/Encoder.h``, ``Encoder(uint8_t,
     uint8_t)``) before the count is written with the offset; the commands after it wait,
-    the joint does not. A pass begins at least :data:`PASS_S` after the one before
-    (``loop``: ``if(micros() - lastPublished >= 50)``, ``Haply_M3_Firmware_V1_5.ino`` line
-    61) and takes one command: the 278 resets of 556 zero bytes take 14 ms of passes, the
+    the joint does not. A pass begins :data:`PASS_S` after the one before, a command
+    waiting or not (``loop``: ``if(micros() - lastPublished >= 50)``,
+    ``Haply_M3_Firmware_V1_5.ino`` line 61; :func:`hapsim.emulated.haply_firmware.pass_at`:
+    a write that comes to an idle board waits for the next pass) and takes one command: the 278 resets of 556 zero bytes take 14 ms of passes, the
     torque held meanwhile. A single ``read()`` of a byte not arrived gives 255
     (:class:`CommandDecoder` with ``absent=255``). ``clock="lockstep"``: each write is one
     period.
@@ -75,9 +77,9 @@ class HaplyDevice(Actuated):
 
     #: What a set-up takes on the board [s]: the Encoder constructor's 2 ms wait.
     SETUP_S = 2e-3
-    #: The shortest time between two passes of the firmware's ``loop()`` [s] (one command
-    #: each): ``micros() - lastPublished >= 50``.
-    PASS_S = 50e-6
+    #: The time between two passes of the firmware's ``loop()`` [s] (one command each):
+    #: :data:`hapsim.emulated.haply_firmware.PASS_S`.
+    PASS_S = PASS_S
 
     def __init__(self, device, rate_hz: float, excitation=None, *, cpr: float = 4880.0,
                  resolution: float | None = None, seed: int = 0, motor_sign: int = 1,
@@ -145,7 +147,8 @@ class HaplyDevice(Actuated):
         out = b""
         dec = self.decoder
         wall = self.wall is not None
-        t = max(now, self._busy_until) if wall else now
+        # (the first pass after the bytes came: passes go on every PASS_S, idle or not)
+        t = pass_at(now, self._busy_until) if wall else now
         for cmd in dec.commands(data):
             if wall:
                 # the pass after the last one (PASS_S) or after a set-up's wait

@@ -9,11 +9,44 @@ watchdog); the host never parses commands.
 
 from __future__ import annotations
 
+import math
 import struct
 
 from hapsim.drivers.haply import CMD_RESET, CMD_SETUP, CMD_WRITE
 
-__all__ = ["CommandDecoder"]
+__all__ = ["CommandDecoder", "PASS_S", "pass_at"]
+
+#: The firmware's pass [s]: ``loop()`` runs its body when 50 us have passed since the
+#: last pass began (``Haply_M3_Firmware_V1_5.ino`` lines 59-64: ``currentState -
+#: lastPublished >= 50``, ``lastPublished = currentState`` at each pass, a command waiting
+#: or not).
+PASS_S = 50e-6
+
+
+def pass_at(t: float, next_pass: float) -> float:
+    """The firmware's first pass at or after ``t`` [s], the next one due at ``next_pass``
+    [s] (the last pass's start plus :data:`PASS_S`, or the end of a body that took
+    longer: the pass after it comes at once). The passes go on every :data:`PASS_S`
+    whether a command waits or not, so a write that comes to an idle board waits up to a
+    pass, by a phase the host does not see. (A body's own time, a few microseconds, and
+    ``micros()``'s 1 us steps are left out.)
+
+    Parameters
+    ----------
+    t : float
+        When the bytes came [s].
+    next_pass : float
+        The next pass's time [s].
+
+    Returns
+    -------
+    float
+        The pass's time [s], ``next_pass + k PASS_S`` with ``k >= 0`` the least that is
+        at or after ``t`` (a time a round-off past a pass, 1e-6 of one, is that pass).
+    """
+    if t <= next_pass or not math.isfinite(t):
+        return max(t, next_pass)            # (no time: the caller's to refuse)
+    return next_pass + math.ceil((t - next_pass) / PASS_S - 1e-6) * PASS_S
 
 #: A float32, little-endian (the firmware's torques and encoder parameters).
 _F = struct.Struct("<f")
