@@ -496,6 +496,8 @@ def test_an_idle_board_takes_a_write_at_its_next_pass(seed):
             assert t - 1e-9 * PASS_S <= took < t + PASS_S, (t, took)
             grid = took if grid is None else grid
             k = (took - grid) / PASS_S
+            # on the grid: derived as above (a bound on the round-off of the sums, 1e-9
+            # of a pass), pass_at's own tolerance of 1e-6 of a pass beside it
             assert abs(k - round(k)) < 1e-6, (took, grid)
             phases.append((took - t) / PASS_S)
     # (the test's test: the waits spread over the pass, not all at 0)
