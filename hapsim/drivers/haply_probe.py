@@ -278,7 +278,9 @@ def probe_axis(send, write_of, zero: bytes, *, top: float, count: float, reach: 
         raise IdentificationError(
             f"{label} did not come to rest at zero torque within {SETTLE_S:g} s (it "
             f"never stayed within a count for {n_still} periods): something else moves it "
-            f"(a hand, a spring, gravity); let go of the handle and identify again")
+            f"(a hand, a spring, gravity), or it coasts that long on its own (a joint "
+            f"whose friction is small for its inertia: inertia over friction of a second "
+            f"or more); let go of the handle and identify again")
     for sign in (1.0, -1.0):
         moved = None
         for k in range(LEVELS - 1, -1, -1):
