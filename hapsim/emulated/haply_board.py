@@ -39,10 +39,10 @@ class HaplyDevice(Actuated):
     the joint does not. A pass begins :data:`PASS_S` after the one before, a command
     waiting or not (``loop``: ``if(micros() - lastPublished >= 50)``,
     ``Haply_M3_Firmware_V1_5.ino`` line 61; :func:`hapsim.emulated.haply_firmware.pass_at`:
-    a write that comes to an idle board waits for the next pass) and takes one command: the 278 resets of 556 zero bytes take 14 ms of passes, the
-    torque held meanwhile. A single ``read()`` of a byte not arrived gives 255
-    (:class:`CommandDecoder` with ``absent=255``). ``clock="lockstep"``: each write is one
-    period.
+    a write that comes to an idle board waits for the next pass) and takes one command:
+    the 278 resets of 556 zero bytes take 14 ms of passes, the torque held meanwhile. A
+    single ``read()`` of a byte not arrived gives 255 (:class:`CommandDecoder` with
+    ``absent=255``). ``clock="lockstep"``: each write is one period.
 
     Parameters
     ----------

@@ -48,6 +48,7 @@ def pass_at(t: float, next_pass: float) -> float:
         return max(t, next_pass)            # (no time: the caller's to refuse)
     return next_pass + math.ceil((t - next_pass) / PASS_S - 1e-6) * PASS_S
 
+
 #: A float32, little-endian (the firmware's torques and encoder parameters).
 _F = struct.Struct("<f")
 
