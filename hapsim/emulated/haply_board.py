@@ -212,9 +212,10 @@ def haply_offline_loop(scene, n: int, *, write_late=None, device=None,
     force computed from it goes out with command ``k + 1``. The host writes command ``k``
     at ``k T + write_late[k]`` and stamps the row with that time (the transport's
     ``time_us``, the telemetry's ``time``, from 62.5 ms on: the arming before); the board
-    takes it on arrival (its next pass)
-    and holds its torque until it takes the next (firmware V1.5: no watchdog, no tick),
-    so hold ``k`` lasts ``T + write_late[k] - write_late[k - 1]``.
+    takes it at its next pass (:func:`hapsim.emulated.haply_firmware.pass_at`) and holds
+    its torque until it takes the next (firmware V1.5: no watchdog, no tick), so hold
+    ``k`` lasts ``T + write_late[k] - write_late[k - 1]``, each end put off to its pass
+    (whole passes of ``write_late`` keep the holds as they are).
 
     Parameters
     ----------
