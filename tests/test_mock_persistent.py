@@ -100,6 +100,11 @@ def test_mock_serves_run_after_run_a_killed_one_and_ends_on_signal(tmp_path):
         _gone(mock, seen)
         run_exact(port)                             # ... and the next host is served
         assert mock.poll() is None
+        # (its leaving said before the Ctrl-C: the mock reads the port's hang-up after
+        # the run has returned, on a loaded machine later, and a mock signalled before
+        # ends with that host still its own; once in a fresh clone's CI, "3 host(s)
+        # served and gone" of 4)
+        _gone(mock, seen)
     finally:
         mock.send_signal(signal.SIGINT)             # Ctrl-C ends it cleanly
         _, err = mock.communicate(timeout=20)
