@@ -6,6 +6,16 @@ counted by verdict and by statement (the felt matrices and the principal directi
 uncertainty of a stated quantity (a correct loop must never be "differs").
 
     python tools/haply2_verdicts.py [--cases 60] [--seed 7]
+    python tools/haply2_verdicts.py --clock wall [--cases 8] [--seed 2]
+
+``--clock wall``: each case is ``hapsim run SCENE --driver haply`` as users run it, the
+emulated 2DIY on its own clock behind a pty, twice: on a board that matches the scene and
+on one with 30 % more joint inertia and hand mass hidden in it (the prediction keeps the
+scene's). The scenes are configs/pantograph_wall.yaml with the press and the wall drawn
+(stiffness, damping), the press's anchor moved so that the handle rests 0.5 mm in the
+wall, the joint friction 1-3e-3 N m s/rad. A matching board must never "differ" and a
+heavier one never be "within" (exit 1 on either); "not measurable" with its reason is an
+honest answer.
 """
 
 from __future__ import annotations
@@ -24,12 +34,92 @@ from hapsim.scene import load_scene_nd
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
+def wall_scenes(rng, cases: int, folder: Path) -> list:
+    """``cases`` pairs of scene files (the run's, the hidden board's): module notes."""
+    import yaml
+    base = yaml.safe_load((CONFIGS / "pantograph_wall.yaml").read_text())
+    out = []
+    for c in range(cases):
+        sc = yaml.safe_load(yaml.safe_dump(base))
+        kp, kw = float(rng.uniform(50, 500)), float(rng.uniform(300, 3000))
+        sc["links"][0].update(stiffness=kp, damping=float(rng.uniform(0.1, 2.0)))
+        sc["planes"][0].update(stiffness=kw, damping=float(rng.uniform(0.5, 5.0)))
+        # at rest: the press holds the handle 0.5 mm into the wall (the shipped scene's
+        # rest), its anchor where its force balances the wall's
+        depth = 0.5e-3
+        rest_y = sc["planes"][0]["offset"] - depth
+        sc["masses"][1]["x0"] = [sc["masses"][1]["x0"][0], rest_y - kw * depth / kp]
+        fr = float(rng.uniform(1e-3, 3e-3))
+        sc["device"]["joint_friction"] = [fr, fr]
+        heavy = yaml.safe_load(yaml.safe_dump(sc))
+        heavy["device"]["joint_inertia"] = [1.3 * v for v in sc["device"]["joint_inertia"]]
+        heavy["device"]["hand_mass"] = 1.3 * sc["device"]["hand_mass"]
+        pair = []
+        for name, doc in ((f"case{c}.yaml", sc), (f"case{c}_heavier.yaml", heavy)):
+            (folder / name).write_text(yaml.safe_dump(doc))
+            pair.append(str(folder / name))
+        out.append((pair, kp, kw, fr))
+    return out
+
+
+def main_wall(args) -> int:
+    """``--clock wall`` (module notes): one line per run, then the counts."""
+    import contextlib
+    import io
+    import json
+    import tempfile
+
+    import hapsim.pipeline.haply2_embedded as embedded
+    from hapsim.cli import main as cli
+    rng = np.random.default_rng(args.seed)
+    board = {"scene": None}
+    real = embedded.Embedded2DIY
+
+    class Hidden(real):                      # the board's scene, not the run's
+        def __init__(self, scene_path, *a, **kw):
+            super().__init__(board["scene"] or scene_path, *a, **kw)
+
+    embedded.Embedded2DIY = Hidden
+    counts, wrong = {}, 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for (run, heavier), kp, kw, fr in wall_scenes(rng, args.cases, Path(tmp)):
+            for side, path in (("matching", None), ("heavier", heavier)):
+                board["scene"] = path
+                out, err = io.StringIO(), io.StringIO()
+                with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                    code = cli(["run", run, "--driver", "haply", "--json"])
+                try:
+                    rep = json.loads(out.getvalue())
+                    v, why = rep["verdict"], rep.get("reason", "")
+                except ValueError:
+                    v, why = f"exit {code}", err.getvalue().strip().splitlines()[-1:]
+                bad = (side == "matching" and v == "differs"
+                       or side == "heavier" and v == "within")
+                wrong += bad
+                counts[side, v] = counts.get((side, v), 0) + 1
+                print(f"press {kp:.0f} N/m, wall {kw:.0f} N/m, friction {fr:.2g}, {side}: "
+                      f"{v}{'  WRONG' if bad else ''}"
+                      + ("" if v in ("within", "differs") else f" ({str(why)[:160]})"),
+                      flush=True)
+    print("; ".join(f"{side} {v} {n}" for (side, v), n in sorted(counts.items()))
+          + f"; wrong verdicts: {wrong}")
+    return 1 if wrong else 0
+
+
 def main() -> int:
     """Run the cases; print one line each, then the counts (exit 1 on a "differs")."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", type=int, default=60)
+    ap.add_argument("--cases", type=int, default=None,
+                    help="cases (default 60 in lockstep, 8 on the wall clock)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--clock", choices=("lockstep", "wall"), default="lockstep",
+                    help="lockstep (a correct loop, default) or the board's own clock "
+                         "(hapsim run, a matching and a heavier board)")
     args = ap.parse_args()
+    if args.clock == "wall":
+        args.cases = 8 if args.cases is None else args.cases
+        return main_wall(args)
+    args.cases = 60 if args.cases is None else args.cases
     rng = np.random.default_rng(args.seed)
     plans, counts, per, worst = {}, {}, {}, 0.0
     for _ in range(args.cases):
