@@ -36,11 +36,13 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 def wall_scenes(rng, cases: int, folder: Path) -> list:
     """``cases`` pairs of scene files (the run's, the hidden board's): module notes."""
+    import copy
+
     import yaml
     base = yaml.safe_load((CONFIGS / "pantograph_wall.yaml").read_text())
     out = []
     for c in range(cases):
-        sc = yaml.safe_load(yaml.safe_dump(base))
+        sc = copy.deepcopy(base)
         kp, kw = float(rng.uniform(50, 500)), float(rng.uniform(300, 3000))
         sc["links"][0].update(stiffness=kp, damping=float(rng.uniform(0.1, 2.0)))
         sc["planes"][0].update(stiffness=kw, damping=float(rng.uniform(0.5, 5.0)))
@@ -51,7 +53,7 @@ def wall_scenes(rng, cases: int, folder: Path) -> list:
         sc["masses"][1]["x0"] = [sc["masses"][1]["x0"][0], rest_y - kw * depth / kp]
         fr = float(rng.uniform(1e-3, 3e-3))
         sc["device"]["joint_friction"] = [fr, fr]
-        heavy = yaml.safe_load(yaml.safe_dump(sc))
+        heavy = copy.deepcopy(sc)
         heavy["device"]["joint_inertia"] = [1.3 * v for v in sc["device"]["joint_inertia"]]
         heavy["device"]["hand_mass"] = 1.3 * sc["device"]["hand_mass"]
         pair = []
@@ -81,7 +83,8 @@ def main_wall(args) -> int:
 
     embedded.Embedded2DIY = Hidden
     counts, wrong = {}, 0
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as undo:
+        undo.callback(setattr, embedded, "Embedded2DIY", real)
         for (run, heavier), kp, kw, fr in wall_scenes(rng, args.cases, Path(tmp)):
             for side, path in (("matching", None), ("heavier", heavier)):
                 board["scene"] = path
