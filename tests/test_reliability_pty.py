@@ -68,6 +68,11 @@ def run_json(wall, *args):
         args = (*args, "--telemetry", tel)
     try:
         code, out, err = hapsim_main(["run", wall, "--json", *args])
+        if code != 0:
+            # whole, in the test's captured output (pytest cuts an assertion's message:
+            # a CI failure's summary once reached the log as "'lost': 2, ...")
+            print(err[-1500:])
+            print(json.dumps(_loop_summary(out, tel), indent=1, default=str))
         assert code == 0, (err[-1500:], _loop_summary(out, tel))
         return json.loads(out)
     finally:
