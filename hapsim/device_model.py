@@ -473,6 +473,51 @@ class MockPhysics:
     def previous_position(self, value: float) -> None:
         self._xprev = float(value)
 
+    def carry_on(self, prev: "MockPhysics", idle: int) -> None:
+        """Take over the plant of ``prev``, a handle that was left alone for ``idle`` whole
+        periods (zero commanded force) since its last tick: a device re-configured keeps
+        its handle where its physics took it, moving as it moved, and its hand where the
+        hand is in its own time (this object's rate may differ from ``prev``'s).
+
+        ``prev`` advances ``idle`` periods at zero force (the hand force of its own
+        periods added, :meth:`advance`), then this plant takes its state (position,
+        velocity, the previous position of the ideal hold, a grip's or arm spring's state,
+        the split hold's held force, the sensor-noise streams) and its hand from the same
+        instant: ``prev``'s own hand from its tick ``prev.n`` on at the same rate; at
+        another, this plant's hand (the scene's, sampled at its rate) from
+        ``round(t / T)``, ``t = prev.n prev.period`` the time ``prev`` reached, ``T`` this
+        plant's period. Its tick counter stays at 0 (a CONFIG restarts
+        the protocol's seq, PROTOCOL.md §10).
+
+        Parameters
+        ----------
+        prev : MockPhysics
+            The plant until now (it is advanced in place).
+        idle : int
+            Whole periods of ``prev`` the handle was left alone (>= 0).
+
+        Raises
+        ------
+        ValueError
+            ``idle`` negative, or ``prev`` and this plant of different kinds (one with a
+            grip's state space, the other without).
+        """
+        if idle < 0:
+            raise ValueError(f"idle must be >= 0 periods, got {idle}")
+        if (prev._grip is None) != (self._grip is None):
+            raise ValueError("the plants differ in kind (a grip's state space in one only)")
+        for _ in range(idle):
+            prev.advance(0.0)
+        self.x, self.v, self._xprev = prev.x, prev.v, prev._xprev
+        if prev._grip is not None:
+            self._s = prev._s.copy()
+        self._held = prev._held
+        self._rng, self._vrng = prev._rng, prev._vrng
+        if prev.period == self.period:          # the same hand, from where it is
+            self.hand = np.asarray(prev.hand)[prev.n:]
+        else:                                   # the scene's hand at this rate, same instant
+            self.hand = np.asarray(self.hand)[int(round(prev.n * prev.period / self.period)):]
+
     def sample(self) -> float:
         """Position the encoder reports at the current tick.
 

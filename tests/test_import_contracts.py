@@ -516,8 +516,8 @@ PRIVATE_READS_ALLOWED = {
     # StreamDecoder.overflow and a public "bytes queued" of FaultyDevice.
     **{("hapsim.emulated.fastmock", f"mock.{a}"): "MockDevice's state hand-over (it needs a "
        "public one)" for a in ("_applied", "_applied_seq",
-                                                   "_last_force_us", "_rf", "_rs",
-                                                   "_status_extra", "_u")},
+                                                   "_last_force_us", "_plant_us", "_rf",
+                                                   "_rs", "_status_extra", "_u")},
     **{("hapsim.emulated.serve", r): "switch to public names (ph.noisy, ph.state_space, "
        "dev.decoder.overflow; FaultyDevice needs one)"
        for r in ("ph._rng", "ph._grip", "dev.decoder._overflow", "dev._out")},

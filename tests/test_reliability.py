@@ -36,7 +36,7 @@ PERIOD_US = 1000
 LIMIT = 10.0
 
 
-def wall(K=1000.0, B=1.5, safety=""):
+def wall(K=1000.0, B=1.5, safety="", friction=0.5):
     return f"""
 rate_hz: 1000
 masses:
@@ -44,7 +44,7 @@ masses:
   - {{name: wall, kind: ground, x0: 0.0}}
 links:
   - {{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {K}, damping: {B}}}
-device: {{mass: 0.1, friction: 0.5, delay: 1, hold: zoh, force_limit: {LIMIT}}}
+device: {{mass: 0.1, friction: {friction}, delay: 1, hold: zoh, force_limit: {LIMIT}}}
 excitation: {{x0: 0.005}}
 {safety}
 """
@@ -57,6 +57,7 @@ class RecordingMock(MockDevice):
         super().__init__(*a, **kw)
         self.config_times = []
         self.stop_times = []
+        self.session_starts = []
         self.trace = []
 
     def handle(self, msg, now_us=0):
@@ -70,11 +71,28 @@ class RecordingMock(MockDevice):
             self.config_times.append(now_us)
         return out
 
+    def _emit(self, now_us):
+        st = super()._emit(now_us)
+        if st.seq == 0:                       # a session's first STATE: where its handle is
+            self.session_starts.append(st.position[0])
+        return st
 
-def sim(spec="", n=2000, seed=1, text=None, **kw):
+
+#: The device friction [N s/m] of a handle at rest when a fault comes: the wall's
+#: oscillation from 5 mm has died out by tick 250 (damping ratio 0.33: under 2 um), so the
+#: force the device holds through a silence (until its 50 ms watchdog) pushes it by
+#: micrometres. A real-time mock carries its handle across CONFIGs (hapsim.emulated.mock,
+#: 'One handle'): with the wall's own 0.5 N s/m (ratio 0.1) the same silence at tick 400
+#: holds ~1.5 N on 0.1 kg and the handle coasts 8 cm, as a board's would
+#: (test_a_silence_leaves_a_moving_handle_where_its_held_force_took_it). Tests of the
+#: recovery's machinery take this one.
+RESTING = 5.0
+
+
+def sim(spec="", n=2000, seed=1, text=None, friction=0.5, mock_class=None, **kw):
     """Run the host loop against the faulty mock on a virtual clock."""
-    scene = parse_scene(text or wall())
-    mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
+    scene = parse_scene(text or wall(friction=friction))
+    mock = (mock_class or RecordingMock)(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
     tr = SimTransport(mock, parse_faults(spec, seed))
     tr.sent = []
     tel = Telemetry(n)
@@ -238,8 +256,51 @@ def test_delay_spike_longer_than_watchdog_zeroes_force_and_recovers():
             + PERIOD_US]
 
 
-def test_stalled_device_zeroes_force_and_recovers():
+def free_coast_bracket(x0, v0, forces, hold, span, mass, friction, dv):
+    """The least and greatest position of a free mass-damper from ``(x0, v0 +- dv)``
+    pushed by a constant force (any of ``forces`` [N]) for a time in ``hold`` [s], then
+    left alone to the end of a time in ``span`` [s] (closed form, test_mock_handle's
+    :func:`free_motion`; the position is linear in the force and the velocity and
+    monotone in each time, so the corners bound it)."""
+    from test_mock_handle import free_motion
+    xs = []
+    for f in (min(forces), max(forces)):
+        for v in (v0 - dv, v0 + dv):
+            for th in hold:
+                for ts in span:
+                    x1, v1 = free_motion(x0, v, f, mass, friction, th)
+                    xs.append(free_motion(x1, v1, 0.0, mass, friction, ts - th)[0])
+    return min(xs), max(xs)
+
+
+def test_a_silence_leaves_a_moving_handle_where_its_held_force_took_it():
+    """The wall of 'wall()' with its own friction (damping ratio 0.1: still ringing at
+    tick 400, ~1.5 N) and a 200 ms link stall: the device holds its last force until its
+    50 ms watchdog, the handle coasts on, and the host, back, finds it centimetres into
+    the wall. The new session starts where a free mass-damper pushed so would be (closed
+    form, bracketed over what the host cannot see: which of the last forces was held, the
+    watchdog's tick, the velocity at the stall), not at the scene's 5 mm (the plant the
+    mock restarted at every CONFIG before, 'One handle'); and the host, driving the
+    handle at its force limit to push it out, ends the run on the clamp rule rather than
+    drive on."""
     res, mock, tr, tel = sim("stall@400:200ms", seed=10)
+    i = int(np.flatnonzero(np.diff(tel.seq[:tel.n]) < 0)[0]) + 1
+    x = tel.position[:tel.n]
+    assert len(mock.session_starts) == 2 and x[i] == mock.session_starts[-1]
+    T = 1e-3
+    lo, hi = free_coast_bracket(
+        x0=x[i - 1], v0=(x[i - 1] - x[i - 2]) / T, forces=tel.force[i - 3:i],
+        hold=(WATCHDOG_US * 1e-6 - 2 * T, WATCHDOG_US * 1e-6 + 2 * T),
+        span=((mock.config_times[-1] - 400_000) * 1e-6 - 2 * T,
+              (mock.config_times[-1] - 400_000) * 1e-6 + 2 * T),
+        mass=0.1, friction=0.5, dv=0.02)
+    assert lo <= x[i] <= hi, (lo, x[i], hi)
+    assert x[i] > 10 * 0.005                   # centimetres: not the scene's x0
+    assert res.safety_stop and "force at the limit" in res.stop_reason
+
+
+def test_stalled_device_zeroes_force_and_recovers():
+    res, mock, tr, tel = sim("stall@400:200ms", seed=10, friction=RESTING)
     ev = tr.device.events
     assert [e["name"] for e in ev] == ["stall"]
     t0 = ev[0]["t_us"]
@@ -250,10 +311,12 @@ def test_stalled_device_zeroes_force_and_recovers():
     # after recovery the scene restarted at rest at the device position, force ramped up
     i = int(np.flatnonzero(np.diff(tel.seq[:tel.n]) < 0)[0]) + 1
     # measured 0 (generic 0): exact on both targets
-    assert tel.seq[i] == 0 and tel.position[i] == pytest.approx(0.005)   # the mock restarted
-    # at rest at x0 = 5 mm the wall pushes K x0 = 5 N: ramped, the first force is 1/50 of it
-    # measured 0 (generic 0): exact on both targets
-    assert tel.force[i] == pytest.approx(-5.0 / 50, rel=1e-9)
+    # at the first STATE of the new session, where the handle is (the mock carries it on)
+    assert tel.seq[i] == 0 and tel.position[i] == mock.session_starts[-1]
+    assert len(mock.session_starts) == 2
+    # the scene at rest at x: the wall pushes -K x, ramped: the first force is 1/50 of it,
+    # up to the round-off of a product and a quotient (a few eps; rel 1e-9 bounds it)
+    assert tel.force[i] == pytest.approx(-1000.0 * tel.position[i] / 50, rel=1e-9)
     assert_forces_safe(tr)
 
 
@@ -311,8 +374,8 @@ class TimedSim(SimTransport):
         return msgs
 
 
-def timed_sim(spec, n=2000, seed=1, **kw):
-    scene = parse_scene(wall())
+def timed_sim(spec, n=2000, seed=1, friction=0.5, **kw):
+    scene = parse_scene(wall(friction=friction))
     mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
     tr = TimedSim(mock, parse_faults(spec, seed))
     cfg = dict(rate_hz=1000.0, n_samples=n, delay=1, force_limit=LIMIT, reconnect=True,
@@ -328,7 +391,7 @@ def test_silence_zero_force_and_stop_within_one_watchdog_period(spec, host_clock
     """The device falls silent: the host's zero FORCE and STOP go out one watchdog period
     (the default lost_timeout) after its last FORCE, when the device's own watchdog zeroes
     the force, not later."""
-    res, mock, tr, loop = timed_sim(spec, host_clocked=host_clocked)
+    res, mock, tr, loop = timed_sim(spec, host_clocked=host_clocked, friction=RESTING)
     assert res.lost == 1 and res.recovered == 1 and res.samples == 2000
     i_stop = next(i for i, (t, m) in enumerate(tr.log) if isinstance(m, fp.Stop))
     before = tr.log[:i_stop + 1]
@@ -525,7 +588,7 @@ def test_device_watchdog_zeroes_force_by_itself_and_stays_armed():
 def test_all_faults_together_run_to_the_end():
     spec = ("drop=0.01,corrupt=0.005,garbage=0.001,dup=0.002,reorder=0.002,spike=0.001:5ms,"
             "stall@500:200ms,reset@1500,vanish@2500:300ms")
-    res, mock, tr, tel = sim(spec, n=4000, seed=14)
+    res, mock, tr, tel = sim(spec, n=4000, seed=14, friction=RESTING)
     inj = tr.device.plan.injected
     assert all(inj[k] > 0 for k in ("drop", "corrupt", "dup", "stall", "reset", "vanish"))
     assert res.samples == 4000 and res.lost == 3 and res.recovered == 3
@@ -610,12 +673,23 @@ def _active(scene, damping):
     return scene
 
 
+class HandAtEachConfig(RecordingMock):
+    """A hand that sets the handle 5 mm into the wall again at every CONFIG (the mock's
+    :meth:`~hapsim.emulated.mock.MockDevice.new_hand` before each): every stretch starts
+    with energy stored."""
+
+    def _on_config(self, msg, now_us):
+        self.new_hand()
+        return super()._on_config(msg, now_us)
+
+
 def test_energy_baseline_restarts_at_each_recovery():
-    """Each recovery restarts the scene with its stored energy E0 (5 mm into the wall:
-    12.5 mJ); the observer restarts too, so 45 recoveries do not add up to a stop (when the
-    total carried over, this run was stopped by the 0.1 J limit after 25 recoveries)."""
+    """Each recovery restarts the scene with its stored energy E0 (a hand sets the handle
+    5 mm into the wall at each CONFIG: 12.5 mJ); the observer restarts too, so 45
+    recoveries do not add up to a stop (when the total carried over, this run was stopped
+    by the 0.1 J limit after 25 recoveries)."""
     spec = ",".join(f"stall@{200 + 300 * i}:120ms" for i in range(45))
-    res, mock, tr, tel = sim(spec, n=9000, energy_limit=0.1)
+    res, mock, tr, tel = sim(spec, n=9000, energy_limit=0.1, mock_class=HandAtEachConfig)
     stored = 0.5 * 1000.0 * 0.005 ** 2
     assert res.lost == res.recovered >= 40
     assert res.recovered * stored > 0.1          # carried over, E0s alone would pass the limit
@@ -878,7 +952,7 @@ def test_state_far_ahead_is_implausible_and_ignored(host_clocked):
 def test_only_stale_states_for_a_watchdog_period_is_a_loss():
     """A device-clocked host that can use none of the STATEs it gets (all repeats of an
     old one) is deaf: it loses the device after lost_timeout, as after a silence."""
-    scene = parse_scene(wall())
+    scene = parse_scene(wall(friction=RESTING))
     mock = RecordingMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
     tr = Forging(mock, at=500, window=300)
     cfg = LoopConfig(rate_hz=1000.0, n_samples=2000, delay=1, force_limit=LIMIT,
@@ -1182,7 +1256,7 @@ def test_recovery_resumes_at_the_handle_of_the_new_session(device, vanish_at):
     or the device answers no PING."""
     from hapsim.host.telemetry import FLAG_LOST
 
-    scene = parse_scene(wall())
+    scene = parse_scene(wall(friction=RESTING))
     mock = device(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
     tr = SimTransport(mock, parse_faults(f"vanish@{vanish_at}:300ms", 1))
     n = 1200
@@ -1196,7 +1270,11 @@ def test_recovery_resumes_at_the_handle_of_the_new_session(device, vanish_at):
     restart = np.flatnonzero(cols["flags"] & FLAG_LOST)
     assert restart.size == 1
     i = int(restart[0])
-    assert cols["seq"][i] == 0 and cols["position"][i] == scene.excitation.x0
+    # the new session's first STATE (seq 0), where the handle is: the mock carries its
+    # plant across CONFIGs, so an old session's last STATE is near it too; seq tells them
+    # apart, and the position is the one the new session sent
+    assert len(mock.session_starts) == 2
+    assert cols["seq"][i] == 0 and cols["position"][i] == mock.session_starts[-1]
     rec = next(e for e in res.events if e["event"] == "recovered")
-    assert rec["x"] == scene.excitation.x0
+    assert rec["x"] == mock.session_starts[-1]
     assert res.quiesced == (device is not DeafToPing)

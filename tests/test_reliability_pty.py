@@ -138,14 +138,16 @@ def test_port_vanishes_and_comes_back_over_a_pty(wall):
     assert lp["lost"] >= 1 and lp["recovered"] == lp["lost"]
     assert lp["ticks"] == lp["requested"] == 1500 and lp["stop_reason"] == "duration"
     assert any("port failed" in e.get("reason", "") for e in lp["events"])
-    # the scene restarted at the handle of the new session (the mock restarts its plant at
-    # x0 = 5 mm at CONFIG), not at a STATE the device sent before it took the CONFIG (2 of
-    # 12 runs did: 0.105 m, a position safety stop; test_reliability's
-    # test_recovery_resumes_at_the_handle_of_the_new_session makes that race certain).
-    # Every recovery: under load (a loaded suite, once) a run lost and recovered 7 times
-    # in the vanish's 300 ms, each new session at the mock's x0 again
+    # the scene restarted at the handle of the new session, not at a STATE the device sent
+    # before it took the CONFIG (2 of 12 runs did when the mock restarted its plant at
+    # x0 = 5 mm at each CONFIG: 0.105 m, a position safety stop). The mock now carries its
+    # handle across CONFIGs (hapsim.emulated.mock, 'One handle'), so both sessions' STATEs
+    # are where the handle is; test_reliability's
+    # test_recovery_resumes_at_the_handle_of_the_new_session checks the seq-0 STATE is the
+    # one taken, with that race made certain. Here: every recovery (under load a run once
+    # lost and recovered 7 times in the vanish's 300 ms) at a handle inside the bound
     xs = [e["x"] for e in lp["events"] if e["event"] == "recovered"]
-    assert xs and set(xs) == {0.005}, xs
+    assert xs and all(abs(x) < 0.1 for x in xs), xs
     assert lp["quiesced"] and lp["earlier_session"] == 0
     mk = lp["mock"]
     assert [e["name"] for e in mk["fault_events"]] == ["vanish"]

@@ -70,8 +70,8 @@ _TIMER_ABSTIME = 1
 # iv: int64 state shared by Python and the compiled code
 (I_N, I_APPLIED_SEQ, I_STATUS_EXTRA, I_LAST_FORCE_US, I_TICKS, I_FORCES_RX, I_LATE,
  I_WATCHDOG, I_CLAMPED, I_OVERRUNS, I_STALE, I_DELAY, I_WATCHDOG_US, I_T0_NS, I_PERIOD_NS,
- I_DEADLINE_NS, I_FRAMES_OK, I_RB_LEN, I_HOLD, I_NFORCE) = range(20)
-N_IV = 20
+ I_DEADLINE_NS, I_FRAMES_OK, I_RB_LEN, I_HOLD, I_NFORCE, I_TICK_US) = range(21)
+N_IV = 21
 # fv: float64 state
 (F_X, F_V, F_XPREV, F_APPLIED, F_U, F_LIMIT, F_A, F_CXV, F_CXU, F_CVU, F_CU, F_Q, F_COULOMB,
  F_PERIOD) = range(14)
@@ -232,6 +232,7 @@ def _tick(iv, fv, rf, rs, hand, now_us, pkt, f8, u8, table, tx):
     pkt[27] = (c >> 8) & 0xFF
     pkt[28] = c & 0xFF
     _advance(iv, fv, hand, fv[F_U])
+    iv[I_TICK_US] = now_us               # MockDevice._plant_us: the plant's last tick
     return cobs_encode(pkt, _STATE_PACKET, tx)
 
 
@@ -354,6 +355,7 @@ class CompiledMock:
         iv[I_APPLIED_SEQ] = mock._applied_seq
         iv[I_STATUS_EXTRA] = mock._status_extra
         iv[I_LAST_FORCE_US] = mock._last_force_us
+        iv[I_TICK_US] = mock._plant_us
         iv[I_DELAY] = mock.delay
         iv[I_WATCHDOG_US] = mock.watchdog_us
         iv[I_HOLD] = HOLD_ZOH if ph.hold == "zoh" else HOLD_IDEAL
@@ -394,6 +396,7 @@ class CompiledMock:
         mock._applied_seq = int(iv[I_APPLIED_SEQ])
         mock._status_extra = int(iv[I_STATUS_EXTRA])
         mock._last_force_us = int(iv[I_LAST_FORCE_US])
+        mock._plant_us = int(iv[I_TICK_US])
         mock._applied = mock.stats.last_applied = float(fv[F_APPLIED])
         mock._u = float(fv[F_U])
         mock.velocity_out = None            # no VELOCITY while compiled (hapsim.emulated.serve.compiled_reason)

@@ -26,6 +26,20 @@ only, where tick ``n`` waits for FORCE ``n``. STATE ``n`` carries in ``force_seq
 the force applied from tick ``n`` on (``seq - force_seq = d`` when on time); with ``d = 0``
 it is the one applied over the previous period (FORCE ``n`` is not known yet).
 
+One handle
+----------
+A real-time mock is one handle in one hand, whatever the host does: a CONFIG restarts the
+protocol's session (seq 0, the delay line empty, zero force), not the physics. From the
+second CONFIG on (after a STOP, a loss, a reset, a vanished port) the plant carries on
+from where its last tick left it, advanced over the idle periods since then at zero force
+(the device disarmed ticks nothing; the hand force goes on in its own time,
+:meth:`hapsim.device_model.MockPhysics.carry_on`), so a host that recovers a lost device
+finds the handle where it coasted, still moving, as a board's would be. Only a new host
+(the last one hung up: :meth:`MockDevice.new_hand`, called by the persistent serving
+loop) starts the scene's excitation again, as a hand that takes the handle afresh. In
+lockstep (no device time) every CONFIG restarts the excitation, as before; so does the
+n-D mock, whose hand starts each CONFIG from the next identification start (below).
+
 Only what a scene asks for is added: encoder quantisation (``position_resolution``),
 Coulomb friction (``coulomb``), Gaussian sensor noise (``noise``, seeded), the velocity
 sensor's quantum and noise (``velocity_resolution``, ``velocity_noise``: VELOCITY frames,
@@ -84,6 +98,10 @@ __all__ = ["zoh_step_coefficients", "ideal_step_coefficients", "hand_force_sampl
 
 #: HELLO.device_id of the mock ("MOCK" in ASCII).
 MOCK_DEVICE_ID = 0x4D4F434B
+
+#: The longest idle time [s] a re-configured handle is advanced over (module notes, 'One
+#: handle'): a host silent for longer finds it where a minute took it.
+_IDLE_MAX_S = 60.0
 
 # the protocol's status bits, read once per tick (module constants: no lookup in fp)
 _APPLIED = fp.STATUS_FORCE_APPLIED
@@ -300,6 +318,11 @@ class MockDevice:
         self.armed = False
         self.configured = False
         self.physics = None
+        # the handle's plant across CONFIGs (module notes, 'One handle'): the last plant
+        # configured and the device time [us] of its last tick; None until a first CONFIG
+        # and after new_hand()
+        self._plant = None
+        self._plant_us = 0
         self.stats = MockStats()
         self.history: list = []      # the MockStats of each earlier CONFIG (lifetime totals)
         self.trace: list | None = None  # tests: (time_us, applied force [N]) per tick when a list
@@ -446,9 +469,24 @@ class MockDevice:
         if hand is None:      # reading a long profile takes time: once per rate, not per CONFIG
             hand = self._hand_cache[self.rate_hz] = hand_force_samples(
                 self.excitation, 1.0 / self.rate_hz, self.base_dir)
-        self.physics = MockPhysics(self.device, self.rate_hz, self.excitation,
-                                   seed=self.seed, base_dir=self.base_dir, hand=hand)
+        plant = MockPhysics(self.device, self.rate_hz, self.excitation,
+                            seed=self.seed, base_dir=self.base_dir, hand=hand)
+        prev = self._plant
+        if prev is not None and not self.lockstep:
+            # the same handle: where it went while no tick ran (disarmed by STOP, a reset,
+            # a vanished port) at zero force, whole periods from the end of its last tick
+            idle = round((now_us - self._plant_us) * 1e-6 / prev.period) - 1
+            plant.carry_on(prev, min(max(idle, 0), int(_IDLE_MAX_S / prev.period)))
+        self.physics = self._plant = plant
+        self._plant_us = now_us
         return self._armed(now_us)
+
+    def new_hand(self) -> None:
+        """A new host's hand takes the handle: the next CONFIG starts the scene's
+        excitation again (``x0``, ``v0``, the hand force from ``t = 0``) instead of carrying
+        on the plant (module notes, 'One handle'). The serving loop calls it when a host
+        hangs up (:func:`hapsim.emulated.serve.serve_fd`, ``persistent``)."""
+        self._plant = None
 
     @staticmethod
     def _config_ok(msg: fp.Config) -> bool:
@@ -602,6 +640,7 @@ class MockDevice:
             return None
         state = self._emit(now_us)
         self.physics.advance(self._u)
+        self._plant_us = now_us
         return state
 
 

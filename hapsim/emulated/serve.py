@@ -241,6 +241,7 @@ def serve_fd(fd: int, mock: MockDevice, *, exit_on_stop: bool = True,
                     chunk = None
                 elif chunk == b"" and persistent:      # the host went away: wait for the next
                     mock.stop()
+                    mock.new_hand()                    # ... whose hand takes the handle afresh
                     dev.decoder.reset()
                     awaiting_host = True
                     if on_host_gone is not None:

@@ -182,9 +182,10 @@ class Handshake:
         A device keeps ticking armed STATEs of the session it had (a port that vanished and
         came back, a host that died without STOP) until it takes the next CONFIG. Those
         STATEs carry the handle of that session, not the one the CONFIG (re)starts: a host
-        that resumed the scene at one would start from the wrong position (the real-time
-        mock restarts its plant at CONFIG; the state after a reconnect showed a handle
-        0.105 m out, beyond the position bound). The byte stream is in order, so once the
+        that resumed the scene at one would start from the wrong position (when the
+        real-time mock restarted its plant at CONFIG, the state after a reconnect showed a
+        handle 0.105 m out, beyond the position bound; it now carries its handle across
+        CONFIGs, as a board does, and the old session's seq still differs). The byte stream is in order, so once the
         PONG of a PING sent after the STOP is read, every STATE sent before the STOP has
         been read too (and dropped here), and the device, disarmed, sends no armed STATE
         until CONFIG arms it: the first armed STATE after CONFIG is of the new session. An
