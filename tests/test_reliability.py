@@ -297,6 +297,15 @@ def test_a_silence_leaves_a_moving_handle_where_its_held_force_took_it():
     assert lo <= x[i] <= hi, (lo, x[i], hi)
     assert x[i] > 10 * 0.005                   # centimetres: not the scene's x0
     assert res.safety_stop and "force at the limit" in res.stop_reason
+    # the loss names where the handle was (the last row answered) and the report says how
+    # far the recovery found it from there
+    from hapsim.pipeline.report import loss_lines
+    lost = next(e for e in res.events if e["event"] == "lost")
+    assert lost["x"] == x[i - 1]
+    lines = loss_lines(res.events)
+    assert len(lines) == 2 and lines[1].endswith(
+        f"the handle at {x[i] * 1e3:.3g} mm ({(x[i] - x[i - 1]) * 1e3:+.3g} mm from where it "
+        "was lost)")
 
 
 def test_stalled_device_zeroes_force_and_recovers():

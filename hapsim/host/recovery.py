@@ -176,7 +176,12 @@ class Recovery:
             self._lost_since = clock()
             self._attempts = 0
             res.lost += 1
-            self._event("lost", reason=reason, last_frames=frames)
+            # where the handle was at the last STATE answered [m] (the report sets it
+            # beside where the recovery finds it: a device holds its last force until its
+            # watchdog, and the handle coasts on)
+            tel = self.tel
+            x_last = float(tel.position[tel.slot(tel.n - 1)]) if tel.n else None
+            self._event("lost", reason=reason, last_frames=frames, x=x_last)
         else:
             self._event("lost again", reason=reason, last_frames=frames)
         try:                                   # the device's own watchdog zeroes it anyway

@@ -19,8 +19,8 @@ from hapsim.errors import dash
 if TYPE_CHECKING:
     from hapsim.pipeline.options import RunOptions
 
-__all__ = ["build_report", "device_clock_warning", "format_report", "safety_context",
-           "verdict_summary"]
+__all__ = ["build_report", "device_clock_warning", "format_report", "loss_lines",
+           "safety_context", "verdict_summary"]
 
 
 #: A device on a port whose ticks run this many times faster than the wall clock in a run
@@ -410,11 +410,7 @@ def format_report(rep: dict) -> str:
                      f"{bad}, wrong axes {lp['bad_axes']}, implausible seq "
                  f"{lp.get('implausible', 0)}, device faults "
                      f"{lp['device_faults'] or 0}")
-        for ev in lp.get("events", []):
-            if ev["event"] in ("lost", "recovered"):
-                what = (f"lost ({ev['reason']})" if ev["event"] == "lost" else
-                        f"recovered after {ev['after_s']:.3g} s, {ev['attempts']} attempt(s)")
-                lines.append(f"  t = {ev['t']:.3f} s, sample {ev['sample']}: {what}")
+        lines += loss_lines(lp.get("events", []))
         if lp.get("fault_plan"):
             lines.append(f"injected: {lp['fault_plan']['injected']} "
                          f"(--faults {lp['fault_plan']['spec']}, seed {lp['fault_plan']['seed']})")
@@ -478,6 +474,43 @@ def format_report(rep: dict) -> str:
             extra += f"; journal writer stopped: {tl['writer_error']}"
         lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples{extra})")
     return "\n".join(lines)
+
+
+def loss_lines(events: list) -> list:
+    """The report's lines of a run's losses and recoveries, one per event.
+
+    A recovery says where the handle was found and how far it moved from the last STATE
+    answered before the loss: through a silence a device holds its last force until its
+    watchdog, then the handle coasts on its own friction (``docs/reliability.md``).
+
+    Parameters
+    ----------
+    events : list of dict
+        The loop's events (:attr:`hapsim.host.loop_types.LoopResult.events`): ``"lost"``
+        with ``t`` [s], ``sample``, ``reason`` and ``x`` [m] (None before any sample);
+        ``"recovered"`` with ``t``, ``sample``, ``after_s`` [s], ``attempts`` and ``x``
+        [m]; others are skipped.
+
+    Returns
+    -------
+    list of str
+        Indented lines, ``"  t = T s, sample N: ..."``.
+    """
+    lines, x_lost = [], None
+    for ev in events:
+        if ev["event"] == "lost":
+            x_lost = ev.get("x")
+            what = f"lost ({ev['reason']})"
+        elif ev["event"] == "recovered":
+            what = f"recovered after {ev['after_s']:.3g} s, {ev['attempts']} attempt(s)"
+            x = ev.get("x")
+            if x is not None and x_lost is not None:
+                what += (f", the handle at {x * 1e3:.3g} mm ({(x - x_lost) * 1e3:+.3g} mm "
+                         "from where it was lost)")
+        else:
+            continue
+        lines.append(f"  t = {ev['t']:.3f} s, sample {ev['sample']}: {what}")
+    return lines
 
 
 def _osc_lines(osc: dict | None, measured: dict) -> list:
