@@ -52,11 +52,37 @@ def wall(tmp_path_factory):
     return late_tolerant_wall(tmp_path_factory.mktemp("scene"))
 
 
+#: The late-tolerant wall's lateness [ticks] (test_daemon.late_tolerant_wall's ``late``):
+#: stable while every force is applied at most 1 + LATE ticks after its STATE.
+LATE = 10
+#: Runs of run_json in all when one fails because the host answered later than that.
+TRIES = 3
+
+
+def _largest_lag(tel: str) -> int | None:
+    """The largest ``seq - force_seq`` of a run's telemetry rows whose force was applied
+    (STATUS_FORCE_APPLIED): how many ticks after its STATE the oldest force the device
+    held was computed (PROTOCOL.md section 4); None without such rows."""
+    import firmware_protocol as fp
+    try:
+        t = load(tel)
+    except Exception:                         # (a run that kept no telemetry)
+        return None
+    on = (t["status"] & fp.STATUS_FORCE_APPLIED) != 0
+    if not on.any():
+        return None
+    return int((t["seq"][on].astype(np.int64) - t["force_seq"][on].astype(np.int64)).max())
+
+
 def run_json(wall, *args):
     """``hapsim run WALL --json ARGS`` (in this process: the host's side of the port is not
     what these tests are about); its report. Every run keeps its telemetry (in a temporary
     directory unless ARGS name one) so that a run that does not exit 0 says what came
-    before its end (:func:`_loop_summary`)."""
+    before its end (:func:`_loop_summary`). A run that failed while the device held a
+    force older than the wall is stable for (:func:`_largest_lag` beyond ``1 + LATE``)
+    is made again, at most :data:`TRIES` runs in all: the tests here are of a run's
+    faults, recovery and journal on a machine that keeps up, and such a run's stop is
+    the product's answer to one that does not."""
     import shutil
     import tempfile
     own = None
@@ -67,14 +93,26 @@ def run_json(wall, *args):
         tel = os.path.join(own, "t.npz")
         args = (*args, "--telemetry", tel)
     try:
-        code, out, err = hapsim_main(["run", wall, "--json", *args])
-        if code != 0:
+        for attempt in range(1, TRIES + 1):
+            code, out, err = hapsim_main(["run", wall, "--json", *args])
+            if code == 0:
+                return json.loads(out)
             # whole, in the test's captured output (pytest cuts an assertion's message:
             # a CI failure's summary once reached the log as "'lost': 2, ...")
             print(err[-1500:])
             print(json.dumps(_loop_summary(out, tel), indent=1, default=str))
-        assert code == 0, (err[-1500:], _loop_summary(out, tel))
-        return json.loads(out)
+            lag = _largest_lag(tel)
+            if lag is None or lag <= 1 + LATE or attempt == TRIES:
+                break
+            # the wall's premise failed, not the run: the host answered later than the
+            # wall is stable for (a fresh clone's CI: a force applied 36 ticks after its
+            # STATE, the loop grown to 3 cm, a loss that left the handle coasting to
+            # -0.139 m, a position safety stop: the product's own stop, on a machine that
+            # could not keep up). Made again, the failed run's summary printed above
+            print(f"run {attempt}: a force applied {lag} ticks after its STATE (the wall "
+                  f"is stable to {1 + LATE}): the machine's load; made again")
+        assert code == 0, (err[-1500:], _loop_summary(out, tel),
+                           f"largest lag {_largest_lag(tel)} ticks")
     finally:
         if own is not None:       # (its summary is in the message: nothing left in /tmp)
             shutil.rmtree(own, ignore_errors=True)
