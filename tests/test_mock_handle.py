@@ -8,7 +8,6 @@ through the silence had taken it. A board's handle stays where it went.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -16,17 +15,9 @@ import pytest
 import firmware_protocol as fp
 from hapsim.emulated.mock import MockDevice
 from hapsim.scene import Device, Excitation
+from test_haply_wallclock import free_motion    # the closed form, written independently
 
 EPS = np.finfo(float).eps
-
-
-def free_motion(x0: float, v0: float, f: float, m: float, b: float, t: float) -> tuple:
-    """A mass ``m`` on viscous friction ``b`` pushed by a constant ``f`` for ``t`` seconds
-    from ``(x0, v0)``: ``m x'' + b x' = f`` solved in closed form (``tau = m / b``)."""
-    tau = m / b
-    e = math.exp(-t / tau)
-    v_inf = f / b
-    return (x0 + v_inf * t + (v0 - v_inf) * tau * (1.0 - e), v_inf + (v0 - v_inf) * e)
 
 
 def _pushed(rng, rate=1000.0):

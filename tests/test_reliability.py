@@ -259,10 +259,10 @@ def test_delay_spike_longer_than_watchdog_zeroes_force_and_recovers():
 def free_coast_bracket(x0, v0, forces, hold, span, mass, friction, dv):
     """The least and greatest position of a free mass-damper from ``(x0, v0 +- dv)``
     pushed by a constant force (any of ``forces`` [N]) for a time in ``hold`` [s], then
-    left alone to the end of a time in ``span`` [s] (closed form, test_mock_handle's
+    left alone to the end of a time in ``span`` [s] (closed form, test_haply_wallclock's
     :func:`free_motion`; the position is linear in the force and the velocity and
     monotone in each time, so the corners bound it)."""
-    from test_mock_handle import free_motion
+    from test_haply_wallclock import free_motion
     xs = []
     for f in (min(forces), max(forces)):
         for v in (v0 - dv, v0 + dv):

@@ -60,18 +60,21 @@ TRIES = 3
 
 
 def _largest_lag(tel: str) -> int | None:
-    """The largest ``seq - force_seq`` of a run's telemetry rows whose force was applied
-    (STATUS_FORCE_APPLIED): how many ticks after its STATE the oldest force the device
-    held was computed (PROTOCOL.md section 4); None without such rows."""
-    import firmware_protocol as fp
+    """The largest tick delay a run's telemetry rows name (``seq - force_seq``, by the
+    loop's own rule: :func:`hapsim.kernels.ticks.late_ticks`): how many ticks after its
+    STATE the oldest force the device held was computed (PROTOCOL.md section 4); None
+    without a row that names one."""
+    from hapsim.kernels.ticks import late_ticks
     try:
         t = load(tel)
     except Exception:                         # (a run that kept no telemetry)
         return None
-    on = (t["status"] & fp.STATUS_FORCE_APPLIED) != 0
-    if not on.any():
-        return None
-    return int((t["seq"][on].astype(np.int64) - t["force_seq"][on].astype(np.int64)).max())
+    n = t["seq"].size
+    tick = np.empty(n, np.int64)
+    late_ticks(t["seq"].astype(np.int64), t["force_seq"].astype(np.int64),
+               t["status"].astype(np.int64), -1, False, tick, np.empty(n, bool),
+               np.empty(n, bool))
+    return int(tick.max()) if n and tick.max() >= 0 else None
 
 
 def run_json(wall, *args):
