@@ -27,6 +27,7 @@ import pytest
 import firmware_protocol as fp
 from hapsim.host.fastloop import CompiledHostLoop, encode_force
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
+from hapsim.pipeline.render_latency import late_growth
 from hapsim.pipeline.runner import prepare_scene
 from hapsim.host.telemetry import Telemetry
 from hapsim.host.transport import SerialTransport
@@ -240,7 +241,7 @@ def test_compiled_equals_python_on_a_faulty_stream_with_a_reset(seed):
     s2, u2 = faulty_segment(rng, 5000, 500)
     n = u1 + u2 - 5
     a, b = both([chunked(s1, rng), chunked(s2, rng)], n, passivity_controller=True,
-                energy_limit=1.0)
+                energy_limit=1.0, late_growth=late_growth(load_scene(WALL), 0.05))
     assert_same(a, b)
     res = b[0]
     assert res.lost == 1 and res.recovered == 1 and res.samples == n
@@ -250,21 +251,25 @@ def test_compiled_equals_python_on_a_faulty_stream_with_a_reset(seed):
     assert np.any(flags & 2) and np.any(flags & 4)          # FLAG_LOST, FLAG_RAMP
 
 
-@pytest.mark.parametrize("kind", ["non-finite", "position", "clamp"])
+@pytest.mark.parametrize("kind", ["non-finite", "position", "clamp", "late"])
 def test_compiled_equals_python_on_safety_stops(kind):
-    """Each safety stop ends both loops on the same sample with the same reason."""
+    """Each safety stop ends both loops on the same sample with the same reason ("late":
+    from tick 150 on the device names each FORCE for 12 ticks, the holds of a host 11
+    periods away after each answer, and the lateness guard stops the shipped wall)."""
     rng = np.random.default_rng(3)
     frames = []
     for j in range(300):
         x = 0.003 * math.sin(j / 30.0)
         if j == 200:
-            x = {"non-finite": math.nan, "position": 0.2, "clamp": x}[kind]
+            x = {"non-finite": math.nan, "position": 0.2, "clamp": x, "late": x}[kind]
         if kind == "clamp" and j > 150:
             x = -0.02                                     # the wall pushes at the limit
-        frames.append((j, state(j, x)))
-    a, b = both([chunked(frames, rng)], 290)
+        held = j - D - (j - D) % 12 if kind == "late" and j > 150 else None
+        frames.append((j, state(j, x, fseq=held)))
+    a, b = both([chunked(frames, rng)], 290, late_growth=late_growth(load_scene(WALL), 0.05))
     assert_same(a, b)
     assert b[0].safety_stop and b[0].samples < 290
+    assert ("too late for the scene's loop" in b[0].stop_reason) == (kind == "late")
 
 
 def test_force_frames_equal_the_protocol_encoder():

@@ -34,7 +34,11 @@ from hapsim.kernels.sources import LOOP_SOURCES, source_paths, sources_digest
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.kernels import arguments, cordis, schemes
 from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
+from hapsim.kernels.ticks import named_delay as _named_delay
 from hapsim.kernels.ticks import tick_late as _tick_late
+from hapsim.kernels.late_growth import GROWTH_POINTS as _GROWTH_POINTS
+from hapsim.kernels.late_growth import LATE_GROWTH_STOP as _LATE_GROWTH_STOP
+from hapsim.kernels.late_growth import late_growth_step as _late_growth_step
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = LOOP_SOURCES
@@ -44,7 +48,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "ba0840bdf3ede7056fb7b20d40fc4825c6af38483b80b32056755e828e89ce56"
+COMPILED_SOURCES_SHA256 = "0cc6685541ce013529dedfe1a14e42a1ec671f8a68ca0869e2dfb23d90fd5aa4"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -63,15 +67,20 @@ __all__ = ["COMPILED_SOURCES", "COMPILED_SOURCES_SHA256", "CACHE_OK", "KERNEL_NA
 I_K, I_N, I_WSUM, I_RAMP, I_RESTART, I_FAPPLIED, I_LATE, I_CLAMPED, I_PSAMPLES = range(9)
 I_LAST_SEQ, I_EXPECT, I_MISSED, I_FRAMES_OK, I_RB_LEN, I_NF_SEQ, I_NMAX, I_SYNC = range(9, 17)
 I_HIST, I_ERRNO, I_SAMPLES, I_SKIPPED, I_SKIPFLAG, I_CLAST, I_SKIPN = 17, 18, 19, 20, 21, 22, 23
-N_IV = 24
+I_GPREV = 24                # the lateness guard's last FORCE named (-1: none yet)
+N_IV = 25
 # fv: float64 state
 F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
-N_FV = 11
+F_GROWTH = 11               # the lateness guard's cumulative growth [nepers]
+N_FV = 12
 # pv: float64 parameters
 (P_LIM, P_D, P_T, P_RATE, P_POS, P_VLIM, P_ELIM, P_PC, P_BMAX, P_CLAMP_MAX, P_RAMP_N, P_HL,
  P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD, P_COMPACT, P_CRATE) = range(19)
-N_PV = 19
+# the lateness guard (hapsim.kernels.late_growth): its step [ticks] (0: no guard), its
+# table's last index n, and the table g(j * step), j = 0 .. n, from P_GTAB on
+P_GSTEP, P_GN, P_GTAB = 19, 20, 21
+N_PV = P_GTAB + _GROWTH_POINTS + 1
 
 # return codes
 R_OK, R_NONFINITE, R_SAFETY, R_IOERR = 0, 1, 2, 3
@@ -291,8 +300,8 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
     -------
     int
         R_OK, R_NONFINITE (nothing written; ``iv[I_NF_SEQ]`` = seq), R_SAFETY (row
-        logged; ``fv[F_X]``, ``fv[F_V]``, ``fv[F_EXCESS]`` say why) or R_IOERR (the write
-        failed).
+        logged; ``fv[F_X]``, ``fv[F_V]``, ``fv[F_EXCESS]``, ``fv[F_GROWTH]`` say why) or
+        R_IOERR (the write failed).
     """
     d = np.int64(pv[P_D])
     lt = 0
@@ -302,6 +311,15 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
     if _tick_late(seq, force_seq, status, d, iv[I_FAPPLIED] != 0):
         lt = 1
         iv[I_LATE] += 1
+    g_step = pv[P_GSTEP]
+    if g_step > 0.0:
+        g_n = np.int64(pv[P_GN])
+        acc, g_prev = _late_growth_step(
+            fv[F_GROWTH], iv[I_GPREV], force_seq,
+            _named_delay(seq, force_seq, status, iv[I_FAPPLIED] != 0),
+            pv[P_GTAB:P_GTAB + g_n + 1], g_step)
+        fv[F_GROWTH] = acc
+        iv[I_GPREV] = g_prev
     if math.isfinite(x):
         xs[port] = x
         _port_step(kind, kargs, rec, out)
@@ -388,7 +406,7 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         fv[F_FMAX] = af
     pos = pv[P_POS]
     if (wsum >= pv[P_CLAMP_MAX] or x > pos or x < -pos or av > pv[P_VLIM]
-            or excess > pv[P_ELIM]):
+            or excess > pv[P_ELIM] or fv[F_GROWTH] > _LATE_GROWTH_STOP):
         fv[F_X] = x
         fv[F_V] = v
         fv[F_EXCESS] = excess

@@ -26,8 +26,10 @@ Safety (from the first version): host-side clamp at the force limit; a non-finit
 or force sends zero force and stops; a stop flag (set by SIGINT/SIGTERM handlers) ends the
 loop; safety stops end it with zero force: force at the limit in at least ``clamp_max`` of the
 last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
-``velocity_limit``, or the energy the virtual environment gave the hand beyond
-``energy_limit``. Every end sends a zero FORCE then STOP.
+``velocity_limit``, the energy the virtual environment gave the hand beyond
+``energy_limit``, or (``late_growth``, the lateness guard) the forces the device held over
+the host's lateness grown the scene's loop by the guard's bound
+(:mod:`hapsim.kernels.late_growth`). Every end sends a zero FORCE then STOP.
 
 Reliability (both loops): bad frames are dropped by the decoder and never acted on, and
 each is recorded (docs/design.md, rule 11: sample, time, what the decoder found, its bytes and the
@@ -98,7 +100,9 @@ from hapsim.host.loop_types import (BAD_FRAME_CONTEXT, BAD_FRAME_RECORDS, LATCHE
 from hapsim.host.recovery import Recovery
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_RAMP
 from hapsim.errors import DeviceError
-from hapsim.kernels.ticks import tick_late
+from hapsim.kernels.late_growth import (LATE_GROWTH_STOP, late_growth_reason,
+                                        late_growth_step)
+from hapsim.kernels.ticks import named_delay, tick_late
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
            "LostDevice", "percentiles_us", "safety_reason", "LATCHED_FAULTS",
@@ -363,6 +367,14 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         x_max = res.energy_excess_max
         v_max = res.v_max
         f_max = res.f_max
+        # the lateness guard (hapsim.kernels.late_growth): the growth the device's holds
+        # put in, since this stretch (re)started, and the FORCE it named last
+        guard = cfg.late_growth
+        g_on = guard is not None
+        g_table = guard.array() if g_on else None
+        g_step = guard.step if g_on else 1.0
+        g_acc = 0.0
+        g_prev = -1
         first = None
         try:
             # the source (re)starts the scene (engine, observer baseline, restart flag)
@@ -425,6 +437,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                     res.late += 1
                 elif host_late:
                     lt = 1
+                if g_on:
+                    g_acc, g_prev = late_growth_step(
+                        g_acc, g_prev, msg.force_seq,
+                        named_delay(seq, msg.force_seq, st, flags_applied), g_table, g_step)
                 if poll is not None:
                     poll()
                 f = eng.port_step(x) if isfinite(x) else math.nan
@@ -497,9 +513,9 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 if af > f_max:
                     f_max = af
                 if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
-                        or excess > elim):
+                        or excess > elim or g_acc > LATE_GROWTH_STOP):
                     res.stop_reason = safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
-                                                     v, vlim, excess, elim, e0)
+                                                     v, vlim, excess, elim, e0, g_acc, guard, T)
                     res.safety_stop = True
                     stop.set = True
                     break
@@ -518,7 +534,8 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
 
 def safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
                    position_bound: float, v: float, velocity_limit: float, excess: float,
-                   energy_limit: float, stored: float = 0.0) -> str:
+                   energy_limit: float, stored: float = 0.0, growth: float = 0.0,
+                   guard=None, period: float = 0.0) -> str:
     """Why a safety stop is due (called only once a bound is breached, off the fast path).
 
     Parameters
@@ -536,6 +553,12 @@ def safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
         its bound [J] (passivity observer, Hannaford & Ryu 2002).
     stored : float
         The scene's stored energy at that (re)start, the observer's baseline [J].
+    growth : float
+        The lateness guard's cumulative growth [nepers] (:mod:`hapsim.kernels.late_growth`).
+    guard : hapsim.kernels.late_growth.LateGrowth or None
+        Its table (the delays its reason names); None: no guard.
+    period : float
+        The sample period [s].
 
     Returns
     -------
@@ -548,5 +571,7 @@ def safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
         return f"safety: position {x:.6g} m beyond +-{position_bound:g} m"
     if abs(v) > velocity_limit:
         return f"safety: velocity {v:.6g} m/s beyond +-{velocity_limit:g} m/s"
+    if guard is not None and growth > LATE_GROWTH_STOP and not excess > energy_limit:
+        return late_growth_reason(growth, guard, period)
     return (f"safety: the scene gave the hand {excess:.6g} J more than the {stored:.6g} J "
             f"it stored at its start, beyond the energy limit {energy_limit:g} J")

@@ -223,6 +223,11 @@ class LoopConfig:
         its zero force (:meth:`hapsim.host.recovery.Recovery._brake`); 0: no braking.
     brake_rest : float
         The speed [m/s] below which the braking ends (three estimates in a row).
+    late_growth : hapsim.kernels.late_growth.LateGrowth or None
+        The lateness guard's growth table (:mod:`hapsim.kernels.late_growth`): the loop
+        stops (safety, then the braking) once the forces the device held over the host's
+        lateness grew the scene's loop by the guard's bound, on the frozen estimate.
+        None: no guard (lockstep, a driver's board with its own rules, a test).
     """
 
     rate_hz: float
@@ -253,6 +258,7 @@ class LoopConfig:
     compact: str = "auto"
     brake_damping: float = 0.0
     brake_rest: float = 0.0
+    late_growth: object = None
 
 
 class EstimatedState:

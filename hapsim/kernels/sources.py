@@ -26,15 +26,16 @@ __all__ = ["source_paths", "sources_digest", "cache_ok", "LOOP_SOURCES", "MOCK_S
            "numba_cache_dir", "loop_stamp"]
 
 #: The modules, besides ``hapsim/host/fastloop_kernels.py``, whose code or constants numba
-#: compiles into the compiled host loop (the late-tick rule, the I/O primitives, the engine
-#: kernels and their argument table, the telemetry flags, the protocol's constants). numba keys its on-disk cache of
-#: a function on its own file's modification time and size only, so an edit to one of these
-#: alone would leave the cached loop on the old code: ``fastloop_kernels.py`` holds their
+#: compiles into the compiled host loop (the late-tick rule, the lateness guard, the I/O
+#: primitives, the engine kernels and their argument table, the telemetry flags, the
+#: protocol's constants). numba keys its on-disk cache of a function on its own file's
+#: modification time and size only, so an edit to one of these alone would leave the cached loop on the old code: ``fastloop_kernels.py`` holds their
 #: SHA-256 (:data:`hapsim.host.fastloop_kernels.COMPILED_SOURCES_SHA256`), compiles without
 #: the cache when it does not match, and ``tests/test_compiled_loop_sources.py`` asks for
 #: it to be updated (which touches ``fastloop_kernels.py``, so numba recompiles).
 LOOP_SOURCES = ("hapsim/kernels/compiled_io.py", "hapsim/host/telemetry.py",
-                "hapsim/kernels/ticks.py", "hapsim/kernels/cordis.py",
+                "hapsim/kernels/ticks.py", "hapsim/kernels/late_growth.py",
+                "hapsim/kernels/cordis.py",
                 "hapsim/kernels/schemes.py", "hapsim/kernels/arguments.py",
                 "firmware_protocol/codec.py")
 

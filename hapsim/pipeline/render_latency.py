@@ -43,7 +43,7 @@ from hapsim.analysis.prediction import timed_scene
 
 __all__ = ["render_latency", "latency_middle", "timed_scene", "timed_prediction",
            "latency_refusal", "late_reading", "late_reading_s", "late_reading_refusal",
-           "late_force", "missing_reply_warning",
+           "late_force", "late_growth", "missing_reply_warning",
            "latency_search",
            "SPREAD_POINTS", "REFINE_STEPS", "GOLDEN_STEPS", "REVIEW_LATENCIES"]
 
@@ -295,6 +295,71 @@ def late_force(scene, pred: dict, latest_s: float = 0.0) -> str | None:
             f"(d = {found['delay']:.4g}: spectral radius {found['spectral_radius']:.6g}): "
             f"a host that falls a period behind, on a loaded machine, can run it to its "
             f"safety stop (`hapsim stability --scene {scene.path}`: the stiffness limits)")
+
+
+def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
+                points: int = 24):
+    """The scene's growth table for the host loop's lateness guard
+    (:mod:`hapsim.kernels.late_growth`: ``g(h)``, the growth of a force held ``h`` ticks,
+    from the loop frozen at each delay of the hold).
+
+    ``ln rho(D)`` is predicted (:func:`hapsim.analysis.prediction.predict`, the scene's
+    THS with ``D`` periods of delay) at ``points`` delays spread evenly over
+    ``d .. d + H`` (``H`` the watchdog's periods: a longer hold ends at zero force) and
+    interpolated linearly between them: it is smooth in ``D`` (configs/wall.yaml: 2.7e-3,
+    7.7e-3, 12.3e-3 a period at 2, 3, 4 periods).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its own delay ``d``, a whole number of periods for the
+        framed protocol's tick bookkeeping).
+    watchdog_s : float
+        The device's watchdog [s] (> 0).
+    latest_s : float
+        A board's render latency after its read [s], added to every delay (0: the framed
+        protocol's devices).
+    points : int
+        Delays predicted (>= 2).
+
+    Returns
+    -------
+    hapsim.kernels.late_growth.LateGrowth or None
+        None where the scene has no device or the prediction fails at some delay (the
+        guard is then off; the run's own prediction says why).
+    """
+    from hapsim.analysis.prediction import predict
+    from hapsim.kernels.late_growth import GROWTH_POINTS, LateGrowth
+    if scene.device is None:
+        return None
+    T = scene.period
+    d = int(round(float(scene.device.delay)))
+    H = max(int(np.ceil(float(watchdog_s) / T - 1e-9)), 1)
+    lags = np.unique(np.round(np.linspace(0, H, max(int(points), 2))).astype(int))
+    sig = []
+    try:
+        for l in lags:
+            p = predict(timed_scene(scene, float(latest_s) + l * T), limit=False)
+            rho = p.get("spectral_radius")
+            if rho is None or not rho > 0.0:
+                return None
+            sig.append(float(np.log(rho)))
+    except Exception:  # an advisory table: no guard where the scene cannot be predicted
+        return None
+    every = np.interp(np.arange(H + 1), lags, sig)          # ln rho(d + l), l = 0 .. H
+    c = every - max(sig[0], 0.0)
+    prefix = np.concatenate(([0.0], np.cumsum(c)))           # g(h), h = 0 .. H + 1
+    n = min(H + 1, GROWTH_POINTS)
+    step = (H + 1) / n
+    table = np.interp(np.arange(n + 1) * step, np.arange(H + 2), prefix)
+    stable = np.flatnonzero(every < 0.0)
+    stable_to = d + int(stable[-1]) if stable.size and stable[0] == 0 else d - 1
+    if stable.size and stable[0] == 0:
+        # the first unstable delay ends the range (a loop stable again beyond it is not
+        # stable "up to" there)
+        gaps = np.flatnonzero(np.diff(stable) != 1)
+        stable_to = d + int(stable[gaps[0]] if gaps.size else stable[-1])
+    return LateGrowth(tuple(float(v) for v in table), float(step), int(stable_to), d)
 
 
 def missing_reply_warning(scene, driver, pred: dict) -> str | None:

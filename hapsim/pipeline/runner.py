@@ -38,7 +38,7 @@ import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
-from hapsim.pipeline.render_latency import (late_force, late_reading_refusal,
+from hapsim.pipeline.render_latency import (late_force, late_growth, late_reading_refusal,
                                             latency_middle, latency_refusal,
                                             missing_reply_warning, timed_prediction)
 from hapsim.blas import limit_blas_threads
@@ -219,7 +219,11 @@ def _loop_config(prep: PreparedRun, opts: RunOptions) -> LoopConfig:
                       # friction: 1 % of it a second)
                       brake_damping=(brake_damping(dev.mass, scene.rate_hz) if sf.brake
                                      else 0.0),
-                      brake_rest=brake_rest(pos_bound, dev.mass, dev.friction))
+                      brake_rest=brake_rest(pos_bound, dev.mass, dev.friction),
+                      # the lateness guard: a framed device on its own clock holds each
+                      # FORCE until the next (a driver's board keeps its own rules)
+                      late_growth=(late_growth(scene, LoopConfig.watchdog_us * 1e-6)
+                                   if not lockstep and opts.driver is None else None))
 
 
 class _CompileThread(threading.Thread):
