@@ -39,21 +39,32 @@ def _quiet_interrupt_at_start(force: bool = False) -> None:
         return
     _QUIET_INTERRUPT = True
 
+    def say(fd: int, text: str) -> None:
+        # the file descriptor itself, not sys.stdout / sys.stderr: leave() runs in a
+        # signal handler, which may have interrupted a write to the same buffered stream
+        # (whose re-entry raises RuntimeError, and the line would be lost)
+        data = text.encode()
+        try:
+            while data:
+                data = data[os.write(fd, data):]
+        except OSError:
+            pass
+
     def leave() -> None:
         _undo_started()
         try:
+            for stream in (sys.stdout, sys.stderr):     # what was written before, first
+                try:
+                    stream.flush()
+                except (OSError, ValueError, RuntimeError):
+                    pass
             if "--json" in sys.argv[1:]:  # the promise of --json: one object on stdout
                 # (written by hand: nothing may be imported while an import is cut short;
                 # the shape of hapsim.cli.error_json)
-                sys.stdout.write('{"error": {"type": "interrupted", "message": '
-                                 '"hapsim: interrupted", "file": null, "line": null, '
-                                 '"key": null}, "exit": 130}\n')
-                sys.stdout.flush()
-        except (OSError, ValueError):
-            pass
-        try:
-            sys.stderr.write("hapsim: interrupted\n")
-            sys.stderr.flush()
+                say(1, '{"error": {"type": "interrupted", "message": '
+                       '"hapsim: interrupted", "file": null, "line": null, '
+                       '"key": null}, "exit": 130}\n')
+            say(2, "hapsim: interrupted\n")
         finally:
             os._exit(130)
 

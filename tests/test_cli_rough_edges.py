@@ -177,6 +177,36 @@ def test_ctrl_c_with_json_prints_the_interrupted_object(tmp_path, argv):
                              "file": None, "line": None, "key": None}, "exit": 130}
 
 
+def test_ctrl_c_in_an_import_is_reported_whatever_the_streams_are_doing():
+    """The quiet Ctrl-C (``hapsim/__init__.py``) ends the process from a signal handler,
+    which can interrupt a write to ``sys.stderr`` or ``sys.stdout`` (a buffered stream
+    entered again raises ``RuntimeError``: one CI run's Ctrl-C test ended 130 with nothing
+    after its start marker). Here both streams raise on every write and flush, and the
+    SIGINT comes inside an import: the line and the ``--json`` object still come out, on
+    the file descriptors, and the status is 130."""
+    import subprocess
+    import sys
+    code = ("import os, signal, sys\n"
+            "sys.argv[0] = '-m'\n"
+            "import hapsim\n"
+            "class Reentered:\n"
+            "    def write(self, *a):\n"
+            "        raise RuntimeError('reentrant call inside <_io.BufferedWriter>')\n"
+            "    flush = write\n"
+            "sys.stdout = sys.stderr = Reentered()\n"
+            "class CtrlC:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name == 'hapsim_test_absent':\n"
+            "            os.kill(os.getpid(), signal.SIGINT)\n"
+            "sys.meta_path.insert(0, CtrlC())\n"
+            "import hapsim_test_absent\n")
+    proc = subprocess.run([sys.executable, "-c", code, "check", "--json"], capture_output=True,
+                          text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 130, proc
+    assert proc.stderr == "hapsim: interrupted\n"
+    assert json.loads(proc.stdout)["error"]["type"] == "interrupted"
+
+
 # ------------------------------------------------------------------ the device's protocol
 @pytest.fixture
 def fake_run(monkeypatch):

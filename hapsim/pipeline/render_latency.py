@@ -293,8 +293,9 @@ def late_force(scene, pred: dict, latest_s: float = 0.0) -> str | None:
     pred["late_force_unstable"] = found
     return (f"the loop is stable at its own delay but not with a FORCE a period late "
             f"(d = {found['delay']:.4g}: spectral radius {found['spectral_radius']:.6g}): "
-            f"a host that falls a period behind, on a loaded machine, can run it to its "
-            f"safety stop (`hapsim stability --scene {scene.path}`: the stiffness limits)")
+            f"a host that falls a period behind, on a loaded machine, grows it, and the "
+            f"run then stops on its lateness guard (`hapsim stability --scene "
+            f"{scene.path}`: the stiffness limits)")
 
 
 def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
