@@ -78,13 +78,15 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
         f" robust=watchdog_robust(drv, sc) if {robust!r} else None, ser=ser)",
         "print(wd._proc.pid, wd._page.fd, flush=True)",
         "n = [0]",
+        "prev_end = [0]",
         "stopped = [False]",
         "tick_end = Realigner.tick_end",
         "def hook(self, k, got, resynced):",
         "    n[0] += 1",
         f"    if n[0] == {at}:",
         f"        ser.write({STRAY!r})",
-        "        print(wd._page.get('beat'), time.monotonic_ns(), flush=True)",
+        "        print(wd._page.get('beat'), time.monotonic_ns(), wd._page.get('fired_ns'),",
+        "              prev_end[0], flush=True)",
         f"        if {action!r} == 'kill':",
         "            os.kill(os.getpid(), signal.SIGKILL)",
         f"    if n[0] >= {at} + 2 and {action!r} == 'stop' and not stopped[0] and (",
@@ -95,6 +97,7 @@ def _host_code(port: str, robust: bool, at: int, action: str) -> str:
         "        os.kill(os.getpid(), signal.SIGSTOP)",
         f"    if n[0] == {at} - 200 and {action!r} == 'stop at once':",
         f"        ser.write({STRAY!r})       # (an earlier loss: the link is lossy)",
+        "    prev_end[0] = time.monotonic_ns()",
         "    return tick_end(self, k, got, resynced)",
         "Realigner.tick_end = hook",
         "Engine(sc).step()",
@@ -174,6 +177,11 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
             # exit seen here: no less than its exit took (the watchdog sees the death
             # when the exit reparents it)
             rep["host_exit_s"] = max(reaped - int(last[1]), 0) * 1e-9
+        if rep is not None and len(last) >= 4:
+            # the watchdog wrote between the host's previous tick and the stray byte (a
+            # host descheduled between its write and its stamp after it: the zero
+            # command then went out before the stray byte)
+            rep["fired_before_stray"] = int(last[2]) > int(last[3])
         if rep is not None and page is not None:
             # its wake-up's lateness and its time from a wake-up to its write (a watchdog
             # descheduled after waking, under the suite's load: a dying host's hold of
@@ -204,7 +212,12 @@ def _stray_came_first(action: str, robust: bool = True, tries: int = 3):
     23.6 ms, ended at the bound, where the stray byte's reset was to keep the torque on
     until the robust write; made again with a 30 ms sleep before the stray byte). Such a
     run is checked for what it shows (a robust watchdog's board ends at zero) and made
-    again, at most ``tries`` runs in all.
+    again, at most ``tries`` runs in all. So is a run whose watchdog wrote between the
+    host's previous tick and the stray byte (``fired_before_stray``: the host stamps its
+    beat again after each write, and one descheduled between the write and that stamp
+    for the bound left a silence the watchdog answered with the zero command before the
+    stray byte, the beat then fresh: once in CI, a hold of 23.9 ms, the host's silence
+    before the stray byte under the bound).
 
     Returns
     -------
@@ -217,15 +230,17 @@ def _stray_came_first(action: str, robust: bool = True, tries: int = 3):
         assert rep is not None and gone, (rep, gone)
         silent = rep.get("host_silent_s")
         assert silent is not None, rep          # (the host printed its two times)
-        if silent < HOLD_BOUND_S:
+        if silent < HOLD_BOUND_S and not rep.get("fired_before_stray"):
             return rep, gone
         if robust:
             assert rep["held_at_end"] == 0.0, rep
-        late.append(silent)
+        late.append(f"{silent * 1e3:.1f} ms"
+                    + (", the watchdog's write first" if rep.get("fired_before_stray") else ""))
     pytest.fail(f"in {tries} runs the host was descheduled for the bound "
                 f"({HOLD_BOUND_S * 1e3:g} ms) or more between its last write and the stray "
-                f"byte ({', '.join(f'{v * 1e3:.1f}' for v in late)} ms): the machine's "
-                "load, not the watchdog, but the test's premise could not be made")
+                f"byte, or the watchdog wrote before the stray byte ({'; '.join(late)}): "
+                "the machine's load, not the watchdog, but the test's premise could not be "
+                "made")
 
 
 @pytest.mark.parametrize("action", ["kill", "stop"])
