@@ -51,27 +51,49 @@ def test_hold_growth_interpolates_its_table_and_holds_its_last_entry():
 
 
 def test_the_cumulative_growth_of_uniform_holds_is_their_count_times_one_hold():
-    """A device holding every FORCE ``h`` ticks: after ``k`` holds the sum is
-    ``max(0, k g(h))`` (Page's sum of a constant increment), and the same FORCE named
-    again, an older one (a stale field) or none (lag -1) changes nothing."""
-    guard = late_growth(parse_scene(wall(1000.0, 1.5)), WATCHDOG_S)
-    table = guard.array()
-    for h in (1, 2, 3, 7, 20, 49):
-        acc, prev = 0.0, -1
-        for k in range(12):
-            fs = 1000 + k * h
-            acc, prev = late_growth_step(acc, prev, fs, 1, table, guard.step)
-            assert prev == fs
-            # k holds ended (the first FORCE named starts the count)
-            assert acc == pytest.approx(max(0.0, k * hold_growth(h, table, guard.step)),
-                                        rel=1e-12, abs=1e-15)   # k additions' round-off
-            same = late_growth_step(acc, prev, fs, 1, table, guard.step)
-            older = late_growth_step(acc, prev, fs - 1, 2, table, guard.step)
-            none = late_growth_step(acc, prev, fs + h, -1, table, guard.step)
-            assert same == older == none == (acc, prev)
-    # across the u32 wrap: a hold of 3 from 2^32 - 2 to 1
-    acc, prev = late_growth_step(0.0, 0xFFFFFFFE, 1, 1, table, guard.step)
-    assert prev == 1 and acc == max(0.0, hold_growth(3, table, guard.step))
+    """A device holding every FORCE ``h`` ticks: after ``k`` holds each mode's sum is
+    ``max(0, k g_k(h))`` (Page's sum of a constant increment), and the same FORCE named
+    again, an older one (a stale field) or none (lag -1) changes nothing; the same on
+    arrays (the compiled loop's) and on lists (the Python loop's)."""
+    guard = late_growth(parse_scene(lg.wall(1000.0, 1.5)), WATCHDOG_S)
+    for tables in (guard.array(), guard.lists()):
+        for h in (1, 2, 3, 7, 20, 49):
+            acc, prev = [0.0] * len(tables), -1
+            for k in range(12):
+                fs = 1000 + k * h
+                prev = late_growth_step(acc, prev, fs, 1, tables, guard.step)
+                assert prev == fs
+                # k holds ended (the first FORCE named starts the count)
+                for a, row in zip(acc, tables):
+                    assert a == pytest.approx(max(0.0, k * hold_growth(h, row, guard.step)),
+                                              rel=1e-12, abs=1e-15)  # k additions' round-off
+                before = list(acc)
+                assert late_growth_step(acc, prev, fs, 1, tables, guard.step) == prev
+                assert late_growth_step(acc, prev, fs - 1, 2, tables, guard.step) == prev
+                assert late_growth_step(acc, prev, fs + h, -1, tables, guard.step) == prev
+                assert acc == before
+        # across the u32 wrap: a hold of 3 from 2^32 - 2 to 1
+        acc = [0.0] * len(tables)
+        assert late_growth_step(acc, 0xFFFFFFFE, 1, 1, tables, guard.step) == 1
+        assert acc == [max(0.0, hold_growth(3, row, guard.step)) for row in tables]
+
+
+def test_a_mode_that_decays_on_time_pays_back_its_own_growth_not_the_slowest_modes():
+    """configs/string.yaml: the mode that grows under lateness (the handle on the string,
+    10.9 Hz) decays on time at 5.6e-3 a period, while the slowest mode on time (8.8 Hz)
+    hardly moves with the delay. Each mode's table starts with its own on-time rate, and
+    the first, the one that grows the most, is the handle's: its on-time decay, not the
+    slowest mode's 7e-6 a period (measured from the poles, ``predicted_poles``)."""
+    from hapsim.analysis.prediction import predicted_poles
+    from hapsim.scene import load_scene
+    sc = load_scene(str(ROOT / "configs" / "string.yaml"))
+    guard = late_growth(sc, WATCHDOG_S)
+    rows = guard.array()
+    z = np.asarray(predicted_poles(sc)[0], complex)
+    rates = np.log(np.abs(z))
+    assert rows[0, 1] < -1e-3 and np.isclose(rows[0, 1], rates, rtol=1e-9, atol=0).any()
+    assert rates.max() > -1e-4                      # the slowest on time: nearly none
+    assert rows[0, -1] > 0.5                        # and it grows under a long hold
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -87,8 +109,8 @@ def test_the_table_says_stable_exactly_where_the_stability_limit_does(seed):
                                   hold="zoh"), B)
     scene = parse_scene(wall(K, B, m, b))
     guard = late_growth(scene, 0.02, points=21)
-    per = np.diff(guard.array())            # c(d + l), l = 0 .. H (step 1 here)
-    assert guard.step == 1.0 and per.size == 21
+    per = np.diff(guard.array()[0])         # c(d + l), l = 0 .. H (step 1 here)
+    assert guard.step == 1.0 and per.size == 21 and guard.array().shape[0] == 1
     for l, c in enumerate(per):
         limit = stability_limit(LoopModel(mass=m, friction=b, rate_hz=1000.0, delay=1 + l,
                                           hold="zoh"), B)
@@ -147,7 +169,8 @@ def test_a_run_guards_a_framed_real_time_loop_only():
     sc = load_scene("configs/wall.yaml")
     cfg = _loop_config(prepare_run(sc, RunOptions()), RunOptions())
     assert isinstance(cfg.late_growth, LateGrowth) and cfg.late_growth.stable_to == 1
-    assert cfg.late_growth.table[0] == 0.0 and cfg.late_growth.table[-1] > LATE_GROWTH_STOP
+    assert cfg.late_growth.table[0][0] == 0.0
+    assert cfg.late_growth.table[0][-1] > LATE_GROWTH_STOP
     lock = RunOptions(lockstep=True)
     assert _loop_config(prepare_run(sc, lock), lock).late_growth is None
     board = RunOptions(driver="hapkit-serial")

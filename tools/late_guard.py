@@ -141,7 +141,7 @@ def rates() -> None:
         env = np.array([x[(t >= a) & (t < a + 0.4)].max() for a in edges])
         slope = np.polyfit(edges, np.log(env), 1)[0] * 1e-3
         g = late_growth(parse_scene(text), WATCHDOG_S)
-        est = hold_growth(G, g.array(), g.step) / G
+        est = hold_growth(G, g.array()[0], g.step) / G      # (a wall: one mode)
         print(f"{K:7.0f}  {G:4d}  {slope * 1e3:+22.3f}  {est * 1e3:+15.3f}"
               f"  {t[-1]:.1f} s, {res.stop_reason.split(' in ')[0]}")
 

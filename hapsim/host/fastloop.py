@@ -58,7 +58,7 @@ from hapsim.host.fastloop_kernels import (
     F_XMAX, F_XPREV, I_CLAMPED, I_CLAST, I_EXPECT, I_FAPPLIED, I_FRAMES_OK, I_GPREV, I_HIST,
     I_LAST_SEQ, I_LATE, I_MISSED, I_N, I_NF_SEQ, I_NMAX, I_PSAMPLES, I_RAMP, I_RB_LEN,
     I_RESTART, I_SAMPLES, I_SKIPFLAG, I_SKIPN, I_SKIPPED, I_SYNC, I_WSUM, KERNEL_NAMES, N_FV,
-    N_IV, N_PV, P_AHEAD, P_BMAX, P_CLAMP_MAX, P_COMPACT, P_CRATE, P_D, P_ELIM, P_GN, P_GSTEP,
+    N_IV, N_PV, P_AHEAD, P_BMAX, P_CLAMP_MAX, P_COMPACT, P_CRATE, P_D, P_ELIM, P_GK, P_GN, P_GSTEP,
     P_GTAB, P_HL, P_LIM, P_NEWEST, P_PC, P_POLL, P_POS, P_RAMP_N, P_RATE, P_RL, P_SILENCE, P_T,
     P_VLIM, R_DONE, R_HANDOFF, R_IDLE, R_INTR, R_IOERR, R_NONFINITE, R_OK, R_PORT, R_STOP,
     R_SYNC, answer_sample, answer_stretch, kernel_pack, port_arrays, skip_sample)
@@ -187,8 +187,9 @@ class CompiledHostLoop(HostLoop):
         if guard is not None:
             table = guard.array()
             pv[P_GSTEP] = guard.step
-            pv[P_GN] = table.size - 1
-            pv[P_GTAB:P_GTAB + table.size] = table
+            pv[P_GN] = table.shape[1] - 1
+            pv[P_GK] = table.shape[0]
+            pv[P_GTAB:P_GTAB + table.size] = table.ravel()
         self._compact_params(pv, iv)
         u8 = np.zeros(8, dtype=np.uint8)
         fd = self.transport.serial_port.fd if self.compiled else -1
@@ -330,7 +331,7 @@ class CompiledHostLoop(HostLoop):
                                          float(fv[F_X]), self.config.position_bound,
                                          float(fv[F_V]), self.config.velocity_limit,
                                          float(fv[F_EXCESS]), self.config.energy_limit,
-                                         self._e0, float(fv[F_GROWTH]),
+                                         self._e0, float(fv[F_GROWTH:].max()),
                                          self.config.late_growth, 1.0 / self.config.rate_hz)
         res.safety_stop = True
         self.stop.set = True

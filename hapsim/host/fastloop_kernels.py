@@ -36,6 +36,7 @@ from hapsim.kernels import arguments, cordis, schemes
 from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
 from hapsim.kernels.ticks import named_delay as _named_delay
 from hapsim.kernels.ticks import tick_late as _tick_late
+from hapsim.kernels.late_growth import GROWTH_MODES as _GROWTH_MODES
 from hapsim.kernels.late_growth import GROWTH_POINTS as _GROWTH_POINTS
 from hapsim.kernels.late_growth import LATE_GROWTH_STOP as _LATE_GROWTH_STOP
 from hapsim.kernels.late_growth import late_growth_step as _late_growth_step
@@ -48,7 +49,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "0cc6685541ce013529dedfe1a14e42a1ec671f8a68ca0869e2dfb23d90fd5aa4"
+COMPILED_SOURCES_SHA256 = "4f46935b6aa7c3aa661eeedf25f681c29dfe4f1edf9f86550e2c8e345b923c7a"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -72,15 +73,16 @@ N_IV = 25
 # fv: float64 state
 F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
-F_GROWTH = 11               # the lateness guard's cumulative growth [nepers]
-N_FV = 12
+F_GROWTH = 11               # the lateness guard's cumulative growths, one a mode [nepers]
+N_FV = F_GROWTH + _GROWTH_MODES
 # pv: float64 parameters
 (P_LIM, P_D, P_T, P_RATE, P_POS, P_VLIM, P_ELIM, P_PC, P_BMAX, P_CLAMP_MAX, P_RAMP_N, P_HL,
  P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD, P_COMPACT, P_CRATE) = range(19)
 # the lateness guard (hapsim.kernels.late_growth): its step [ticks] (0: no guard), its
-# table's last index n, and the table g(j * step), j = 0 .. n, from P_GTAB on
-P_GSTEP, P_GN, P_GTAB = 19, 20, 21
-N_PV = P_GTAB + _GROWTH_POINTS + 1
+# tables' last index n, their number (modes), and the tables g_k(j * step), j = 0 .. n,
+# row after row from P_GTAB on
+P_GSTEP, P_GN, P_GK, P_GTAB = 19, 20, 21, 22
+N_PV = P_GTAB + _GROWTH_MODES * (_GROWTH_POINTS + 1)
 
 # return codes
 R_OK, R_NONFINITE, R_SAFETY, R_IOERR = 0, 1, 2, 3
@@ -300,7 +302,7 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
     -------
     int
         R_OK, R_NONFINITE (nothing written; ``iv[I_NF_SEQ]`` = seq), R_SAFETY (row
-        logged; ``fv[F_X]``, ``fv[F_V]``, ``fv[F_EXCESS]``, ``fv[F_GROWTH]`` say why) or
+        logged; ``fv[F_X]``, ``fv[F_V]``, ``fv[F_EXCESS]``, ``fv[F_GROWTH:]`` say why) or
         R_IOERR (the write failed).
     """
     d = np.int64(pv[P_D])
@@ -312,14 +314,16 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         lt = 1
         iv[I_LATE] += 1
     g_step = pv[P_GSTEP]
+    g_worst = 0.0
     if g_step > 0.0:
-        g_n = np.int64(pv[P_GN])
-        acc, g_prev = _late_growth_step(
-            fv[F_GROWTH], iv[I_GPREV], force_seq,
+        g_n = np.int64(pv[P_GN]) + 1
+        g_k = np.int64(pv[P_GK])
+        acc = fv[F_GROWTH:F_GROWTH + g_k]
+        iv[I_GPREV] = _late_growth_step(
+            acc, iv[I_GPREV], force_seq,
             _named_delay(seq, force_seq, status, iv[I_FAPPLIED] != 0),
-            pv[P_GTAB:P_GTAB + g_n + 1], g_step)
-        fv[F_GROWTH] = acc
-        iv[I_GPREV] = g_prev
+            pv[P_GTAB:P_GTAB + g_k * g_n].reshape((g_k, g_n)), g_step)
+        g_worst = acc.max()
     if math.isfinite(x):
         xs[port] = x
         _port_step(kind, kargs, rec, out)
@@ -406,7 +410,7 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         fv[F_FMAX] = af
     pos = pv[P_POS]
     if (wsum >= pv[P_CLAMP_MAX] or x > pos or x < -pos or av > pv[P_VLIM]
-            or excess > pv[P_ELIM] or fv[F_GROWTH] > _LATE_GROWTH_STOP):
+            or excess > pv[P_ELIM] or g_worst > _LATE_GROWTH_STOP):
         fv[F_X] = x
         fv[F_V] = v
         fv[F_EXCESS] = excess

@@ -371,9 +371,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         # put in, since this stretch (re)started, and the FORCE it named last
         guard = cfg.late_growth
         g_on = guard is not None
-        g_table = guard.array() if g_on else None
+        g_tables = guard.lists() if g_on else None
         g_step = guard.step if g_on else 1.0
-        g_acc = 0.0
+        g_acc = [0.0] * len(g_tables) if g_on else [0.0]    # per mode [nepers]
+        g_worst = 0.0
         g_prev = -1
         first = None
         try:
@@ -438,9 +439,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 elif host_late:
                     lt = 1
                 if g_on:
-                    g_acc, g_prev = late_growth_step(
+                    g_prev = late_growth_step(
                         g_acc, g_prev, msg.force_seq,
-                        named_delay(seq, msg.force_seq, st, flags_applied), g_table, g_step)
+                        named_delay(seq, msg.force_seq, st, flags_applied), g_tables, g_step)
+                    g_worst = max(g_acc)
                 if poll is not None:
                     poll()
                 f = eng.port_step(x) if isfinite(x) else math.nan
@@ -513,9 +515,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 if af > f_max:
                     f_max = af
                 if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
-                        or excess > elim or g_acc > LATE_GROWTH_STOP):
+                        or excess > elim or g_worst > LATE_GROWTH_STOP):
                     res.stop_reason = safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
-                                                     v, vlim, excess, elim, e0, g_acc, guard, T)
+                                                     v, vlim, excess, elim, e0, g_worst, guard,
+                                                     T)
                     res.safety_stop = True
                     stop.set = True
                     break
@@ -554,7 +557,8 @@ def safety_reason(wsum: int, clamp_max: int, wlen: int, limit: float, x: float,
     stored : float
         The scene's stored energy at that (re)start, the observer's baseline [J].
     growth : float
-        The lateness guard's cumulative growth [nepers] (:mod:`hapsim.kernels.late_growth`).
+        The lateness guard's largest cumulative growth of a mode [nepers]
+        (:mod:`hapsim.kernels.late_growth`).
     guard : hapsim.kernels.late_growth.LateGrowth or None
         Its table (the delays its reason names); None: no guard.
     period : float

@@ -15,20 +15,27 @@ ticks.named_delay`): when the FORCE named changes from ``f_prev`` to ``f_new``, 
 ``f_prev`` was held for ``h = f_new - f_prev`` ticks. Its growth is estimated with the
 loop frozen at each of the hold's delays,
 
-``g(h) = sum_{l = 0}^{h - 1} c(d + l)``,  ``c(D) = ln rho(D) - max(ln rho(d), 0)``,
+``g_k(h) = sum_{l = 0}^{h - 1} c_k(d + l)``,  ``c_k(D) = ln |z_k(D)| - max(ln |z_k(d)|, 0)``,
 
-``rho(D)`` the spectral radius of the scene's temporary hybrid system with ``D`` periods
-of delay (:func:`hapsim.analysis.prediction.predict`: the paper's THS, Florens, Voda &
-Urma, with the delay of the late force): the log of the factor by which one period at
-that delay multiplies the loop's slowest mode, beyond what the loop does on time (a loop
-already unstable at its own delay is the clamp's and the bounds' business, not the
-host's lateness). The holds are summed as a one-sided cumulative sum (Page, "Continuous
-inspection schemes", *Biometrika* 41, 1954): ``G <- max(0, G + g(h))``, so that on-time
-periods (``h = 1``: ``c(d) <= 0``, the loop's own decay) pay back what a stall put in, and
-a host late often enough to outrun that decay makes ``G`` climb. At
-``G > LATE_GROWTH_STOP`` (``ln 2``: the lateness alone doubled the loop's amplitude, on the
-frozen estimate) the host loop stops and brakes, naming the lateness
-(:meth:`hapsim.host.loop.HostLoop._drive`, the compiled loop the same way).
+per mode ``k`` of the loop: ``z_k(D)`` its pole in the scene's temporary hybrid system
+with ``D`` periods of delay (the paper's THS, Florens, Voda & Urma, with the delay of the
+late force; the poles the port's record shows, :func:`hapsim.analysis.prediction.
+predicted_poles`: a mode the port neither sees nor drives is one the device's lateness
+cannot pump), followed from ``D = d`` on as the delay grows: the log of the factor by which
+one period at that delay multiplies that mode, beyond what it does on time (a loop already
+unstable at its own delay is the clamp's and the bounds' business, not the host's
+lateness). Each mode's holds are summed as a one-sided cumulative sum (Page, "Continuous
+inspection schemes", *Biometrika* 41, 1954): ``G_k <- max(0, G_k + g_k(h))``, so that
+on-time periods (``h = 1``: ``c_k(d) <= 0``, the mode's own decay) pay back what a stall
+put in, and a host late often enough to outrun that decay makes ``G_k`` climb. At
+``max_k G_k > LATE_GROWTH_STOP`` (``ln 2``: the lateness alone doubled a mode's amplitude,
+on the frozen estimate) the host loop stops and brakes, naming the lateness
+(:meth:`hapsim.host.loop.HostLoop._drive`, the compiled loop the same way). Per mode, not
+with the spectral radius alone: on ``configs/string.yaml`` the mode that grows under
+lateness (10.9 Hz, the handle on the string) decays on time at 5.6e-3 a period, while the
+slowest mode on time (8.8 Hz, 7e-6 a period) hardly moves with the delay; summed as one,
+the stalls of a loaded host (``spike`` faults, 2.5 % of the STATEs held 8 ms) stopped a
+loop whose handle was decaying, "grown x2".
 
 The frozen estimate is not exact for a delay that varies (a hold's sawtooth), but close:
 on the reliability tests' wall (0.1 kg on 0.5 N s/m, B = 1.5 N s/m, d = 1), uniform holds
@@ -37,12 +44,13 @@ holds of 10, 12, 22, 24, 26) where the estimate says -0.80, +0.67, -0.70, -0.00,
 (``python tools/late_guard.py --rates``); ``tests/test_late_growth.py`` bounds the guard
 by what the records do, over random scenes and hosts, not by the estimate.
 
-``g`` is tabulated once per run (:class:`LateGrowth`, built by
-:func:`hapsim.pipeline.render_latency.late_growth`) at ``h = j * step``, ``j = 0 .. n``
-(``g(0) = 0``), interpolated linearly between, and held at its last entry beyond (a hold
-longer than the watchdog ends at zero force). The per-row update, :func:`late_growth_step`,
-is plain arithmetic on that table, compiled into the compiled host loop
-(``register_jitable``) and called as it is by the Python loop.
+Each ``g_k`` is tabulated once per run (:class:`LateGrowth`, built by
+:func:`hapsim.pipeline.render_latency.late_growth`, the modes that can grow, at most
+:data:`GROWTH_MODES`) at ``h = j * step``, ``j = 0 .. n`` (``g_k(0) = 0``), interpolated
+linearly between, and held at its last entry beyond (a hold longer than the watchdog ends
+at zero force). The per-row update, :func:`late_growth_step`, is plain arithmetic on those
+tables, compiled into the compiled host loop (``register_jitable``) and called as it is by
+the Python loop (on lists there: ``len`` and indexing only).
 """
 
 from __future__ import annotations
@@ -53,7 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba.extending import register_jitable
 
-__all__ = ["LATE_GROWTH_STOP", "GROWTH_POINTS", "LateGrowth", "hold_growth",
+__all__ = ["LATE_GROWTH_STOP", "GROWTH_POINTS", "GROWTH_MODES", "LateGrowth", "hold_growth",
            "late_growth_step", "late_growth_reason"]
 
 #: The guard's bound on the cumulative growth [nepers]: the lateness doubled the loop.
@@ -61,6 +69,9 @@ LATE_GROWTH_STOP = math.log(2.0)
 #: Most entries of a growth table beyond ``g(0)`` (the compiled loop keeps them in its
 #: parameter vector, a fixed size).
 GROWTH_POINTS = 64
+#: Most modes a growth table follows (the compiled loop keeps their sums and tables in its
+#: fixed-size vectors): those that grow the most under lateness.
+GROWTH_MODES = 4
 
 _MASK = 0xFFFFFFFF
 _HALF = 0x80000000
@@ -72,8 +83,9 @@ class LateGrowth:
 
     Attributes
     ----------
-    table : tuple of float
-        ``g(j * step)`` [nepers], ``j = 0 .. n`` (``n <= GROWTH_POINTS``; ``table[0] = 0``).
+    table : tuple of tuple of float
+        Per mode ``k`` (at most :data:`GROWTH_MODES`), ``g_k(j * step)`` [nepers],
+        ``j = 0 .. n`` (``n <= GROWTH_POINTS``; ``g_k(0) = 0``).
     step : float
         Hold length [ticks] between entries (>= 1).
     stable_to : int
@@ -88,13 +100,22 @@ class LateGrowth:
     delay: int
 
     def array(self) -> np.ndarray:
-        """The table as float64, shape (n + 1,).
+        """The tables as float64, shape (modes, n + 1).
 
         Returns
         -------
         ndarray
         """
         return np.asarray(self.table, dtype=np.float64)
+
+    def lists(self) -> list:
+        """The tables as lists of floats (the Python loop's: a list is indexed faster).
+
+        Returns
+        -------
+        list of list of float
+        """
+        return [list(row) for row in self.table]
 
 
 @register_jitable
@@ -105,17 +126,17 @@ def hold_growth(h, table, step):
     ----------
     h : int
         Hold [ticks] (>= 0).
-    table : ndarray of float64, shape (n + 1,)
-        :attr:`LateGrowth.table`.
+    table : sequence of float, length n + 1
+        One mode's row of :attr:`LateGrowth.table` (an array, or a list).
     step : float
         :attr:`LateGrowth.step` [ticks].
 
     Returns
     -------
     float
-        ``g(h)`` [nepers]; the last entry for a hold beyond the table.
+        ``g_k(h)`` [nepers]; the last entry for a hold beyond the table.
     """
-    n = table.size - 1
+    n = len(table) - 1
     pos = h / step
     if pos >= n:
         return table[n]
@@ -124,42 +145,42 @@ def hold_growth(h, table, step):
 
 
 @register_jitable
-def late_growth_step(acc, f_prev, force_seq, lag, table, step):
-    """One STATE's update of the cumulative growth (module notes).
+def late_growth_step(acc, f_prev, force_seq, lag, tables, step):
+    """One STATE's update of the modes' cumulative growths (module notes).
 
     Parameters
     ----------
-    acc : float
-        The cumulative growth so far [nepers] (>= 0).
+    acc : sequence of float, length modes
+        Each mode's cumulative growth so far [nepers] (>= 0); updated in place.
     f_prev : int
         The FORCE the device named last in this stretch (-1: none yet).
     force_seq : int
         This STATE's ``force_seq``.
     lag : int
         Its :func:`hapsim.kernels.ticks.named_delay` (-1: it names no FORCE).
-    table : ndarray of float64
-        :attr:`LateGrowth.table`.
+    tables : sequence of sequence of float, shape (modes, n + 1)
+        :attr:`LateGrowth.table` (an array, or lists).
     step : float
         :attr:`LateGrowth.step` [ticks].
 
     Returns
     -------
-    (float, int)
-        The new ``acc`` and ``f_prev``: a FORCE newer than ``f_prev`` ends its hold,
-        ``h = force_seq - f_prev`` ticks (mod 2^32), whose :func:`hold_growth` is added
-        (the sum kept >= 0); the same FORCE, an older one or none changes nothing.
+    int
+        The new ``f_prev``: a FORCE newer than ``f_prev`` ends its hold,
+        ``h = force_seq - f_prev`` ticks (mod 2^32), whose :func:`hold_growth` is added to
+        each mode's sum (kept >= 0); the same FORCE, an older one or none changes nothing.
     """
     if lag < 0:
-        return acc, f_prev
+        return f_prev
     if f_prev < 0:
-        return acc, force_seq
+        return force_seq
     h = (force_seq - f_prev) & _MASK
     if h == 0 or h >= _HALF:
-        return acc, f_prev
-    acc += hold_growth(h, table, step)
-    if acc < 0.0:
-        acc = 0.0
-    return acc, force_seq
+        return f_prev
+    for k in range(len(acc)):
+        a = acc[k] + hold_growth(h, tables[k], step)
+        acc[k] = a if a > 0.0 else 0.0
+    return force_seq
 
 
 def late_growth_reason(acc: float, guard: LateGrowth, period: float) -> str:
@@ -168,7 +189,7 @@ def late_growth_reason(acc: float, guard: LateGrowth, period: float) -> str:
     Parameters
     ----------
     acc : float
-        The cumulative growth at the stop [nepers].
+        The largest mode's cumulative growth at the stop [nepers].
     guard : LateGrowth
         The run's table (its delays).
     period : float
