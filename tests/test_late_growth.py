@@ -21,8 +21,8 @@ import pytest
 
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.stability import stability_limit
-from hapsim.kernels.late_growth import (LATE_GROWTH_STOP, LateGrowth, hold_growth,
-                                        late_growth_step)
+from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP, LateGrowth,
+                                        hold_growth, late_growth_step)
 from hapsim.pipeline.render_latency import late_growth
 from hapsim.scene import parse_scene
 
@@ -91,17 +91,19 @@ def test_a_mode_that_decays_on_time_pays_back_its_own_growth_not_the_slowest_mod
     rows = guard.array()
     z = np.asarray(predicted_poles(sc)[0], complex)
     rates = np.log(np.abs(z))
-    assert rows[0, 1] < -1e-3 and np.isclose(rows[0, 1], rates, rtol=1e-9, atol=0).any()
+    own = rows[0, 1] + LATE_GROWTH_SLACK * sc.period        # (the slack given back)
+    assert own < -1e-3 and np.isclose(own, rates, rtol=1e-9, atol=0).any()
     assert rates.max() > -1e-4                      # the slowest on time: nearly none
     assert rows[0, -1] > 0.5                        # and it grows under a long hold
 
 
 @pytest.mark.parametrize("seed", range(6))
 def test_the_table_says_stable_exactly_where_the_stability_limit_does(seed):
-    """The table's growth per period, ``c(d + l)``, is negative exactly at the delays where
-    the spring is below the stability limit (:func:`hapsim.analysis.stability.
-    stability_limit`: the root-count search, another algorithm than the spectral radius
-    the table is made of), every delay predicted (``points`` = H + 1)."""
+    """The table's growth per period, ``c(d + l)`` with its slack given back, is negative
+    exactly at the delays where the spring is below the stability limit
+    (:func:`hapsim.analysis.stability.stability_limit`: the root-count search, another
+    algorithm than the poles the table is made of), every delay predicted (``points`` =
+    H + 1)."""
     rng = np.random.default_rng(100 + seed)
     m, b, B = rng.uniform(0.05, 0.3), rng.uniform(0.2, 2.0), rng.uniform(0.3, 3.0)
     L = int(rng.integers(0, 12))
@@ -109,7 +111,8 @@ def test_the_table_says_stable_exactly_where_the_stability_limit_does(seed):
                                   hold="zoh"), B)
     scene = parse_scene(wall(K, B, m, b))
     guard = late_growth(scene, 0.02, points=21)
-    per = np.diff(guard.array()[0])         # c(d + l), l = 0 .. H (step 1 here)
+    # c(d + l), l = 0 .. H (step 1 here), the slack given back
+    per = np.diff(guard.array()[0]) + LATE_GROWTH_SLACK * scene.period
     assert guard.step == 1.0 and per.size == 21 and guard.array().shape[0] == 1
     for l, c in enumerate(per):
         limit = stability_limit(LoopModel(mass=m, friction=b, rate_hz=1000.0, delay=1 + l,
@@ -122,29 +125,57 @@ def test_the_table_says_stable_exactly_where_the_stability_limit_does(seed):
 @pytest.mark.parametrize("seed", [7, 8])
 def test_a_host_too_late_for_the_loop_is_stopped_before_it_runs_away_and_not_otherwise(seed):
     """Random walls and hosts away ``G`` periods after each answer (the device holds
-    each force ``G`` ticks), each run without the guard and with it:
+    each force ``G`` ticks), each run without the guard and with it
+    (``tools/late_guard.py``, whose cases these are):
 
-    - where the loop decays without the guard (its last 0.3 s below half its first), the
-      guard never stops it;
-    - where it runs to a safety bound (the clamp, 0.1 m) without the guard, the run with
-      the guard stops sooner, on a safety stop (the guard's, or the clamp's for a fast
-      chatter of a large damping), and the handle never goes beyond 4 x0 (measured: at
-      most 2.89 x0 over the 53 such cases of ``python tools/late_guard.py``; the bound
-      that ended the unguarded runs is 20 x0).
-    A loop that grows without reaching a bound in 6 s (7 of that tool's 80 cases: near
-    the edge the frozen estimate can miss a slow growth) is left to the bounds, and not
-    asserted on."""
+    - where the loop decays without the guard (never above its first 0.3 s, its last 0.3 s
+      below half of them), the guard never stops it;
+    - where it runs to a safety bound (the clamp, 0.1 m = 20 x0) without the guard, the
+      run with the guard ends on a safety stop no later; where that took less than 2 s
+      (a growth well above the guard's slack), the guard stops it sooner, and the handle
+      never goes beyond 6 x0 (measured: at most 3.86 x0 over the 35 such cases of
+      ``python tools/late_guard.py``; margin 1.55).
+    A slower growth is left to the bounds (the clamp stopped 2 of that tool's 43
+    runaways, after 3.6 and 4.8 s, the guard not at all)."""
     rng = np.random.default_rng(seed)
-    seen = {"ran away": 0, "decayed": 0, "slow": 0}
+    seen = {"ran away": 0, "decayed": 0, "other": 0, "fast": 0}
     for _ in range(14):
         c = lg.case(rng)
         seen[c["kind"]] += 1
         on, off = c["on"], c["off"]
         if c["kind"] == "ran away":
-            assert on.safety_stop and on.samples < off.samples, (c["G"], on.stop_reason)
-            assert np.max(np.abs(c["t_on"].columns()["position"])) <= 4 * X0, on.stop_reason
+            assert on.safety_stop and on.samples <= off.samples, (c["G"], on.stop_reason)
+            if c["t_off"].columns()["time"][-1] < lg.FAST_S:
+                seen["fast"] += 1
+                assert lg.guard_stop(on) and on.samples < off.samples, (c["G"], on.stop_reason)
+                assert np.max(np.abs(c["t_on"].columns()["position"])) <= 6 * X0, c["G"]
         elif c["kind"] == "decayed":
             assert on.stop_reason == "duration", (c["G"], on.stop_reason)
+    assert seen["fast"] >= 3 and seen["decayed"] >= 3, seen
+
+
+@pytest.mark.parametrize("seed", [4, 10])
+def test_stalls_now_and_then_of_a_two_mode_loop_never_stop_one_that_decays(seed):
+    """Random two-mode loops (the handle on a virtual mass held to ground) and hosts
+    stalled ``G`` periods after an answer now and then (2-40 % of them): where the loop
+    decays without the guard, the guard never stops it (each mode pays back its own
+    growth: one sum for all stopped configs/string.yaml, decaying, in CI, and 3 of the
+    21 decaying cases of ``python tools/late_guard.py --family "two masses"``, where an
+    internal mode is lightly damped; of these seeds' 9, 3); where it runs to a safety bound, the run with the
+    guard ends on a safety stop no later. (Not sooner in every case, nor within a bound
+    on the handle: a loop thrown out by a single stall is thrown before the host runs
+    again, and only the device's watchdog acts inside a stall: 7 of that tool's 57
+    runaways, 3 within 0.4 s.)"""
+    rng = np.random.default_rng(seed)
+    seen = {"ran away": 0, "decayed": 0, "other": 0}
+    for _ in range(14):
+        c = lg.case(rng, "two masses")
+        seen[c["kind"]] += 1
+        on, off = c["on"], c["off"]
+        if c["kind"] == "ran away":
+            assert on.safety_stop and on.samples <= off.samples, (c["G"], on.stop_reason)
+        elif c["kind"] == "decayed":
+            assert on.stop_reason == "duration", (c["G"], c["chance"], on.stop_reason)
     assert seen["ran away"] >= 3 and seen["decayed"] >= 3, seen
 
 

@@ -337,7 +337,8 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
         guard is then off; the run's own prediction says why).
     """
     from hapsim.analysis.prediction import predicted_poles
-    from hapsim.kernels.late_growth import GROWTH_MODES, GROWTH_POINTS, LateGrowth
+    from hapsim.kernels.late_growth import (GROWTH_MODES, GROWTH_POINTS,
+                                            LATE_GROWTH_SLACK, LateGrowth)
     if scene.device is None:
         return None
     T = scene.period
@@ -357,7 +358,8 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
         return None
     rates = _follow_modes(grid)                             # (modes, lags): Re s
     every = np.array([np.interp(np.arange(H + 1), lags, r) for r in rates])
-    c = every - np.maximum(every[:, :1], 0.0)               # c_k(d + l), l = 0 .. H
+    # c_k(d + l), l = 0 .. H, less the slack
+    c = every - np.maximum(every[:, :1], 0.0) - LATE_GROWTH_SLACK * T
     # the modes that can grow under lateness, the most first (at least one row: a loop
     # stable at every delay of the table keeps its least stable mode, never above zero)
     order = np.argsort(-c.max(axis=1), kind="stable")
