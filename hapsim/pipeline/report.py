@@ -14,6 +14,7 @@ from hapsim.drivers.urlhandler import is_emulated
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import process_start
 from hapsim.braking import brake_text
+from hapsim.kernels.late_growth import LATE_GROWTH_SLACK, LATE_GROWTH_STOP
 from hapsim.errors import dash
 
 if TYPE_CHECKING:
@@ -168,7 +169,12 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
         "safety": {"position_limit": cfg.position_bound, "velocity_limit": cfg.velocity_limit,
                    "energy_limit": cfg.energy_limit,
                    "passivity_controller": cfg.passivity_controller,
-                   "max_damping": cfg.max_damping, "brake_damping": cfg.brake_damping},
+                   "max_damping": cfg.max_damping, "brake_damping": cfg.brake_damping,
+                   # the lateness guard (hapsim.kernels.late_growth): None where off
+                   "late_guard": None if cfg.late_growth is None else {
+                       "stable_to_periods": cfg.late_growth.stable_to,
+                       "modes": len(cfg.late_growth.table),
+                       "stop_growth": LATE_GROWTH_STOP, "slack_per_s": LATE_GROWTH_SLACK}},
         "faults": res.faults, "fault_plan": _fault_plan(opts.plan, mock_report),
         # what came before a safety stop (a host stall, a held force, a loop that grew)
         "safety_context": safety_context(conn.tel) if res.safety_stop else None,
