@@ -436,9 +436,14 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
         # the holds cut more than half a period off (write_holds.HOLD_CUT_PERIODS), and
         # stretches cut short may not determine a rendered pair within the errors (the
         # box's term then inf; at the records already: no felt matrices): said so, with
-        # the box named, never "differs"
+        # the box named, never "differs". Nor do they count the link's own latency,
+        # which the host does not see: a departure beyond the stated uncertainty that a
+        # latency varying by LINK_JITTER_S between writes could make is "not measurable"
+        # on a board keeping its own time, named so (a fresh clone's CI at 44a1bfa5:
+        # felt damping 0.325 off, no stall, no zeroed tick, no resync)
         assert ("may move" in r["reason"] and "box" in r["reason"]
-                or "no felt matrices" in r["reason"]), r["reason"]
+                or "no felt matrices" in r["reason"]
+                or "own time" in r["reason"] and "latency" in r["reason"]), r["reason"]
     else:
         assert r["verdict"] in ("within", "partly within") and r["within"] is True, \
             (r["reason"], r["deviation"])
