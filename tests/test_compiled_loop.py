@@ -27,7 +27,7 @@ import pytest
 import firmware_protocol as fp
 from hapsim.host.fastloop import CompiledHostLoop, encode_force
 from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
-from hapsim.pipeline.render_latency import late_growth
+from hapsim.analysis.late_growth import late_growth
 from hapsim.pipeline.runner import prepare_scene
 from hapsim.host.telemetry import Telemetry
 from hapsim.host.transport import SerialTransport

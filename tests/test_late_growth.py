@@ -23,7 +23,7 @@ from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.stability import stability_limit
 from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP, LateGrowth,
                                         hold_growth, late_growth_step)
-from hapsim.pipeline.render_latency import late_growth
+from hapsim.analysis.late_growth import late_growth
 from hapsim.scene import parse_scene
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -41,7 +41,7 @@ from hapsim.emulated.mock import MockDevice
 from hapsim.engine import Engine
 from hapsim.host.loop import HostLoop, LoopConfig
 from hapsim.host.telemetry import Telemetry
-from hapsim.pipeline.render_latency import late_growth
+from hapsim.analysis.late_growth import late_growth
 from hapsim.scene import parse_scene
 
 LIMIT = 10.0        # force limit [N]

@@ -49,7 +49,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "a50d4a66e1e127d65fd1a20fc97ce0569a9ed2e6b720658328171aa7688d78be"
+COMPILED_SOURCES_SHA256 = "fe25a13c19e4aaa12b9df8247f4d915e335dcb781f954c1610b2bb4d14956fbf"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

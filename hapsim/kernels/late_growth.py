@@ -48,7 +48,7 @@ holds of 10, 12, 22, 24, 26) where the estimate says -0.80, +0.67, -0.70, -0.00,
 by what the records do, over random scenes and hosts, not by the estimate.
 
 Each ``g_k`` is tabulated once per run (:class:`LateGrowth`, built by
-:func:`hapsim.pipeline.render_latency.late_growth`, the modes that can grow, at most
+:func:`hapsim.analysis.late_growth.late_growth`, the modes that can grow, at most
 :data:`GROWTH_MODES`) at ``h = j * step``, ``j = 0 .. n`` (``g_k(0) = 0``), interpolated
 linearly between, and held at its last entry beyond (a hold longer than the watchdog ends
 at zero force). The per-row update, :func:`late_growth_step`, is plain arithmetic on those
@@ -64,8 +64,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba.extending import register_jitable
 
-__all__ = ["LATE_GROWTH_STOP", "LATE_GROWTH_SLACK", "GROWTH_POINTS", "GROWTH_MODES", "LateGrowth", "hold_growth",
-           "late_growth_step", "late_growth_reason"]
+__all__ = ["LATE_GROWTH_STOP", "LATE_GROWTH_SLACK", "GROWTH_POINTS", "GROWTH_MODES",
+           "LateGrowth", "hold_growth", "late_growth_step", "late_growth_reason"]
 
 #: The guard's bound on the cumulative growth [nepers]: the lateness doubled the loop.
 LATE_GROWTH_STOP = math.log(2.0)

@@ -38,7 +38,8 @@ import time
 
 from hapsim.analysis.measurement import identify
 from hapsim.analysis.prediction import predict, prepare_scene, refusal
-from hapsim.pipeline.render_latency import (late_force, late_growth, late_reading_refusal,
+from hapsim.analysis.late_growth import late_growth
+from hapsim.pipeline.render_latency import (late_force, late_reading_refusal,
                                             latency_middle, latency_refusal,
                                             missing_reply_warning, timed_prediction)
 from hapsim.blas import limit_blas_threads

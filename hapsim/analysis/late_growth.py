@@ -1,0 +1,125 @@
+"""The scene's growth tables for the host loop's lateness guard
+(:mod:`hapsim.kernels.late_growth`, whose notes give the rule): the poles of the scene's
+temporary hybrid system at each delay a late force is held over, each mode followed from
+its pole on time.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hapsim.analysis.prediction import predicted_poles, timed_scene
+from hapsim.kernels.late_growth import (GROWTH_MODES, GROWTH_POINTS, LATE_GROWTH_SLACK,
+                                        LateGrowth)
+
+__all__ = ["late_growth"]
+
+
+def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
+                points: int = 24):
+    """The scene's growth tables for the host loop's lateness guard
+    (:mod:`hapsim.kernels.late_growth`: ``g_k(h)``, the growth of mode ``k`` over a force
+    held ``h`` ticks, from the loop frozen at each delay of the hold).
+
+    The loop's poles that the port's record shows
+    (:func:`hapsim.analysis.prediction.predicted_poles`, the scene's THS with ``D``
+    periods of delay) are predicted at ``points`` delays spread evenly over ``d .. d + H``
+    (``H`` the watchdog's periods: a longer hold ends at zero force), one of each conjugate
+    pair, as ``s = ln z`` [per period]. Each mode is followed from its pole on time as the
+    delay grows: at each next delay, the pairs of a followed mode and a pole are taken
+    nearest first in the ``s`` plane, each pole once (a pole the delay line adds starts
+    near ``z = 0``, far from every followed mode). Its growth a period, ``Re s``, is
+    interpolated linearly between the delays: it is smooth in ``D``
+    (``configs/wall.yaml``: 2.7e-3, 7.7e-3, 12.3e-3 a period at 2, 3, 4 periods). The
+    modes that grow at some delay are kept, at most
+    :data:`~hapsim.kernels.late_growth.GROWTH_MODES`, those that grow the most first.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        The run's calibrated scene (its own delay ``d``, a whole number of periods for the
+        framed protocol's tick bookkeeping).
+    watchdog_s : float
+        The device's watchdog [s] (> 0).
+    latest_s : float
+        A board's render latency after its read [s], added to every delay (0: the framed
+        protocol's devices).
+    points : int
+        Delays predicted (>= 2).
+
+    Returns
+    -------
+    hapsim.kernels.late_growth.LateGrowth or None
+        None where the scene has no device or the prediction fails at some delay (the
+        guard is then off; the run's own prediction says why).
+    """
+    if scene.device is None:
+        return None
+    T = scene.period
+    d = int(round(float(scene.device.delay)))
+    H = max(int(np.ceil(float(watchdog_s) / T - 1e-9)), 1)
+    lags = np.unique(np.round(np.linspace(0, H, max(int(points), 2))).astype(int))
+    grid = []
+    try:
+        for l in lags:
+            z = np.asarray(predicted_poles(timed_scene(scene, float(latest_s) + l * T))[0],
+                           dtype=complex)
+            z = z[(np.abs(z) > 0.0) & (z.imag >= 0.0)]
+            if z.size == 0:
+                return None
+            grid.append(np.log(z))
+    except Exception:  # an advisory table: no guard where the scene cannot be predicted
+        return None
+    rates = _follow_modes(grid)                             # (modes, lags): Re s
+    every = np.array([np.interp(np.arange(H + 1), lags, r) for r in rates])
+    # c_k(d + l), l = 0 .. H, less the slack
+    c = every - np.maximum(every[:, :1], 0.0) - LATE_GROWTH_SLACK * T
+    # the modes that can grow under lateness, the most first (at least one row: a loop
+    # stable at every delay of the table keeps its least stable mode, never above zero)
+    order = np.argsort(-c.max(axis=1), kind="stable")
+    grows = int(np.count_nonzero(c.max(axis=1) > 0.0))
+    c = c[order[:min(max(grows, 1), GROWTH_MODES)]]
+    prefix = np.concatenate((np.zeros((c.shape[0], 1)), np.cumsum(c, axis=1)), axis=1)
+    n = min(H + 1, GROWTH_POINTS)
+    step = (H + 1) / n
+    table = np.array([np.interp(np.arange(n + 1) * step, np.arange(H + 2), p)
+                      for p in prefix])
+    stable = np.flatnonzero(every.max(axis=0) >= 0.0)       # a mode growing at d + l
+    stable_to = d + (int(stable[0]) - 1 if stable.size else H)
+    return LateGrowth(tuple(tuple(float(v) for v in row) for row in table), float(step),
+                      int(stable_to), d)
+
+
+def _follow_modes(grid: list) -> np.ndarray:
+    """Each mode of ``grid[0]`` followed through the next delays (:func:`late_growth`):
+    at each, the pairs of a followed mode and a pole nearest first in the ``s`` plane,
+    each pole and each mode once; a mode left without a pole keeps its last value.
+
+    Parameters
+    ----------
+    grid : list of ndarray of complex
+        ``s = ln z`` [per period] of the poles at each delay (at least as many at each
+        delay as at the first: a longer delay line adds poles).
+
+    Returns
+    -------
+    ndarray of float, shape (modes, delays)
+        ``Re s`` of each followed mode at each delay.
+    """
+    s = np.array(grid[0], dtype=complex)
+    out = [s.real.copy()]
+    for nxt in grid[1:]:
+        dist = np.abs(s[:, None] - nxt[None, :])
+        new = s.copy()
+        free_m = np.ones(s.size, bool)
+        free_p = np.ones(nxt.size, bool)
+        for flat in np.argsort(dist, axis=None, kind="stable"):
+            i, j = divmod(int(flat), nxt.size)
+            if free_m[i] and free_p[j]:
+                new[i] = nxt[j]
+                free_m[i] = free_p[j] = False
+                if not free_m.any():
+                    break
+        s = new
+        out.append(s.real.copy())
+    return np.array(out).T
