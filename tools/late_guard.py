@@ -23,6 +23,12 @@ Usage::
     python tools/late_guard.py                     # seeds 1-4, 20 cases each
     python tools/late_guard.py --seeds 7 8 --cases 14
     python tools/late_guard.py --rates
+    python tools/late_guard.py --plot docs/late_guard.png
+
+``--plot FIG.png`` draws one case instead (needs matplotlib, ``pip install
+'hapsim[plot]'``): the reliability tests' wall (1000 N/m, B 1.5 N s/m; 0.1 kg on
+0.5 N s/m), stable at its own delay only, and a host away 4 periods after each answer:
+the handle's position without the guard and with it.
 """
 
 from __future__ import annotations
@@ -198,6 +204,33 @@ def rates() -> None:
               f"  {t[-1]:.1f} s, {res.stop_reason.split(' in ')[0]}")
 
 
+def plot(path: str) -> None:
+    """Draw the ``--plot`` case (module notes) to ``path``."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    text = wall(1000.0, 1.5)
+    off, t_off = run(text, 4000, False, 400)
+    on, t_on = run(text, 4000, True, 400)
+    fig, ax = plt.subplots(figsize=(7.0, 3.4))
+    for tel, res, label, style in ((t_off, off, "without the guard", "-"),
+                                   (t_on, on, "with the guard", "-")):
+        cols = tel.columns()
+        stop = ("the guard's stop, then the braking" if guard_stop(res)
+                else "the clamp's stop" if "force at the limit" in res.stop_reason
+                else res.stop_reason)
+        ax.plot(cols["time"] * 1e3, cols["position"] * 1e3, style,
+                label=f"{label}: {stop} at {cols['time'][-1] * 1e3:.0f} ms")
+    ax.axhline(0.0, color="0.7", lw=0.8)
+    ax.set_xlabel("device time [ms]")
+    ax.set_ylabel("handle position [mm]")
+    ax.set_title("1000 N/m wall, d = 1, host away 4 periods after each answer")
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
@@ -206,7 +239,12 @@ def main(argv=None) -> int:
                     help="the scenes and hosts drawn (module notes of case())")
     ap.add_argument("--rates", action="store_true",
                     help="the measured and estimated growth of uniform holds instead")
+    ap.add_argument("--plot", metavar="FIG.png",
+                    help="draw one case, without the guard and with it, instead")
     a = ap.parse_args(argv)
+    if a.plot:
+        plot(a.plot)
+        return 0
     if a.rates:
         rates()
         return 0
