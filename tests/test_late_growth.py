@@ -181,6 +181,22 @@ def test_stalls_now_and_then_of_a_two_mode_loop_never_stop_one_that_decays(seed)
     assert seen["ran away"] >= 3 and seen["decayed"] >= 3, seen
 
 
+def test_the_guard_does_not_stop_a_handle_at_rest_until_it_moves():
+    """The shipped wall's stiffness from 1 um (a handle at rest), a host away 4 periods
+    after each answer: with no rest speed the guard stops it once the lateness doubled the
+    loop, micrometres from rest; with the braking's rest speed (1 mm/s here) it stops it
+    only later, once the handle moves faster than that, still far inside the bounds."""
+    text = wall(1000.0, 1.5, x0=1e-6)
+    now, t_now = run(text, 4000, True, 2000, rest=0.0)
+    later, t_later = run(text, 4000, True, 2000, rest=1e-3)
+    for res in (now, later):
+        assert lg.guard_stop(res), res.stop_reason
+    x_now, x_later = (np.abs(t.columns()["position"]) for t in (t_now, t_later))
+    assert later.samples > now.samples and x_now.max() < 1e-5
+    # (the loop's own speed, a period's backward difference, passed the rest speed first)
+    assert now.v_max < 1e-3 < later.v_max and x_now.max() < x_later.max() < 1e-3
+
+
 def test_the_guard_stop_names_the_lateness_and_brakes_the_handle():
     """The shipped wall's stiffness (stable at d = 1 only) and a host away 4 periods after
     each answer: the guard stops it, its reason names the delays the loop holds, and the

@@ -57,8 +57,8 @@ SECONDS = 6.0       # each run's length [s of the device's time]
 FAST_S = 2.0        # a loop that ran away within this [s] grew well above the slack
 
 
-def wall(K, B, mass=0.1, friction=0.5) -> str:
-    """A 1 kHz spring-damper wall at the port, d = 1, the handle starting at ``X0``."""
+def wall(K, B, mass=0.1, friction=0.5, x0=X0) -> str:
+    """A 1 kHz spring-damper wall at the port, d = 1, the handle starting at ``x0``."""
     return f"""
 rate_hz: 1000
 masses:
@@ -67,7 +67,7 @@ masses:
 links:
   - {{name: wall, kind: spring_damper, between: [hand, wall], stiffness: {K}, damping: {B}}}
 device: {{mass: {mass}, friction: {friction}, delay: 1, hold: zoh, force_limit: {LIMIT}}}
-excitation: {{x0: {X0}}}
+excitation: {{x0: {x0}}}
 """
 
 
@@ -108,16 +108,17 @@ class AwayHost(SimTransport):
 
 
 def run(text: str, away_us: int, guard: bool, n: int = 3000, chance: float = 1.0,
-        seed: int = 0):
+        seed: int = 0, rest: float = 1e-3):
     """The host loop on the mock, the host away ``away_us`` after each answer (or after
-    each with ``chance``), with or without the guard; ``(LoopResult, Telemetry)``."""
+    each with ``chance``), with or without the guard (its rest speed ``rest`` [m/s], the
+    braking's); ``(LoopResult, Telemetry)``."""
     scene = parse_scene(text)
     mock = MockDevice(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
     tr = AwayHost(mock, parse_faults("", 1), away_us=away_us, chance=chance, seed=seed)
     tel = Telemetry(n)
     cfg = LoopConfig(rate_hz=1000.0, n_samples=n, delay=1, force_limit=LIMIT,
                      watchdog_us=int(WATCHDOG_S * 1e6), position_bound=0.1,
-                     brake_damping=25.0, brake_rest=1e-3,
+                     brake_damping=25.0, brake_rest=rest,
                      late_growth=late_growth(scene, WATCHDOG_S) if guard else None)
     res = HostLoop(Engine(scene), tr, cfg, tel).run()
     return res, tel

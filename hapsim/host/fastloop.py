@@ -58,10 +58,11 @@ from hapsim.host.fastloop_kernels import (
     F_XMAX, F_XPREV, I_CLAMPED, I_CLAST, I_EXPECT, I_FAPPLIED, I_FRAMES_OK, I_GPREV, I_HIST,
     I_LAST_SEQ, I_LATE, I_MISSED, I_N, I_NF_SEQ, I_NMAX, I_PSAMPLES, I_RAMP, I_RB_LEN,
     I_RESTART, I_SAMPLES, I_SKIPFLAG, I_SKIPN, I_SKIPPED, I_SYNC, I_WSUM, KERNEL_NAMES, N_FV,
-    N_IV, N_PV, P_AHEAD, P_BMAX, P_CLAMP_MAX, P_COMPACT, P_CRATE, P_D, P_ELIM, P_GK, P_GN, P_GSTEP,
-    P_GTAB, P_HL, P_LIM, P_NEWEST, P_PC, P_POLL, P_POS, P_RAMP_N, P_RATE, P_RL, P_SILENCE, P_T,
-    P_VLIM, R_DONE, R_HANDOFF, R_IDLE, R_INTR, R_IOERR, R_NONFINITE, R_OK, R_PORT, R_STOP,
-    R_SYNC, answer_sample, answer_stretch, kernel_pack, port_arrays, skip_sample)
+    N_IV, N_PV, P_AHEAD, P_BMAX, P_CLAMP_MAX, P_COMPACT, P_CRATE, P_D, P_ELIM, P_GK, P_GN,
+    P_GREST, P_GSTEP, P_GTAB, P_HL, P_LIM, P_NEWEST, P_PC, P_POLL, P_POS, P_RAMP_N, P_RATE,
+    P_RL, P_SILENCE, P_T, P_VLIM, R_DONE, R_HANDOFF, R_IDLE, R_INTR, R_IOERR, R_NONFINITE,
+    R_OK, R_PORT, R_STOP, R_SYNC, answer_sample, answer_stretch, kernel_pack, port_arrays,
+    skip_sample)
 from hapsim.host.loop import HostLoop, LostDevice, safety_reason
 from hapsim.kernels.compiled_io import CRC_TABLE as _CRC
 from hapsim.kernels.compiled_io import force_compact_frame as _force_compact_frame
@@ -189,6 +190,7 @@ class CompiledHostLoop(HostLoop):
             pv[P_GSTEP] = guard.step
             pv[P_GN] = table.shape[1] - 1
             pv[P_GK] = table.shape[0]
+            pv[P_GREST] = float(cfg.brake_rest)
             pv[P_GTAB:P_GTAB + table.size] = table.ravel()
         self._compact_params(pv, iv)
         u8 = np.zeros(8, dtype=np.uint8)

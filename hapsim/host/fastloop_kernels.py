@@ -49,7 +49,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "fe25a13c19e4aaa12b9df8247f4d915e335dcb781f954c1610b2bb4d14956fbf"
+COMPILED_SOURCES_SHA256 = "5e5759ad56ca7f35a6fd7d778e23907928194b217b70e8387588f13c48a0da17"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -81,7 +81,8 @@ N_FV = F_GROWTH + _GROWTH_MODES
 # the lateness guard (hapsim.kernels.late_growth): its step [ticks] (0: no guard), its
 # tables' last index n, their number (modes), and the tables g_k(j * step), j = 0 .. n,
 # row after row from P_GTAB on
-P_GSTEP, P_GN, P_GK, P_GTAB = 19, 20, 21, 22
+# and the rest speed below which it does not stop [m/s] (the braking's, LoopConfig.brake_rest)
+P_GSTEP, P_GN, P_GK, P_GREST, P_GTAB = 19, 20, 21, 22, 23
 N_PV = P_GTAB + _GROWTH_MODES * (_GROWTH_POINTS + 1)
 
 # return codes
@@ -410,7 +411,7 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         fv[F_FMAX] = af
     pos = pv[P_POS]
     if (wsum >= pv[P_CLAMP_MAX] or x > pos or x < -pos or av > pv[P_VLIM]
-            or excess > pv[P_ELIM] or g_worst > _LATE_GROWTH_STOP):
+            or excess > pv[P_ELIM] or (g_worst > _LATE_GROWTH_STOP and av > pv[P_GREST])):
         fv[F_X] = x
         fv[F_V] = v
         fv[F_EXCESS] = excess

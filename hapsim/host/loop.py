@@ -376,6 +376,9 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         g_acc = [0.0] * len(g_tables) if g_on else [0.0]    # per mode [nepers]
         g_worst = 0.0
         g_prev = -1
+        # a handle slower than the braking's rest speed is at rest: the guard does not stop
+        # it (a growth from rest is the guard's once the handle moves, or the bounds')
+        g_rest = float(cfg.brake_rest)
         first = None
         try:
             # the source (re)starts the scene (engine, observer baseline, restart flag)
@@ -515,7 +518,7 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 if af > f_max:
                     f_max = af
                 if (wsum >= clamp_max or x > pos_bound or x < -pos_bound or av > vlim
-                        or excess > elim or g_worst > LATE_GROWTH_STOP):
+                        or excess > elim or (g_worst > LATE_GROWTH_STOP and av > g_rest)):
                     res.stop_reason = safety_reason(wsum, clamp_max, wlen, lim, x, pos_bound,
                                                      v, vlim, excess, elim, e0, g_worst, guard,
                                                      T)

@@ -226,8 +226,9 @@ class LoopConfig:
     late_growth : hapsim.kernels.late_growth.LateGrowth or None
         The lateness guard's growth table (:mod:`hapsim.kernels.late_growth`): the loop
         stops (safety, then the braking) once the forces the device held over the host's
-        lateness grew the scene's loop by the guard's bound, on the frozen estimate.
-        None: no guard (lockstep, a driver's board with its own rules, a test).
+        lateness grew the scene's loop by the guard's bound, on the frozen estimate, and the
+        handle moves faster than ``brake_rest`` (0: at any speed). None: no guard
+        (lockstep, a driver's board with its own rules, a test).
     """
 
     rate_hz: float

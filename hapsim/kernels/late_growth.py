@@ -33,7 +33,9 @@ on-time periods (``h = 1``: ``c_k(d) <= 0``, the mode's own decay) pay back what
 put in, and a host late often enough to outrun that decay makes ``G_k`` climb. At
 ``max_k G_k > LATE_GROWTH_STOP`` (``ln 2``: the lateness alone doubled a mode's amplitude,
 on the frozen estimate) the host loop stops and brakes, naming the lateness
-(:meth:`hapsim.host.loop.HostLoop._drive`, the compiled loop the same way). Per mode, not
+(:meth:`hapsim.host.loop.HostLoop._drive`, the compiled loop the same way), once the
+handle moves faster than the braking's rest speed (``LoopConfig.brake_rest``: a handle
+slower is at rest, and a growth from rest, of micrometres, is no danger until it moves). Per mode, not
 with the spectral radius alone: on ``configs/string.yaml`` the mode that grows under
 lateness (10.9 Hz, the handle on the string) decays on time at 5.6e-3 a period, while the
 slowest mode on time (8.8 Hz, 7e-6 a period) hardly moves with the delay; summed as one,
