@@ -28,7 +28,7 @@ loop; safety stops end it with zero force: force at the limit in at least ``clam
 last ``clamp_window`` samples, ``|x|`` beyond ``position_bound``, ``|v|`` beyond
 ``velocity_limit``, the energy the virtual environment gave the hand beyond
 ``energy_limit``, or (``late_growth``, the lateness guard) the forces the device held over
-the host's lateness grown the scene's loop by the guard's bound
+the host's lateness having grown the scene's loop by the guard's bound, the handle moving
 (:mod:`hapsim.kernels.late_growth`). Every end sends a zero FORCE then STOP.
 
 Reliability (both loops): bad frames are dropped by the decoder and never acted on, and
