@@ -439,7 +439,7 @@ def test_wall_clock_closed_loop_beside_two_cpu_bound_processes():
         # the box named, never "differs". Nor do they count the link's own latency,
         # which the host does not see: a departure beyond the stated uncertainty that a
         # latency varying by LINK_JITTER_S between writes could make is "not measurable"
-        # on a board keeping its own time, named so (a fresh clone's CI at 44a1bfa5:
+        # on a board keeping its own time, named so (a fresh clone's CI at f7388078:
         # felt damping 0.325 off, no stall, no zeroed tick, no resync)
         assert ("may move" in r["reason"] and "box" in r["reason"]
                 or "no felt matrices" in r["reason"]
