@@ -25,6 +25,7 @@ from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP, Lat
                                         hold_growth, late_growth_step)
 from hapsim.analysis.late_growth import late_growth
 from hapsim.scene import parse_scene
+from tolerance import sum_tol  # same directory
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -65,8 +66,11 @@ def test_the_cumulative_growth_of_uniform_holds_is_their_count_times_one_hold():
                 assert prev == fs
                 # k holds ended (the first FORCE named starts the count)
                 for a, row in zip(acc, tables):
-                    assert a == pytest.approx(max(0.0, k * hold_growth(h, row, guard.step)),
-                                              rel=1e-12, abs=1e-15)  # k additions' round-off
+                    g = hold_growth(h, row, guard.step)
+                    # k rounded additions of g against one rounded product k g: Higham's
+                    # bound on a sum of k + 1 terms of |g| (a negative g leaves 0 exactly)
+                    assert a == pytest.approx(max(0.0, k * g), rel=0,
+                                              abs=sum_tol([g] * (k + 1)))
                 before = list(acc)
                 assert late_growth_step(acc, prev, fs, 1, tables, guard.step) == prev
                 assert late_growth_step(acc, prev, fs - 1, 2, tables, guard.step) == prev

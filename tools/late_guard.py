@@ -214,13 +214,13 @@ def plot(path: str) -> None:
     off, t_off = run(text, 4000, False, 400)
     on, t_on = run(text, 4000, True, 400)
     fig, ax = plt.subplots(figsize=(7.0, 3.4))
-    for tel, res, label, style in ((t_off, off, "without the guard", "-"),
-                                   (t_on, on, "with the guard", "-")):
+    for tel, res, label in ((t_off, off, "without the guard"),
+                            (t_on, on, "with the guard")):
         cols = tel.columns()
         stop = ("the guard's stop, then the braking" if guard_stop(res)
                 else "the clamp's stop" if "force at the limit" in res.stop_reason
                 else res.stop_reason)
-        ax.plot(cols["time"] * 1e3, cols["position"] * 1e3, style,
+        ax.plot(cols["time"] * 1e3, cols["position"] * 1e3,
                 label=f"{label}: {stop} at {cols['time'][-1] * 1e3:.0f} ms")
     ax.axhline(0.0, color="0.7", lw=0.8)
     ax.set_xlabel("device time [ms]")

@@ -26,9 +26,9 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
     periods of delay) are predicted at ``points`` delays spread evenly over ``d .. d + H``
     (``H`` the watchdog's periods: a longer hold ends at zero force), one of each conjugate
     pair, as ``s = ln z`` [per period]. Each mode is followed from its pole on time as the
-    delay grows: at each next delay, the pairs of a followed mode and a pole are taken
-    nearest first in the ``s`` plane, each pole once (a pole the delay line adds starts
-    near ``z = 0``, far from every followed mode). Its growth a period, ``Re s``, is
+    delay grows: at each next delay, each followed mode takes a pole, each pole once, the
+    distances in the ``s`` plane least in sum (a pole the delay line adds starts near
+    ``z = 0``, far from every followed mode). Its growth a period, ``Re s``, is
     interpolated linearly between the delays: it is smooth in ``D``
     (``configs/wall.yaml``: 2.7e-3, 7.7e-3, 12.3e-3 a period at 2, 3, 4 periods). The
     modes that grow at some delay are kept, at most
@@ -92,8 +92,9 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
 
 def _follow_modes(grid: list) -> np.ndarray:
     """Each mode of ``grid[0]`` followed through the next delays (:func:`late_growth`):
-    at each, the pairs of a followed mode and a pole nearest first in the ``s`` plane,
-    each pole and each mode once; a mode left without a pole keeps its last value.
+    at each, each followed mode takes a pole, each pole once, the pairs' distances in the
+    ``s`` plane least in sum (the assignment problem, :func:`scipy.optimize.
+    linear_sum_assignment`).
 
     Parameters
     ----------
@@ -106,20 +107,13 @@ def _follow_modes(grid: list) -> np.ndarray:
     ndarray of float, shape (modes, delays)
         ``Re s`` of each followed mode at each delay.
     """
+    from scipy.optimize import linear_sum_assignment
     s = np.array(grid[0], dtype=complex)
     out = [s.real.copy()]
     for nxt in grid[1:]:
-        dist = np.abs(s[:, None] - nxt[None, :])
+        rows, cols = linear_sum_assignment(np.abs(s[:, None] - nxt[None, :]))
         new = s.copy()
-        free_m = np.ones(s.size, bool)
-        free_p = np.ones(nxt.size, bool)
-        for flat in np.argsort(dist, axis=None, kind="stable"):
-            i, j = divmod(int(flat), nxt.size)
-            if free_m[i] and free_p[j]:
-                new[i] = nxt[j]
-                free_m[i] = free_p[j] = False
-                if not free_m.any():
-                    break
+        new[rows] = nxt[cols]
         s = new
         out.append(s.real.copy())
     return np.array(out).T
