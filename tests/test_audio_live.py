@@ -166,11 +166,18 @@ def jack_server():
 
 class Recorder:
     """A JACK client of the test's own recording its input port into a numpy buffer (one
-    whole period per callback), late on purpose if asked."""
+    whole period per callback), late on purpose if asked. Its process callback is
+    Python's: :meth:`close` has it end its thread first (the product's
+    :class:`hapsim.audio.jack_client.PythonProcessEnd`), as jack2's deactivation cancels
+    a thread still in Python and the test process then hangs for ever (seen: a local
+    suite stuck in this ``close``, the process thread gone holding the GIL)."""
 
     def __init__(self, server, seconds=3.0, late_every=0, late_s=0.0):
         import jack
+        from hapsim.audio.jack_client import PythonProcessEnd
 
+        self.jack = jack
+        self.end = PythonProcessEnd()
         self.client = jack.Client("rec", no_start_server=True, servername=server)
         self.buf = np.zeros(int(seconds * self.client.samplerate), dtype=np.float32)
         self.n = 0
@@ -184,6 +191,7 @@ class Recorder:
         self.client.activate()
 
     def _process(self, frames):
+        self.end.check(self.jack)
         if not self.armed:
             return
         self.cycles += 1
@@ -196,6 +204,7 @@ class Recorder:
             self.n += k
 
     def close(self):
+        assert self.end.end(), "the recording's process thread did not end itself"
         self.client.deactivate()
         self.client.close()
 
@@ -1028,6 +1037,53 @@ def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
     with pytest.raises(DeviceError, match=r"no JACK server 'srv' running \(Error"):
         lv.open_client(jack, "hapsim", "srv")
     assert len(calls) == 1 and waits == []
+
+
+#: A child that opens JACK clients whose Python process callback is busy 30 ms (six
+#: periods) a cycle, then deactivates and closes each, ending the callback's thread first
+#: (``end``) or not; it prints each client closed.
+BUSY_CLOSE = """
+import sys, time, jack
+from hapsim.audio.jack_client import PythonProcessEnd
+server, n, use = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "end"
+for i in range(n):
+    c = jack.Client(f"busy{i}", no_start_server=True, servername=server)
+    end, calls = PythonProcessEnd(), [0]
+    def process(frames, end=end, calls=calls):
+        if use:
+            end.check(jack)
+        calls[0] += 1
+        t = time.perf_counter() + 0.03
+        while time.perf_counter() < t:
+            pass
+    c.set_process_callback(process)
+    c.activate()
+    t0 = time.monotonic()
+    while calls[0] < 2 and time.monotonic() < t0 + 10:
+        time.sleep(0.001)
+    ended = end.end() if use else None
+    c.deactivate()
+    c.close()
+    print("closed", i, ended, calls[0], flush=True)
+"""
+
+
+def test_a_python_callback_busy_at_deactivation_never_hangs_the_process(jack_server):
+    """jack2's ``jack_deactivate`` cancels a client's process thread (``pthread_cancel``,
+    JackClient::Deactivate); a Python callback still running then dies holding the GIL,
+    and the process hangs for ever (seen: this suite stuck in a recording client's
+    close). A callback busy for six periods shows it: without
+    :class:`hapsim.audio.jack_client.PythonProcessEnd` the first close never returns
+    (the child is killed after 5 s); with it, the callback ends its own thread
+    (``jack.CallbackExit``) and ten clients close."""
+    import sys
+    run = [sys.executable, "-c", BUSY_CLOSE, jack_server]
+    with pytest.raises(subprocess.TimeoutExpired):
+        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=5)
+    out = subprocess.run(run + ["10", "end"], capture_output=True, text=True, timeout=120)
+    closed = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("closed")]
+    assert out.returncode == 0, out.stderr
+    assert len(closed) == 10 and all(c[2] == "True" for c in closed), out.stdout
 
 
 def test_an_xrun_excuses_one_period_and_no_more():

@@ -386,10 +386,18 @@ def _empty_client_xruns(server: str, secs: float, native: bool = False) -> int:
         jack._lib.jack_set_process_callback(c._ptr, jack._ffi.cast("JackProcessCallback",
                                                                    empty.address), jack._ffi.NULL)
     else:
-        c.set_process_callback(lambda frames: port.get_array().fill(0.0))
+        from hapsim.audio.jack_client import PythonProcessEnd
+        end = PythonProcessEnd()     # (jack2 cancels a thread still in Python: a hang)
+
+        def zeros(frames):
+            end.check(jack)
+            port.get_array().fill(0.0)
+        c.set_process_callback(zeros)
     c.set_xrun_callback(lambda usecs: count.__setitem__(0, count[0] + 1))
     c.activate()
     time.sleep(secs)
+    if not native:
+        end.end()
     c.deactivate()
     c.close()
     return count[0]

@@ -1,14 +1,23 @@
 """Opening a JACK client (:func:`open_client`): a server that runs but fails one open
-handshake under load is tried again; no server at all is said at once. Used by
+handshake under load is tried again; no server at all is said at once. Ending a Python
+process callback before its client is deactivated (:class:`PythonProcessEnd`). Used by
 :class:`hapsim.audio.live.JackOutput` (the 1-D and the n-D live sound alike)."""
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 
 from hapsim.errors import DeviceError
 
-__all__ = ["open_client", "OPEN_RETRY_S"]
+__all__ = ["open_client", "OPEN_RETRY_S", "PythonProcessEnd", "END_WAIT_S"]
+
+#: How long [s] :meth:`PythonProcessEnd.end` waits for the process thread to end itself:
+#: a period or two on a running server (5.3 ms at 256 frames and 48 kHz); a server that
+#: runs no cycle (stopped, or its driver stalled) leaves the thread waiting in JACK's own
+#: code, outside Python, where cancelling it is harmless.
+END_WAIT_S = 2.0
 
 #: Waits [s] before the second and third attempt to open a JACK client on a server that
 #: runs: on a loaded machine its open handshake can fail once (its socket read cut short:
@@ -55,3 +64,86 @@ def open_client(jack, name: str, server: str | None):
                                   f"({exc}; {tries} attempts over "
                                   f"{sum(OPEN_RETRY_S):g} s)") from None
             time.sleep(OPEN_RETRY_S[i])
+
+
+class PythonProcessEnd:
+    """Lets a Python JACK process callback end its thread itself before the client is
+    deactivated, so that no thread dies inside Python.
+
+    jack2 stops a client's process thread in ``jack_deactivate`` (and so in
+    ``jack_client_close``) with ``pthread_cancel`` and ``pthread_join``
+    (``common/JackClient.cpp``, ``JackClient::Deactivate``: ``fThread.Kill()``;
+    ``posix/JackPosixThread.cpp``, ``Kill``), after the server has taken the client out
+    of its graph. A cycle still running then (a callback late, or its thread waiting for
+    the GIL on a loaded machine) is cancelled inside Python: the thread dies holding the
+    GIL (or the GIL's mutex), and the process waits for it for ever (seen: a test's
+    recording client, its main thread in ``take_gil`` after ``deactivate()``, the
+    process thread gone).
+
+    jack2 ends the thread cleanly when the process callback returns non-zero
+    (``JackClient::CycleSignalAux`` → ``End``: the client marked inactive, the thread's
+    ``pthread_exit``, outside Python); JACK-Client returns non-zero for a callback that
+    raises ``jack.CallbackExit``. The callback calls :meth:`check` first; :meth:`end`
+    asks it to raise, and waits until its thread has exited. ``deactivate()`` then finds
+    the client inactive and cancels nothing.
+
+    Attributes
+    ----------
+    tid : int or None
+        The process thread's native id (Linux: its ``/proc/self/task`` entry), known from
+        the callback's first call.
+    ending : bool
+        :meth:`end` was called: the callback's next :meth:`check` raises.
+    """
+
+    def __init__(self) -> None:
+        self.tid: int | None = None
+        self.ending = False
+
+    def check(self, jack) -> None:
+        """The process callback's first call: note its thread; raise
+        ``jack.CallbackExit`` once :meth:`end` asked for it.
+
+        Parameters
+        ----------
+        jack : module
+            The ``jack`` module (JACK-Client).
+
+        Raises
+        ------
+        jack.CallbackExit
+            After :meth:`end`: JACK-Client's wrapper returns non-zero, jack2 ends the
+            thread.
+        """
+        if self.tid is None:
+            self.tid = threading.get_native_id()
+        if self.ending:
+            raise jack.CallbackExit
+
+    def end(self, timeout_s: float = END_WAIT_S) -> bool:
+        """Ask the callback to end its thread, and wait until the thread has exited
+        (polling ``/proc/self/task/<tid>`` every millisecond).
+
+        Parameters
+        ----------
+        timeout_s : float
+            The longest wait [s] (:data:`END_WAIT_S`).
+
+        Returns
+        -------
+        bool
+            True when the thread is known to have exited; False when the wait ran out
+            (no cycle ran: the thread waits in JACK's code, outside Python) or where
+            ``/proc`` shows no threads (the caller then deactivates as before).
+        """
+        self.ending = True
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            tid = self.tid
+            if tid is not None:
+                if not os.path.isdir("/proc/self/task"):
+                    return False
+                if not os.path.exists(f"/proc/self/task/{tid}"):
+                    return True
+            time.sleep(0.001)
+        return False

@@ -59,7 +59,7 @@ import numpy as np
 from hapsim.audio.offline import listen_plan
 from hapsim.audio.sources import (FrameRing, LivePack, LiveSound, RingPack,
                                   sounding_engine)
-from hapsim.audio.jack_client import open_client
+from hapsim.audio.jack_client import PythonProcessEnd, open_client
 from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["LiveSound", "FrameRing", "LivePack", "RingPack", "sounding_engine", "JackOutput",
@@ -142,6 +142,9 @@ class JackOutput:
         self.python_reason = None
         self._rt_priority = None
         self._native_setup(live, jack)
+        #: Ends the Python callback's thread before deactivation (jack2 cancels it).
+        self._process_end = PythonProcessEnd()
+        self._jack = jack
         if self.native is None:
             self.client.set_process_callback(self._process)
         self.client.set_xrun_callback(self._xrun)
@@ -203,6 +206,7 @@ class JackOutput:
             self.live.set_block(self.blocksize)
 
     def _process(self, frames: int) -> None:
+        self._process_end.check(self._jack)
         if self.callback_priority is None:   # once: the thread's SCHED_FIFO priority
             self.callback_priority = _thread_priority()
         if frames != self.blocksize:     # the server changed its period: keep it exact
@@ -277,6 +281,8 @@ class JackOutput:
             return
         self._closed = True
         atexit.unregister(self.close)
+        if self.native is None:
+            self._process_end.end()      # (the Python callback's thread ends itself)
         self.client.deactivate()
         self.client.close()
 
