@@ -48,8 +48,11 @@ def _check(rec, link, N, res):
     """What every hostile record must show: each tick a row (read or estimated, counted),
     no garbage taken for a reading (each tick's joints read are within 1.5 counts of the
     joints the board had after one of the writes: a reading, not bytes that happen to
-    decode), the positions the engine was given finite, and the board left at zero
-    torque (it has no watchdog)."""
+    decode), the positions the engine was given finite, the board left at zero
+    torque (it has no watchdog), and no more replies counted than the record's writes and
+    its re-armings' (a re-arming's closing replies are counted: rearm_writes)."""
+    assert rec["replies"] <= rec["writes"] + rec["rearm_writes"], (
+        rec["replies"], rec["writes"], rec["rearm_writes"])
     read = ~np.isnan(rec["joints"][:, 0])
     assert rec["position"].shape == (N, 2)
     assert np.array_equal(~read, rec["estimated"])

@@ -284,8 +284,9 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     dict
         :func:`hapsim.emulated.haply2_verdict.felt_verdict_of_runs`'s, with ``estimated``
         (estimated samples per record), ``late_ticks`` (per record), ``replies``
-        (replies read per record, of ``writes``), ``left`` and ``brake`` per record (the
-        tick the joints left the envelope, -1 if none; the braking after it,
+        (replies read per record, of ``writes`` and ``rearm_writes``), ``left`` and
+        ``brake`` per record (the tick the joints left the envelope, -1 if none; the
+        braking after it,
         :func:`record_realtime`'s, or None), ``resyncs`` (the loop's
         re-synchronisations, the re-arming at a record's end, and those after the
         watchdog's robust writes) and ``skipped`` (bytes
@@ -487,6 +488,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                usable=[int(np.count_nonzero(r["usable"])) for r in runs],
                late_ticks=[r["late_ticks"] for r in runs],
                replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
+               rearm_writes=[r.get("rearm_writes", 0) for r in runs],
                resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs],
                realigned=[int(r.get("realigned", 0)) for r in runs],
                probes=[int(r.get("probes", 0)) for r in runs],

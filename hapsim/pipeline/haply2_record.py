@@ -167,7 +167,11 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         written, ``estimated`` (N,) bool, ``lag`` (N,) int (ticks since the last reading
         where estimated), ``late_ticks`` (ticks the host itself began more than a period
         late), ``replies`` (replies to the record's writes, read by its end: all of them
-        on a clean stream), ``writes``, ``readings`` (N, 2) [m] (reply ``k``'s reading,
+        on a clean stream; a re-arming's closing replies, counted too, answer writes
+        of its own), ``writes`` (the record's: the arming's zero write, the ticks', the
+        closing zero write, the watchdog's), ``rearm_writes`` (the re-armings' own
+        writes a board answers: each one's zero writes; ``replies`` is at most
+        ``writes + rearm_writes``), ``readings`` (N, 2) [m] (reply ``k``'s reading,
         read in time or late; NaN where it never came), ``resyncs`` (re-synchronisations
         of a board that lost its place), ``resynced`` (N,) bool (the ticks they were
         made at), ``resync_s`` (the time they took [s], out of the clock),
@@ -374,7 +378,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         dropped; then the set-up's zero write, whose reply is tick ``k``'s sample. A
         first reply that does not read the offsets sent is a set-up the stream corrupted
         (counted in ``bad_setups``): armed again, at most :data:`ARM_TRIES` times."""
-        nonlocal got, seen, bad_setups, rearm_sends
+        nonlocal got, seen, bad_setups, rearm_sends, rearm_writes
         if watchdog is not None:
             watchdog.arm(False)                 # (its waits are on purpose)
             wd_note(k, watchdog.take())         # (drained below with the rest)
@@ -397,6 +401,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             # would advance a period on it before the record)
             bounded = k > 0 and not lockstep_board
             _write(ser, data if k > 0 else data[:-len(zero)])
+            rearm_writes += k > 0               # (its closing zero write)
             if bounded:
                 # a board on its own clock holds what its parser last took: until its
                 # answer to the closing zero write reads the offsets sent (the board in
@@ -424,6 +429,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             got = k
             t_began[k] = time.perf_counter()
             _write(ser, zero)
+            rearm_writes += k > 0 or tries > 0  # (a record's first: its write 0)
             t_wrote[k] = time.perf_counter()
             if bounded:
                 _awake_wait(lambda: got != k, REARM_REPLY_S, take)
@@ -519,6 +525,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
             time.sleep(2e-4)
 
     rearm_sends = 0
+    rearm_writes = 0
     arm(q0deg, 0)
     pos = np.zeros((C, 2))
     joints = np.full((C, 2), np.nan)
@@ -771,7 +778,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         arm(q0deg, K + 1)
     return {"position": pos[:N], "joints": joints[:N], "torque": torque[:N],
             "estimated": est[:N], "lag": lag[:N], "late_ticks": late, "replies": replies,
-            "writes": K + 2 + wd_count[0], "readings": xr[:N].copy(), "resyncs": rule.count,
+            "writes": K + 2 + wd_count[0], "rearm_writes": rearm_writes, "readings": xr[:N].copy(), "resyncs": rule.count,
             "watchdog_zeroed": wd_count[0], "watchdog_replies": wd_count[1],
             "watchdog_resyncs": wd_count[2],
             "resynced": resynced[:N], "resync_s": resync_s, "stalled": stalled[:N],
