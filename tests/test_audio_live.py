@@ -1086,6 +1086,61 @@ def test_a_python_callback_busy_at_deactivation_never_hangs_the_process(jack_ser
     assert len(closed) == 10 and all(c[2] == "True" for c in closed), out.stdout
 
 
+#: A child whose clients are late every cycle (an xrun each) and whose Python xrun
+#: callback is busy 0.1 s: the notification thread is in Python nearly always. Each client
+#: is deactivated after its process thread ended itself, then closed, its notifications
+#: ended first (``end``) or not.
+XRUN_CLOSE = """
+import sys, time, jack
+from hapsim.audio.jack_client import PythonProcessEnd
+server, n, use = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "end"
+for i in range(n):
+    c = jack.Client(f"xr{i}", no_start_server=True, servername=server)
+    end, xr = PythonProcessEnd(), [0]
+    def process(frames, end=end):
+        end.check(jack)
+        time.sleep(0.012)
+    def xrun(usecs, end=end, xr=xr):
+        end.note(1)
+        try:
+            xr[0] += 1
+            t = time.perf_counter() + 0.1
+            while time.perf_counter() < t:
+                pass
+        finally:
+            end.note(-1)
+    c.set_process_callback(process)
+    c.set_xrun_callback(xrun)
+    c.activate()
+    t0 = time.monotonic()
+    while xr[0] < 2 and time.monotonic() < t0 + 10:
+        time.sleep(0.001)
+    ended = end.end()
+    c.deactivate()
+    quiet = end.end_notifications(jack, c) if use else None
+    c.close()
+    print("closed", i, ended and quiet, xr[0], flush=True)
+"""
+
+
+def test_a_python_xrun_callback_running_at_close_never_hangs_the_process(jack_server):
+    """``jack_client_close`` cancels the notification thread as deactivation cancels the
+    process thread; a Python xrun callback running then hangs the process the same way
+    (JackOutput's counts each xrun in Python). Without
+    :meth:`~hapsim.audio.jack_client.PythonProcessEnd.end_notifications` the first close
+    of a client flooded with xruns never returns (the child killed after 5 s; 4 of 4
+    tries hung at the first close); with it (the xrun callback unset after the
+    deactivation, the server sends no more, the one running awaited) ten close."""
+    import sys
+    run = [sys.executable, "-c", XRUN_CLOSE, jack_server]
+    with pytest.raises(subprocess.TimeoutExpired):
+        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=5)
+    out = subprocess.run(run + ["10", "end"], capture_output=True, text=True, timeout=120)
+    closed = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("closed")]
+    assert out.returncode == 0, out.stderr
+    assert len(closed) == 10 and all(c[2] == "True" for c in closed), out.stdout
+
+
 def test_an_xrun_excuses_one_period_and_no_more():
     """The allowance the live recordings take (:func:`without_xrun_periods`): one period
     of frames off per xrun reported, leaving it out; more stretches than xruns, a stretch

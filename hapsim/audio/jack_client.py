@@ -87,6 +87,13 @@ class PythonProcessEnd:
     asks it to raise, and waits until its thread has exited. ``deactivate()`` then finds
     the client inactive and cancels nothing.
 
+    ``jack_client_close`` stops the notification thread the same way
+    (``JackSocketClientChannel::Stop``), so a Python xrun or buffer-size callback running
+    then hangs the process too. The server notifies a client only of the events it has a
+    callback for (``fCallback``, which ``jack_set_xrun_callback`` sets on an inactive
+    client): :meth:`end_notifications`, after the deactivation, unsets them and waits for
+    any still running (each counted by :meth:`note`) before the close.
+
     Attributes
     ----------
     tid : int or None
@@ -94,11 +101,47 @@ class PythonProcessEnd:
         the callback's first call.
     ending : bool
         :meth:`end` was called: the callback's next :meth:`check` raises.
+    notes : int
+        Notification callbacks running now (:meth:`note`).
     """
 
     def __init__(self) -> None:
         self.tid: int | None = None
         self.ending = False
+        self.notes = 0
+
+    def note(self, delta: int) -> None:
+        """A notification callback begins (``+1``, its first line) or returns (``-1``,
+        in its ``finally``)."""
+        self.notes += delta
+
+    def end_notifications(self, jack, client, timeout_s: float = END_WAIT_S) -> bool:
+        """After ``client.deactivate()``: unset its xrun and buffer-size callbacks (the
+        server then sends neither) and wait until none runs.
+
+        Parameters
+        ----------
+        jack : module
+            The ``jack`` module (JACK-Client).
+        client : jack.Client
+            The deactivated client.
+        timeout_s : float
+            The longest wait [s].
+
+        Returns
+        -------
+        bool
+            True when no notification callback runs any more.
+        """
+        lib, ffi = jack._lib, jack._ffi
+        lib.jack_set_xrun_callback(client._ptr, ffi.NULL, ffi.NULL)
+        lib.jack_set_buffer_size_callback(client._ptr, ffi.NULL, ffi.NULL)
+        # (one already read from the socket may be waiting for the GIL: let it in)
+        time.sleep(0.02)
+        t_end = time.monotonic() + timeout_s
+        while self.notes and time.monotonic() < t_end:
+            time.sleep(0.001)
+        return not self.notes
 
     def check(self, jack) -> None:
         """The process callback's first call: note its thread; raise

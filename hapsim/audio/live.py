@@ -201,9 +201,13 @@ class JackOutput:
 
     def _blocksize(self, blocksize: int) -> None:
         # JACK's non-real-time thread, before the first block of the new size
-        self.blocksize = int(blocksize)
-        if hasattr(self.live, "set_block"):
-            self.live.set_block(self.blocksize)
+        self._process_end.note(1)
+        try:
+            self.blocksize = int(blocksize)
+            if hasattr(self.live, "set_block"):
+                self.live.set_block(self.blocksize)
+        finally:
+            self._process_end.note(-1)
 
     def _process(self, frames: int) -> None:
         self._process_end.check(self._jack)
@@ -218,9 +222,13 @@ class JackOutput:
             p.get_array()[:] = block[:, c]
 
     def _xrun(self, delay_usecs: float) -> None:
-        self.xruns += 1
-        if len(self.xrun_at) < 1000:
-            self.xrun_at.append(round(time.monotonic() - self.t_active, 6))
+        self._process_end.note(1)
+        try:
+            self.xruns += 1
+            if len(self.xrun_at) < 1000:
+                self.xrun_at.append(round(time.monotonic() - self.t_active, 6))
+        finally:
+            self._process_end.note(-1)
 
     def begin(self) -> None:
         """The producer starts (the loop's first position comes next): the callbacks
@@ -284,6 +292,8 @@ class JackOutput:
         if self.native is None:
             self._process_end.end()      # (the Python callback's thread ends itself)
         self.client.deactivate()
+        # (the Python notification callbacks: none sent, none running, at the close)
+        self._process_end.end_notifications(self._jack, self.client)
         self.client.close()
 
 
