@@ -372,9 +372,14 @@ def _empty_client_xruns(server: str, secs: float, native: bool = False) -> int:
     hapsim's own callback is (:mod:`hapsim.audio.jack_native`)."""
     import jack
 
+    from hapsim.audio.jack_client import PythonProcessEnd
+
     c = jack.Client("baseline", no_start_server=True, servername=server)
     port = c.outports.register("out")
     count = [0]
+    # (jack2 cancels the process and notification threads at the deactivation and the
+    # close: a thread still in Python hangs the process; hapsim.audio.jack_client)
+    end = PythonProcessEnd()
     if native:
         import numba as nb
         from numba import types
@@ -386,19 +391,22 @@ def _empty_client_xruns(server: str, secs: float, native: bool = False) -> int:
         jack._lib.jack_set_process_callback(c._ptr, jack._ffi.cast("JackProcessCallback",
                                                                    empty.address), jack._ffi.NULL)
     else:
-        from hapsim.audio.jack_client import PythonProcessEnd
-        end = PythonProcessEnd()     # (jack2 cancels a thread still in Python: a hang)
-
         def zeros(frames):
             end.check(jack)
             port.get_array().fill(0.0)
         c.set_process_callback(zeros)
-    c.set_xrun_callback(lambda usecs: count.__setitem__(0, count[0] + 1))
+
+    def xrun(usecs):
+        end.note(1)
+        count[0] += 1
+        end.note(-1)
+    c.set_xrun_callback(xrun)
     c.activate()
     time.sleep(secs)
     if not native:
         end.end()
     c.deactivate()
+    end.end_notifications(jack, c)
     c.close()
     return count[0]
 
