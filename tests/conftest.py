@@ -253,6 +253,8 @@ def pytest_configure(config):
     import scipy.linalg  # noqa: F401  (and scipy's)
     limit_blas_threads(1)
     _one_compiler_per_kernel()
+    from hang_guard import register     # (a test that hangs ends with its tracebacks)
+    register(config)
     if config.getoption("--cpu-time") is not None and not hasattr(config, "workerinput"):
         config.pluginmanager.register(_CpuTimeReport(config), "cpu-time-report")
 
