@@ -1074,12 +1074,12 @@ def test_a_python_callback_busy_at_deactivation_never_hangs_the_process(jack_ser
     and the process hangs for ever (seen: this suite stuck in a recording client's
     close). A callback busy for six periods shows it: without
     :class:`hapsim.audio.jack_client.PythonProcessEnd` the first close never returns
-    (the child is killed after 5 s); with it, the callback ends its own thread
+    (the child is killed after 3 s); with it, the callback ends its own thread
     (``jack.CallbackExit``) and ten clients close."""
     import sys
     run = [sys.executable, "-c", BUSY_CLOSE, jack_server]
     with pytest.raises(subprocess.TimeoutExpired):
-        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=5)
+        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=3)
     out = subprocess.run(run + ["10", "end"], capture_output=True, text=True, timeout=120)
     closed = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("closed")]
     assert out.returncode == 0, out.stderr
@@ -1128,13 +1128,13 @@ def test_a_python_xrun_callback_running_at_close_never_hangs_the_process(jack_se
     process thread; a Python xrun callback running then hangs the process the same way
     (JackOutput's counts each xrun in Python). Without
     :meth:`~hapsim.audio.jack_client.PythonProcessEnd.end_notifications` the first close
-    of a client flooded with xruns never returns (the child killed after 5 s; 4 of 4
+    of a client flooded with xruns never returns (the child killed after 3 s; 4 of 4
     tries hung at the first close); with it (the xrun callback unset after the
     deactivation, the server sends no more, the one running awaited) ten close."""
     import sys
     run = [sys.executable, "-c", XRUN_CLOSE, jack_server]
     with pytest.raises(subprocess.TimeoutExpired):
-        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=5)
+        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=3)
     out = subprocess.run(run + ["10", "end"], capture_output=True, text=True, timeout=120)
     closed = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("closed")]
     assert out.returncode == 0, out.stderr
