@@ -1039,13 +1039,14 @@ def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
     assert len(calls) == 1 and waits == []
 
 
-#: A child that opens JACK clients whose Python process callback is busy 30 ms (six
-#: periods) a cycle, then deactivates and closes each, ending the callback's thread first
-#: (``end``) or not; it prints each client closed.
+#: A child that opens JACK clients whose Python process callback is busy ``spin`` seconds
+#: a cycle, waits until it runs, then deactivates and closes each, ending the callback's
+#: thread first (``end``) or not; it prints each client closed.
 BUSY_CLOSE = """
 import sys, time, jack
 from hapsim.audio.jack_client import PythonProcessEnd
 server, n, use = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "end"
+spin = float(sys.argv[4])
 for i in range(n):
     c = jack.Client(f"busy{i}", no_start_server=True, servername=server)
     end, calls = PythonProcessEnd(), [0]
@@ -1053,13 +1054,13 @@ for i in range(n):
         if use:
             end.check(jack)
         calls[0] += 1
-        t = time.perf_counter() + 0.03
+        t = time.perf_counter() + spin
         while time.perf_counter() < t:
             pass
     c.set_process_callback(process)
     c.activate()
     t0 = time.monotonic()
-    while calls[0] < 2 and time.monotonic() < t0 + 10:
+    while calls[0] < 1 and time.monotonic() < t0 + 10:
         time.sleep(0.001)
     ended = end.end() if use else None
     c.deactivate()
@@ -1072,70 +1073,92 @@ def test_a_python_callback_busy_at_deactivation_never_hangs_the_process(jack_ser
     """jack2's ``jack_deactivate`` cancels a client's process thread (``pthread_cancel``,
     JackClient::Deactivate); a Python callback still running then dies holding the GIL,
     and the process hangs for ever (seen: this suite stuck in a recording client's
-    close). A callback busy for six periods shows it: without
-    :class:`hapsim.audio.jack_client.PythonProcessEnd` the first close never returns
-    (the child is killed after 3 s); with it, the callback ends its own thread
+    close). A callback running at the deactivation shows it: busy 1 s, without
+    :class:`hapsim.audio.jack_client.PythonProcessEnd`, the first close has not returned
+    after 5 s (a close that waited for the callback would have after 1); busy 30 ms
+    (six periods) a cycle, with it, the callback ends its own thread
     (``jack.CallbackExit``) and ten clients close."""
     import sys
     run = [sys.executable, "-c", BUSY_CLOSE, jack_server]
     with pytest.raises(subprocess.TimeoutExpired):
-        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=3)
-    out = subprocess.run(run + ["10", "end"], capture_output=True, text=True, timeout=120)
+        subprocess.run(run + ["1", "none", "1.0"], capture_output=True, text=True,
+                       timeout=5)
+    out = subprocess.run(run + ["10", "end", "0.03"], capture_output=True, text=True,
+                         timeout=120)
     closed = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("closed")]
     assert out.returncode == 0, out.stderr
     assert len(closed) == 10 and all(c[2] == "True" for c in closed), out.stdout
 
 
-#: A child whose clients are late every cycle (an xrun each) and whose Python xrun
-#: callback is busy 0.1 s: the notification thread is in Python nearly always. Each client
-#: is deactivated after its process thread ended itself, then closed, its notifications
-#: ended first (``end``) or not.
+#: A child late every cycle for ever (a Python process callback sleeping 12 ms of each
+#: 5.3 ms period): the server reports an xrun to every client with an xrun callback, each
+#: cycle. It is killed at the test's end, never closed.
+LATE_CLIENT = """
+import sys, time, jack
+c = jack.Client("late", no_start_server=True, servername=sys.argv[1])
+c.set_process_callback(lambda frames: time.sleep(0.012))
+c.activate()
+print("late", flush=True)
+while True:
+    time.sleep(1)
+"""
+#: A child whose clients have only a Python xrun callback, busy ``spin`` seconds: beside
+#: :data:`LATE_CLIENT` it runs at once. Each client, once its callback has begun, is
+#: deactivated, then closed, its notifications ended first (``end``) or not.
 XRUN_CLOSE = """
 import sys, time, jack
 from hapsim.audio.jack_client import PythonProcessEnd
 server, n, use = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "end"
+spin = float(sys.argv[4])
 for i in range(n):
     c = jack.Client(f"xr{i}", no_start_server=True, servername=server)
     end, xr = PythonProcessEnd(), [0]
-    def process(frames, end=end):
-        end.check(jack)
-        time.sleep(0.012)
     def xrun(usecs, end=end, xr=xr):
         end.note(1)
         try:
             xr[0] += 1
-            t = time.perf_counter() + 0.1
+            t = time.perf_counter() + spin
             while time.perf_counter() < t:
                 pass
         finally:
             end.note(-1)
-    c.set_process_callback(process)
     c.set_xrun_callback(xrun)
     c.activate()
     t0 = time.monotonic()
-    while xr[0] < 2 and time.monotonic() < t0 + 10:
+    while xr[0] < 1 and time.monotonic() < t0 + 10:
         time.sleep(0.001)
-    ended = end.end()
     c.deactivate()
     quiet = end.end_notifications(jack, c) if use else None
     c.close()
-    print("closed", i, ended and quiet, xr[0], flush=True)
+    print("closed", i, quiet, xr[0], flush=True)
 """
 
 
 def test_a_python_xrun_callback_running_at_close_never_hangs_the_process(jack_server):
     """``jack_client_close`` cancels the notification thread as deactivation cancels the
     process thread; a Python xrun callback running then hangs the process the same way
-    (JackOutput's counts each xrun in Python). Without
-    :meth:`~hapsim.audio.jack_client.PythonProcessEnd.end_notifications` the first close
-    of a client flooded with xruns never returns (the child killed after 3 s; 4 of 4
-    tries hung at the first close); with it (the xrun callback unset after the
-    deactivation, the server sends no more, the one running awaited) ten close."""
+    (JackOutput's counts each xrun in Python). Beside a client late every cycle (an xrun
+    each), without :meth:`~hapsim.audio.jack_client.PythonProcessEnd.end_notifications`
+    the first close of a client whose xrun callback runs (busy 1 s) has not returned
+    after 5 s; with it (the xrun callback unset after the deactivation: the server sends
+    no more; the one running awaited), ten close whose xrun callbacks are busy 0.1 s.
+    (The first form of this test made the xruns with the closing client's own
+    lateness, ended with its process thread before the close, and closed when the
+    callback might have returned: 4 of 4 local tries hung, a CI run did not.)"""
     import sys
-    run = [sys.executable, "-c", XRUN_CLOSE, jack_server]
-    with pytest.raises(subprocess.TimeoutExpired):
-        subprocess.run(run + ["1", "none"], capture_output=True, text=True, timeout=3)
-    out = subprocess.run(run + ["10", "end"], capture_output=True, text=True, timeout=120)
+    late = subprocess.Popen([sys.executable, "-c", LATE_CLIENT, jack_server],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert late.stdout.readline().strip() == "late"
+        run = [sys.executable, "-c", XRUN_CLOSE, jack_server]
+        with pytest.raises(subprocess.TimeoutExpired):
+            subprocess.run(run + ["1", "none", "1.0"], capture_output=True, text=True,
+                           timeout=5)
+        out = subprocess.run(run + ["10", "end", "0.1"], capture_output=True, text=True,
+                             timeout=120)
+    finally:
+        late.kill()
+        late.wait()
     closed = [ln.split() for ln in out.stdout.splitlines() if ln.startswith("closed")]
     assert out.returncode == 0, out.stderr
     assert len(closed) == 10 and all(c[2] == "True" for c in closed), out.stdout

@@ -500,6 +500,10 @@ PRIVATE_READS_ALLOWED = {
     **{("hapsim.audio.live", r): "jack_set_process_callback with a numba cfunc needs "
        "JACK-Client's cffi handle and the client's and ports' C pointers, which it does "
        "not expose" for r in ("jack._ffi", "jack._lib", "self.client._ptr", "p._ptr")},
+    **{("hapsim.audio.jack_client", r): "unsetting the xrun and buffer-size callbacks "
+       "(jack_set_xrun_callback(client, NULL, NULL)) needs JACK-Client's cffi handle and "
+       "the client's C pointer: JACK-Client has no call that unsets a callback"
+       for r in ("jack._ffi", "jack._lib", "client._ptr")},
     ("hapsim.cli", "argparse._SubParsersAction"): "argparse has no public type or list of a "
     "parser's sub-commands and options (its error() finds the chosen sub-command's)",
     ("hapsim.cli", "parser._actions"): "argparse: a parser's options have no public list",
