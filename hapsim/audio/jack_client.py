@@ -1,6 +1,8 @@
 """Opening a JACK client (:func:`open_client`): a server that runs but fails one open
 handshake under load is tried again; no server at all is said at once. Ending a Python
-process callback before its client is deactivated (:class:`PythonProcessEnd`). Used by
+process callback before its client is deactivated, and its Python notification callbacks
+before it is closed (:class:`PythonProcessEnd`: jack2 cancels a thread still in Python,
+and the process then hangs for ever). Used by
 :class:`hapsim.audio.live.JackOutput` (the 1-D and the n-D live sound alike)."""
 
 from __future__ import annotations
