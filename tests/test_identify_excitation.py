@@ -120,7 +120,12 @@ def test_identify_over_a_real_time_port_ends_without_a_safety_stop(tmp_path):
     # fresh-clone suite at normal scheduling), or the reason it was refused
     sched = out["loop"]["scheduling"]
     assert sched == "SCHED_FIFO 10" or sched.startswith("normal (SCHED_FIFO"), sched
-    assert not out["loop"]["safety_stop"], out["loop"]["stop_reason"]
+    # (seen once in CI, stop 80: "position -0.0100248 m beyond +-0.01 m", 0.25 % past the
+    # envelope; the stop ahead counts a host stall of 6 ms, or the longest this run has
+    # shown: what came before is said with it)
+    lp = out["loop"]
+    assert not lp["safety_stop"], (lp["stop_reason"], {k: lp.get(k) for k in (
+        "host_stall_s", "late", "clamped", "samples", "f_max", "v_max")})
     assert code == 0, stderr[-2000:]
     assert_within(out["device"], {"mass": 0.237, "friction": 1.31})
 
