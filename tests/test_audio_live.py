@@ -1143,8 +1143,8 @@ def test_a_python_xrun_callback_running_at_close_never_hangs_the_process(jack_se
     callback unset after the deactivation: the server sends no more; the one running
     awaited). The control without it is run and said, not asserted: locally it hung at
     the first close in 4 of 4 tries (its xruns then the closing client's own), and in
-    this form in 5 of 5; in three CI runs it closed (what the cancellation meets depends
-    on the moment: the thread spinning with the GIL, or waiting for it)."""
+    this form in 5 of 5; in two of three CI runs it closed (what the cancellation meets
+    depends on the moment: the thread spinning with the GIL, or waiting for it)."""
     import sys
     late = subprocess.Popen([sys.executable, "-c", LATE_CLIENT, jack_server],
                             stdout=subprocess.PIPE, text=True)
