@@ -1039,15 +1039,19 @@ def test_a_jack_client_open_that_fails_is_tried_again_then_named(monkeypatch):
     assert len(calls) == 1 and waits == []
 
 
-#: A child that opens JACK clients whose Python process callback is busy ``spin`` seconds
-#: a cycle, waits until it runs, then deactivates and closes each, ending the callback's
-#: thread first (``end``) or not; it prints each client closed.
-BUSY_CLOSE = """
+#: The two closing children's common start: ``SERVER N none|end SPIN`` from the command
+#: line (clients, ended by :class:`~hapsim.audio.jack_client.PythonProcessEnd` or not,
+#: their callback busy SPIN seconds).
+_CLOSE_HEAD = """
 import sys, time, jack
 from hapsim.audio.jack_client import PythonProcessEnd
 server, n, use = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "end"
 spin = float(sys.argv[4])
-for i in range(n):
+"""
+#: A child that opens JACK clients whose Python process callback is busy ``spin`` seconds
+#: a cycle, waits until it runs, then deactivates and closes each, ending the callback's
+#: thread first (``end``) or not; it prints each client closed.
+BUSY_CLOSE = _CLOSE_HEAD + """for i in range(n):
     c = jack.Client(f"busy{i}", no_start_server=True, servername=server)
     end, calls = PythonProcessEnd(), [0]
     def process(frames, end=end, calls=calls):
@@ -1105,12 +1109,7 @@ while True:
 #: A child whose clients have only a Python xrun callback, busy ``spin`` seconds: beside
 #: :data:`LATE_CLIENT` it runs at once. Each client, once its callback has begun, is
 #: deactivated, then closed, its notifications ended first (``end``) or not.
-XRUN_CLOSE = """
-import sys, time, jack
-from hapsim.audio.jack_client import PythonProcessEnd
-server, n, use = sys.argv[1], int(sys.argv[2]), sys.argv[3] == "end"
-spin = float(sys.argv[4])
-for i in range(n):
+XRUN_CLOSE = _CLOSE_HEAD + """for i in range(n):
     c = jack.Client(f"xr{i}", no_start_server=True, servername=server)
     end, xr = PythonProcessEnd(), [0]
     def xrun(usecs, end=end, xr=xr):

@@ -182,13 +182,11 @@ class PythonProcessEnd:
             ``/proc`` shows no threads (the caller then deactivates as before).
         """
         self.ending = True
+        if not os.path.isdir("/proc/self/task"):
+            return False
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end:
-            tid = self.tid
-            if tid is not None:
-                if not os.path.isdir("/proc/self/task"):
-                    return False
-                if not os.path.exists(f"/proc/self/task/{tid}"):
-                    return True
+            if self.tid is not None and not os.path.exists(f"/proc/self/task/{self.tid}"):
+                return True
             time.sleep(0.001)
         return False
