@@ -40,7 +40,8 @@ signals besides; ``SIGTERM`` ends its loop after the write in hand, never inside
 
 The stated bound: a board is left holding a force without a write for at most ``bound_s``
 plus the watchdog's check interval (``bound_s / 4``) plus its own wake-up latency, which
-it measures (``longest_s``: the longest silence it saw before a write). For a board
+it measures (``longest_s``: the longest host silence up to the end of one of its writes,
+which a watchdog preempted between its check and its write lengthens). For a board
 without framing (``robust``), whose parser may have lost its place in the last bytes
 before the host fell silent, with no evidence read yet to say so, the zero command may
 reach no motor: the silence's second write, at :data:`ROBUST_AFTER` bounds, is the robust
@@ -397,8 +398,8 @@ class TorqueWatchdog:
         dict
             ``fired`` (writes made: the zero command or the robust write), ``failed``
             (writes the sink refused, each counted in ``fired`` and tried again at the
-            next check), ``longest_s`` (the longest host silence the
-            watchdog saw before a write [s], 0 without one: the stated bound's measured
+            next check), ``longest_s`` (the longest host silence up to the end of a
+            write the watchdog made [s], 0 without one: the stated bound's measured
             part), ``bound_s``, ``check_s``, ``rt_priority`` (granted; 0: none),
             ``robust`` (of the writes, those that were the robust one), ``overslept_s``
             (its largest wake-up past a check's end [s]: how late its own scheduling
@@ -514,7 +515,7 @@ def watchdog_text(rep: dict, what: str = "zero force") -> str:
     Returns
     -------
     str
-        ``host watchdog: ...``: the writes, the longest silence before one and the bound,
+        ``host watchdog: ...``: the writes, the longest silence one ended and the bound,
         or none and why.
     """
     if not rep.get("running"):
@@ -524,7 +525,7 @@ def watchdog_text(rep: dict, what: str = "zero force") -> str:
         failed += (f", {rep['robust']} of them with the set-up around it (the board may "
                    "have lost its place)")
     return (f"host watchdog: {what} written {rep['fired']} times{failed}, the longest host "
-            f"silence before one {rep['longest_s'] * 1e3:.1f} ms (bound "
+            f"silence one ended {rep['longest_s'] * 1e3:.1f} ms (bound "
             f"{rep['bound_s'] * 1e3:g} ms + {rep['check_s'] * 1e3:g} ms checks)")
 
 
@@ -729,6 +730,11 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
             page.set("fired_for", was)      # (tried again at the next check)
             if rob:
                 page.set("robust_for", 0)
+        else:
+            # the silence to the write's end: a watchdog preempted between its check and
+            # its write (by a real-time task above it) left the board that much longer
+            # (the bound it states holds up to the write, not up to the check)
+            page.set("longest_ns", max(page.get("longest_ns"), time.monotonic_ns() - beat))
     if rest:
         rest = finish(REST_S)
     beat = page.get("beat")

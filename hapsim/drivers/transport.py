@@ -312,23 +312,32 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
             return (self._cmd + 1) * self._board_T
         return time.monotonic()
 
-    def _write(self, data: bytes) -> None:
-        """Write ``data``; the host watchdog's writes made before it, when there is one,
-        are commands of their own (host_watchdog), numbered before anything after it."""
+    def _write(self, data: bytes, force: float = 0.0) -> None:
+        """Write ``data``, encoded from ``force`` [N] (0: a set-up, an arming, a stop),
+        the force the board holds after it; the host watchdog's writes made before it,
+        when there is one, are commands of their own (host_watchdog), numbered before
+        anything after it.
+
+        (Whether the write leaves a force held is told to the watchdog from ``force``, not
+        from the transport's force at the write: taking the watchdog's writes just before
+        it (:meth:`_command`) set that to zero, and the first force written after a
+        watchdog's write was told to the watchdog as none, which then wrote nothing in the
+        host's next silence: a Hapkit held 0.04 N for 59.5 ms against a stated 40.)"""
         self._t_write = time.monotonic()
         self._n_written += len(data)
         try:
             if self.watchdog is None:
                 self._ser.write(data)
             else:
-                self._wd_take(self.watchdog.write(self._ser, data, self._force != 0.0))
+                self._wd_take(self.watchdog.write(self._ser, data, force != 0.0))
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to {self.info['port']} failed: {exc}") from None
+        self._force = force                 # (after the watchdog's writes, made before it)
 
-    def _command(self, data: bytes) -> None:
+    def _command(self, data: bytes, force: float = 0.0) -> None:
         """Send one command (one host tick): number it and stamp it; to a board that takes
         commands on its own tick, once the write falls in the tick's middle
-        (:meth:`tick_phase`)."""
+        (:meth:`tick_phase`). ``force``: as :meth:`_write`'s."""
         n = self.stats["commands"]
         self._wd_settle()                   # (the host watchdog's writes: host_watchdog)
         if self.stats["commands"] != n:
@@ -342,7 +351,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
             if self._write_at is not None:
                 self._wait_for_band()
                 sent = self._now_us()
-            self._write(data)               # (numbers the watchdog's writes before it)
+            self._write(data, force)        # (numbers the watchdog's writes before it)
         self._cmd += 1
         self._sent_us[self._cmd % _RING] = sent
         self._sent_bytes[self._cmd % _RING] = data
@@ -364,7 +373,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                 return
             self._force = f
             self._write_tick = None
-            self._command(dr.encode_force(f))
+            self._command(dr.encode_force(f), f)
             if self._write_tick is not None and self._period_ticks:
                 self._note_hold(msg.seq)
         elif t is fp.HelloRequest:
@@ -543,7 +552,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                 # device was, not where it is; a board without a watchdog would hold it
                 self._force = 0.0
                 self.stats["held_zero"] += 1
-            self._command(self.driver.encode_force(self._force))
+            self._command(self.driver.encode_force(self._force), self._force)
 
     def host_stalled(self, ticks: int) -> None:
         """The host loop missed ``ticks`` of its deadlines at once (the host stalled): no

@@ -200,9 +200,14 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
     listens = (getattr(dev, "listens_while_answering", False)
                and getattr(dev, "wall", None) is not None)
     later: deque = deque()                      # (when [monotonic s], answer bytes)
-    gap = 0.0                                   # the longest time this loop did not run
+    gap = 0.0                                   # how late it took bytes, at most [s]
     deaf_until = 0.0                            # the test hook's silence's end [monotonic s]
     t_loop = time.monotonic()
+    # the latest time the port is known to have held no byte unread [monotonic s]: a byte
+    # read later came after it, so a read stamped ``now`` took it at most ``now - t_empty``
+    # late (bytes come while a pass works, or while this thread waits for the GIL or the
+    # CPU after its select or its read, as well as while it is not woken)
+    t_empty = t_loop
     while not (stop and stop()):
         wait_s = poll if not later else min(poll, max(later[0][0] - time.monotonic(), 0.0))
         r, _, _ = select.select([fd], [], [], wait_s)
@@ -210,6 +215,9 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
         # (beyond select's own wait: an emulator starved by the machine takes its bytes
         # that much late, which a board on its own processor never does)
         gap = max(gap, t_sel - t_loop - (0.0 if r else wait_s))
+        if not r:
+            # (empty when select timed out, at its deadline or later)
+            t_empty = max(t_empty, t_loop + wait_s)
         out = b""
         if streams and time.monotonic() - t_idle >= poll:
             t_idle = time.monotonic()           # a streaming firmware's pass, asked or not
@@ -218,7 +226,12 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             if not streams and getattr(dev, "clock", "wall") == "wall":
                 # (a lockstep device's time is the commands: a silence of the wall clock
                 # is a slow host, not the device's; it counts silent ticks itself)
-                out = dev.idle(time.monotonic() - last)
+                t_now = time.monotonic()
+                if stamped is None or not select.select([fd], [], [], 0)[0]:
+                    # (on a stamped link a write come since select timed out, while this
+                    # thread waited for the CPU, is read first: the board takes it at
+                    # its stamp, its time not run on past it by the silence)
+                    out = dev.idle(t_now - last)
                 if out and listens:
                     later.append((t0 + dev.ready_at, out))
                     out = b""
@@ -238,6 +251,9 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
                 if not data:
                     break
                 reads = [(data, time.monotonic())]
+                gap = max(gap, max(reads[0][1], deaf_until) - t_empty)
+                if len(data) < 4096:
+                    t_empty = t_sel         # (what this read left came after it began)
             for data, now in reads:
                 now = max(now, deaf_until)
                 n_read += len(data)
@@ -289,8 +305,10 @@ def serve(fd: int, dev, *, stop=None, faults: dict | None = None,
             "clock": getattr(dev, "clock", "lockstep"),
             "true_excursion": (dev.wall.excursion if getattr(dev, "wall", None) is not None
                                else None),
-            # the longest time the serving loop did not run beyond its poll [s]: what the
-            # emulator itself was late by (the machine's load), not the board
+            # at most how late the serving loop took the host's bytes [s] (a pty's: the
+            # time since the port was last known empty; also the longest time the loop
+            # did not run beyond its poll): what the emulator itself was late by (the
+            # machine's load), not the board
             "longest_gap_s": gap,
             # the longest non-zero force held with no command taking effect [s]
             "longest_hold_s": (getattr(dev.wall, "longest_hold", None)
