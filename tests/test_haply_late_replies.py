@@ -101,8 +101,8 @@ def _late_run(monkeypatch, prep, seed, p, heavier=1.0):
     sent = {}
     command = tr._command
 
-    def command_logged(data):
-        command(data)
+    def command_logged(data, force=0.0):
+        command(data, force)
         sent[tr._cmd] = bytes(data)
     tr._command = command_logged
     tr.send(fp.Config(1000.0, 5000, 10.0))
