@@ -314,15 +314,8 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
 
     def _write(self, data: bytes, force: float = 0.0) -> None:
         """Write ``data``, encoded from ``force`` [N] (0: a set-up, an arming, a stop),
-        the force the board holds after it; the host watchdog's writes made before it,
-        when there is one, are commands of their own (host_watchdog), numbered before
-        anything after it.
-
-        (Whether the write leaves a force held is told to the watchdog from ``force``, not
-        from the transport's force at the write: taking the watchdog's writes just before
-        it (:meth:`_command`) set that to zero, and the first force written after a
-        watchdog's write was told to the watchdog as none, which then wrote nothing in the
-        host's next silence: a Hapkit held 0.04 N for 59.5 ms against a stated 40.)"""
+        which tells the host watchdog whether it leaves a force held (docs/drivers.md);
+        the watchdog's writes made before it are commands of their own (host_watchdog)."""
         self._t_write = time.monotonic()
         self._n_written += len(data)
         try:
@@ -332,12 +325,12 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                 self._wd_take(self.watchdog.write(self._ser, data, force != 0.0))
         except Exception as exc:  # serial.SerialException, OSError, timeouts
             raise DeviceError(f"write to {self.info['port']} failed: {exc}") from None
-        self._force = force                 # (after the watchdog's writes, made before it)
+        self._force = force                 # (the watchdog's writes taken came before)
 
     def _command(self, data: bytes, force: float = 0.0) -> None:
-        """Send one command (one host tick): number it and stamp it; to a board that takes
-        commands on its own tick, once the write falls in the tick's middle
-        (:meth:`tick_phase`). ``force``: as :meth:`_write`'s."""
+        """Send one command (one host tick), ``force`` as :meth:`_write`'s: number it and
+        stamp it; to a board that takes commands on its own tick, once the write falls in
+        the tick's middle (:meth:`tick_phase`)."""
         n = self.stats["commands"]
         self._wd_settle()                   # (the host watchdog's writes: host_watchdog)
         if self.stats["commands"] != n:
@@ -582,12 +575,10 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
         the ones before it the commands before that (module notes)."""
         st = self.stats
         if not self._armed:
-            # before the first arming a record is one nobody asked for (a streaming
-            # firmware); after a STOP it is the answer to a command sent before it or to
-            # the STOP's own zero force, read late by a loaded host (beside two CPU-bound
-            # processes the FireFader's .ino was taken for the streaming .pde in 2 of 4
-            # runs): dropped, not counted. A streaming firmware is still heard by the
-            # listening at each arming (_listen)
+            # before the first arming a record nobody asked for (a streaming firmware,
+            # still heard by each arming's _listen); after a STOP the answer to a command
+            # before it or to its zero force, read late by a loaded host (the FireFader's
+            # .ino was taken for the .pde in 2 of 4 runs beside two hogs): dropped
             if not self._ever_armed:
                 st["unprompted_before_arming"] += len(xs)
             return
