@@ -14,22 +14,21 @@ the Falcon's USB device file, libusb's own (its claim of the interface is that f
 the kernel takes the watchdog's bulk transfer), or the emulated FT232R's side channel,
 each write stamped with its time.
 
-No lock: the host, before each of its own writes, stamps its time on the shared page and
-then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.write` returns them;
-before its reads too, :meth:`TorqueWatchdog.take`); the watchdog checks that time again
-just before it writes, and counts a write (its time, the silence it answers) *before*
-making it. A write counted when the host takes the count is taken as before the host's
-next write; one counted later as after it. The only order that can be wrong is a write
-counted in the microseconds between the watchdog's last check and the syscall's first
-byte, while the host woke from a silence of the whole bound exactly then and wrote before
-that byte: the two then reach the board within microseconds of each other. (Counted after
-the syscall instead, the window held the whole write, which waits for a port that took
-part of it.) A write the port refused is counted all the same (and tried again at the
-next check): a command the board never answers, a missing sample to the host, which is
-the conservative side. (A lock around the host's write, tried first, would let a host
-descheduled inside it hold the watchdog off for as long.) The host accounts the board's
-answers to the watchdog's writes (:class:`hapsim.drivers.transport.DriverTransport`:
-each is a command of its own, answered and dropped, a gap in ``seq``).
+No lock: the host, before each of its own writes, stamps a write under way on the shared
+page and then takes the count of the watchdog's writes (:meth:`TorqueWatchdog.write`
+returns them; before its reads too, :meth:`TorqueWatchdog.take`); after it, the write's
+start, from which the silence counts. The watchdog checks both just before it writes
+(waiting a check for a write under way, no longer), and counts a write *before* making
+it: one counted when the host takes the count is taken as before the host's next write,
+one counted later as after it. The order can be wrong only for a write counted between
+the watchdog's last check and its first byte while the host wrote first (microseconds),
+or for a host stopped inside its write longer than a check. (Counted after the syscall,
+the window held the whole write.) A write the port refused is counted all the same and
+tried again at the next check: a missing sample to the host, the conservative side. (A
+lock around the host's write would let a host descheduled inside it hold the watchdog
+off.) The host accounts the board's answers to the watchdog's writes
+(:class:`hapsim.drivers.transport.DriverTransport`: each is a command of its own,
+answered and dropped, a gap in ``seq``).
 
 A write goes out whole: a command cut short would leave the board's parser inside it. A
 port that takes part of a write and then no more for a second (a hung device) keeps the
@@ -91,21 +90,21 @@ __all__ = ["TorqueWatchdog", "start_watchdog", "watchdog_report", "watchdog_text
 #: robust_for (the host write whose silence had its robust write), overslept_ns (its
 #: largest wake-up past a check's end) and acted_ns (its longest time from a wake-up to
 #: the write it then made: its own descheduling after waking, a dying host's write too),
-#: dying_ns (when it began its write for a host that died armed: 0 before).
+#: dying_ns (when it began its write for a host that died armed: 0 before), writing (the
+#: host's time as it takes the count before a write, 0 once written).
 _F = {k: i for i, k in enumerate(("beat", "armed", "fired_ns", "fired_for", "quit",
                                   "longest_ns", "ready", "rt", "holding", "failed",
                                   "suspect", "counts", "wrote_bits", "angle",
-                                  "robust_for", "overslept_ns", "acted_ns", "dying_ns"))}
+                                  "robust_for", "overslept_ns", "acted_ns", "dying_ns",
+                                  "writing"))}
 _SIZE = 8 * len(_F)
 _F32 = struct.Struct("<f")
 #: The sinks a watchdog writes to besides a device file it opens by path, each an
 #: inherited file descriptor: ``usbfs`` (a USB device's file under ``/dev/bus/usb``,
-#: libusb's own, and the bulk OUT endpoint: the Falcon's FT232R) and ``stamped`` (a pipe
-#: to an emulated chip: each write prefixed by its monotonic time [ns], 8 bytes little
-#: endian, so that the chip applies it at that time,
-#: :meth:`hapsim.emulated.ftdi_usb.VirtualFT232R.side_channel`) and ``packet`` (the host's
-#: socket of an emulated link, :mod:`hapsim.drivers.urlhandler`: each write one packet,
-#: which the kernel stamps for the board).
+#: libusb's own, and the bulk OUT endpoint: the Falcon's FT232R), ``stamped`` (a pipe to
+#: an emulated chip, each write after its monotonic time [ns], 8 bytes little endian:
+#: :meth:`hapsim.emulated.ftdi_usb.VirtualFT232R.side_channel`), ``packet`` (an emulated
+#: link's socket, :mod:`hapsim.drivers.urlhandler`: a packet a write, kernel-stamped).
 _SINKS = ("usbfs", "stamped", "packet")
 #: The usbfs transfer's timeout [ms]: a full-speed bulk OUT of one packet takes one
 #: frame (1 ms); a chip that NAKs longer (its FIFO full) is not waited for.
@@ -248,6 +247,8 @@ class TorqueWatchdog:
             os.unlink(path)                 # both ends hold it open: gone with them
         #: The ``SCHED_FIFO`` priority the watchdog runs at (0: normal scheduling).
         self.rt = self._page.get("rt")
+        self.missed, self.missed_s = 0, 0.0   # (silences it did not run in: report)
+        self._prev = None                   # (the last write's start [ns], held, writes)
 
     def arm(self, on: bool = True) -> None:
         """Arm or disarm the watchdog.
@@ -261,6 +262,7 @@ class TorqueWatchdog:
         p = self._page
         p.set("beat", time.monotonic_ns())
         p.set("armed", 1 if on else 0)
+        self._prev = None
 
     def take(self) -> tuple:
         """The writes the watchdog made since the last call (the host reads): the zero
@@ -351,44 +353,58 @@ class TorqueWatchdog:
         times = self.beat()
         if holding:
             self.hold(True)                 # (from before the write: a stop inside it)
+        began = time.monotonic_ns()
         ser.write(data)
-        self.hold(holding)
+        self.hold(holding, began)
         return times
 
     def beat(self) -> tuple:
         """The first half of :meth:`write` for a link that writes and reads in one call
-        (the Falcon's ``exchange``): the host's time stamped, the watchdog's writes made
-        since taken.
+        (the Falcon's ``exchange``): the host's write under way stamped (the watchdog
+        waits a check for it), the watchdog's writes made since taken.
 
         Returns
         -------
         tuple of int
             As :meth:`take`.
         """
-        self._page.set("beat", time.monotonic_ns())
+        self._page.set("writing", time.monotonic_ns())
         return self.take()
 
-    def hold(self, holding: bool) -> None:
-        """The second half of :meth:`write`: whether the host's write just made leaves a
-        non-zero force, its time stamped again (a silence after it counts from it).
+    def hold(self, holding: bool, began_ns: int | None = None) -> None:
+        """The second half of :meth:`write` (``began_ns``): whether the write just made
+        leaves a non-zero force, the silence counted from its start; before one, the flag.
 
         Parameters
         ----------
         holding : bool
             The host's write leaves a non-zero force (set True before a write that
             does, and again after it: a host stopped inside the write leaves it held).
+        began_ns : int, optional
+            When the write began (``time.monotonic_ns()`` just before it).
 
         Notes
         -----
-        Stamped again after the write: a host stopped between its first stamp and its
-        bytes (the watchdog's write then goes out in that silence) that writes its
-        stale force when it runs again and is stopped again at once starts a new
-        silence, which gets a write of its own; with the first stamp alone it was the
-        same silence, already answered, and an independent M3 model held that force
-        through a second 50 ms stop (tools/independent_boards, docs/testing.md).
+        The silence runs from the last write's start, not from :meth:`beat`'s stamp: a
+        host stopped after it left the board holding the force before (120 ms against a
+        stated 62, docs/drivers.md). A host stopped inside a write that writes its stale
+        force when it runs again starts a new silence, with a write of its own (an
+        independent M3 model: tools/independent_boards, docs/testing.md).
         """
-        self._page.set("beat", time.monotonic_ns())
-        self._page.set("holding", 1 if holding else 0)
+        p = self._page
+        p.set("holding", 1 if holding else 0)
+        if began_ns is None:
+            return
+        p.set("beat", int(began_ns))
+        p.set("writing", 0)
+        fired = p.get("counts") >> 32       # (a silence it did not run in: report)
+        if self._prev is not None:
+            t0, held, f0 = self._prev
+            gap = (int(began_ns) - t0) * 1e-9
+            if held and fired == f0 and gap > self.bound_s + self.check_s:
+                self.missed += 1
+                self.missed_s = max(self.missed_s, gap)
+        self._prev = (int(began_ns), holding, fired)
 
     def report(self) -> dict:
         """What the watchdog did.
@@ -405,7 +421,9 @@ class TorqueWatchdog:
             (its largest wake-up past a check's end [s]: how late its own scheduling
             made it, beside ``check_s`` in the bound it keeps), ``acted_s`` (its longest
             time from a wake-up to the write it made then [s], the dying host's write
-            included).
+            included), ``missed``, ``missed_s`` (the host's silences past the bound and a
+            check with a force held and no write, the watchdog not run; the longest [s]:
+            the stated bound is ``bound_s + check_s`` and the latency, or these).
         """
         p = self._page
         c = p.get("counts")
@@ -413,7 +431,8 @@ class TorqueWatchdog:
                 "longest_s": p.get("longest_ns") * 1e-9, "bound_s": self.bound_s,
                 "check_s": self.check_s, "rt_priority": self.rt,
                 "overslept_s": p.get("overslept_ns") * 1e-9,
-                "acted_s": p.get("acted_ns") * 1e-9}
+                "acted_s": p.get("acted_ns") * 1e-9, "missed": self.missed,
+                "missed_s": self.missed_s}
 
     def _kill(self) -> None:
         """End the watchdog process: its loop sees ``quit`` within a check; ``SIGTERM``
@@ -524,6 +543,10 @@ def watchdog_text(rep: dict, what: str = "zero force") -> str:
     if rep.get("robust"):
         failed += (f", {rep['robust']} of them with the set-up around it (the board may "
                    "have lost its place)")
+    if rep.get("missed"):
+        failed += (f"; {rep['missed']} host silences got none, the watchdog not run "
+                   f"(the longest {rep['missed_s'] * 1e3:.1f} ms: the board held its force "
+                   "that long)")
     return (f"host watchdog: {what} written {rep['fired']} times{failed}, the longest host "
             f"silence one ended {rep['longest_s'] * 1e3:.1f} ms (bound "
             f"{rep['bound_s'] * 1e3:g} ms + {rep['check_s'] * 1e3:g} ms checks)")
@@ -710,6 +733,9 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
             continue
         if page.get("beat") != beat or not held():
             continue                        # (the host wrote meanwhile, or holds nothing)
+        w = page.get("writing")
+        if w and now - w <= bound_ns // 4:
+            continue                        # (a host write under way: a check for it)
         out, rob, bits = data(late)
         if late and not rob:
             continue                        # (no angle published: no robust write)
@@ -741,12 +767,10 @@ def _serve(path: str, port: str, zero: bytes, bound_ns: int, parent: int, rt: in
     if (not stop and not page.get("quit") and held()
             and (page.get("fired_for") != beat
                  or (robust and page.get("robust_for") != beat))):
-        # the host died (killed, crashed) armed, its last write a force not yet zeroed
-        # (or zeroed by the zero command alone, which a board that lost its place does
-        # not take: a host stopped, then killed): the board would hold it until someone
-        # writes; the port is still ours. The robust write when there is one (module
-        # notes): the host may have died in the bytes that lost the board its place,
-        # with no evidence read
+        # the host died (killed, crashed) armed, its last force not yet zeroed (or by the
+        # zero command alone, which a board that lost its place does not take: a host
+        # stopped, then killed): held until someone writes; the port is ours. The robust
+        # write when there is one: the host may have died in the bytes that lost it
         try:
             out = data(False, dying=True)[0]
             acted(woke)

@@ -642,9 +642,10 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
                     wd[0].hold(True)
             # a reply is 16 bytes ending in '>': read on to its end (a duplicated byte
             # would otherwise leave the next reply one byte behind, read one packet late)
+            began = time.monotonic_ns() if wd[0] is not None else 0
             ans = late + link.exchange(packet, 32, _reply_end, wait[0])
             if wd[0] is not None:
-                wd[0].hold(holds)
+                wd[0].hold(holds, began)    # (the silence from the write's start)
                 if wd[0].take():
                     # written while this exchange ran: its reply may be the one read, or
                     # come after this exchange stopped reading and be the next one's
