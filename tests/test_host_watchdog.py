@@ -879,6 +879,26 @@ def _transport(robust=0, value=30.0):
     return t
 
 
+class _BarePort:
+    """A watchdog on a bare pty, armed, with the host's port (``write``) and the master
+    the test reads (``with _BarePort() as (wd, port, master)``)."""
+
+    def __enter__(self):
+        self.master, self.slave = pty.openpty()
+        tty.setraw(self.slave)
+        self.wd = tw.TorqueWatchdog(os.ttyname(self.slave), b"ZERO", HOLD_BOUND_S)
+        self.wd.arm()
+        return self.wd, self, self.master
+
+    def write(self, b: bytes) -> None:
+        os.write(self.slave, b)
+
+    def __exit__(self, *exc) -> None:
+        self.wd.close()
+        os.close(self.slave)
+        os.close(self.master)
+
+
 def test_a_host_stopped_after_its_stamp_is_counted_from_its_last_bytes():
     """A host that wrote a force, ran 0.9 bound without writing, then stamped its next
     write and stopped before the bytes, for five bounds: the board holds the force of
@@ -886,17 +906,9 @@ def test_a_host_stopped_after_its_stamp_is_counted_from_its_last_bytes():
     from that write's start, not from the stamp. (Before, it ran from the stamp: a
     Hapkit held a force 120 ms against a stated 62, the stamp 58 ms after the bytes,
     beside two SCHED_FIFO 50 busy loops.)"""
-    master, slave = pty.openpty()
-    tty.setraw(slave)
-    wd = tw.TorqueWatchdog(os.ttyname(slave), b"ZERO", HOLD_BOUND_S)
-
-    class Port:
-        def write(self, b):
-            os.write(slave, b)
-    try:
-        wd.arm()
+    with _BarePort() as (wd, port, master):
         t_bytes = time.monotonic_ns()
-        wd.write(Port(), b"HOST", True)     # a force, written whole
+        wd.write(port, b"HOST", True)       # a force, written whole
         time.sleep(0.9 * HOLD_BOUND_S)      # in time, no write yet
         wd.beat()                           # the next write's stamp
         wd.hold(True)
@@ -906,10 +918,6 @@ def test_a_host_stopped_after_its_stamp_is_counted_from_its_last_bytes():
         # (the watchdog's write counted before it was made: within its stated silence)
         assert got[0] - t_bytes <= wd.report()["longest_s"] * 1e9, (
             (got[0] - t_bytes) * 1e-9, wd.report())
-    finally:
-        wd.close()
-        os.close(slave)
-        os.close(master)
 
 
 def test_a_host_stopped_before_its_bytes_then_again_gets_a_write_each_time():
@@ -919,28 +927,16 @@ def test_a_host_stopped_before_its_bytes_then_again_gets_a_write_each_time():
     of its own. Before, the silence was counted from the first stamp alone, already
     answered: an independent M3 board model held that force through the whole second
     stop (50 ms, tools/independent_boards)."""
-    master, slave = pty.openpty()
-    tty.setraw(slave)
-    wd = tw.TorqueWatchdog(os.ttyname(slave), b"ZERO", HOLD_BOUND_S)
-
-    class Port:
-        def write(self, b):
-            os.write(slave, b)
-    try:
-        wd.arm()
+    with _BarePort() as (wd, port, master):
         wd.beat()                           # (the first half of the host's write)
         wd.hold(True)
         time.sleep(SILENCE_S)               # stopped before its bytes
         began = time.monotonic_ns()
-        Port().write(b"HOST")               # its stale force, when it runs again
+        port.write(b"HOST")                 # its stale force, when it runs again
         wd.hold(True, began)                # (the second half: from the write's start)
         time.sleep(SILENCE_S)               # stopped again at once
         assert _read_all(master) == b"ZERO" + b"HOST" + b"ZERO"
         assert len(wd.take()) == 2
-    finally:
-        wd.close()
-        os.close(slave)
-        os.close(master)
 
 
 def test_the_hosts_account_of_a_robust_write_is_its_own_resync():
