@@ -59,15 +59,12 @@ def _link_device(dev):
     against a stated 87, once in a fresh clone's CI; made again beside two SCHED_FIFO
     busy loops, 5 holds past the bound in 25 runs.) ``flag["conn"]``, the board's end
     once the host opened the port, sends bytes as from the board."""
-    import socket
     import threading
 
     from hapsim.emulated.driver_mock import serve
-    from hapsim.emulated.stamped_link import StampedReader, accept
-    from hapsim.spawn import PtyChild
-    child = PtyChild()
-    lst = socket.socket(fileno=child.open_link("hapsim-test-link-"))
-    child.close()                       # (no child: only its URL)
+    from hapsim.emulated.stamped_link import connection
+    from test_emulated_link import _listener  # same directory
+    lst, url = _listener()
     flag = {"stop": False, "report": None, "conn": None}
 
     def run():
@@ -75,19 +72,16 @@ def _link_device(dev):
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(BOARD_PRIORITY))
         except (AttributeError, OSError):   # not permitted: normal scheduling
             pass
-        try:
-            conn = accept(lst, stop=lambda: flag["stop"])
-        finally:
-            lst.close()
+        conn, reader = connection(lst.detach(), stop=lambda: flag["stop"])
         if conn is None:
             return
         flag["conn"] = conn
         with conn:
             flag["report"] = serve(conn.fileno(), dev, stop=lambda: flag["stop"],
-                                   poll=0.004, stamped=StampedReader(conn))
+                                   poll=0.004, stamped=reader)
     th = threading.Thread(target=run, daemon=True)
     th.start()
-    return child.port, flag, th
+    return url, flag, th
 
 
 def _stop_link(flag, th) -> None:

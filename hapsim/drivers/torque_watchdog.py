@@ -248,7 +248,9 @@ class TorqueWatchdog:
         #: The ``SCHED_FIFO`` priority the watchdog runs at (0: normal scheduling).
         self.rt = self._page.get("rt")
         self.missed, self.missed_s = 0, 0.0   # (silences it did not run in: report)
-        self._prev = None                   # (the last write's start [ns], held, writes)
+        # (the last write's start [ns], -1 none; its hold; the writes then: hold())
+        self._prev_ns, self._prev_held, self._prev_fired = -1, False, 0
+        self._missed_ns = int((self.bound_s + self.check_s) * 1e9)
 
     def arm(self, on: bool = True) -> None:
         """Arm or disarm the watchdog.
@@ -262,7 +264,7 @@ class TorqueWatchdog:
         p = self._page
         p.set("beat", time.monotonic_ns())
         p.set("armed", 1 if on else 0)
-        self._prev = None
+        self._prev_ns = -1
 
     def take(self) -> tuple:
         """The writes the watchdog made since the last call (the host reads): the zero
@@ -385,26 +387,24 @@ class TorqueWatchdog:
 
         Notes
         -----
-        The silence runs from the last write's start, not from :meth:`beat`'s stamp: a
-        host stopped after it left the board holding the force before (120 ms against a
-        stated 62, docs/drivers.md). A host stopped inside a write that writes its stale
-        force when it runs again starts a new silence, with a write of its own (an
-        independent M3 model: tools/independent_boards, docs/testing.md).
+        The silence runs from the last write's start, not from :meth:`beat`'s stamp
+        (docs/drivers.md). A host stopped inside a write that writes its stale force when
+        it runs again starts a new silence, with a write of its own (an independent M3
+        model: tools/independent_boards, docs/testing.md).
         """
         p = self._page
         p.set("holding", 1 if holding else 0)
         if began_ns is None:
             return
-        p.set("beat", int(began_ns))
+        p.set("beat", began_ns)
         p.set("writing", 0)
-        fired = p.get("counts") >> 32       # (a silence it did not run in: report)
-        if self._prev is not None:
-            t0, held, f0 = self._prev
-            gap = (int(began_ns) - t0) * 1e-9
-            if held and fired == f0 and gap > self.bound_s + self.check_s:
-                self.missed += 1
-                self.missed_s = max(self.missed_s, gap)
-        self._prev = (int(began_ns), holding, fired)
+        fired = p.get("counts") >> 32       # (missed silences: nothing allocated)
+        gap = began_ns - self._prev_ns
+        if (self._prev_ns >= 0 and self._prev_held and fired == self._prev_fired
+                and gap > self._missed_ns):
+            self.missed += 1
+            self.missed_s = max(self.missed_s, gap * 1e-9)
+        self._prev_ns, self._prev_held, self._prev_fired = began_ns, holding, fired
 
     def report(self) -> dict:
         """What the watchdog did.
