@@ -61,6 +61,7 @@ def _stalled_run(silence_s: float, after: int = 20, samples: int = 200,
             if not inside and state["at"] is None and state["k"] > after and any(pk[0]):
                 state["at"] = state["k"]
                 out = real(send, *a, **k)
+                state["out"] = time.monotonic_ns()
                 time.sleep(silence_s)       # the host does not run
                 return out
         return real(send, *a, **k)
@@ -74,16 +75,28 @@ def _stalled_run(silence_s: float, after: int = 20, samples: int = 200,
                 time.sleep(silence_s)       # the host does not run, its reply not read
             state["zero"] = not nz
     link.exchange, link.write = exchange, write
+    real_hold = tw.TorqueWatchdog.hold
+
+    def hold(self, holding, began_ns=None):
+        # the stalled exchange's start, as the host stamped it (its first hold after)
+        if state["at"] is not None and began_ns is not None and "began" not in state:
+            state["began"] = began_ns
+        return real_hold(self, holding, began_ns)
 
     def start():
         state["on"] = True
         dev.let_go(np.array([2e-3, 0.0, 0.0]), np.zeros(3))
+    tw.TorqueWatchdog.hold = hold
     try:
         res = fr.run_falcon(sc, link, IMAGE, samples, truth=dev.counts, paced=True,
                             start=start)
     finally:
+        tw.TorqueWatchdog.hold = real_hold
         link.close()
     dev.side_taken = chip.side_taken
+    # from the host's stamp of the stalled exchange to its reply read [s]
+    dev.exchange_s = ((state["out"] - state["began"]) * 1e-9
+                      if "out" in state and "began" in state else None)
     return res, dev, state["at"]
 
 
@@ -120,11 +133,18 @@ def test_falcon_host_silence_bounded_by_the_watchdog_and_accounted():
     # adds to the hold: the stated bound, the firmware's next tick and 1 ms for the
     # write's syscall after the watchdog read its clock
     assert dev.longest_hold_s <= _stated(wd) + tick + 1e-3, (dev.longest_hold_s, wd)
-    # at least the bound: the watchdog's silence is counted in whole ns, the device's
-    # hold is a difference of two clock readings in float seconds, each rounded to half
-    # an ulp of the clock's value (a monotonic clock of hours: ~1e-12 s; 1e-17 short once)
-    assert dev.longest_hold_s >= fr.HOLD_BOUND_S - 2 * math.ulp(time.monotonic()), (
-        dev.longest_hold_s, wd)
+    # at least the bound less the exchange's own time: the watchdog counts the silence
+    # from the stamp the host took before the exchange (a host stopped between the stamp
+    # and its bytes leaves the force before held from then), the device the hold from
+    # when the command took effect, no later than its reply was read (and the firmware's
+    # next tick); 18.0 ms held against the 20 ms bound once beside the suite's load, the
+    # exchange stamped 2 ms before its bytes. The device's hold is a difference of two
+    # clock readings in float seconds, each rounded to half an ulp of the clock's value
+    # (a monotonic clock of hours: ~1e-12 s; 1e-17 short once)
+    assert dev.exchange_s is not None
+    assert dev.longest_hold_s >= (fr.HOLD_BOUND_S - dev.exchange_s - tick
+                                  - 2 * math.ulp(time.monotonic())), (
+        dev.longest_hold_s, dev.exchange_s, wd)
     assert res["stalls"] >= 1 and res["verdict"] == "degraded", res["reason"]
     # stopped for the stall, or for where the legs went meanwhile: a host descheduled
     # past its own silence (a loaded CI machine) let the legs coast on under the zero
