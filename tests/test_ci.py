@@ -24,7 +24,7 @@ def readme_test_command() -> str:
 
 #: The second pass of the numerical tests, on another BLAS kernel and numba target, beside
 #: the first at the lowest priority (without pytest's cache, which the first writes).
-NUMERICAL_PASS = "nice -n 19 python -m pytest -q -m numerical -p no:cacheprovider"
+NUMERICAL_PASS = 'nice -n 19 python -m pytest -q -m "numerical or soak" -p no:cacheprovider'
 
 
 def _executed(text: str) -> list[str]:
@@ -67,7 +67,7 @@ case "$*" in
     touch "$HAPSIM_CI_FIRST_PASS_STARTED"
     for i in $(seq 100); do [ -e "$CI_LOG.second" ] && echo beside >> "$CI_LOG" && break; sleep 0.1; done
     exit "$PYTEST_RC";;
-  "-m pytest -q -m numerical -p no:cacheprovider") touch "$CI_LOG.second"; exit "$NUMERICAL_RC";;
+  "-m pytest -q -m numerical or soak -p no:cacheprovider") touch "$CI_LOG.second"; exit "$NUMERICAL_RC";;
 esac
 echo "unexpected call: $*" >&2; exit 99
 """
@@ -99,12 +99,12 @@ def test_ci_fails_loudly_on_any_failing_step(tmp_path, venv, pip, readme, numeri
     else:
         assert f"ci: FAILED" in res.stderr and said in res.stderr, res.stderr
     calls = log.read_text().splitlines()
-    second = [c for c in calls if c.startswith("-m pytest -q -m numerical")]
+    second = [c for c in calls if c.startswith("-m pytest -q -m numerical or soak")]
     if venv or pip:
         assert not second, calls            # no pytest started: nothing to run beside
     elif not readme:
         # (an absolute cache: a child started in another directory finds the same one)
-        assert second == ["-m pytest -q -m numerical -p no:cacheprovider | Sandybridge "
+        assert second == ["-m pytest -q -m numerical or soak -p no:cacheprovider | Sandybridge "
                           f"generic {repo}/.venv/numba-generic"], calls
         first = [c for c in calls if c.startswith("-m pytest -q |")]
         assert first == ["-m pytest -q |   "], calls      # the host's own kernels first

@@ -16,7 +16,8 @@ that the host does not mark. Before the change (the search off: ``own_tick`` Fal
 ``identify_run`` was) 4 of these 16 seeds said "differs" of the matching paddle (17, 21,
 22, 31: k 0.02-0.03 % or b 0.8-1.6 % off, outside intervals of 0.01-0.03 % and
 0.5-1.3 %); over seeds 0-149 of this generator 10 did. Seeds 16-31 are the window that
-holds four of them. A device that truly differs (30 % more mass, or 0.3 N s/m of hidden
+holds four of them: the suite keeps those four and two more (the even seeds' wrong paddle
+is heavier, the odd ones' has hidden friction), CI's soak runs all 16 (tests/seeds.py). A device that truly differs (30 % more mass, or 0.3 N s/m of hidden
 friction) must still "differ".
 """
 
@@ -33,6 +34,7 @@ from hapsim.errors import UnstableConfigError
 from hapsim.pipeline.options import RunOptions
 from hapsim.pipeline.runner import identify_run, prepare_run
 from hapsim.scene import load_scene
+from seeds import seeds
 from tolerance import measured
 
 pytestmark = pytest.mark.xdist_group("test_unseen_holds")
@@ -155,7 +157,7 @@ def test_the_signature_is_a_holds_disturbance():
     assert board.tick_arrivals["off_at"] == [100, 101]
 
 
-@pytest.mark.parametrize("seed", range(16, 32))
+@pytest.mark.parametrize("seed", seeds(range(16, 32), kept=(16, 17, 21, 22, 28, 31)))
 def test_unseen_holds_never_make_a_matching_paddle_differ(seed, tmp_path):
     """Random paddles and loops on the simulated board's tick, 1 to 10 holds the host does
     not see: the matching paddle is never "differs" (within, or not measurable with its
@@ -196,7 +198,7 @@ def test_with_no_hold_the_measurement_is_unchanged(seed, tmp_path):
 
 
 
-@pytest.mark.parametrize("seed", range(40, 48))
+@pytest.mark.parametrize("seed", seeds(range(40, 48), kept=(40, 41, 42, 43)))
 def test_lost_replies_are_not_taken_for_holds(seed, tmp_path):
     """Random paddles with 2 % to 6 % of their replies lost (the rows stepped through with
     an extrapolated position, as a lossy link leaves them), and on odd seeds the random
