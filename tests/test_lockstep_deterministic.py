@@ -36,12 +36,12 @@ FAMILIES = [("haply", "configs/haply.yaml"), ("firefader", "configs/firefader.ya
             ("hapkit-serial", "configs/hapkit_serial.yaml")]
 
 
-def _record(tmp_path, name, driver, config, faults):
+def _record(tmp_path, name, driver, config, faults, rt_priority=0):
     from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
     path = str(tmp_path / f"{name}.npz")
     rep = run_scene(load_scene(config), driver=driver, duration=0.4, lockstep=True,
-                    handle_signals=False, rt_priority=0, seed=3, telemetry=path,
+                    handle_signals=False, rt_priority=rt_priority, seed=3, telemetry=path,
                     driver_faults=faults)
     return rep, load_telemetry(path)
 
@@ -65,3 +65,25 @@ def test_a_slow_lockstep_mock_gives_the_same_record(tmp_path, driver, config, lo
     else:
         # a lockstep mock without faults cannot lose a packet: it is never asked again
         assert rep0["loop"]["estimated"] == 0 and rep1["loop"]["estimated"] == 0
+
+
+@pytest.mark.parametrize("driver,config", FAMILIES, ids=[f[0] for f in FAMILIES])
+def test_a_lockstep_run_taken_at_its_answers_gives_the_record_of_one_taken_at_deadlines(
+        tmp_path, monkeypatch, driver, config):
+    """A lockstep mock with its account is answer-paced: the host takes each tick once
+    the mock has answered everything written to it (:mod:`hapsim.host.host_clock`), not
+    at a deadline of the wall clock. Its record is the commands', so the record is
+    the one the same run paced by deadlines gives, bit for bit (1 byte in 200 lost each
+    way: estimated rows and re-asked commands, whose decisions the account takes,
+    not the clock); and the loop runs at normal scheduling (nothing on the clock to keep:
+    no SCHED_FIFO pair answering each other as fast as they can)."""
+    from hapsim.drivers.handled_account import HandledAccount
+    # (real-time priority asked for, as a run's default: not taken)
+    rep0, r0 = _record(tmp_path, "answers", driver, config, dict(LOSS, seed=7), 10)
+    assert str(rep0["loop"]["scheduling"]).startswith("normal (lockstep"), rep0["loop"]
+    monkeypatch.setattr(HandledAccount, "settles", property(lambda self: False))
+    rep1, r1 = _record(tmp_path, "deadlines", driver, config, dict(LOSS, seed=7))
+    assert len(r0["seq"]) >= 80 and len(r1["seq"]) == len(r0["seq"])
+    for c in COLUMNS:
+        assert np.array_equal(r0[c], r1[c]), (c, np.flatnonzero(r0[c] != r1[c])[:5])
+    assert rep0["loop"]["estimated"] > 0 or rep0["loop"]["missed"] > 0

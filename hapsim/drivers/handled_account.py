@@ -47,6 +47,19 @@ class HandledAccount:
             time.sleep(1e-3)
         self._n_written, self._n_read = last
 
+    @property
+    def settles(self) -> bool:
+        """Whether this transport's device is a lockstep mock with its account: its
+        record is then the commands', whatever the clock, and the host loop takes each
+        tick once :meth:`settled` says so (:mod:`hapsim.host.host_clock`)."""
+        return self._handled is not None
+
+    def settled(self) -> bool:
+        """A lockstep mock (:attr:`settles`) has answered everything it will (its account:
+        every byte written to it handled, every byte it wrote read here); False without
+        an account."""
+        return self._handled is not None and self._quiet()
+
     def _quiet(self) -> bool:
         """A lockstep mock (``handled``) has answered everything it will: it has read
         every byte written to it and its every byte has been read here."""

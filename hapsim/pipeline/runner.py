@@ -311,7 +311,11 @@ def connect(prep: PreparedRun, opts: RunOptions) -> Connection:
         # a lockstep device waits for each FORCE: nothing to keep on time, and a host and
         # mock ping-ponging as fast as they can under SCHED_FIFO would own both cores of a
         # small machine at the priority of every real-time loop on it
-        paced = lockstep and not opts.host_clocked and opts.port is None
+        # (and a driver's lockstep mock: the loop takes each tick once it has answered,
+        # hapsim.host.host_clock)
+        paced = lockstep and opts.port is None and (
+            not opts.host_clocked or (opts.driver is not None and (
+                opts.mock_options or {}).get("clock", "lockstep") == "lockstep"))
         rt = RealtimePriority(opts.rt_priority if transport in ("pty", "serial") and not paced
                               else 0)
         if paced and opts.rt_priority:
