@@ -23,7 +23,7 @@ from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.stability import stability_limit
 from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP, LateGrowth,
                                         hold_growth, late_growth_step)
-from hapsim.analysis.late_growth import late_growth
+from hapsim.analysis.late_growth import late_growth, min_cost_assignment
 from hapsim.scene import parse_scene
 from tolerance import sum_tol  # same directory
 
@@ -44,6 +44,32 @@ wall, run, X0, WATCHDOG_S = lg.wall, lg.run, lg.X0, lg.WATCHDOG_S
 
 
 # ----------------------------------------------------------------- the rule, by hand
+@pytest.mark.parametrize("seed", range(4))
+def test_the_modes_assignment_is_scipys_optimum(seed):
+    """:func:`min_cost_assignment` (the modes followed from delay to delay, without
+    scipy.optimize on a run's start-up path) against an independent implementation,
+    :func:`scipy.optimize.linear_sum_assignment`: 300 random matrices of 1-30 rows and up
+    to 4 more columns, a quarter of them small integers (ties everywhere); each row a
+    column, each column at most once, and the sum scipy's. Sums of at most 34 terms
+    summed in two orders: within :func:`tolerance.sum_tol` of scipy's (integers: exact)."""
+    from scipy.optimize import linear_sum_assignment
+    rng = np.random.default_rng(seed)
+    for i in range(300):
+        n = int(rng.integers(1, 31))
+        m = n + int(rng.integers(0, 5))
+        cost = (rng.integers(0, 4, size=(n, m)).astype(float) if i % 4 == 0
+                else rng.exponential(size=(n, m)))
+        cols = min_cost_assignment(cost)
+        assert cols.shape == (n,) and len(set(cols.tolist())) == n
+        r, c = linear_sum_assignment(cost)
+        ours, theirs = cost[np.arange(n), cols], cost[r, c]
+        assert abs(ours.sum() - theirs.sum()) <= sum_tol(np.concatenate((ours, theirs))), i
+    with pytest.raises(ValueError):
+        min_cost_assignment(np.ones((3, 2)))
+    with pytest.raises(ValueError):
+        min_cost_assignment(np.array([[1.0, np.inf]]))
+
+
 def test_hold_growth_interpolates_its_table_and_holds_its_last_entry():
     """Exact at the entries, linear between them, the last entry beyond."""
     table = np.array([0.0, -0.5, 1.0, 4.0])

@@ -41,16 +41,20 @@ def _python(code: str) -> dict:
 
 
 def test_run_path_imports_neither_scipy_optimize_nor_other_commands():
-    """The command line of ``hapsim run`` up to the prediction (what runs before the
-    first sample, but the numba warm-up) loads no scipy.optimize / scipy.linalg, and no
-    command module but ``run``'s."""
+    """The command line of ``hapsim run`` up to the prediction and the loop's
+    configuration (what runs before the first sample, but the numba warm-up: the
+    lateness guard's growth tables too, whose modes are followed by
+    :func:`hapsim.analysis.late_growth.min_cost_assignment`, not scipy's) loads no
+    scipy.optimize / scipy.linalg, and no command module but ``run``'s."""
     got = _python(f"""
 import json, sys
 from hapsim.cli import build_parser
 args = build_parser("run").parse_args(["run", {WALL!r}])
-from hapsim.pipeline.runner import RunOptions, prepare_run
+from hapsim.pipeline.runner import RunOptions, _loop_config, prepare_run
 from hapsim.scene import load_scene
-prep = prepare_run(load_scene(args.scene), RunOptions().check())
+opts = RunOptions().check()
+prep = prepare_run(load_scene(args.scene), opts)
+assert _loop_config(prep, opts).late_growth is not None
 print(json.dumps({{"stiffness_limit": prep.pred["stiffness_limit"],
                   "mods": sorted(m for m in sys.modules
                                  if m.startswith(("scipy.", "hapsim.commands.")))}}))

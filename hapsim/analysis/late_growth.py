@@ -12,7 +12,7 @@ from hapsim.analysis.prediction import predicted_poles, timed_scene
 from hapsim.kernels.late_growth import (GROWTH_MODES, GROWTH_POINTS, LATE_GROWTH_SLACK,
                                         LateGrowth)
 
-__all__ = ["late_growth"]
+__all__ = ["late_growth", "min_cost_assignment"]
 
 
 def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
@@ -93,8 +93,7 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
 def _follow_modes(grid: list) -> np.ndarray:
     """Each mode of ``grid[0]`` followed through the next delays (:func:`late_growth`):
     at each, each followed mode takes a pole, each pole once, the pairs' distances in the
-    ``s`` plane least in sum (the assignment problem, :func:`scipy.optimize.
-    linear_sum_assignment`).
+    ``s`` plane least in sum (the assignment problem: :func:`min_cost_assignment`).
 
     Parameters
     ----------
@@ -107,13 +106,74 @@ def _follow_modes(grid: list) -> np.ndarray:
     ndarray of float, shape (modes, delays)
         ``Re s`` of each followed mode at each delay.
     """
-    from scipy.optimize import linear_sum_assignment
     s = np.array(grid[0], dtype=complex)
     out = [s.real.copy()]
     for nxt in grid[1:]:
-        rows, cols = linear_sum_assignment(np.abs(s[:, None] - nxt[None, :]))
-        new = s.copy()
-        new[rows] = nxt[cols]
+        cols = min_cost_assignment(np.abs(s[:, None] - nxt[None, :]))
+        new = nxt[cols]
         s = new
         out.append(s.real.copy())
     return np.array(out).T
+
+
+def min_cost_assignment(cost: np.ndarray) -> np.ndarray:
+    """The rows' columns, each column once, whose costs are least in sum: the Hungarian
+    method with potentials (Kuhn 1955, Munkres 1957; the O(n^2 m) shortest-augmenting-path
+    form, Jonker & Volgenant 1987), a row added at a time, each scan vectorised over the
+    columns. The optimum :func:`scipy.optimize.linear_sum_assignment` finds, without
+    importing ``scipy.optimize`` on a run's way to its first sample (~0.3 s of start-up,
+    docs/startup.md); of two assignments of equal sum, either may be returned.
+
+    Parameters
+    ----------
+    cost : ndarray of float, shape (n, m), n <= m
+        Finite costs.
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        The column of each row.
+
+    Raises
+    ------
+    ValueError
+        More rows than columns, or a cost not finite.
+    """
+    c = np.asarray(cost, dtype=float)
+    n, m = c.shape
+    if n > m or not np.isfinite(c).all():
+        raise ValueError(f"needs finite costs of shape (n, m), n <= m; got {c.shape}")
+    u = np.zeros(n + 1)
+    v = np.zeros(m + 1)
+    row = np.zeros(m + 1, dtype=np.int64)     # the row (1-based) of each column; 0: none
+    way = np.zeros(m + 1, dtype=np.int64)
+    for i in range(1, n + 1):
+        row[0] = i
+        j0 = 0
+        minv = np.full(m + 1, np.inf)
+        used = np.zeros(m + 1, dtype=bool)
+        while True:
+            used[j0] = True
+            i0 = row[j0]
+            cur = c[i0 - 1] - u[i0] - v[1:]
+            free = ~used[1:]
+            better = free & (cur < minv[1:])
+            minv[1:][better] = cur[better]
+            way[1:][better] = j0
+            cand = np.where(free, minv[1:], np.inf)
+            j1 = int(np.argmin(cand)) + 1
+            delta = cand[j1 - 1]
+            u[row[used]] += delta
+            v[used] -= delta
+            minv[~used] -= delta
+            j0 = j1
+            if row[j0] == 0:
+                break
+        while j0:
+            j1 = way[j0]
+            row[j0] = row[j1]
+            j0 = j1
+    out = np.empty(n, dtype=np.int64)
+    assigned = np.flatnonzero(row[1:])
+    out[row[1:][assigned] - 1] = assigned
+    return out
