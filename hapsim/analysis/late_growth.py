@@ -109,9 +109,7 @@ def _follow_modes(grid: list) -> np.ndarray:
     s = np.array(grid[0], dtype=complex)
     out = [s.real.copy()]
     for nxt in grid[1:]:
-        cols = min_cost_assignment(np.abs(s[:, None] - nxt[None, :]))
-        new = nxt[cols]
-        s = new
+        s = nxt[min_cost_assignment(np.abs(s[:, None] - nxt[None, :]))]
         out.append(s.real.copy())
     return np.array(out).T
 
