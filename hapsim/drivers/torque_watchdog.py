@@ -333,7 +333,7 @@ class TorqueWatchdog:
         None)``; :meth:`angle` for one that does)."""
         self._page.set("angle", 1 << 32)
 
-    def write(self, ser, data: bytes, holding: bool) -> tuple:
+    def write(self, ser, data: bytes, holding: bool, beaten: bool = False) -> tuple:
         """The host writes ``data``: its time stamped first (the silence the watchdog
         counts is between the host's writes: a host that runs but does not write leaves
         the board holding too), the watchdog's writes made since taken just before it.
@@ -346,30 +346,28 @@ class TorqueWatchdog:
         holding : bool
             ``data`` leaves a non-zero force (a zero force is no hold: no zero write
             follows it).
+        beaten : bool
+            :meth:`beat` was called for this write (a caller that chose ``data`` from the
+            writes it took): not again.
 
         Returns
         -------
         tuple of int
-            As :meth:`take`: the watchdog's writes that went out before ``data``.
+            As :meth:`take`: the watchdog's writes that went out before ``data``
+            (none when ``beaten``).
         """
-        times = self.beat()
+        times = () if beaten else self.beat()
         if holding:
             self.hold(True)                 # (from before the write: a stop inside it)
         began = time.monotonic_ns()
         ser.write(data)
-        self.hold(holding, began)
+        self.hold(holding, began)           # (the silence from the write's start)
         return times
 
     def beat(self) -> tuple:
-        """The first half of :meth:`write` for a link that writes and reads in one call
-        (the Falcon's ``exchange``): the host's write under way stamped (the watchdog
-        waits a check for it), the watchdog's writes made since taken.
-
-        Returns
-        -------
-        tuple of int
-            As :meth:`take`.
-        """
+        """The first half of :meth:`write`: the host's write under way stamped (the
+        watchdog waits a check for it), the watchdog's writes made since taken (as
+        :meth:`take`'s: a tuple of int)."""
         self._page.set("writing", time.monotonic_ns())
         return self.take()
 

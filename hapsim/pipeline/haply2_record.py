@@ -358,11 +358,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         swap = swap and holding and wd_due[0]
         if swap:
             data, holding = zero, False
-        if holding:
-            watchdog.hold(True)                 # (from before the write: a stop inside it)
-        began = time.monotonic_ns()
-        link.write(data)
-        watchdog.hold(holding, began)           # (the silence from the write's start)
+        watchdog.write(link, data, holding, beaten=True)
         return swap
     # the count of replies checked by a marker write when the loop ends ticks behind
     # though replies come (a write swallowed, or a late board: never a wait)
