@@ -412,6 +412,10 @@ def test_static_stiffness_is_series_and_parallel_springs():
     # no port: the run names the first mass's line and how to make one
     (["run", "oscillator.yaml"], "oscillator.yaml:6: masses:", "give the handle's mass "
                                                                "'kind: port'"),
+    # the same refusal in 3-D (it said "a run needs a mass of kind 'port' and a device
+    # section", with no line, no kinds and nothing to do instead)
+    (["run", "membrane.yaml"], "membrane.yaml:14: masses:", "give the handle's mass "
+                                                             "'kind: port'"),
     # family read the missing device before its own check: an AttributeError traceback
     (["family", "oscillator.yaml"], "oscillator.yaml:6: masses:", "needs a scene with a port"),
     (["advise", "oscillator.yaml"], "oscillator.yaml:6: masses:", "needs a scene with a port"),
@@ -433,6 +437,42 @@ def test_scene_a_command_cannot_take_is_exit_2_naming_file_and_key(capsys, argv,
     out, err = capsys.readouterr()
     msg = json.loads(out)["error"]["message"] if json_out else err
     assert "Traceback" not in msg and where in msg and fragment in msg, msg
+
+
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_a_scene_without_a_port_is_refused_alike_in_every_dimension(tmp_path, capsys,
+                                                                    lockstep):
+    """Random scenes with no mass of kind ``port`` (1 to 4 free masses on springs to
+    grounds, in 1, 2 or 3 dimensions, their first mass on a random line): ``run`` (and
+    ``run --lockstep``) refuses each with one message, whatever the dimension (issue 30:
+    1-D is n = 1 of the same code): exit 2, the file and the first mass's line, the key
+    ``masses``, the kinds its masses are, and what to do instead. The 2-D and 3-D run
+    said "a run needs a mass of kind 'port' and a device section", with none of these."""
+    rng = np.random.default_rng(30)
+    for i in range(9):
+        n = (1, 2, 3)[i % 3]
+        pad = int(rng.integers(0, 4))                   # comment lines: the line moves
+        free = int(rng.integers(1, 5))
+
+        def at(v):
+            return v if n == 1 else "[" + ", ".join([str(v)] + ["0.0"] * (n - 1)) + "]"
+        lines = ["# a scene without a port"] * pad
+        lines += ([f"dimension: {n}"] if n > 1 else []) + ["rate_hz: 1000", "masses:",
+                                                          f"  - {{name: g, kind: ground, x0: {at(0.0)}}}"]
+        lines += [f"  - {{name: m{j}, kind: mass, mass: {rng.uniform(0.01, 1.0):.4g}, "
+                  f"x0: {at(0.01 * (j + 1))}}}" for j in range(free)]
+        lines += ["links:"] + [
+            f"  - {{name: s{j}, kind: spring_damper, between: [m{j}, g], stiffness: "
+            f"{rng.uniform(10.0, 1000.0):.4g}, damping: 0.1}}" for j in range(free)]
+        path = tmp_path / f"no_port_{i}.yaml"
+        path.write_text("\n".join(lines) + "\n")
+        line = pad + (4 if n > 1 else 3)                # the first mass's line
+        argv = ["run", str(path)] + (["--lockstep"] if lockstep else [])
+        assert main(argv) == 2, (n, lines)
+        err = capsys.readouterr().err
+        assert f"{path}:{line}: masses: the scene has no port" in err, (n, err)
+        assert "its masses are 'ground', 'mass'" in err, (n, err)
+        assert "give the handle's mass 'kind: port'" in err and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize("argv", [["family"]])

@@ -21,7 +21,7 @@ from hapsim.errors import ConfigError, UnstableConfigError, dash
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "timed_scene", "predict", "predicted_poles", "has_offset",
-           "port_links", "refusal"]
+           "port_links", "refusal", "require_device"]
 
 
 _ZERO_POLE = 1e-9
@@ -66,7 +66,28 @@ def _links_at_port(scene: Scene):
 
 
 
-def _require_device(scene: Scene):
+def require_device(scene):
+    """The scene's device, refusing a scene a run cannot close a loop on: no mass of kind
+    ``port`` (nothing for a device to feel) or no device section. One refusal for every
+    dimension and command (a 1-D, 2-D or 3-D scene: its masses' kinds and lines are the
+    same fields).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or hapsim.scene.SceneND
+
+    Returns
+    -------
+    hapsim.scene.Device or hapsim.scene.DeviceND
+        ``scene.device``.
+
+    Raises
+    ------
+    ConfigError
+        No port (key ``masses``, the file and the first mass's line, the kinds its masses
+        are, and what to do: a port, or ``hapsim check`` / ``hapsim simulate``, which take
+        a scene without one), or a port without a device section (key ``device``).
+    """
     if scene.port is None:
         first = scene.masses[0] if scene.masses else None
         kinds = sorted({m.kind for m in scene.masses})
@@ -138,7 +159,7 @@ def prepare_scene(scene: Scene, rate_hz: float | None = None, latency_s: float =
     """
     if rate_hz is not None:
         scene = scene.with_rate(rate_hz)
-    _require_device(scene)
+    require_device(scene)
     if latency_s:
         timed, cals = apply_targets(timed_scene(scene, latency_s))
         scene = dataclasses.replace(timed, device=scene.device)
@@ -177,7 +198,7 @@ def predict(scene: Scene, *, limit: bool = True) -> dict:
     ConfigError
         When the scene cannot be analysed (no port/device).
     """
-    dev = _require_device(scene)
+    dev = require_device(scene)
     an = _analysis()
     loop = an["LoopModel"].from_device(dev, scene.rate_hz)
     plinks = port_links(scene)

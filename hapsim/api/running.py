@@ -448,9 +448,8 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     check_values("run_nd", amplitude=amplitude)
     scene = n_d_scene(scene)
     a = float(amplitude)
-    if scene.port is None:
-        raise ConfigError("a run needs a mass of kind 'port' and a device section",
-                          file=scene.path, key="masses")
+    from hapsim.analysis.prediction import require_device
+    require_device(scene)      # (the 1-D run's refusal: the same message, file and line)
     stable_prediction_nd(scene, allow_unstable)
     return run_report_nd(scene, measure_felt_lockstep(scene, a), True)
 

@@ -115,9 +115,8 @@ def scene_for_run(scene, amplitude: float | None, rate_hz: float | None,
             raise ConfigError(f"must be a positive number [Hz], got {rate_hz}",
                               key="--rate")
         scene = dataclasses.replace(scene, rate_hz=float(rate_hz))
-    if scene.port is None:
-        raise ConfigError("a run needs a mass of kind 'port' and a device section",
-                          file=scene.path, key="masses")
+    from hapsim.analysis.prediction import require_device
+    require_device(scene)      # (the 1-D run's refusal: the same message, file and line)
     return float(a), scene
 
 
