@@ -163,9 +163,9 @@ class Key:
         ``(lo, hi)`` tuple (``RATE_RANGE``) or a largest value (``MAX_DELAY``); it lives
         there, beside the analysis it protects, and is read when a scene is checked.
     why : str
-        Why the range is what it is (appended to an out-of-range message, for the
-        ``limits_from`` limit when there is one, and shown in the reference); ``{limit}``
-        stands for the largest value.
+        Why the range's largest value is what it is (appended to the message of a value
+        above it, for the ``limits_from`` limit when there is one, and shown in the
+        reference); ``{limit}`` stands for the largest value.
     """
 
     path: str

@@ -181,3 +181,21 @@ def test_every_range_in_the_table_is_enforced_by_hapsim_check(path, tmp_path, ca
         assert k.path in shown and says in err, (path, value, err)
         with pytest.raises(ConfigError):
             parse_scene(scene.read_text(), str(scene))
+
+
+@pytest.mark.parametrize("path", [k.path for k in KEYS.values() if k.why])
+def test_a_ranges_why_is_said_beside_a_value_above_it_only(path, tmp_path, capsys):
+    """A row's ``why`` says why its largest value is what it is: ``hapsim check`` says it
+    beside a value above the range and not beside one below it (a delay of -1 periods was
+    told the cost of the eigenvalues at 500)."""
+    k = KEYS[path]
+    lo = k.minimum if k.minimum is not None else k.analysis_limits()[0]
+    hi = k.maximum if k.maximum is not None else k.analysis_limits()[1]
+    for value, said in ((hi * 2 + 1, True), (lo - abs(lo) - 1, False)):
+        scene = tmp_path / "bad.yaml"
+        frag = _with_value(k.example, k, value)
+        scene.write_text(example_scene(yaml.safe_dump(frag, default_flow_style=True)))
+        assert main(["check", str(scene)]) == 2, (path, value)
+        err = capsys.readouterr().err.strip()
+        assert k.path in re.sub(r"\[\d+\]", "[]", err), err
+        assert (k.why_text() in err) == said, (value, err)

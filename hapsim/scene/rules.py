@@ -156,7 +156,10 @@ def _in_range(k: Key, x: float, where: tuple) -> None:
             msg = f"must be {'>' if strict else '>='} {lo:g}, got {num(x)}"
         else:
             msg = f"must be <= {hi:g}{unit}, got {num(x)}"
-        raise Invalid(msg + (f": {k.why_text()}" if k.why and explained else ""), where)
+        # (the why is the largest value's: a value below the range gets none)
+        above = not below
+        raise Invalid(msg + (f": {k.why_text()}" if k.why and explained and above else ""),
+                      where)
 
 
 def _check_section(obj: Any, section: str, *where: Any) -> None:
