@@ -51,6 +51,12 @@ period that the framed mock refuses. Beside one CPU-bound process (``--clock wal
 loop refit's sake, a frictionless device with 30 % more mass and an encoder whose counts'
 noise put the fixed point past the frictionless edge (b 0.006 N s/m below the nearest
 loop's), where no scene's loop reaches.
+
+On fresh draws (2026-11-29, ``--seed 2026``): in lockstep, ``--cases 40`` of framed and
+framed-counts and ``--cases 10`` of the three drivers' mocks, no wrong verdict in 220
+runs ("within" of the matching loops 40, 24, 10, 5 and 4; the rest not measurable, with
+their reasons); on the wall clock, ``--cases 6`` of all five, none in 60; beside one
+CPU-bound process (``--clock wall --cases 5 --seed 77``), none in 50.
 """
 
 from __future__ import annotations
