@@ -13,9 +13,11 @@ emulated 2DIY on its own clock behind a pty, twice: on a board that matches the 
 on one with 30 % more joint inertia and hand mass hidden in it (the prediction keeps the
 scene's). The scenes are configs/pantograph_wall.yaml with the press and the wall drawn
 (stiffness, damping), the press's anchor moved so that the handle rests 0.5 mm in the
-wall, the joint friction 1-3e-3 N m s/rad. A matching board must never "differ" and a
-heavier one never be "within", nor any of their statements (exit 1 on either); "not
-measurable" with its reason is an honest answer.
+wall, the joint friction 1-3e-3 N m s/rad. A matching board must never "differ", nor
+any of its statements; a heavier one never be "within", nor any statement whose true
+deviation (the same measurement in lockstep, the heavier board as its plant) is beyond
+twice the uncertainty stated: a statement "within" nearer than that is true (exit 1 on
+either); "not measurable" with its reason is an honest answer.
 """
 
 from __future__ import annotations
@@ -64,6 +66,18 @@ def wall_scenes(rng, cases: int, folder: Path) -> list:
     return out
 
 
+def _truth(run: str, heavier: str, generation: str) -> dict:
+    """Each statement's true deviation of the heavier board's loop from the scene's
+    prediction: the same measurement in lockstep on a clean stream
+    (:func:`hapsim.emulated.haply2_lockstep.measure_felt_haply2` with the heavier board's
+    scene as its plant, the run's encoder), by statement name."""
+    from hapsim.commands.run_haply2 import HAPLY_CPR
+    from hapsim.scene import load_scene_nd
+    r = measure_felt_haply2(load_scene_nd(run), generation, cpr=HAPLY_CPR,
+                            plant=load_scene_nd(heavier))
+    return {st["name"]: float(st["deviation"]) for st in r["statements"]}
+
+
 def main_wall(args) -> int:
     """``--clock wall`` (module notes): one line per run, then the counts."""
     import contextlib
@@ -98,10 +112,21 @@ def main_wall(args) -> int:
                 except ValueError:
                     v, why = f"exit {code}", err.getvalue().strip().splitlines()[-1:]
                     said = []
-                # (each statement too: a heavier board's "partly within" states some
-                # quantity within that differs)
-                false = "differs" if side == "matching" else "within"
-                bad = v == false or false in said
+                # (each statement too: a matching board's statement never "differs"; a
+                # heavier board's "within" is wrong where its loop's true deviation along
+                # it is beyond twice the uncertainty stated: the measurement then left its
+                # uncertainty, as tests/test_wire_rounding.py's leg-inertia property
+                # reads it. A 30 % heavier 2DIY moves each felt quantity ~0.23 (the poles
+                # over the scene's mass), and a damping the records hardly fix is stated
+                # with more: "within" it is then true, as the 1-D fuzz's verdict is)
+                if side == "matching":
+                    bad = v == "differs" or "differs" in said
+                else:
+                    truth = _truth(run, heavier, rep.get("generation", "gen3"))
+                    far = [st["name"] for st in rep.get("statements", [])
+                           if st["verdict"] == "within"
+                           and truth.get(st["name"], 0.0) > 2.0 * st["uncertainty"]]
+                    bad = v == "within" or bool(far)
                 wrong += bad
                 counts[side, v] = counts.get((side, v), 0) + 1
                 print(f"press {kp:.0f} N/m, wall {kw:.0f} N/m, friction {fr:.2g}, {side}: "
