@@ -157,9 +157,8 @@ def _in_range(k: Key, x: float, where: tuple) -> None:
         else:
             msg = f"must be <= {hi:g}{unit}, got {num(x)}"
         # (the why is the largest value's: a value below the range gets none)
-        above = not below
-        raise Invalid(msg + (f": {k.why_text()}" if k.why and explained and above else ""),
-                      where)
+        raise Invalid(msg + (f": {k.why_text()}" if k.why and explained and not below
+                             else ""), where)
 
 
 def _check_section(obj: Any, section: str, *where: Any) -> None:
