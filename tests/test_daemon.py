@@ -662,12 +662,11 @@ def test_a_real_time_run_says_when_a_force_a_period_late_runs_its_loop_away(tmp_
         # period behind: only by the lateness guard, on a host so far behind that the
         # device held a force older than every delay its loop is stable at (once in a
         # fresh clone's CI, beside the second pass: "the loop is stable up to 5 periods
-        # of delay"), which takes at least that many late ticks less its own delay
+        # of delay"; the guard counts nothing else), its late ticks in the record (one at
+        # least: a stall's backlog answered at its newest STATE counts one)
         assert code == 0 or (code == 1 and lp["safety_stop"]), (code, err, lp["stop_reason"])
         if code == 1 and not warned:
-            guard = lp["safety"]["late_guard"]
-            d = math.ceil(float(load_scene(scene).device.delay))
             assert "FORCEs came too late" in lp["stop_reason"], lp["stop_reason"]
-            assert lp["late"] >= guard["stable_to_periods"] - d + 1, (lp["late"], guard)
+            assert lp["late"] >= 1 and lp["safety"]["late_guard"]["stable_to_periods"] > 1
         ws = lp["warnings"]
         assert any("a FORCE a period late" in w for w in ws) is warned, ws
