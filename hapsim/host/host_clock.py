@@ -173,10 +173,11 @@ class HostClock:
                     sleep(max(remaining, 1000) * 1e-9)
                     remaining = deadline - mono_ns()
             elif remaining > 0 and settled is not None:
-                take(receive(0.0))
-                while not settled() and mono_ns() < deadline:
-                    sleep_until_ns(min(deadline, mono_ns() + 100_000))
+                while True:                 # (its answers read, then asked whether settled)
                     take(receive(0.0))
+                    if settled() or mono_ns() >= deadline:
+                        break
+                    sleep_until_ns(min(deadline, mono_ns() + 100_000))
                 deadline = min(deadline, mono_ns())     # (the next one a period on)
             elif remaining > 0:
                 # an absolute-deadline sleep, no spin: a SCHED_FIFO thread spinning to each
