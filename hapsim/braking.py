@@ -38,9 +38,8 @@ import numpy as np
 
 from hapsim.errors import dash
 
-__all__ = ["BRAKE_GAIN", "BRAKE_MAX_S", "REST_READINGS", "brake_damping", "brake_rest",
-           "gain_bound", "brake_mode_polynomial", "Brake",
-           "brake_text"]
+__all__ = ["BRAKE_GAIN", "BRAKE_MAX_S", "REST_READINGS", "IGNORED_TICKS", "brake_damping",
+           "brake_rest", "gain_bound", "brake_mode_polynomial", "Brake", "brake_text"]
 
 #: The braking's gain ``g = B T / m`` (module notes): stable for a delay up to 5 periods.
 BRAKE_GAIN = 0.25
@@ -52,6 +51,11 @@ REST_READINGS = 3
 #: The share of the workspace the coast left after the braking may take (the rest speed,
 #: :func:`brake_rest`).
 REST_SHARE = 0.01
+#: Ticks past the one a braking FORCE was due at (its seq plus the delay) after which a
+#: device still naming an older FORCE is taken as applying none of the host's: the braking
+#: gives way to STOP (the device zeroes its force at once, firmware_protocol/PROTOCOL.md
+#: §STOP) rather than leave it holding a stale force until its watchdog.
+IGNORED_TICKS = 3
 
 
 def brake_damping(mass, rate_hz: float):
@@ -270,7 +274,8 @@ class Brake:
         dict
             ``damping`` (a float in 1-D, else nested lists), ``periods``, ``seconds``,
             ``v_start``, ``v_end`` (floats in 1-D, else lists; None before two
-            readings), ``ended`` (``"rest"``, ``"time"``, ``"port"``...), ``late``.
+            readings), ``ended`` (``"rest"``, ``"time"``, ``"port"``, ``"ignored"``: the
+            device applied none of the host's FORCEs, STOP sent at once), ``late``.
         """
         def out(v):
             if v is None:
@@ -296,15 +301,22 @@ def brake_text(report: dict, damping_unit: str = "N s/m", speed_unit: str = "m/s
     -------
     str
         ``"braked after the stop: damping B unit over P periods (S s), speed v0 -> v1
-        unit, ended: E"``; an n-D braking's damping is its matrix's diagonal and its
-        speeds the largest component's magnitude.
+        unit, ended: E"`` (or, when the device took none of the host's FORCEs before it
+        began, ``"no braking after the stop: ..."``); an n-D braking's damping is its
+        matrix's diagonal and its speeds the largest component's magnitude.
     """
     def speed(v):
         return v if v is None or np.ndim(v) == 0 else float(np.max(np.abs(v)))
+    if report["ended"] == "ignored" and not report["periods"]:
+        return ("no braking after the stop: the device applied none of the host's FORCEs "
+                "(its last STATE named one more than the delay and "
+                f"{IGNORED_TICKS} ticks old): STOP sent at once")
     B = report["damping"]
     damp = (f"{B:.3g}" if np.ndim(B) == 0 else
             "diag(" + ", ".join(f"{float(x):.3g}" for x in np.diag(np.asarray(B))) + ")")
     return (f"braked after the stop: damping {damp} {damping_unit} over "
             f"{report['periods']} periods ({report['seconds']:.3f} s), speed "
             f"{dash(speed(report['v_start']), '.3g')} -> {dash(speed(report['v_end']), '.3g')} "
-            f"{speed_unit}, ended: {report['ended']}")
+            f"{speed_unit}, ended: {report['ended']}"
+            + (" (the device applied none of the braking's FORCEs: STOP sent)"
+               if report["ended"] == "ignored" else ""))

@@ -251,25 +251,37 @@ def test_compiled_equals_python_on_a_faulty_stream_with_a_reset(seed):
     assert np.any(flags & 2) and np.any(flags & 4)          # FLAG_LOST, FLAG_RAMP
 
 
-@pytest.mark.parametrize("kind", ["non-finite", "position", "clamp", "late"])
+@pytest.mark.parametrize("kind", ["non-finite", "position", "clamp", "late", "open"])
 def test_compiled_equals_python_on_safety_stops(kind):
     """Each safety stop ends both loops on the same sample with the same reason ("late":
     from tick 150 on the device names each FORCE for 12 ticks, the holds of a host 11
-    periods away after each answer, and the lateness guard stops the shipped wall)."""
+    periods away after each answer, and the lateness guard stops the shipped wall;
+    "open": from tick 150 on it names FORCE 150 - d for ever, a hold that never ends, and
+    the guard stops the wall inside it; the device then takes none of the host's FORCEs,
+    so the host sends no braking, only the zero FORCE and STOP)."""
     rng = np.random.default_rng(3)
     frames = []
     for j in range(300):
         x = 0.003 * math.sin(j / 30.0)
         if j == 200:
-            x = {"non-finite": math.nan, "position": 0.2, "clamp": x, "late": x}[kind]
+            x = {"non-finite": math.nan, "position": 0.2}.get(kind, x)
         if kind == "clamp" and j > 150:
             x = -0.02                                     # the wall pushes at the limit
         held = j - D - (j - D) % 12 if kind == "late" and j > 150 else None
+        if kind == "open" and j > 150:
+            held = 150 - D
         frames.append((j, state(j, x, fseq=held)))
-    a, b = both([chunked(frames, rng)], 290, late_growth=late_growth(load_scene(WALL), 0.05))
+    a, b = both([chunked(frames, rng)], 290, late_growth=late_growth(load_scene(WALL), 0.05),
+                brake_damping=25.0 if kind == "open" else 0.0)
     assert_same(a, b)
     assert b[0].safety_stop and b[0].samples < 290
-    assert ("too late for the scene's loop" in b[0].stop_reason) == (kind == "late")
+    assert ("too late for the scene's loop" in b[0].stop_reason) == (kind in ("late", "open"))
+    if kind == "open":
+        for res, tel, dev, _ in (a, b):
+            assert res.brake["ended"] == "ignored" and res.brake["periods"] == 0
+            # one FORCE a row, then the zero FORCE, then STOP
+            assert len(dev.forces) == tel.n + 1 and dev.forces[-1][1] == 0.0
+            assert dev.stops == 1
 
 
 def test_force_frames_equal_the_protocol_encoder():

@@ -22,7 +22,7 @@ import pytest
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.stability import stability_limit
 from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP, LateGrowth,
-                                        hold_growth, late_growth_step)
+                                        hold_growth, late_growth_step, open_hold_growth)
 from hapsim.analysis.late_growth import late_growth, min_cost_assignment
 from hapsim.scene import parse_scene
 from tolerance import sum_tol  # same directory
@@ -108,6 +108,38 @@ def test_the_cumulative_growth_of_uniform_holds_is_their_count_times_one_hold():
         assert acc == [max(0.0, hold_growth(3, row, guard.step)) for row in tables]
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_an_open_hold_stops_where_the_same_hold_ended_at_the_next_tick_would(seed):
+    """Random tables (growing, decaying, neither), sums, delays and holds: the open count
+    at the hold's last tick exceeds the stop exactly where the sums already did or the
+    hold, ended at the next tick by an on-time FORCE (:func:`late_growth_step`), makes them
+    do so; it is never below the sums; a STATE naming no FORCE, and an on-time one, count
+    no open hold. (Exact comparisons: both sides add the same two floats.)"""
+    rng = np.random.default_rng(seed)
+    for _ in range(400):
+        modes, n = int(rng.integers(1, 5)), int(rng.integers(2, 12))
+        tables = np.cumsum(np.c_[np.zeros(modes), rng.normal(rng.normal(0, 0.3), 0.3,
+                                                             (modes, n))], axis=1)
+        step = float(rng.integers(1, 4))
+        acc = list(rng.uniform(0.0, 0.8, modes) * (rng.random(modes) < 0.7))
+        d, f_prev = int(rng.integers(0, 6)), int(rng.integers(0, 2 ** 32))
+        h = int(rng.integers(0, 3 * n * int(step)))
+        seq = (f_prev + d + h - 1) & 0xFFFFFFFF          # the hold's h-th tick
+        lag = (seq - f_prev) & 0xFFFFFFFF
+        for tabs in (tables, [list(r) for r in tables]):
+            now = open_hold_growth(acc, f_prev, seq, lag, d, tabs, step)
+            assert now >= max(acc)
+            ended = list(acc)
+            nxt = (f_prev + h) & 0xFFFFFFFF                # named at tick seq + 1, on time
+            late_growth_step(ended, f_prev, nxt, d, tabs, step)
+            if h > 1:
+                assert (now > LATE_GROWTH_STOP) == (max(acc) > LATE_GROWTH_STOP
+                                                    or max(ended) > LATE_GROWTH_STOP)
+            else:
+                assert now == max(acc)
+            assert open_hold_growth(acc, f_prev, seq, -1, d, tabs, step) == max(acc)
+
+
 def test_a_mode_that_decays_on_time_pays_back_its_own_growth_not_the_slowest_modes():
     """configs/string.yaml: the mode that grows under lateness (the handle on the string,
     10.9 Hz) decays on time at 5.6e-3 a period, while the slowest mode on time (8.8 Hz)
@@ -184,6 +216,72 @@ def test_a_host_too_late_for_the_loop_is_stopped_before_it_runs_away_and_not_oth
         elif c["kind"] == "decayed":
             assert on.stop_reason == "duration", (c["G"], on.stop_reason)
     assert seen["fast"] >= 3 and seen["decayed"] >= 3, seen
+
+
+def _hold_alone_would_stop(tel, guard, rest, d=1):
+    """Rows (but the last) in which the hold the device was in, ended at the next tick,
+    would alone have grown the loop past the stop (the table's growth of a hold of
+    ``h = named_delay - d + 1`` ticks, every sum at 0) while the handle moved faster than ``rest`` (the loop's backward difference,
+    over the skipped STATEs too)."""
+    from hapsim.kernels.ticks import named_delay
+    cols = tel.columns()
+    x, seq, fs, st = cols["position"], cols["seq"], cols["force_seq"], cols["status"]
+    sk_rows, sk_x, _ = tel.skipped()
+    tables = guard.array()
+    applied, out = False, []
+    for i in range(len(x) - 1):
+        applied = applied or bool(st[i] & 0x80)
+        before = sk_x[sk_rows == i]
+        x_prev = before[-1] if before.size else (x[i - 1] if i else x[i])
+        lag = named_delay(int(seq[i]), int(fs[i]), int(st[i]), applied)
+        if lag < 0 or abs(x[i] - x_prev) * 1000.0 <= rest:
+            continue
+        h = lag + 1 - d
+        if h > 1 and max(hold_growth(h, row, guard.step) for row in tables) > LATE_GROWTH_STOP:
+            out.append(i)
+    return out
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_a_link_that_makes_every_answer_late_is_stopped_inside_its_hold_with_stop(seed):
+    """Random walls stable on time on a link that holds the device's frames (5-50 % of
+    them 6-40 ms, in order: answers late for as long as a hold lasts, and the first hold
+    may never end; ``python tools/late_guard.py --family "late link"``), each run without
+    the guard and with it:
+
+    - the guarded run is the same run until it stops, and stops no later;
+    - it never goes on past a row whose hold alone, ended there, would have grown the
+      loop past the stop while the handle moved: the hold the device is in counts (before
+      2026-11-29 a hold counted only once the device named a newer FORCE, and a link that
+      made every answer late ran to the bounds: ``docs/reliability.md``);
+    - where its last STATE named a FORCE more than ``d + IGNORED_TICKS`` ticks old (the
+      device took none of the host's answers), it sent no braking FORCE, only the zero
+      FORCE and STOP, which the device takes at once;
+    - a loop that decays without the guard is never stopped by it."""
+    import firmware_protocol as fp
+    from hapsim.braking import IGNORED_TICKS
+    rng = np.random.default_rng(seed)
+    seen = {"ran away": 0, "decayed": 0, "other": 0, "inside": 0}
+    for _ in range(10):
+        c = lg.case(rng, "late link")
+        seen[c["kind"]] += 1
+        on, off, t_on = c["on"], c["off"], c["t_on"]
+        guard = late_growth(parse_scene(c["text"]), WATCHDOG_S)
+        n = on.samples
+        assert n <= off.samples, c["faults"]
+        for col in ("position", "force", "seq", "force_seq"):
+            np.testing.assert_array_equal(t_on.columns()[col][:n - 1],
+                                          c["t_off"].columns()[col][:n - 1])
+        assert _hold_alone_would_stop(t_on, guard, 1e-3) == [], c["faults"]
+        if c["kind"] == "decayed":
+            assert on.stop_reason == "duration", (c["faults"], on.stop_reason)
+        if on.safety_stop and lg.open_hold(on, t_on) > IGNORED_TICKS:
+            seen["inside"] += lg.guard_stop(on)
+            assert on.brake["ended"] == "ignored" and on.brake["periods"] == 0, on.brake
+            sent = on.transport.sent
+            assert type(sent[-1]) is fp.Stop and sent[-2].force == (0.0,), sent[-2:]
+            assert on.transport.mock.stats.saw_stop
+    assert seen["inside"] >= 3, seen
 
 
 @pytest.mark.parametrize("seed", [4, 10])

@@ -347,3 +347,23 @@ def test_standalone_mock_with_faults_behind_a_link(tmp_path, wall):
     seen = json.load(open(tmp_path / "mock.json"))
     assert [e["name"] for e in seen["fault_events"]] == ["vanish"]
     assert seen["faults_injected"]["drop"] > 0 and seen["last_applied"] == 0.0
+
+
+def test_a_link_that_holds_every_answer_late_is_stopped_with_stop_not_braking():
+    """``configs/first_wall.yaml`` on a link that holds a fifth of the device's frames
+    30 ms (``spike=0.2:30ms``): from its fifth STATE on every answer comes after its tick,
+    and the device names one FORCE until its watchdog (docs/reliability.md, "A hold that
+    never ends"). The lateness guard counts the hold the device is in and stops the run
+    inside it, within the position bound; the device having taken none of the host's
+    answers, no braking FORCE is sent (it would be as late), only the zero FORCE and STOP.
+    Before 2026-11-29 the run went on until the handle reached the position bound
+    (-0.1055 m), then sent 73 braking FORCEs the device ignored."""
+    code, out, err = hapsim_main(["run", "configs/first_wall.yaml", "--duration", "0.3",
+                                  "--faults", "spike=0.2:30ms", "--json"])
+    assert code == 1, err[-1500:]
+    lp = json.loads(out)["loop"]
+    assert "too late for the scene's loop" in lp["stop_reason"], lp["stop_reason"]
+    assert lp["brake"]["ended"] == "ignored" and lp["brake"]["periods"] == 0, lp["brake"]
+    assert lp["mock"]["saw_stop"] and lp["mock"]["last_host_message"] == "Stop"
+    ctx = lp["safety_context"]
+    assert abs(ctx["position_last_m"]) < lp["safety"]["position_limit"], ctx

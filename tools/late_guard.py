@@ -22,6 +22,7 @@ Usage::
 
     python tools/late_guard.py                     # seeds 1-4, 20 cases each
     python tools/late_guard.py --seeds 7 8 --cases 14
+    python tools/late_guard.py --family "late link" --seeds 1 2 --cases 20
     python tools/late_guard.py --rates
     python tools/late_guard.py --plot docs/late_guard.png
 
@@ -108,20 +109,44 @@ class AwayHost(SimTransport):
 
 
 def run(text: str, away_us: int, guard: bool, n: int = 3000, chance: float = 1.0,
-        seed: int = 0, rest: float = 1e-3):
+        seed: int = 0, rest: float = 1e-3, faults: str = ""):
     """The host loop on the mock, the host away ``away_us`` after each answer (or after
     each with ``chance``), with or without the guard (its rest speed ``rest`` [m/s], the
-    braking's); ``(LoopResult, Telemetry)``."""
+    braking's), the link's ``faults`` (:mod:`hapsim.emulated.faults`, seeded with
+    ``seed``); ``(LoopResult, Telemetry)``, the transport (its ``mock``, its ``sent``
+    messages) as the result's ``transport``."""
     scene = parse_scene(text)
     mock = MockDevice(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=False)
-    tr = AwayHost(mock, parse_faults("", 1), away_us=away_us, chance=chance, seed=seed)
+    tr = AwayHost(mock, parse_faults(faults, seed), away_us=away_us, chance=chance, seed=seed)
+    tr.sent = []
     tel = Telemetry(n)
     cfg = LoopConfig(rate_hz=1000.0, n_samples=n, delay=1, force_limit=LIMIT,
                      watchdog_us=int(WATCHDOG_S * 1e6), position_bound=0.1,
                      brake_damping=25.0, brake_rest=rest,
                      late_growth=late_growth(scene, WATCHDOG_S) if guard else None)
     res = HostLoop(Engine(scene), tr, cfg, tel).run()
+    res.transport = tr
     return res, tel
+
+
+def coast_rest(mock, seconds: float = 5.0) -> float:
+    """Where the mock's handle comes to rest [m] from where the run left it (a STOP or the
+    end disarms the mock and freezes its physics), on its friction alone: zero force for
+    ``seconds``."""
+    ph = mock.physics
+    for _ in range(int(seconds * 1000)):
+        ph.advance(0.0)
+    return float(ph.x)
+
+
+def open_hold(res, tel, d: int = 1) -> int:
+    """Ticks the device had held the FORCE its last STATE names beyond the on-time one
+    (``named_delay - d``; 0 on time, -1 if it names none)."""
+    from hapsim.kernels.ticks import named_delay
+    cols = tel.columns()
+    lag = named_delay(int(cols["seq"][-1]), int(cols["force_seq"][-1]),
+                      int(cols["status"][-1]), True)
+    return lag - d if lag >= 0 else -1
 
 
 def envelope(tel, lo: float, hi: float) -> float:
@@ -145,12 +170,24 @@ def case(rng, family: str = "wall") -> dict:
     answer. "two masses": the handle on a virtual mass held to ground (two modes; drawn
     again until the loop is stable on time), the host away ``G`` periods after an answer
     with a chance of 2-40 %: stalls now and then, of a mode that may decay on time much
-    faster than the other."""
+    faster than the other. "late link": a wall stable on time (0.2-0.9 of its stiffness
+    limit at d = 1), the host never away, and a link that holds the device's frames
+    (``spike``, 5-50 % of them held 6-40 ms, in order): answers late for as long as a
+    hold lasts, and a hold that may never end (``docs/reliability.md``, "A hold that
+    never ends"); ``G`` is then 0 and ``faults`` the link's."""
     from hapsim.analysis.prediction import predict
     m, b = rng.uniform(0.05, 0.3), rng.uniform(0.2, 2.0)
     G = int(rng.integers(2, 31))
     chance = 1.0
-    if family == "wall":
+    faults = ""
+    if family == "late link":
+        B = rng.uniform(0.3, 3.0)
+        Kl = stability_limit(LoopModel(mass=m, friction=b, rate_hz=1000.0, delay=1,
+                                       hold="zoh"), B)
+        text = wall(Kl * rng.uniform(0.2, 0.9), B, m, b)
+        G = 0
+        faults = f"spike={rng.uniform(0.05, 0.5):.3f}:{rng.uniform(6.0, 40.0):.1f}ms"
+    elif family == "wall":
         B = rng.uniform(0.3, 3.0)
         Kl = stability_limit(LoopModel(mass=m, friction=b, rate_hz=1000.0,
                                        delay=1 + G / 2, hold="zoh"), B)
@@ -163,17 +200,17 @@ def case(rng, family: str = "wall") -> dict:
                               10.0 ** rng.uniform(-3.0, 0.5), m, b)
             if predict(parse_scene(text), limit=False)["stable"]:
                 break
-    n = int(SECONDS / (1e-3 * (1.0 + chance * G)))
+    n = int(SECONDS / (1e-3 * (1.0 + chance * G))) if G else 3000
     seed = int(rng.integers(1 << 31))
-    off, t_off = run(text, G * 1000, False, n, chance, seed)
-    on, t_on = run(text, G * 1000, True, n, chance, seed)
+    off, t_off = run(text, G * 1000, False, n, chance, seed, faults=faults)
+    on, t_on = run(text, G * 1000, True, n, chance, seed, faults=faults)
     t_end = float(t_off.columns()["time"][-1])
     first, last = envelope(t_off, 0.0, 0.3), envelope(t_off, t_end - 0.3, t_end + 1.0)
     peak = max((envelope(t_off, t, t + 0.3) for t in np.arange(0.3, t_end, 0.3)), default=0.0)
     kind = ("ran away" if off.safety_stop
             else "decayed" if last < 0.5 * first and peak <= first else "other")
-    return {"G": G, "chance": chance, "text": text, "kind": kind, "off": off,
-            "t_off": t_off, "on": on, "t_on": t_on}
+    return {"G": G, "chance": chance, "faults": faults, "text": text, "kind": kind,
+            "off": off, "t_off": t_off, "on": on, "t_on": t_on}
 
 
 #: ``--rates``' walls: K [N/m], the hold [periods], and B [N s/m], mass [kg] and friction
@@ -232,11 +269,58 @@ def plot(path: str) -> None:
     print(f"wrote {path}")
 
 
+def late_link(seeds, cases: int) -> int:
+    """``--family "late link"``: per case that ran to a bound without the guard, where
+    each run stopped, how long the device had held the FORCE it last named, what the
+    braking did, and where the handle came to rest on its friction (:func:`coast_rest`);
+    then the counts. 1 when a guarded run sent a braking FORCE the device could not take
+    (its last STATE named a FORCE more than ``d + IGNORED_TICKS`` ticks old) or ended
+    later than the unguarded one."""
+    from hapsim.braking import IGNORED_TICKS
+    n = nearer = same = farther = inside = braked_ignored = later = decayed_stopped = 0
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        for _ in range(cases):
+            c = case(rng, "late link")
+            on, off = c["on"], c["off"]
+            if c["kind"] == "decayed" and on.stop_reason != "duration":
+                decayed_stopped += 1
+            if c["kind"] != "ran away":
+                continue
+            n += 1
+            r_off = abs(coast_rest(off.transport.mock))
+            r_on = abs(coast_rest(on.transport.mock))
+            held = open_hold(on, c["t_on"])
+            later += on.samples > off.samples
+            if held > IGNORED_TICKS:
+                inside += 1
+                braked_ignored += bool(on.brake.get("periods"))
+            nearer += r_on < r_off - 1e-6
+            same += abs(r_on - r_off) <= 1e-6
+            farther += r_on > r_off + 1e-6
+            t_on = float(c["t_on"].columns()["time"][-1])
+            t_off = float(c["t_off"].columns()["time"][-1])
+            print(f"seed {seed} {c['faults']:22s}: without the guard "
+                  f"{off.stop_reason.split(':')[1].strip()[:18]:18s} at {t_off:.3f} s, rest "
+                  f"{r_off * 1e3:7.1f} mm; guarded: "
+                  f"{'the guard' if guard_stop(on) else on.stop_reason[8:26]:18s} at "
+                  f"{t_on:.3f} s, held {held:3d} ticks, braking "
+                  f"{on.brake.get('ended', '-')}, rest {r_on * 1e3:7.1f} mm")
+    print(f"ran away without the guard: {n}; guarded, {inside} stopped inside a hold longer "
+          f"than d + {IGNORED_TICKS} ticks ({braked_ignored} of them sent braking FORCEs); "
+          f"{later} ended later than without")
+    print(f"the handle's rest on its friction, guarded against not: {nearer} nearer, "
+          f"{same} the same (the device's watchdog had zeroed the force before either "
+          f"stop), {farther} farther")
+    print(f"decayed without the guard, yet stopped by it: {decayed_stopped}")
+    return 1 if braked_ignored or later else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
     ap.add_argument("--cases", type=int, default=20, help="cases per seed")
-    ap.add_argument("--family", choices=("wall", "two masses"), default="wall",
+    ap.add_argument("--family", choices=("wall", "two masses", "late link"), default="wall",
                     help="the scenes and hosts drawn (module notes of case())")
     ap.add_argument("--rates", action="store_true",
                     help="the measured and estimated growth of uniform holds instead")
@@ -249,6 +333,8 @@ def main(argv=None) -> int:
     if a.rates:
         rates()
         return 0
+    if a.family == "late link":
+        return late_link(a.seeds, a.cases)
     counts = {"ran away": 0, "decayed": 0, "other": 0}
     worst, wrong, others, later, slow_stopped = 0.0, 0, 0, 0, 0
     fast, fast_guarded, fast_worst = 0, 0, 0.0     # ran away within FAST_S

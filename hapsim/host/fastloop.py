@@ -54,7 +54,7 @@ import numpy as np
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 from hapsim.host.fastloop_kernels import (
-    CACHE_OK, F_E0, F_EMAX, F_ENERGY, F_EXCESS, F_FMAX, F_GROWTH, F_LAST_RX, F_V, F_VMAX, F_X,
+    CACHE_OK, F_E0, F_EMAX, F_ENERGY, F_EXCESS, F_FMAX, F_GWORST, F_LAST_RX, F_V, F_VMAX, F_X,
     F_XMAX, F_XPREV, I_CLAMPED, I_CLAST, I_EXPECT, I_FAPPLIED, I_FRAMES_OK, I_GPREV, I_HIST,
     I_LAST_SEQ, I_LATE, I_MISSED, I_N, I_NF_SEQ, I_NMAX, I_PSAMPLES, I_RAMP, I_RB_LEN,
     I_RESTART, I_SAMPLES, I_SKIPFLAG, I_SKIPN, I_SKIPPED, I_SYNC, I_WSUM, KERNEL_NAMES, N_FV,
@@ -333,7 +333,7 @@ class CompiledHostLoop(HostLoop):
                                          float(fv[F_X]), self.config.position_bound,
                                          float(fv[F_V]), self.config.velocity_limit,
                                          float(fv[F_EXCESS]), self.config.energy_limit,
-                                         self._e0, float(fv[F_GROWTH:].max()),
+                                         self._e0, float(fv[F_GWORST]),
                                          self.config.late_growth, 1.0 / self.config.rate_hz)
         res.safety_stop = True
         self.stop.set = True

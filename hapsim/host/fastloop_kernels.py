@@ -40,6 +40,7 @@ from hapsim.kernels.late_growth import GROWTH_MODES as _GROWTH_MODES
 from hapsim.kernels.late_growth import GROWTH_POINTS as _GROWTH_POINTS
 from hapsim.kernels.late_growth import LATE_GROWTH_STOP as _LATE_GROWTH_STOP
 from hapsim.kernels.late_growth import late_growth_step as _late_growth_step
+from hapsim.kernels.late_growth import open_hold_growth as _open_hold_growth
 
 #: The sources this module's numba code compiles in (:mod:`hapsim.kernels.sources`).
 COMPILED_SOURCES = LOOP_SOURCES
@@ -49,7 +50,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "5e5759ad56ca7f35a6fd7d778e23907928194b217b70e8387588f13c48a0da17"
+COMPILED_SOURCES_SHA256 = "c38b339b8f9130bf45890e09aab9b766f495cb68d0586f2c715d5b43ba747f39"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -74,7 +75,8 @@ N_IV = 25
 F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
 F_GROWTH = 11               # the lateness guard's cumulative growths, one a mode [nepers]
-N_FV = F_GROWTH + _GROWTH_MODES
+F_GWORST = F_GROWTH + _GROWTH_MODES     # at a stop: the largest, its open hold counted
+N_FV = F_GWORST + 1
 # pv: float64 parameters
 (P_LIM, P_D, P_T, P_RATE, P_POS, P_VLIM, P_ELIM, P_PC, P_BMAX, P_CLAMP_MAX, P_RAMP_N, P_HL,
  P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD, P_COMPACT, P_CRATE) = range(19)
@@ -303,7 +305,7 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
     -------
     int
         R_OK, R_NONFINITE (nothing written; ``iv[I_NF_SEQ]`` = seq), R_SAFETY (row
-        logged; ``fv[F_X]``, ``fv[F_V]``, ``fv[F_EXCESS]``, ``fv[F_GROWTH:]`` say why) or
+        logged; ``fv[F_X]``, ``fv[F_V]``, ``fv[F_EXCESS]``, ``fv[F_GWORST]`` say why) or
         R_IOERR (the write failed).
     """
     d = np.int64(pv[P_D])
@@ -320,11 +322,10 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         g_n = np.int64(pv[P_GN]) + 1
         g_k = np.int64(pv[P_GK])
         acc = fv[F_GROWTH:F_GROWTH + g_k]
-        iv[I_GPREV] = _late_growth_step(
-            acc, iv[I_GPREV], force_seq,
-            _named_delay(seq, force_seq, status, iv[I_FAPPLIED] != 0),
-            pv[P_GTAB:P_GTAB + g_k * g_n].reshape((g_k, g_n)), g_step)
-        g_worst = acc.max()
+        lag = _named_delay(seq, force_seq, status, iv[I_FAPPLIED] != 0)
+        tabs = pv[P_GTAB:P_GTAB + g_k * g_n].reshape((g_k, g_n))
+        iv[I_GPREV] = _late_growth_step(acc, iv[I_GPREV], force_seq, lag, tabs, g_step)
+        g_worst = _open_hold_growth(acc, iv[I_GPREV], seq, lag, d, tabs, g_step)
     if math.isfinite(x):
         xs[port] = x
         _port_step(kind, kargs, rec, out)
@@ -415,6 +416,7 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         fv[F_X] = x
         fv[F_V] = v
         fv[F_EXCESS] = excess
+        fv[F_GWORST] = g_worst
         return R_SAFETY
     return R_OK
 

@@ -101,7 +101,7 @@ from hapsim.host.recovery import Recovery
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_RAMP
 from hapsim.errors import DeviceError
 from hapsim.kernels.late_growth import (LATE_GROWTH_STOP, late_growth_reason,
-                                        late_growth_step)
+                                        late_growth_step, open_hold_growth)
 from hapsim.kernels.ticks import named_delay, tick_late
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
@@ -442,10 +442,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 elif host_late:
                     lt = 1
                 if g_on:
-                    g_prev = late_growth_step(
-                        g_acc, g_prev, msg.force_seq,
-                        named_delay(seq, msg.force_seq, st, flags_applied), g_tables, g_step)
-                    g_worst = max(g_acc)
+                    lag = named_delay(seq, msg.force_seq, st, flags_applied)
+                    g_prev = late_growth_step(g_acc, g_prev, msg.force_seq, lag, g_tables,
+                                              g_step)
+                    g_worst = open_hold_growth(g_acc, g_prev, seq, lag, d, g_tables, g_step)
                 if poll is not None:
                     poll()
                 f = eng.port_step(x) if isfinite(x) else math.nan

@@ -10,7 +10,9 @@ which carries it ``v m / b`` further (a Hapkit paddle of 0.1 kg on 0.3 N s/m: 0.
 times its speed; a board without a watchdog holds the last force through a host stall,
 and once in a loaded suite a paddle woke the host 0.23 m out, beyond its 0.2 m
 workspace, still moving). The host instead answers each STATE with the damping
-``f = -B v`` (clamped to the force limit) until the device is at rest, then sends zero.
+``f = -B v`` (clamped to the force limit) until the device is at rest, then sends zero;
+a device that takes none of the host's FORCEs (a link that makes every answer late) is
+sent the zero FORCE and STOP at once instead (:data:`hapsim.braking.IGNORED_TICKS`).
 ``B = g m / T`` with ``g = BRAKE_GAIN``: the velocity then obeys
 ``v(k+1) = v(k) - g v(k - d)`` (a mass, a zero-order hold and ``d`` periods of delay,
 friction only helping), whose roots stay inside the unit circle for
@@ -33,8 +35,9 @@ from __future__ import annotations
 import math
 
 import firmware_protocol as fp
-from hapsim.braking import BRAKE_GAIN, BRAKE_MAX_S, Brake, brake_damping
-from hapsim.host.loop_types import OPEN_ENDED, SEQ_MASK, LostDevice, signame
+from hapsim.braking import BRAKE_GAIN, BRAKE_MAX_S, IGNORED_TICKS, Brake, brake_damping
+from hapsim.host.loop_types import OPEN_ENDED, SEQ_HALF, SEQ_MASK, LostDevice, signame
+from hapsim.kernels.ticks import named_delay
 from hapsim.host.telemetry import FLAG_LOST
 from hapsim.errors import DeviceError
 
@@ -51,6 +54,18 @@ def _stored_energy(engine) -> float:
         return 0.0
     e = float(fn())
     return e if math.isfinite(e) else 0.0
+
+
+def _names_older(state, seq0: int, d: int, applied: bool) -> bool:
+    """A STATE at least ``IGNORED_TICKS`` ticks past the tick FORCE ``seq0`` was due at
+    (``seq0 + d``) that still names an older FORCE as applied (or, on a device that flags
+    what it applies, none): the device took none of the braking's FORCEs."""
+    past = (state.seq - seq0 - d) & SEQ_MASK
+    if past >= SEQ_HALF or past < IGNORED_TICKS or state.force_seq < 0:
+        return False
+    if named_delay(state.seq, state.force_seq, state.status, applied) < 0:
+        return applied
+    return ((state.force_seq - seq0) & SEQ_MASK) >= SEQ_HALF
 
 
 class Recovery:
@@ -82,7 +97,11 @@ class Recovery:
         ``tools/independent_boards``: the Haply M3's joint 1.0-2.0 rad past its last
         reading, the Hapkit's paddle to its end stops 6 cm out, after runs that ended on
         their duration). Nothing after a non-finite reading, a lost device or any other
-        end. What it did is :attr:`LoopResult.brake`.
+        end. Nothing either, or no more, once the device is seen taking none of the host's
+        FORCEs (:meth:`_ignoring` before the first, :func:`_names_older` after): its
+        braking would be as late as every other answer, and the zero FORCE and STOP that
+        :meth:`_shutdown` sends next are what it applies at once (``ended``
+        ``"ignored"``). What it did is :attr:`LoopResult.brake`.
 
         Raises
         ------
@@ -104,10 +123,15 @@ class Recovery:
         t0 = clock()
         end = t0 + max(BRAKE_MAX_S, 3.0 * T)
         seq = (self._last_seq + 1) & SEQ_MASK
+        seq0 = seq                    # the braking's first FORCE
         prev_us = None                # device time [us] of the last STATE
         periods = late = 0
         ended = "time"
         last = t0
+        d, applied = int(cfg.delay), self._applied_seen
+        if self._ignoring(d, applied):
+            res.brake = law.report(0, 0.0, "ignored", 0)
+            return
         while clock() < end:
             f = float(law.command()[0])
             tr.send(fp.Force(seq, (f,)))
@@ -120,6 +144,9 @@ class Recovery:
                         and math.isfinite(msg.position[0]):
                     st = msg
             if st is not None:
+                if _names_older(st, seq0, d, applied):
+                    ended = "ignored"
+                    break
                 seq = st.seq
                 # the velocity on the device's clock: a repeated time restarts it
                 law.observe(st.position, None if prev_us is None or st.time_us == prev_us
@@ -136,6 +163,20 @@ class Recovery:
                 late += 1                 # the host itself late: a period held longer
             last = now
         res.brake = law.report(periods, clock() - t0, ended, late)
+
+    def _ignoring(self, d: int, applied: bool) -> bool:
+        """Whether the run's last STATE says the device applies none of the host's FORCEs:
+        it names one more than ``d + IGNORED_TICKS`` ticks old (a link that makes every
+        answer late: ``docs/reliability.md``, "A hold that never ends"). The braking's
+        FORCEs would be as late: STOP is what the device takes at once."""
+        n = self.tel.n
+        kept = self.tel.rows_in_memory()
+        if not kept or kept[-1][1] != n:
+            return False
+        sl = self.tel.slot(n - 1)
+        lag = named_delay(int(self.tel.seq[sl]), int(self.tel.force_seq[sl]),
+                          int(self.tel.status[sl]), applied)
+        return lag > d + IGNORED_TICKS
 
     def _state_timeout(self) -> None:
         tr = self.transport

@@ -30,7 +30,11 @@ growth slower than the estimate's own error is not counted, and left to the boun
 Each mode's holds are summed as a one-sided cumulative sum (Page, "Continuous
 inspection schemes", *Biometrika* 41, 1954): ``G_k <- max(0, G_k + g_k(h))``, so that
 on-time periods (``h = 1``: ``c_k(d) <= 0``, the mode's own decay) pay back what a stall
-put in, and a host late often enough to outrun that decay makes ``G_k`` climb. At
+put in, and a host late often enough to outrun that decay makes ``G_k`` climb. The hold
+a STATE is in is counted too, as if it ended at the next tick (:func:`open_hold_growth`):
+a link that makes every answer late never ends its first hold (the device names one FORCE
+until its watchdog; ``docs/reliability.md``, "A hold that never ends"), and is stopped as
+soon as that hold has grown the loop as far as an ended one would have. At
 ``max_k G_k > LATE_GROWTH_STOP`` (``ln 2``: the lateness alone doubled a mode's amplitude,
 on the frozen estimate) the host loop stops and brakes, naming the lateness
 (:meth:`hapsim.host.loop.HostLoop._drive`, the compiled loop the same way), once the
@@ -67,7 +71,8 @@ import numpy as np
 from numba.extending import register_jitable
 
 __all__ = ["LATE_GROWTH_STOP", "LATE_GROWTH_SLACK", "GROWTH_POINTS", "GROWTH_MODES",
-           "LateGrowth", "hold_growth", "late_growth_step", "late_growth_reason"]
+           "LateGrowth", "hold_growth", "late_growth_step", "open_hold_growth",
+           "late_growth_reason"]
 
 #: The guard's bound on the cumulative growth [nepers]: the lateness doubled the loop.
 LATE_GROWTH_STOP = math.log(2.0)
@@ -192,6 +197,61 @@ def late_growth_step(acc, f_prev, force_seq, lag, tables, step):
         a = acc[k] + hold_growth(h, tables[k], step)
         acc[k] = a if a > 0.0 else 0.0
     return force_seq
+
+
+@register_jitable
+def open_hold_growth(acc, f_prev, seq, lag, d, tables, step):
+    """The largest mode's cumulative growth with the hold still open counted (module notes).
+
+    A hold is added to the sums when it ends (:func:`late_growth_step`); a link that makes
+    every answer late never ends it, and the device holds one force until its watchdog
+    (``docs/reliability.md``, "A hold that never ends"). So each STATE also counts the hold
+    it is in as if it ended at the next tick: the FORCE ``f_prev`` still named at tick
+    ``seq`` has been held ``h = seq - f_prev - d + 1`` ticks, and each mode's sum is read
+    as ``acc_k + g_k(h)``. On time (``h = 1``: ``g_k(1) = c_k(d) <= 0``) that is no more
+    than ``acc_k``; a hold that stops the run once ended stops it as soon as it has grown
+    the loop that far, not when (if ever) the device names a newer FORCE.
+
+    Parameters
+    ----------
+    acc : sequence of float, length modes
+        Each mode's cumulative growth [nepers], as :func:`late_growth_step` left it for
+        this STATE (not changed).
+    f_prev : int
+        The FORCE named last, as :func:`late_growth_step` returned it for this STATE
+        (-1: none yet).
+    seq : int
+        This STATE's ``seq``.
+    lag : int
+        Its :func:`hapsim.kernels.ticks.named_delay` (-1: it names no FORCE; then no open
+        hold is counted).
+    d : int
+        The scene's delay [ticks].
+    tables : sequence of sequence of float, shape (modes, n + 1)
+        :attr:`LateGrowth.table`.
+    step : float
+        :attr:`LateGrowth.step` [ticks].
+
+    Returns
+    -------
+    float
+        ``max(max_k acc_k, max_k (acc_k + g_k(h)))`` [nepers] (the first alone when the
+        STATE names no FORCE or the hold is one tick or less).
+    """
+    worst = 0.0
+    for k in range(len(acc)):
+        if acc[k] > worst:
+            worst = acc[k]
+    if lag < 0 or f_prev < 0:
+        return worst
+    h = ((seq - f_prev) & _MASK) + 1 - d
+    if h <= 1 or h >= _HALF:
+        return worst
+    for k in range(len(acc)):
+        a = acc[k] + hold_growth(h, tables[k], step)
+        if a > worst:
+            worst = a
+    return worst
 
 
 def late_growth_reason(acc: float, guard: LateGrowth, period: float) -> str:
