@@ -93,3 +93,39 @@ def test_the_clamp_stop_is_the_loops_own_reason():
     assert clamp.startswith(lv.CLAMP_STOP) and not away.startswith(lv.CLAMP_STOP)
     assert not lv.left_workspace({"safety_stop": True, "stop_reason": clamp})
     assert lv.left_workspace({"safety_stop": True, "stop_reason": away})
+
+
+def test_a_safety_stop_s_verdict_names_its_own_cause():
+    """Each safety stop the loops write withdraws "within" with its own cause: only a
+    position bound says the device left its workspace (the lateness guard's stop and a
+    driver's lateness stop said so too, before 2026-11-29); the clamp withdraws nothing."""
+    from hapsim.host.loop import safety_reason
+    from hapsim.kernels.late_growth import LateGrowth, late_growth_reason
+    guard = LateGrowth(((0.0, 1.0),), 1.0, 5, 1)
+    stops = {
+        safety_reason(0, 50, 100, 10.0, 0.2, 0.1, 0.0, 1.0, 0.0, 1.0):
+            "the device left its workspace",
+        safety_reason(0, 50, 100, 10.0, 0.0, 0.1, 3.0, 1.0, 0.0, 1.0):
+            "the device passed its speed limit",
+        safety_reason(0, 50, 100, 10.0, 0.0, 0.1, 0.0, 1.0, 2.0, 1.0):
+            "the scene gave the hand more energy than its limit",
+        safety_reason(0, 50, 100, 10.0, 0.0, 0.1, 0.0, 1.0, 0.0, 1.0, 0.0, 0.8, guard, 1e-3):
+            "the device held the host's forces longer than the scene's delay",
+        late_growth_reason(0.8, guard, 1e-3):
+            "the device held the host's forces longer than the scene's delay",
+        "safety: the host was 61 ms late over its last 100 ticks: it cannot hold 1000 Hz":
+            "the host fell behind the device's rate",
+        "safety: non-finite position or force": "a position or force was not finite",
+    }
+    for reason, cause in stops.items():
+        m = {"within": True, "verdict": "within"}
+        lv.link_verdict(m, {"safety_stop": True, "stop_reason": reason, "ticks": 100,
+                            "rate_hz": 1000.0})
+        assert m["within"] is False and m["verdict"].startswith("not measurable"), reason
+        assert f"({reason}): {cause}, the record" in m["verdict"], m["verdict"]
+        assert ("workspace" in m["verdict"]) == reason.startswith("safety: position")
+    clamp = safety_reason(50, 50, 100, 10.0, 0.0, 0.1, 0.0, 1.0, 0.0, 1.0)
+    m = {"within": True, "verdict": "within"}
+    lv.link_verdict(m, {"safety_stop": True, "stop_reason": clamp, "ticks": 100,
+                        "rate_hz": 1000.0})
+    assert m["within"] is True and m["link"]["reason"] is None

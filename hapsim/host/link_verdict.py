@@ -4,9 +4,11 @@ board was re-synchronised more often than stated, does not say "within".
 A measurement compares the free response the host recorded with the THS prediction
 (Florens, Voda & Urma). Two things make the record something else than that loop:
 
-- **the workspace left**: a safety stop (``|x|`` beyond the scene's
-  ``safety.position_limit``, a speed or an energy beyond theirs) ended the loop; the
-  record before it is a loop that ran away, not the THS. A stop on the host's own force
+- **a safety stop**: ``|x|`` beyond the scene's ``safety.position_limit``, a speed or
+  an energy beyond theirs, or a host or link that fell behind the device (the lateness
+  guard, a driver's lateness stop) ended the loop; the record before it is a loop that
+  ran away or one with another delay, not the THS (the verdict names which,
+  :func:`stop_cause`). A stop on the host's own force
   clamp (:data:`CLAMP_STOP`: the force at the limit in half the last samples) is not
   one: the device stayed inside its bounds and every clamped force is a known input of
   the measurement (replayed from the logged positions, or its rows left out,
@@ -45,7 +47,7 @@ from __future__ import annotations
 import math
 
 __all__ = ["MAX_RESYNCS_PER_S", "RESYNC_BLIND_S", "BLIND_SHARE", "CLAMP_STOP",
-           "resync_bound", "link_verdict", "left_workspace"]
+           "resync_bound", "link_verdict", "left_workspace", "stop_cause"]
 
 #: How a stop on the host's force clamp begins (:func:`hapsim.host.loop.safety_reason`).
 CLAMP_STOP = "safety: force at the limit"
@@ -108,9 +110,9 @@ def link_verdict(measured: dict, loop: dict) -> bool:
     reasons = []
     failed = False
     if left_workspace(loop):
-        reasons.append(f"the run ended on a safety stop ({loop.get('stop_reason')}): the "
-                       "device left its workspace or its limits, the record is no free "
-                       "response of the loop")
+        reason = str(loop.get("stop_reason") or "")
+        reasons.append(f"the run ended on a safety stop ({reason}): {stop_cause(reason)}, "
+                       "the record is no free response of the loop")
     if dl and resyncs > bound:
         failed = True
         reasons.append(f"the board was re-synchronised {resyncs} times, more than the "
@@ -124,10 +126,48 @@ def link_verdict(measured: dict, loop: dict) -> bool:
     return failed
 
 
+#: A safety stop's beginning, and what it says of the record (:func:`stop_cause`).
+_CAUSES = (
+    ("safety: position", "the device left its workspace"),
+    ("safety: velocity", "the device passed its speed limit"),
+    ("safety: leg", "the device left its workspace"),
+    ("safety: fader", "the device left its workspace"),
+    ("safety: the handle went", "the device left its workspace"),
+    ("safety: the host's FORCEs came too late",
+     "the device held the host's forces longer than the scene's delay"),
+    ("safety: the host was", "the host fell behind the device's rate"),
+    ("safety: the scene gave the hand", "the scene gave the hand more energy than its limit"),
+    ("safety: non-finite", "a position or force was not finite"),
+)
+
+
+def stop_cause(stop_reason: str) -> str:
+    """What a safety stop says of its run's record, for the verdict's reason.
+
+    Parameters
+    ----------
+    stop_reason : str
+        The run's ``stop_reason`` (the host loop's :func:`hapsim.host.loop.safety_reason`,
+        the lateness guard's, a driver's or an emulated board's safety stop).
+
+    Returns
+    -------
+    str
+        E.g. "the device left its workspace" for a position bound, "the device held the
+        host's forces longer than the scene's delay" for the lateness guard; "the run
+        stopped before its end" for a reason not listed.
+    """
+    for head, cause in _CAUSES:
+        if stop_reason.startswith(head):
+            return cause
+    return "the run stopped before its end"
+
+
 def left_workspace(loop: dict) -> bool:
-    """Whether a run's safety stop means its device left its workspace or its limits
-    (position, speed, the energy given to the hand), not the host's force clamp alone
-    (module notes).
+    """Whether a run's safety stop withdraws its verdict: every safety stop but the host's
+    force clamp alone (module notes): the device left its workspace or its limits
+    (position, speed, the energy given to the hand), or the host or the link fell behind
+    it (:func:`stop_cause` says which).
 
     Parameters
     ----------
