@@ -673,6 +673,58 @@ def test_passivity_observer_measures_the_work_done_on_the_hand():
     assert 0.0 < res.energy_excess_max == pytest.approx(res.energy_max - stored, rel=1e-12)
 
 
+class WorkMock(RecordingMock):
+    """The mock, recording per tick its ``seq``, the force its actuator held over the
+    period and the handle's displacement over it (its own plant, not its STATEs)."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.work = []
+
+    def tick(self, now_us):
+        ph = self.physics
+        x0 = ph.x if ph is not None else 0.0
+        st = super().tick(now_us)
+        if st is not None:
+            self.work.append((st.seq, float(self._u), ph.x - x0))
+        return st
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_observer_measures_the_work_the_device_did_on_any_link(seed):
+    """Random walls, on time, on links that hold the device's frames (spikes: answers late
+    for as long as a hold lasts) and with hosts that take 0-5 periods a FORCE (the backlog
+    skipped): the observer's energy is the work the device's actuator did on the handle,
+    ``sum_n u_n (x_(n+1) - x_n)`` from the mock's own per-tick trace, over the ticks the
+    host read (its first STATE to its last), to the sum's round-off: the force held, as the
+    STATEs name it, not the force sent. (Before 2026-11-29 the observer took FORCE
+    ``k - d`` as held: -0.06 J on a late link where the device gave the hand +0.29 J.)"""
+    from tolerance import sum_tol          # same directory
+    rng = np.random.default_rng(seed)
+    seen = {"late": 0, "skipped": 0}
+    for _ in range(12):
+        K, B = rng.uniform(100.0, 1500.0), rng.uniform(0.5, 3.0)
+        spec = (f"spike={rng.uniform(0.01, 0.3):.3f}:{rng.uniform(2.0, 30.0):.1f}ms"
+                if rng.random() < 0.6 else "")
+        away = int(rng.integers(0, 5001)) if rng.random() < 0.5 else 0
+        scene = parse_scene(wall(K, B))
+        mock = WorkMock(scene.device, scene.excitation, native_rate_hz=1000.0,
+                        lockstep=False)
+        tr = SimTransport(mock, parse_faults(spec, int(rng.integers(1 << 30))),
+                          host_latency_us=away)
+        tel = Telemetry(1500)
+        res = HostLoop(Engine(scene), tr, LoopConfig(
+            rate_hz=1000.0, n_samples=1500, delay=1, force_limit=LIMIT,
+            watchdog_us=WATCHDOG_US, position_bound=0.1, energy_limit=100.0), tel).run()
+        assert res.lost == 0, (spec, away, res.stop_reason)
+        seq = tel.columns()["seq"]
+        terms = [u * dx for n, u, dx in mock.work if seq[0] <= n < seq[-1]]
+        assert res.energy == pytest.approx(sum(terms), rel=0, abs=sum_tol(terms)), (spec, away)
+        seen["late"] += res.late > 0
+        seen["skipped"] += res.skipped > 0
+    assert seen["late"] >= 4 and seen["skipped"] >= 4, seen
+
+
 def _active(scene, damping):
     """The scene with its link's damping replaced by ``damping`` (negative: an active
     element). A scene file may not hold a negative B; a calibrated link may (the device's

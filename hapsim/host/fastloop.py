@@ -67,6 +67,7 @@ from hapsim.host.loop import HostLoop, LostDevice, safety_reason
 from hapsim.kernels.compiled_io import CRC_TABLE as _CRC
 from hapsim.kernels.compiled_io import force_compact_frame as _force_compact_frame
 from hapsim.kernels.compiled_io import force_frame as _force_frame
+from hapsim.kernels.ticks import sent_ring_size
 
 __all__ = ["CompiledHostLoop", "compiled_available", "encode_force", "warm_up"]
 
@@ -197,7 +198,7 @@ class CompiledHostLoop(HostLoop):
         fd = self.transport.serial_port.fd if self.compiled else -1
         self._fast = {
             "iv": iv, "fv": fv, "pv": pv,
-            "fh": np.zeros(d + 2, dtype=np.float64),
+            "fh": _sent_ring(cfg, d),
             "win": np.zeros(max(cfg.clamp_window, 1), dtype=np.int8),
             "eng": (*kernel_pack(eng), *port_arrays(eng), _REC, _OUT),
             "tel": (tel.time, tel.position, tel.force, tel.seq, tel.turnaround_us, tel.late,
@@ -300,8 +301,9 @@ class CompiledHostLoop(HostLoop):
                     self._fast["iv"][I_SKIPFLAG] = self._skip_flag
                     kind, kargs, xs, fs, port, rec, out = self._fast["eng"]
                     skip_sample(kind, kargs, xs, port, rec, out, self._fast["iv"],
-                               self._fast["fv"], float(x), *self._fast["skips"], msg.seq,
-                               msg.force_seq, msg.status, msg.time_us)
+                                self._fast["fv"], self._fast["pv"], self._fast["fh"],
+                                float(x), *self._fast["skips"], msg.seq, msg.force_seq,
+                                msg.status, msg.time_us)
                     self._publish()
                     continue
                 code = self._one(msg, x, t_rx)
@@ -430,13 +432,23 @@ def _scratch(engine, fd: int) -> dict:
           np.zeros(32, dtype=np.uint8), np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int64),
           u8.view(np.float32))
     eng = (*kernel_pack(engine), *port_arrays(engine, at_least=0), _REC, _OUT)
-    return {"eng": eng, "iv": iv, "fv": fv, "pv": pv, "fh": np.zeros(3),
+    return {"eng": eng, "iv": iv, "fv": fv, "pv": pv, "fh": _sent_ring(None, 1),
             "win": np.zeros(4, dtype=np.int8), "tel": tel, "io": io,
             "stop": np.zeros(1, dtype=np.int64), "rb": np.zeros(256, dtype=np.uint8),
             "hist": np.zeros((_HIST, _MAX_FRAME), dtype=np.uint8),
             "hist_len": np.zeros(_HIST, dtype=np.int64),
             "skips": (np.zeros(4, dtype=np.int64), np.zeros(4),
                       np.zeros((4, 4), dtype=np.int64))}
+
+
+def _sent_ring(cfg, d: int) -> np.ndarray:
+    """The ring of FORCEs sent, shape (2, R) (:func:`hapsim.kernels.ticks.held_force`):
+    row 0 their seq, -1 while empty; R for ``cfg``'s watchdog and delay (None: the
+    smallest, for the warm-up)."""
+    n = sent_ring_size(int(cfg.watchdog_us * cfg.rate_hz / 1e6) if cfg is not None else 1, d)
+    ring = np.zeros((2, n), dtype=np.float64)
+    ring[0] = -1.0
+    return ring
 
 
 def _run_stretch(sc: dict) -> int:
@@ -475,8 +487,8 @@ def warm_up(engine) -> float:
         answer_sample(*sc["eng"], iv, fv, pv, sc["fh"], sc["win"], *sc["tel"], 1, 0,
                 fp.STATUS_ARMED, 0, 0.0, 0, w, *io[1:])
         kind, kargs, xs, _, port, rec, out = sc["eng"]
-        skip_sample(kind, kargs, xs, port, rec, out, iv, fv, 0.0, *sc["skips"], 2, 1,
-                    fp.STATUS_ARMED, 0)
+        skip_sample(kind, kargs, xs, port, rec, out, iv, fv, pv, sc["fh"], 0.0, *sc["skips"],
+                    2, 1, fp.STATUS_ARMED, 0)
     finally:
         os.close(r)
         os.close(w)

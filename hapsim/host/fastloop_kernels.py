@@ -34,6 +34,7 @@ from hapsim.kernels.sources import LOOP_SOURCES, source_paths, sources_digest
 from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_RAMP, FLAG_SKIPPED
 from hapsim.kernels import arguments, cordis, schemes
 from hapsim.kernels.ticks import STATUS_FORCE_APPLIED as _FORCE_APPLIED
+from hapsim.kernels.ticks import held_force as _held_force
 from hapsim.kernels.ticks import named_delay as _named_delay
 from hapsim.kernels.ticks import tick_late as _tick_late
 from hapsim.kernels.late_growth import GROWTH_MODES as _GROWTH_MODES
@@ -50,7 +51,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "c38b339b8f9130bf45890e09aab9b766f495cb68d0586f2c715d5b43ba747f39"
+COMPILED_SOURCES_SHA256 = "9ff85ec1cd5b83c3e7bddb9fcd186f4cedcc469ae705daec244a680e28588d30"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -76,7 +77,8 @@ F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
 F_GROWTH = 11               # the lateness guard's cumulative growths, one a mode [nepers]
 F_GWORST = F_GROWTH + _GROWTH_MODES     # at a stop: the largest, its open hold counted
-N_FV = F_GWORST + 1
+F_HELD = F_GWORST + 1       # the force the last STATE named as held [N] (held_force)
+N_FV = F_HELD + 1
 # pv: float64 parameters
 (P_LIM, P_D, P_T, P_RATE, P_POS, P_VLIM, P_ELIM, P_PC, P_BMAX, P_CLAMP_MAX, P_RAMP_N, P_HL,
  P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD, P_COMPACT, P_CRATE) = range(19)
@@ -275,8 +277,9 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         The kernel's recording arguments (empty: nothing recorded).
     iv, fv, pv : ndarray of int64, float64, float64, shapes (N_IV,), (N_FV,), (N_PV,)
         The state shared with Python and the parameters (``I_*``, ``F_*``, ``P_*``).
-    fh : ndarray of float64, shape (delay + 2,)
-        The last forces sent [N] (the energy observer's history).
+    fh : ndarray of float64, shape (2, R)
+        The FORCEs sent this stretch, by seq: row 0 their seq (-1: none), row 1 their
+        force [N] (the energy observer's, :func:`hapsim.kernels.ticks.held_force`).
     win : ndarray of int8
         The clamp window (1: a clamped sample).
     t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr : ndarray
@@ -340,10 +343,11 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
     fv[F_XPREV] = x
     v = dx * pv[P_RATE]
     k = iv[I_K]
-    fhl = fh.size
-    energy = fv[F_ENERGY]
-    if k > d:
-        energy += fh[(k - 1 - d) % fhl] * dx
+    # the work of the force held over the last period (HostLoop._drive's)
+    held = fv[F_HELD]
+    h = _held_force(fh, seq, force_seq, status, d, iv[I_FAPPLIED] != 0, held)
+    energy = fv[F_ENERGY] + (h if d == 0 else held) * dx
+    fv[F_HELD] = h
     fv[F_ENERGY] = energy
     excess = energy - fv[F_E0]
     if pv[P_PC] != 0.0 and excess > 0.0:
@@ -376,7 +380,9 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
         return R_IOERR
     t_tx = _now_ns(ts)
     iv[I_LAST_SEQ] = seq
-    fh[k % fhl] = f
+    j = seq % fh.shape[1]
+    fh[0, j] = seq
+    fh[1, j] = f
     iv[I_K] = k + 1
     i = iv[I_N]
     wlen = win.size
@@ -422,8 +428,8 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
 
 
 @_jit
-def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_meta, seq,
-                force_seq, status, time_us):
+def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, pv, fh, x, sk_row, sk_x, sk_meta,
+                seq, force_seq, status, time_us):
     """A STATE the backlog policy skips: the scene steps with its position (the next
     velocity spans one period), nothing is sent; the step goes into the skipped STATEs'
     record (as :meth:`HostLoop._drive`; :mod:`hapsim.host.telemetry`).
@@ -440,7 +446,12 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_met
         The kernel's recording arguments (empty: nothing recorded).
     iv, fv : ndarray of int64, float64
         The state shared with Python (``I_SAMPLES`` counts the step, ``I_SKIPN`` the
-        record's entries, ``F_XPREV`` takes ``x``).
+        record's entries, ``F_XPREV`` takes ``x``; ``F_ENERGY`` the work of the force held
+        over the period, ``F_HELD`` the force this STATE names, as :func:`answer_sample`).
+    pv : ndarray of float64
+        The parameters (the delay).
+    fh : ndarray of float64, shape (2, R)
+        The FORCEs sent (:func:`hapsim.kernels.ticks.held_force`).
     x : float
         The skipped STATE's position [m] (not finite: nothing steps, nothing recorded).
     sk_row, sk_x : ndarray of int64, float64, shape (skips,)
@@ -455,6 +466,11 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_met
         xs[port] = x
         _port_step(kind, kargs, rec, out)
         iv[I_SAMPLES] += 1
+        d = np.int64(pv[P_D])
+        held = fv[F_HELD]
+        h = _held_force(fh, seq, force_seq, status, d, iv[I_FAPPLIED] != 0, held)
+        fv[F_ENERGY] += (h if d == 0 else held) * (x - fv[F_XPREV])
+        fv[F_HELD] = h
         fv[F_XPREV] = x
         sn = iv[I_SKIPN]
         if sn < sk_row.size:
@@ -538,8 +554,9 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
         The kernel's recording arguments (empty: nothing recorded).
     iv, fv, pv : ndarray of int64, float64, float64, shapes (N_IV,), (N_FV,), (N_PV,)
         The state shared with Python and the parameters (``I_*``, ``F_*``, ``P_*``).
-    fh : ndarray of float64, shape (delay + 2,)
-        The last forces sent [N] (the energy observer's history).
+    fh : ndarray of float64, shape (2, R)
+        The FORCEs sent this stretch, by seq: row 0 their seq (-1: none), row 1 their
+        force [N] (the energy observer's, :func:`hapsim.kernels.ticks.held_force`).
     win : ndarray of int8
         The clamp window (1: a clamped sample).
     t_arr, x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr : ndarray
@@ -657,8 +674,8 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
                                                 compact):
                 iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
                 iv[I_SKIPFLAG] = FLAG_SKIPPED
-                skip_sample(kind, kargs, xs, port, rec, out, iv, fv, x, sk_row, sk_x, sk_meta,
-                            seq, fseq, status, tus)
+                skip_sample(kind, kargs, xs, port, rec, out, iv, fv, pv, fh, x, sk_row, sk_x,
+                            sk_meta, seq, fseq, status, tus)
                 continue
             code = answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_arr,
                            x_arr, f_arr, s_arr, ta_arr, late_arr, fl_arr, fs_arr, st_arr,

@@ -61,7 +61,10 @@ device-clocked loop. Without ``reconnect`` a loss raises :class:`DeviceError`.
 Passivity observer (Hannaford & Ryu, "Time-domain passivity control of haptic interfaces",
 IEEE Trans. Robot. Autom. 18(1), 2002): ``E(n) = sum_k f_held(k) (x(k+1) - x(k))`` [J], i.e.
 ``T sum f v`` with ``v`` the backward-difference velocity, where ``f_held(k)`` is the force
-the device held over ``[kT, (k+1)T)`` (the FORCE answering STATE ``k - d``). Sign convention:
+the device held over ``[kT, (k+1)T)``: the FORCE its STATE ``k`` names as applied (the
+FORCE answering STATE ``k - d`` when it came in time, an older one it held when it came
+late, zero under its watchdog), at the value the host sent
+(:func:`hapsim.kernels.ticks.held_force`), over every STATE, a skipped one's too. Sign convention:
 ``E`` is the energy that flowed **out of the virtual environment into the hand** (work done
 by the actuator on the hand); Hannaford & Ryu's ``E_obs`` (energy *into* the one-port) is
 ``-E``. A passive environment holding the energy ``E0`` when it starts can give at most
@@ -73,8 +76,10 @@ the *excess* ``E - E0``, is what the energy safety stop (``excess > energy_limit
 optional passivity controller act on: the controller adds the damping
 ``alpha = (E - E0) / (T v^2)`` (their ``alpha = -(E_obs + E0) / (T v^2)``) while the excess
 is positive, capped at ``max_damping``: ``f <- f - alpha v``. With d samples of delay the
-damping acts d samples late; the observer still measures the work really done (the force
-held, not the force sent). A sampled wall is not exactly passive (the hold and the delay
+damping acts d samples late, or not at all when the device ignored it as late; the
+observer still measures the work really done (the force held, not the force sent: before
+2026-11-29 it took FORCE ``k - d`` as held, and a link that made answers late gave it the
+wrong sign: -0.06 J where the device gave the hand +0.29 J). A sampled wall is not exactly passive (the hold and the delay
 lag its spring, Colgate & Schenkel 1997): when its damping B does not cover that lag the
 excess grows a little above 0 even though the loop is stable, and the controller acts.
 """
@@ -102,7 +107,7 @@ from hapsim.host.telemetry import FLAG_CLAMPED, FLAG_RAMP
 from hapsim.errors import DeviceError
 from hapsim.kernels.late_growth import (LATE_GROWTH_STOP, late_growth_reason,
                                         late_growth_step, open_hold_growth)
-from hapsim.kernels.ticks import named_delay, tick_late
+from hapsim.kernels.ticks import held_force, named_delay, sent_ring_size, tick_late
 
 __all__ = ["LoopConfig", "LoopResult", "StopFlag", "HostLoop", "MeasuredVelocity",
            "LostDevice", "percentiles_us", "safety_reason", "LATCHED_FAULTS",
@@ -354,8 +359,11 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         wlen = len(win)
         wsum = 0
         clamp_max = cfg.clamp_max
-        fh = [0.0] * (d + 2)                # forces sent, by local sample index
-        fhl = len(fh)
+        # the FORCEs sent this stretch, by seq (hapsim.kernels.ticks.held_force), and the
+        # force the last STATE named: the passivity observer's force held
+        ring_n = sent_ring_size(int(cfg.watchdog_us * cfg.rate_hz / 1e6), d)
+        ring = [[-1.0] * ring_n, [0.0] * ring_n]
+        held = 0.0
         Force = fp.Force
         applied_bit = fp.STATUS_FORCE_APPLIED
         flags_applied = self._applied_seen
@@ -406,7 +414,6 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
             poll = self.poll
             sk_row, sk_x, sk_meta = tel.skip_row, tel.skip_x, tel.skip_meta  # skips' record
             sk_cap = sk_row.size
-            k = 0                           # samples since this stretch (re)started
             i = tel.n
             for msg, x, t_rx in chain((first,), states):
                 if t_rx < 0:
@@ -415,6 +422,11 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                     # is recorded (the row it precedes, its position) for the replay
                     if isfinite(x):
                         eng.port_step(x)
+                        # the work of the force held over its period (as a row's below)
+                        h = held_force(ring, msg.seq, msg.force_seq, msg.status, d,
+                                       flags_applied, held)
+                        energy += (h if d == 0 else held) * (x - x_prev)
+                        held = h
                         x_prev = x
                         sn = tel.skip_n
                         if sn < sk_cap:
@@ -452,12 +464,14 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 if not isfinite(f):
                     self._non_finite_stop(seq)
                     break
-                # passivity observer: work of the force held over the last period
+                # passivity observer: work of the force held over the last period, the one
+                # the last STATE named (this one with d = 0): hapsim.kernels.ticks.held_force
                 dx = x - x_prev
                 x_prev = x
                 v = dx * rate
-                if k > d:                   # held over the last period: FORCE k - 1 - d
-                    energy += fh[(k - 1 - d) % fhl] * dx
+                h = held_force(ring, seq, msg.force_seq, st, d, flags_applied, held)
+                energy += (h if d == 0 else held) * dx
+                held = h
                 excess = energy - e0
                 if pc_on and excess > 0.0:
                     tvv = T * v * v
@@ -482,8 +496,9 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 send(Force(seq, (f,)))
                 t_tx = perf()
                 self._last_seq = seq
-                fh[k % fhl] = f
-                k += 1
+                j = seq % ring_n
+                ring[0][j] = seq
+                ring[1][j] = f
                 j = i % wlen
                 wsum += c - win[j]
                 win[j] = c

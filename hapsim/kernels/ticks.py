@@ -48,7 +48,8 @@ from firmware_protocol.codec import (STATUS_FORCE_APPLIED, STATUS_OVERRUN,
 from hapsim.kernels.sources import cache_ok
 
 __all__ = ["SEQ_MASK", "SEQ_HALF", "STATUS_FORCE_APPLIED", "STATUS_OVERRUN",
-           "STATUS_WATCHDOG_TRIPPED", "named_delay", "tick_late", "late_ticks"]
+           "STATUS_WATCHDOG_TRIPPED", "named_delay", "tick_late", "late_ticks",
+           "held_force", "sent_ring_size"]
 
 #: STATE.seq and FORCE.seq are u32 counters.
 SEQ_MASK = 0xFFFFFFFF
@@ -123,6 +124,79 @@ def tick_late(seq: int, force_seq: int, status: int, d: int, flags_applied: bool
     if status & STATUS_WATCHDOG_TRIPPED:
         return True
     return named_delay(seq, force_seq, status, flags_applied) != d
+
+
+def sent_ring_size(watchdog_periods: int, d: int) -> int:
+    """Entries of the ring of sent FORCEs :func:`held_force` reads: a power of two that
+    holds every FORCE a device may still hold (its watchdog's periods and the delay, with
+    room), at least 64; 4096 for a device without a watchdog (``watchdog_periods <= 0``).
+
+    Parameters
+    ----------
+    watchdog_periods : int
+        The device's watchdog [periods] (<= 0: none).
+    d : int
+        The device's delay [ticks].
+
+    Returns
+    -------
+    int
+    """
+    if watchdog_periods <= 0:
+        return 4096
+    need = max(int(watchdog_periods) + int(d) + 4, 64)
+    return 1 << (need - 1).bit_length()
+
+
+@register_jitable
+def held_force(ring, seq, force_seq, status, d, flags_applied, prev):
+    """The force the device says it holds [N], from the FORCEs the host sent.
+
+    STATE ``seq`` names the FORCE applied from its tick on (``d >= 1``), or over the period
+    before it (``d = 0``: module notes). The value is that FORCE's, as the host sent it
+    (``ring``): zero while the watchdog has zeroed the force (``WATCHDOG_TRIPPED``) or
+    before any FORCE was applied (``FORCE_APPLIED`` clear on a device that sets it). A
+    protocol without ``force_seq`` is taken on time (FORCE ``seq - max(d, 1)``). A FORCE
+    the ring does not hold (not sent this stretch: the STATE it answered was skipped, or
+    it came before the stretch) leaves ``prev``, the force named before: the device holds
+    its last force until a newer one is applied. The host loops' passivity observer
+    integrates this force, the one held, not the one sent (Hannaford & Ryu 2002: the work
+    really done on the hand; a FORCE that came late was never applied).
+
+    Parameters
+    ----------
+    ring : array_like of float, shape (2, R)
+        Row 0: the ``seq`` of the FORCE sent in each slot ``seq % R`` (-1: none); row 1:
+        its force [N]. R a power of two (:func:`sent_ring_size`).
+    seq, force_seq : int
+        STATE fields (u32; ``force_seq`` -1 where the protocol carries none).
+    status : int
+        STATE status bits.
+    d : int >= 0
+        The device's delay [ticks].
+    flags_applied : bool
+        The device has set ``STATUS_FORCE_APPLIED`` on this or an earlier STATE.
+    prev : float
+        The force the previous STATE named [N].
+
+    Returns
+    -------
+    float
+        The force held [N].
+    """
+    if status & STATUS_WATCHDOG_TRIPPED:
+        return 0.0
+    want = force_seq
+    if named_delay(seq, force_seq, status, flags_applied) < 0:
+        if force_seq >= 0:
+            # none applied yet (the bit clear on a device that sets it), or a stale field
+            # ahead of the STATE (nothing the host knows)
+            return 0.0 if flags_applied and (status & STATUS_FORCE_APPLIED) == 0 else prev
+        want = (seq - (d if d > 0 else 1)) & SEQ_MASK
+    j = want % len(ring[0])
+    if ring[0][j] == want:
+        return ring[1][j]
+    return prev
 
 
 @nb.njit(cache=CACHE_OK, nogil=True)
