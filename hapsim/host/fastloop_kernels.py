@@ -609,7 +609,6 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
             return R_SYNC
         # frames complete in the buffer?
         a = np.int64(0)     # int64, not Literal[0]: no specialisation of the helpers
-        handled = False
         while True:
             a, z = _next_frame(rb, a, n_rb)
             if z < 0:
@@ -669,7 +668,6 @@ def answer_stretch(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_a
             iv[I_FRAMES_OK] += 1
             _keep_frame(rb, a, z, hist, hist_len, iv)
             a = z + 1
-            handled = True
             if pv[P_NEWEST] != 0.0 and _newer_in(rb, a, n_rb, seq, pv[P_AHEAD], tx, table,
                                                 compact):
                 iv[I_SKIPPED] += 1          # backlog: answer the newest STATE waiting
