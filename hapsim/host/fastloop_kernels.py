@@ -51,7 +51,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "9ff85ec1cd5b83c3e7bddb9fcd186f4cedcc469ae705daec244a680e28588d30"
+COMPILED_SOURCES_SHA256 = "22bdc6be033777aec41226b73f24ece7db9a7a6037f583cda2a09f15693f7244"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

@@ -61,27 +61,27 @@ device-clocked loop. Without ``reconnect`` a loss raises :class:`DeviceError`.
 Passivity observer (Hannaford & Ryu, "Time-domain passivity control of haptic interfaces",
 IEEE Trans. Robot. Autom. 18(1), 2002): ``E(n) = sum_k f_held(k) (x(k+1) - x(k))`` [J], i.e.
 ``T sum f v`` with ``v`` the backward-difference velocity, where ``f_held(k)`` is the force
-the device held over ``[kT, (k+1)T)``: the FORCE its STATE ``k`` names as applied (the
-FORCE answering STATE ``k - d`` when it came in time, an older one it held when it came
-late, zero under its watchdog), at the value the host sent
-(:func:`hapsim.kernels.ticks.held_force`), over every STATE, a skipped one's too. Sign convention:
-``E`` is the energy that flowed **out of the virtual environment into the hand** (work done
-by the actuator on the hand); Hannaford & Ryu's ``E_obs`` (energy *into* the one-port) is
-``-E``. A passive environment holding the energy ``E0`` when it starts can give at most
-``E0`` (their condition ``E_obs(n) + E0 >= 0``), so the observer's baseline is ``E0``, the
-scene's stored energy (:meth:`hapsim.engine.Engine.energy`) at each (re)start, with the port
-at rest at the device's position; ``E`` restarts from 0 at each (re)start (a recovery
-restarts the scene, whose stored energy is ``E0`` again). What the scene gave **beyond** it,
-the *excess* ``E - E0``, is what the energy safety stop (``excess > energy_limit``) and the
-optional passivity controller act on: the controller adds the damping
-``alpha = (E - E0) / (T v^2)`` (their ``alpha = -(E_obs + E0) / (T v^2)``) while the excess
-is positive, capped at ``max_damping``: ``f <- f - alpha v``. With d samples of delay the
-damping acts d samples late, or not at all when the device ignored it as late; the
-observer still measures the work really done (the force held, not the force sent: before
-2026-11-29 it took FORCE ``k - d`` as held, and a link that made answers late gave it the
-wrong sign: -0.06 J where the device gave the hand +0.29 J). A sampled wall is not exactly passive (the hold and the delay
-lag its spring, Colgate & Schenkel 1997): when its damping B does not cover that lag the
-excess grows a little above 0 even though the loop is stable, and the controller acts.
+the device held over ``[kT, (k+1)T)``: the FORCE its STATE ``k`` names as applied (the FORCE
+answering STATE ``k - d`` when it came in time, an older one it held when it came late, zero
+under its watchdog), at the value the host sent (:func:`hapsim.kernels.ticks.held_force`),
+over every STATE, a skipped one's too. Sign convention: ``E`` is the energy that flowed
+**out of the virtual environment into the hand** (work done by the actuator on the hand);
+Hannaford & Ryu's ``E_obs`` (energy *into* the one-port) is ``-E``. A passive environment
+holding the energy ``E0`` when it starts can give at most ``E0`` (their condition
+``E_obs(n) + E0 >= 0``), so the observer's baseline is ``E0``, the scene's stored energy
+(:meth:`hapsim.engine.Engine.energy`) at each (re)start, with the port at rest at the
+device's position; ``E`` restarts from 0 at each (re)start (a recovery restarts the scene,
+whose stored energy is ``E0`` again). What the scene gave **beyond** it, the *excess*
+``E - E0``, is what the energy safety stop (``excess > energy_limit``) and the optional
+passivity controller act on: the controller adds the damping ``alpha = (E - E0) / (T v^2)``
+(their ``alpha = -(E_obs + E0) / (T v^2)``) while the excess is positive, capped at
+``max_damping``: ``f <- f - alpha v``. With d samples of delay the damping acts d samples
+late, or not at all when the device ignored it as late; the observer still measures the work
+really done (the force held, not the force sent: before 2026-11-29 it took FORCE ``k - d``
+as held, and a link that made answers late gave it the wrong sign: -0.06 J where the device
+gave the hand +0.29 J). A sampled wall is not exactly passive (the hold and the delay lag
+its spring, Colgate & Schenkel 1997): when its damping B does not cover that lag the excess
+grows a little above 0 even though the loop is stable, and the controller acts.
 """
 
 from __future__ import annotations

@@ -40,7 +40,6 @@ the update, which edits fastloop_kernels.py so that numba rebuilds its cache).
 from __future__ import annotations
 
 import numba as nb
-import numpy as np
 from numba.extending import register_jitable
 
 from firmware_protocol.codec import (STATUS_FORCE_APPLIED, STATUS_OVERRUN,
