@@ -309,8 +309,8 @@ def brake_text(report: dict, damping_unit: str = "N s/m", speed_unit: str = "m/s
         return v if v is None or np.ndim(v) == 0 else float(np.max(np.abs(v)))
     if report["ended"] == "ignored" and not report["periods"]:
         return ("no braking after the stop: the device applied none of the host's FORCEs "
-                "(its last STATE named one more than the delay and "
-                f"{IGNORED_TICKS} ticks old): STOP sent at once")
+                f"(its last STATE named a FORCE more than the delay + {IGNORED_TICKS} "
+                "ticks old): STOP sent at once")
     B = report["damping"]
     damp = (f"{B:.3g}" if np.ndim(B) == 0 else
             "diag(" + ", ".join(f"{float(x):.3g}" for x in np.diag(np.asarray(B))) + ")")

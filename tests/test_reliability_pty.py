@@ -359,6 +359,12 @@ def test_a_link_that_holds_every_answer_late_is_stopped_with_stop_not_braking():
     Before 2026-11-29 the run went on until the handle reached the position bound
     (-0.1055 m), then sent 73 braking FORCEs the device ignored."""
     code, out, err = hapsim_main(["run", "configs/first_wall.yaml", "--duration", "0.3",
+                                  "--faults", "spike=0.2:30ms"])
+    assert code == 1, err[-1500:]
+    assert ("no braking after the stop: the device applied none of the host's FORCEs "
+            "(its last STATE named a FORCE more than the delay + 3 ticks old): STOP sent "
+            "at once") in out, out[-1500:]
+    code, out, err = hapsim_main(["run", "configs/first_wall.yaml", "--duration", "0.3",
                                   "--faults", "spike=0.2:30ms", "--json"])
     assert code == 1, err[-1500:]
     lp = json.loads(out)["loop"]
