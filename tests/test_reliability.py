@@ -674,27 +674,33 @@ def test_passivity_observer_measures_the_work_done_on_the_hand():
 
 
 class WorkMock(RecordingMock):
-    """The mock, recording per tick its ``seq``, the force its actuator held over the
-    period and the handle's displacement over it (its own plant, not its STATEs)."""
+    """The mock, recording per period of its plant (real time or lockstep) the tick, the
+    force its actuator held over it and the handle's displacement over it (its own plant,
+    not its STATEs)."""
 
     def __init__(self, *a, **kw):
         super().__init__(*a, **kw)
         self.work = []
 
-    def tick(self, now_us):
+    def _on_config(self, msg, now_us):
+        out = super()._on_config(msg, now_us)
         ph = self.physics
-        x0 = ph.x if ph is not None else 0.0
-        st = super().tick(now_us)
-        if st is not None:
-            self.work.append((st.seq, float(self._u), ph.x - x0))
-        return st
+        if ph is not None and not getattr(ph, "_traced", False):
+            advance = ph.advance
+
+            def traced(u):
+                n, x0 = ph.n, ph.x
+                advance(u)
+                self.work.append((n, float(u), ph.x - x0))
+            ph.advance, ph._traced = traced, True
+        return out
 
 
 @pytest.mark.parametrize("seed", [1, 2])
 def test_the_observer_measures_the_work_the_device_did_on_any_link(seed):
-    """Random walls, on time, on links that hold the device's frames (spikes: answers late
-    for as long as a hold lasts) and with hosts that take 0-5 periods a FORCE (the backlog
-    skipped): the observer's energy is the work the device's actuator did on the handle,
+    """Random walls (delays of 1-3 periods), on time, on links that hold the device's
+    frames (spikes: answers late for as long as a hold lasts) and with hosts that take 0-5
+    periods a FORCE (the backlog skipped): the observer's energy is the work the device's actuator did on the handle,
     ``sum_n u_n (x_(n+1) - x_n)`` from the mock's own per-tick trace, over the ticks the
     host read (its first STATE to its last), to the sum's round-off: the force held, as the
     STATEs name it, not the force sent. (Before 2026-11-29 the observer took FORCE
@@ -707,22 +713,44 @@ def test_the_observer_measures_the_work_the_device_did_on_any_link(seed):
         spec = (f"spike={rng.uniform(0.01, 0.3):.3f}:{rng.uniform(2.0, 30.0):.1f}ms"
                 if rng.random() < 0.6 else "")
         away = int(rng.integers(0, 5001)) if rng.random() < 0.5 else 0
-        scene = parse_scene(wall(K, B))
+        d = int(rng.integers(1, 4))
+        scene = parse_scene(wall(K, B).replace("delay: 1,", f"delay: {d},"))
         mock = WorkMock(scene.device, scene.excitation, native_rate_hz=1000.0,
                         lockstep=False)
         tr = SimTransport(mock, parse_faults(spec, int(rng.integers(1 << 30))),
                           host_latency_us=away)
         tel = Telemetry(1500)
         res = HostLoop(Engine(scene), tr, LoopConfig(
-            rate_hz=1000.0, n_samples=1500, delay=1, force_limit=LIMIT,
+            rate_hz=1000.0, n_samples=1500, delay=d, force_limit=LIMIT,
             watchdog_us=WATCHDOG_US, position_bound=0.1, energy_limit=100.0), tel).run()
-        assert res.lost == 0, (spec, away, res.stop_reason)
+        assert scene.device.delay == d and res.lost == 0, (spec, away, res.stop_reason)
         seq = tel.columns()["seq"]
         terms = [u * dx for n, u, dx in mock.work if seq[0] <= n < seq[-1]]
         assert res.energy == pytest.approx(sum(terms), rel=0, abs=sum_tol(terms)), (spec, away)
         seen["late"] += res.late > 0
         seen["skipped"] += res.skipped > 0
     assert seen["late"] >= 4 and seen["skipped"] >= 4, seen
+
+
+@pytest.mark.parametrize("d", [0, 1, 2])
+def test_the_observer_measures_the_device_s_work_in_lockstep_at_every_delay(d):
+    """In lockstep (the device waits for each FORCE) at delays 0-2: with ``d = 0`` a STATE
+    names the force held over the period before it, not after (PROTOCOL.md, the mock's
+    notes); the observer's energy is the device's work over the ticks the host read, to
+    the sum's round-off (a wall that oscillates from 5 mm and decays)."""
+    from tolerance import sum_tol          # same directory
+    from hapsim.emulated.links import InProcessTransport
+    scene = parse_scene(wall(300.0, 1.5).replace("delay: 1,", f"delay: {d},"))
+    mock = WorkMock(scene.device, scene.excitation, native_rate_hz=1000.0, lockstep=True)
+    tel = Telemetry(800)
+    res = HostLoop(Engine(scene), InProcessTransport(mock), LoopConfig(
+        rate_hz=1000.0, n_samples=800, delay=d, force_limit=LIMIT, watchdog_us=WATCHDOG_US,
+        position_bound=0.1), tel).run()
+    assert res.stop_reason == "duration" and res.late == 0
+    seq = tel.columns()["seq"]
+    terms = [u * dx for n, u, dx in mock.work if seq[0] <= n < seq[-1]]
+    assert abs(sum(terms)) > 1e-4                   # the wall did work
+    assert res.energy == pytest.approx(sum(terms), rel=0, abs=sum_tol(terms))
 
 
 def _active(scene, damping):
