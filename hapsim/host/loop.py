@@ -360,10 +360,10 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         wsum = 0
         clamp_max = cfg.clamp_max
         # the FORCEs sent this stretch, by seq (hapsim.kernels.ticks.held_force), and the
-        # force the last STATE named: the passivity observer's force held
+        # force held the last STATE named, and which FORCE: the passivity observer's
         ring_n = sent_ring_size(int(cfg.watchdog_us * cfg.rate_hz / 1e6), d)
         ring = [[-1.0] * ring_n, [0.0] * ring_n]
-        held = 0.0
+        held, named = 0.0, -1
         Force = fp.Force
         applied_bit = fp.STATUS_FORCE_APPLIED
         flags_applied = self._applied_seen
@@ -423,8 +423,8 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                     if isfinite(x):
                         eng.port_step(x)
                         # the work of the force held over its period (as a row's below)
-                        h = held_force(ring, msg.seq, msg.force_seq, msg.status, d,
-                                       flags_applied, held)
+                        h, named = held_force(ring, msg.seq, msg.force_seq, msg.status, d,
+                                              flags_applied, held, named)
                         energy += (h if d == 0 else held) * (x - x_prev)
                         held = h
                         x_prev = x
@@ -469,7 +469,8 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 dx = x - x_prev
                 x_prev = x
                 v = dx * rate
-                h = held_force(ring, seq, msg.force_seq, st, d, flags_applied, held)
+                h, named = held_force(ring, seq, msg.force_seq, st, d, flags_applied, held,
+                                      named)
                 energy += (h if d == 0 else held) * dx
                 held = h
                 excess = energy - e0

@@ -148,19 +148,29 @@ def sent_ring_size(watchdog_periods: int, d: int) -> int:
 
 
 @register_jitable
-def held_force(ring, seq, force_seq, status, d, flags_applied, prev):
+def held_force(ring, seq, force_seq, status, d, flags_applied, prev, prev_named):
     """The force the device says it holds [N], from the FORCEs the host sent.
 
     STATE ``seq`` names the FORCE applied from its tick on (``d >= 1``), or over the period
-    before it (``d = 0``: module notes). The value is that FORCE's, as the host sent it
-    (``ring``): zero while the watchdog has zeroed the force (``WATCHDOG_TRIPPED``) or
-    before any FORCE was applied (``FORCE_APPLIED`` clear on a device that sets it). A
-    protocol without ``force_seq`` is taken on time (FORCE ``seq - max(d, 1)``). A FORCE
-    the ring does not hold (not sent this stretch: the STATE it answered was skipped, or
-    it came before the stretch) leaves ``prev``, the force named before: the device holds
-    its last force until a newer one is applied. The host loops' passivity observer
-    integrates this force, the one held, not the one sent (Hannaford & Ryu 2002: the work
-    really done on the hand; a FORCE that came late was never applied).
+    before it (``d = 0``: module notes). The force held is, in this order:
+
+    - zero when the STATE names none: ``FORCE_APPLIED`` clear on a device that sets it, or
+      a FORCE too recent to have been applied (``seq - force_seq < max(d, 1)``: a FORCE
+      is applied ``d`` ticks after the STATE it answers at the earliest; before a device
+      has set the bit, ``force_seq = 0`` is also "none yet");
+    - zero under the watchdog (``WATCHDOG_TRIPPED``);
+    - ``prev`` when the STATE names the FORCE the previous one named: the device holds its
+      last force over a late tick, and that is the watchdog's zero once it zeroed it (the
+      watchdog fed again by a FORCE not yet due leaves the bit clear while the zero is
+      held, ``force_seq`` still naming the last FORCE received in time);
+    - else the named FORCE's value, as the host sent it (``ring``), or ``prev`` when the
+      ring does not hold it (not sent this stretch: the STATE it answered was skipped, or
+      it came before the stretch).
+
+    A protocol without ``force_seq`` is taken on time (FORCE ``seq - max(d, 1)``); a
+    stale field ahead of the STATE changes nothing. The host loops' passivity observer
+    integrates this force, the one held, not the one sent (Hannaford & Ryu 2002: the
+    work really done on the hand; a FORCE that came late was never applied).
 
     Parameters
     ----------
@@ -176,26 +186,35 @@ def held_force(ring, seq, force_seq, status, d, flags_applied, prev):
     flags_applied : bool
         The device has set ``STATUS_FORCE_APPLIED`` on this or an earlier STATE.
     prev : float
-        The force the previous STATE named [N].
+        The force held that the previous STATE named [N] (0 at a stretch's start).
+    prev_named : int
+        The FORCE the previous STATE named (-1: none).
 
     Returns
     -------
-    float
+    force : float
         The force held [N].
+    named : int
+        The FORCE this STATE names (-1: none), the next call's ``prev_named``.
     """
-    if status & STATUS_WATCHDOG_TRIPPED:
-        return 0.0
-    want = force_seq
-    if named_delay(seq, force_seq, status, flags_applied) < 0:
+    lag = named_delay(seq, force_seq, status, flags_applied)
+    if lag < 0:
         if force_seq >= 0:
-            # none applied yet (the bit clear on a device that sets it), or a stale field
-            # ahead of the STATE (nothing the host knows)
-            return 0.0 if flags_applied and (status & STATUS_FORCE_APPLIED) == 0 else prev
-        want = (seq - (d if d > 0 else 1)) & SEQ_MASK
+            if flags_applied and (status & STATUS_FORCE_APPLIED) == 0:
+                return 0.0, -1
+            return prev, prev_named         # a stale field ahead: nothing known
+        lag = d if d > 0 else 1             # no field: taken on time
+    if lag < (d if d > 0 else 1):
+        return 0.0, -1                      # too recent to be applied: none yet
+    want = (seq - lag) & SEQ_MASK
+    if status & STATUS_WATCHDOG_TRIPPED:
+        return 0.0, want
+    if want == prev_named:
+        return prev, want
     j = want % len(ring[0])
     if ring[0][j] == want:
-        return ring[1][j]
-    return prev
+        return ring[1][j], want
+    return prev, want
 
 
 @nb.njit(cache=CACHE_OK, nogil=True)
