@@ -54,9 +54,10 @@ import numpy as np
 import firmware_protocol as fp
 from hapsim.errors import DeviceError
 from hapsim.host.fastloop_kernels import (
-    CACHE_OK, F_E0, F_EMAX, F_ENERGY, F_EXCESS, F_FMAX, F_GWORST, F_LAST_RX, F_V, F_VMAX, F_X,
-    F_XMAX, F_XPREV, I_CLAMPED, I_CLAST, I_EXPECT, I_FAPPLIED, I_FRAMES_OK, I_GPREV, I_HIST,
-    I_LAST_SEQ, I_LATE, I_MISSED, I_N, I_NAMED, I_NF_SEQ, I_NMAX, I_PSAMPLES, I_RAMP, I_RB_LEN,
+    CACHE_OK, F_E0, F_EMAX, F_ENERGY, F_EXCESS, F_FMAX, F_GWORST, F_HELD, F_LAST_RX, F_V,
+    F_VMAX, F_X, F_XMAX, F_XPREV, I_CLAMPED, I_CLAST, I_EXPECT, I_FAPPLIED, I_FRAMES_OK,
+    I_GPREV, I_HIST,
+    I_LAST_SEQ, I_LATE, I_MISSED, I_N, I_NF_SEQ, I_NMAX, I_PSAMPLES, I_RAMP, I_RB_LEN,
     I_RESTART, I_SAMPLES, I_SKIPFLAG, I_SKIPN, I_SKIPPED, I_SYNC, I_WSUM, KERNEL_NAMES, N_FV,
     N_IV, N_PV, P_AHEAD, P_BMAX, P_CLAMP_MAX, P_COMPACT, P_CRATE, P_D, P_ELIM, P_GK, P_GN,
     P_GREST, P_GSTEP, P_GTAB, P_HL, P_LIM, P_NEWEST, P_PC, P_POLL, P_POS, P_RAMP_N, P_RATE,
@@ -185,7 +186,7 @@ class CompiledHostLoop(HostLoop):
         pv[P_NEWEST] = 1.0 if cfg.backlog == "newest" else 0.0
         pv[P_AHEAD] = pv[P_SILENCE] * float(cfg.rate_hz) + 2.0
         iv[I_GPREV] = -1            # the lateness guard starts again with the stretch
-        iv[I_NAMED] = -1            # and the observer's force held (held_force)
+        fv[F_HELD + 1] = -1.0       # and the observer's force held names none (held_force)
         guard = cfg.late_growth
         if guard is not None:
             table = guard.array()
@@ -446,7 +447,7 @@ def _sent_ring(cfg, d: int) -> np.ndarray:
     """The ring of FORCEs sent, shape (2, R) (:func:`hapsim.kernels.ticks.held_force`):
     row 0 their seq, -1 while empty; R for ``cfg``'s watchdog and delay (None: the
     smallest, for the warm-up)."""
-    n = sent_ring_size(int(cfg.watchdog_us * cfg.rate_hz / 1e6) if cfg is not None else 1, d)
+    n = sent_ring_size(cfg.watchdog_us, cfg.rate_hz, d) if cfg is not None else 64
     ring = np.zeros((2, n), dtype=np.float64)
     ring[0] = -1.0
     return ring

@@ -51,7 +51,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "e74167c01fd26c318ae7c9a67cf43a0b82f0cf08e3c242948484e173db76c76b"
+COMPILED_SOURCES_SHA256 = "b03f93f8a9cf188687423d3b1c79a14e28be7c9060afcfb2cce6b02580865266"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
@@ -71,15 +71,14 @@ I_K, I_N, I_WSUM, I_RAMP, I_RESTART, I_FAPPLIED, I_LATE, I_CLAMPED, I_PSAMPLES =
 I_LAST_SEQ, I_EXPECT, I_MISSED, I_FRAMES_OK, I_RB_LEN, I_NF_SEQ, I_NMAX, I_SYNC = range(9, 17)
 I_HIST, I_ERRNO, I_SAMPLES, I_SKIPPED, I_SKIPFLAG, I_CLAST, I_SKIPN = 17, 18, 19, 20, 21, 22, 23
 I_GPREV = 24                # the lateness guard's last FORCE named (-1: none yet)
-I_NAMED = 25                # the FORCE the last STATE named as held (-1: none; held_force)
-N_IV = 26
+N_IV = 25
 # fv: float64 state
 F_ENERGY, F_E0, F_XPREV, F_EMAX, F_XMAX, F_VMAX, F_FMAX, F_LAST_RX = range(8)
 F_X, F_V, F_EXCESS = 8, 9, 10
 F_GROWTH = 11               # the lateness guard's cumulative growths, one a mode [nepers]
 F_GWORST = F_GROWTH + _GROWTH_MODES     # at a stop: the largest, its open hold counted
-F_HELD = F_GWORST + 1       # the force the last STATE named as held [N] (held_force)
-N_FV = F_HELD + 1
+F_HELD = F_GWORST + 1       # the force the last STATE named as held [N] and which FORCE
+N_FV = F_HELD + 2           # (-1: none): held_force's two entries
 # pv: float64 parameters
 (P_LIM, P_D, P_T, P_RATE, P_POS, P_VLIM, P_ELIM, P_PC, P_BMAX, P_CLAMP_MAX, P_RAMP_N, P_HL,
  P_RL, P_SILENCE, P_POLL, P_NEWEST, P_AHEAD, P_COMPACT, P_CRATE) = range(19)
@@ -345,11 +344,8 @@ def answer_sample(kind, kargs, xs, fs, port, rec, out, iv, fv, pv, fh, win, t_ar
     v = dx * pv[P_RATE]
     k = iv[I_K]
     # the work of the force held over the last period (HostLoop._drive's)
-    held = fv[F_HELD]
-    h, iv[I_NAMED] = _held_force(fh, seq, force_seq, status, d, iv[I_FAPPLIED] != 0, held,
-                                 iv[I_NAMED])
-    energy = fv[F_ENERGY] + (h if d == 0 else held) * dx
-    fv[F_HELD] = h
+    energy = fv[F_ENERGY] + _held_force(fh, seq, force_seq, status, d, iv[I_FAPPLIED] != 0,
+                                        fv[F_HELD:F_HELD + 2]) * dx
     fv[F_ENERGY] = energy
     excess = energy - fv[F_E0]
     if pv[P_PC] != 0.0 and excess > 0.0:
@@ -449,8 +445,8 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, pv, fh, x, sk_row, sk_x
     iv, fv : ndarray of int64, float64
         The state shared with Python (``I_SAMPLES`` counts the step, ``I_SKIPN`` the
         record's entries, ``F_XPREV`` takes ``x``; ``F_ENERGY`` the work of the force held
-        over the period, ``F_HELD`` and ``I_NAMED`` the force this STATE names held and
-        which FORCE, as :func:`answer_sample`).
+        over the period, ``F_HELD`` and the next entry the force this STATE names held
+        and which FORCE, as :func:`answer_sample`).
     pv : ndarray of float64
         The parameters (the delay).
     fh : ndarray of float64, shape (2, R)
@@ -470,11 +466,8 @@ def skip_sample(kind, kargs, xs, port, rec, out, iv, fv, pv, fh, x, sk_row, sk_x
         _port_step(kind, kargs, rec, out)
         iv[I_SAMPLES] += 1
         d = np.int64(pv[P_D])
-        held = fv[F_HELD]
-        h, iv[I_NAMED] = _held_force(fh, seq, force_seq, status, d, iv[I_FAPPLIED] != 0,
-                                     held, iv[I_NAMED])
-        fv[F_ENERGY] += (h if d == 0 else held) * (x - fv[F_XPREV])
-        fv[F_HELD] = h
+        fv[F_ENERGY] += _held_force(fh, seq, force_seq, status, d, iv[I_FAPPLIED] != 0,
+                                    fv[F_HELD:F_HELD + 2]) * (x - fv[F_XPREV])
         fv[F_XPREV] = x
         sn = iv[I_SKIPN]
         if sn < sk_row.size:

@@ -359,11 +359,11 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
         wlen = len(win)
         wsum = 0
         clamp_max = cfg.clamp_max
-        # the FORCEs sent this stretch, by seq (hapsim.kernels.ticks.held_force), and the
-        # force held the last STATE named, and which FORCE: the passivity observer's
-        ring_n = sent_ring_size(int(cfg.watchdog_us * cfg.rate_hz / 1e6), d)
+        # the FORCEs sent this stretch, by seq, and the force held the last STATE named,
+        # and which FORCE: the passivity observer's (hapsim.kernels.ticks.held_force)
+        ring_n = sent_ring_size(cfg.watchdog_us, cfg.rate_hz, d)
         ring = [[-1.0] * ring_n, [0.0] * ring_n]
-        held, named = 0.0, -1
+        held = [0.0, -1.0]
         Force = fp.Force
         applied_bit = fp.STATUS_FORCE_APPLIED
         flags_applied = self._applied_seen
@@ -423,10 +423,8 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                     if isfinite(x):
                         eng.port_step(x)
                         # the work of the force held over its period (as a row's below)
-                        h, named = held_force(ring, msg.seq, msg.force_seq, msg.status, d,
-                                              flags_applied, held, named)
-                        energy += (h if d == 0 else held) * (x - x_prev)
-                        held = h
+                        energy += held_force(ring, msg.seq, msg.force_seq, msg.status, d,
+                                             flags_applied, held) * (x - x_prev)
                         x_prev = x
                         sn = tel.skip_n
                         if sn < sk_cap:
@@ -469,10 +467,7 @@ class HostLoop(Handshake, Recovery, BadFrames, DeviceClock, HostClock):
                 dx = x - x_prev
                 x_prev = x
                 v = dx * rate
-                h, named = held_force(ring, seq, msg.force_seq, st, d, flags_applied, held,
-                                      named)
-                energy += (h if d == 0 else held) * dx
-                held = h
+                energy += held_force(ring, seq, msg.force_seq, st, d, flags_applied, held) * dx
                 excess = energy - e0
                 if pc_on and excess > 0.0:
                     tvv = T * v * v

@@ -125,15 +125,17 @@ def tick_late(seq: int, force_seq: int, status: int, d: int, flags_applied: bool
     return named_delay(seq, force_seq, status, flags_applied) != d
 
 
-def sent_ring_size(watchdog_periods: int, d: int) -> int:
+def sent_ring_size(watchdog_us: float, rate_hz: float, d: int) -> int:
     """Entries of the ring of sent FORCEs :func:`held_force` reads: a power of two that
     holds every FORCE a device may still hold (its watchdog's periods and the delay, with
-    room), at least 64; 4096 for a device without a watchdog (``watchdog_periods <= 0``).
+    room), at least 64; 4096 for a device without a watchdog (``watchdog_us <= 0``).
 
     Parameters
     ----------
-    watchdog_periods : int
-        The device's watchdog [periods] (<= 0: none).
+    watchdog_us : float
+        The device's watchdog (CONFIG's) [us] (<= 0: none).
+    rate_hz : float
+        The loop's rate [Hz].
     d : int
         The device's delay [ticks].
 
@@ -141,31 +143,33 @@ def sent_ring_size(watchdog_periods: int, d: int) -> int:
     -------
     int
     """
-    if watchdog_periods <= 0:
+    periods = int(watchdog_us * rate_hz / 1e6)
+    if periods <= 0:
         return 4096
-    need = max(int(watchdog_periods) + int(d) + 4, 64)
+    need = max(periods + int(d) + 4, 64)
     return 1 << (need - 1).bit_length()
 
 
 @register_jitable
-def held_force(ring, seq, force_seq, status, d, flags_applied, prev, prev_named):
-    """The force the device says it holds [N], from the FORCEs the host sent.
+def held_force(ring, seq, force_seq, status, d, flags_applied, held):
+    """The force the device held over the period that ends at STATE ``seq`` [N], from the
+    FORCEs the host sent.
 
     STATE ``seq`` names the FORCE applied from its tick on (``d >= 1``), or over the period
-    before it (``d = 0``: module notes). The force held is, in this order:
+    before it (``d = 0``: module notes). The force a STATE names as held is, in this order:
 
-    - zero when the STATE names none: ``FORCE_APPLIED`` clear on a device that sets it, or
-      a FORCE too recent to have been applied (``seq - force_seq < max(d, 1)``: a FORCE
-      is applied ``d`` ticks after the STATE it answers at the earliest; before a device
-      has set the bit, ``force_seq = 0`` is also "none yet");
+    - zero when it names none: ``FORCE_APPLIED`` clear on a device that sets it, or a
+      FORCE too recent to have been applied (``seq - force_seq < max(d, 1)``: a FORCE is
+      applied ``d`` ticks after the STATE it answers at the earliest; before a device has
+      set the bit, ``force_seq = 0`` is also "none yet");
     - zero under the watchdog (``WATCHDOG_TRIPPED``);
-    - ``prev`` when the STATE names the FORCE the previous one named: the device holds its
+    - what the previous STATE named when it names the same FORCE: the device holds its
       last force over a late tick, and that is the watchdog's zero once it zeroed it (the
       watchdog fed again by a FORCE not yet due leaves the bit clear while the zero is
       held, ``force_seq`` still naming the last FORCE received in time);
-    - else the named FORCE's value, as the host sent it (``ring``), or ``prev`` when the
-      ring does not hold it (not sent this stretch: the STATE it answered was skipped, or
-      it came before the stretch).
+    - else the named FORCE's value, as the host sent it (``ring``), or the previous one's
+      when the ring does not hold it (not sent this stretch: the STATE it answered was
+      skipped, or it came before the stretch).
 
     A protocol without ``force_seq`` is taken on time (FORCE ``seq - max(d, 1)``); a
     stale field ahead of the STATE changes nothing. The host loops' passivity observer
@@ -177,44 +181,40 @@ def held_force(ring, seq, force_seq, status, d, flags_applied, prev, prev_named)
     ring : array_like of float, shape (2, R)
         Row 0: the ``seq`` of the FORCE sent in each slot ``seq % R`` (-1: none); row 1:
         its force [N]. R a power of two (:func:`sent_ring_size`).
-    seq, force_seq : int
-        STATE fields (u32; ``force_seq`` -1 where the protocol carries none).
-    status : int
-        STATE status bits.
-    d : int >= 0
-        The device's delay [ticks].
-    flags_applied : bool
-        The device has set ``STATUS_FORCE_APPLIED`` on this or an earlier STATE.
-    prev : float
-        The force held that the previous STATE named [N] (0 at a stretch's start).
-    prev_named : int
-        The FORCE the previous STATE named (-1: none).
+    seq, force_seq, status, d, flags_applied
+        As :func:`tick_late`.
+    held : sequence of float, length 2
+        The force the previous STATE named as held [N] and which FORCE (-1: none): 0 and
+        -1 at a stretch's start; updated in place to this STATE's.
 
     Returns
     -------
-    force : float
-        The force held [N].
-    named : int
-        The FORCE this STATE names (-1: none), the next call's ``prev_named``.
+    float
+        The force held over the period before this STATE [N]: the one the previous STATE
+        named (``d >= 1``), or this one's (``d = 0``).
     """
+    prev, prev_named = held[0], held[1]
+    f, named = prev, prev_named             # a stale field ahead: nothing known
     lag = named_delay(seq, force_seq, status, flags_applied)
-    if lag < 0:
-        if force_seq >= 0:
-            if flags_applied and (status & STATUS_FORCE_APPLIED) == 0:
-                return 0.0, -1
-            return prev, prev_named         # a stale field ahead: nothing known
+    if lag < 0 and force_seq < 0:
         lag = d if d > 0 else 1             # no field: taken on time
-    if lag < (d if d > 0 else 1):
-        return 0.0, -1                      # too recent to be applied: none yet
-    want = (seq - lag) & SEQ_MASK
-    if status & STATUS_WATCHDOG_TRIPPED:
-        return 0.0, want
-    if want == prev_named:
-        return prev, want
-    j = want % len(ring[0])
-    if ring[0][j] == want:
-        return ring[1][j], want
-    return prev, want
+    if lag < 0:
+        if flags_applied and (status & STATUS_FORCE_APPLIED) == 0:
+            f, named = 0.0, -1.0            # none applied
+    elif lag < (d if d > 0 else 1):
+        f, named = 0.0, -1.0                # too recent to be applied: none yet
+    else:
+        want = (seq - lag) & SEQ_MASK
+        named = want
+        if status & STATUS_WATCHDOG_TRIPPED:
+            f = 0.0
+        elif want != prev_named:
+            j = want % len(ring[0])
+            if ring[0][j] == want:
+                f = ring[1][j]
+    held[0] = f
+    held[1] = named
+    return f if d == 0 else prev
 
 
 @nb.njit(cache=CACHE_OK, nogil=True)
