@@ -1,12 +1,16 @@
 """The scene's growth tables for the host loop's lateness guard
 (:mod:`hapsim.kernels.late_growth`, whose notes give the rule): the poles of the scene's
 temporary hybrid system at each delay a late force is held over, each mode followed from
-its pole on time.
+its pole on time. One rule for every dimension: a 1-D scene's poles are its THS's as the
+port's record shows them, a 2-D or 3-D scene's the eigenvalues of its closed loop
+(:func:`hapsim.analysis.scene_check.closed_loop_nd`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+import dataclasses
 
 from hapsim.analysis.prediction import predicted_poles, timed_scene
 from hapsim.kernels.late_growth import (GROWTH_MODES, GROWTH_POINTS, LATE_GROWTH_SLACK,
@@ -23,7 +27,8 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
 
     The loop's poles that the port's record shows
     (:func:`hapsim.analysis.prediction.predicted_poles`, the scene's THS with ``D``
-    periods of delay) are predicted at ``points`` delays spread evenly over ``d .. d + H``
+    periods of delay; for a 2-D or 3-D scene the non-zero eigenvalues of its closed loop,
+    :func:`hapsim.analysis.scene_check.closed_loop_nd`, with ``D`` periods) are predicted at ``points`` delays spread evenly over ``d .. d + H``
     (``H`` the watchdog's periods: a longer hold ends at zero force), one of each conjugate
     pair, as ``s = ln z`` [per period]. Each mode is followed from its pole on time as the
     delay grows: at each next delay, each followed mode takes a pole, each pole once, the
@@ -36,7 +41,7 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
 
     Parameters
     ----------
-    scene : hapsim.scene.Scene
+    scene : hapsim.scene.Scene or hapsim.scene.SceneND
         The run's calibrated scene (its own delay ``d``, a whole number of periods for the
         framed protocol's tick bookkeeping).
     watchdog_s : float
@@ -62,8 +67,7 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
     grid = []
     try:
         for l in lags:
-            z = np.asarray(predicted_poles(timed_scene(scene, float(latest_s) + l * T))[0],
-                           dtype=complex)
+            z = _poles(scene, float(latest_s) + l * T)
             z = z[(np.abs(z) > 0.0) & (z.imag >= 0.0)]
             if z.size == 0:
                 return None
@@ -90,16 +94,43 @@ def late_growth(scene, watchdog_s: float, latest_s: float = 0.0,
                       int(stable_to), d)
 
 
+#: Eigenvalues of an n-D closed loop at most this far from ``z = 0`` are the delay line's
+#: (exact zeros up to round-off: its shift blocks are nilpotent), as
+#: :func:`hapsim.analysis.prediction.predicted_poles` leaves out ``|z| <= 1e-9``.
+_ZERO_POLE = 1e-9
+
+
+def _poles(scene, latency_s: float) -> np.ndarray:
+    """The loop's non-zero poles with ``latency_s`` [s] added to the device's delay: a 1-D
+    scene's as its port's record shows them (:func:`predicted_poles`), a 2-D or 3-D
+    scene's the eigenvalues of its closed loop (shape (m,), complex)."""
+    if getattr(scene, "dimension", 1) == 1:
+        return np.asarray(predicted_poles(timed_scene(scene, latency_s))[0], dtype=complex)
+    from hapsim.analysis.scene_check import closed_loop_nd
+    dev = scene.device
+    delay = dev.delay + latency_s / scene.period
+    if float(delay).is_integer():
+        delay = int(round(delay))
+    A = closed_loop_nd(dataclasses.replace(scene, device=dataclasses.replace(
+        dev, delay=delay)))[0]
+    z = np.linalg.eigvals(A)
+    return z[np.abs(z) > _ZERO_POLE]
+
+
 def _follow_modes(grid: list) -> np.ndarray:
     """Each mode of ``grid[0]`` followed through the next delays (:func:`late_growth`):
     at each, each followed mode takes a pole, each pole once, the pairs' distances in the
-    ``s`` plane least in sum (the assignment problem: :func:`min_cost_assignment`).
+    ``s`` plane least in sum (the assignment problem: :func:`min_cost_assignment`). Where
+    a delay shows fewer poles than modes are followed, its poles are offered as many
+    times as it takes (a double pole of a symmetric device, split by round-off into a
+    conjugate pair of which one half is kept, stands for two modes; a real pair merging
+    into a complex one, counted once, for two).
 
     Parameters
     ----------
     grid : list of ndarray of complex
-        ``s = ln z`` [per period] of the poles at each delay (at least as many at each
-        delay as at the first: a longer delay line adds poles).
+        ``s = ln z`` [per period] of the poles at each delay (one of each conjugate pair;
+        none empty).
 
     Returns
     -------
@@ -109,6 +140,7 @@ def _follow_modes(grid: list) -> np.ndarray:
     s = np.array(grid[0], dtype=complex)
     out = [s.real.copy()]
     for nxt in grid[1:]:
+        nxt = np.tile(nxt, -(-s.size // nxt.size))
         s = nxt[min_cost_assignment(np.abs(s[:, None] - nxt[None, :]))]
         out.append(s.real.copy())
     return np.array(out).T

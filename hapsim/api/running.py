@@ -242,12 +242,17 @@ class RunReportND(Report):
         (None when the matrices were measured).
     stop : str or None
         Over a port only: what ended the measurement, ``"end"`` or, when a stop was
-        requested, ``"signal SIGINT"`` / ``"signal SIGTERM"`` (Ctrl-C, a service manager):
-        what was recorded by then is reported, as the 1-D run's ``loop.stop_reason``.
+        requested, ``"signal SIGINT"`` / ``"signal SIGTERM"`` (Ctrl-C, a service manager),
+        or a safety stop's ``"safety: ..."``: what was recorded by then is reported, as
+        the 1-D run's ``loop.stop_reason``.
+    safety : dict or None
+        Over a port only: the records' bounds and what a breach did
+        (:meth:`hapsim.pipeline.record_guard.RecordGuard.to_dict`: ``position_limit``
+        [m], ``stop``, ``brake``, ``brake_damping``, ``late_guard``).
     """
 
     _OPTIONAL = ("port", "late", "watchdog", "delay", "lost", "rows", "counts",
-                 "bad_frames", "incomplete", "stop")
+                 "bad_frames", "incomplete", "stop", "safety")
 
     scene: str
     dof: int
@@ -275,6 +280,7 @@ class RunReportND(Report):
     bad_frames: Any = None
     incomplete: Any = None
     stop: Any = None
+    safety: Any = None
 
     @property
     def k(self) -> np.ndarray:
@@ -335,7 +341,8 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
         d.update(port=port_info, late=res["late"], watchdog=res["watchdog"],
                  delay=res["delay"], lost=res["lost"], rows=res["rows"],
                  counts=res["counts"], bad_frames=res["bad_frames"],
-                 incomplete=res["incomplete"], stop=res.get("stop", "end"))
+                 incomplete=res["incomplete"], stop=res.get("stop", "end"),
+                 safety=res.get("safety"))
     if res.get("wire") is not None:
         d.update(wire=res["wire"], uncertainty=v["uncertainty"])
     return RunReportND.from_dict(d)

@@ -586,11 +586,13 @@ def run_nd(args) -> int:
         f"over {port_info['port']}" + (" (embedded mock, real time)"
                                        if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
+    # a safety stop is exit 1, as the 1-D run's (docs/commands.md, 'Exit codes')
+    code = 1 if (res.get("safety") or {}).get("stop") else 0
     if args.json:
         from hapsim.api import run_report_nd
         out = run_report_nd(scene, res, in_process, port_info).to_dict()
         print(json.dumps(out))
-        return 0
+        return code
     o = sys.stdout
     if in_process:
         print(f"{scene.path}: {n}-D scene in lockstep at {scene.rate_hz:g} Hz, in-process "
@@ -614,6 +616,10 @@ def run_nd(args) -> int:
         if res.get("stop", "end") != "end":
             print(f"  stopped: {res['stop']} (what was recorded by then is reported)",
                   file=o)
+        brake = (res.get("safety") or {}).get("brake")
+        if brake is not None:
+            from hapsim.braking import brake_text
+            print(f"  {brake_text(brake)}", file=o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} samples, "
           f"amplitude a = {a:g} m (minus the response from rest)", file=o)
     if not chk.stable:
@@ -668,7 +674,7 @@ def run_nd(args) -> int:
     from hapsim.pipeline.felt_run import print_statements
     print_statements(v, o)
     print(f"  verdict: {v['verdict']}: {v['reason']}", file=o)
-    return 0
+    return code
 
 
 def run_ports(args) -> int:

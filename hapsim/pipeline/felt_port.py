@@ -195,7 +195,7 @@ class _Counts:
 
 def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
             counts: _Counts | None = None, first_wait: float = 1.0,
-            silence: float = 0.25, stop=None) -> RecordND:
+            silence: float = 0.25, stop=None, guard=None) -> RecordND:
     """One CONFIG and its STATEs answered, then STOP: the record's rows up to the first
     STATE the host did not get (a gap in seq), the device falling silent or disarmed, a
     HELLO (the device reset) or another session starting (seq back, other content).
@@ -206,7 +206,9 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
     (:attr:`RecordND.rows`): every row kept is a measured sample of the loop, never a
     guessed one. A duplicated STATE (the same seq and content again) is ignored. A stop
     requested (``stop.set``: Ctrl-C, SIGTERM) ends the record at the next read (within
-    0.05 s), and STOP is sent as at any end.
+    0.05 s), and STOP is sent as at any end. A ``guard``
+    (:class:`hapsim.pipeline.record_guard.RecordGuard`) checks each STATE before it is
+    answered; a breach ends the record there, after the braking.
     """
     from hapsim.engine import Engine
     counts = counts if counts is not None else _Counts()
@@ -224,6 +226,8 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
     State = fp.State
     transport.send(fp.Config(rate_hz, watchdog_us, FORCE_LIMIT))
     counts.configs += 1
+    if guard is not None:
+        guard.start()
     k = 0
     last = clock()
     end = False
@@ -286,6 +290,10 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
                 for a in range(n):
                     pos[a] = mp[a]
                 last = clock()
+                if guard is not None and guard.check(m, pos) is not None:
+                    guard.stop_device(transport, m, pos)    # brakes, then zero force
+                    end = True
+                    break
                 eng.set_port_position(pos)
                 eng.step()
                 transport.send(fp.Force(m.seq, items(F)))
@@ -306,7 +314,8 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
             if end:
                 break
     rec.rows = k
-    if k < N and not (stop is not None and stop.set):
+    if k < N and not (stop is not None and stop.set) and not (
+            guard is not None and guard.reason):
         counts.cut += 1
     transport.send(fp.Stop())
     return rec
@@ -433,7 +442,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                       watchdog_periods: int = 20, amplitude: float | None = None,
                       max_configs: int | None = None, reconnect_time: float = 10.0,
                       backoff: float = 0.05, backoff_max: float = 1.0,
-                      frames: str = "auto", stop=None) -> dict:
+                      frames: str = "auto", stop=None, late_guard: bool = True) -> dict:
     """The felt matrices of ``scene`` measured over ``transport`` (module notes).
 
     Each CONFIG gives one record; the device's hand picks its start (the mock: the next
@@ -481,6 +490,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         its next read and the measurement there: the starts with a whole record by then
         are fitted if they are all there, else nothing is (``incomplete`` says the stop
         and how far it got); ``stop`` in the result names it.
+    late_guard : bool
+        Guard the records against late FORCEs (:mod:`hapsim.pipeline.record_guard`;
+        False for a device that waits for the host, a lockstep mock). The position bound
+        and the braking hold either way.
 
     Returns
     -------
@@ -511,7 +524,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         ``bad_frames`` (the host decoder's count, when it has one), ``incomplete``
         (None, or why nothing was fitted), ``hello`` (the device's first HELLO),
         ``frames`` (``"compact"`` or ``"full"``: the last session's), ``stop``
-        (``"end"``, or ``"signal NAME"`` / the stop's reason when one was requested).
+        (``"end"``, ``"signal NAME"`` / the stop's reason when one was requested, or a
+        safety stop's ``"safety: ..."``), ``safety``
+        (:meth:`hapsim.pipeline.record_guard.RecordGuard.to_dict`: the position bound,
+        the lateness guard, a safety stop and its braking).
 
     Raises
     ------
@@ -550,7 +566,13 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     need_hello = True
     lost_since = None
     since_hello = 0                             # CONFIGs the device took since its HELLO
-    stopped = (lambda: False) if stop is None else (lambda: bool(stop.set))
+    # the records' bounds, checked STATE by STATE (hapsim.pipeline.record_guard)
+    from hapsim.analysis.late_growth import late_growth
+    from hapsim.pipeline.record_guard import RecordGuard
+    guard = RecordGuard(scene, a, late_growth(scene, wd * 1e-6) if late_guard else None,
+                        FORCE_LIMIT)
+    stopped = ((lambda: guard.reason is not None) if stop is None else
+               (lambda: bool(stop.set) or guard.reason is not None))
     while (counts.configs < budget and not all(r is not None and r.rows == N for r in best)
            and not stopped()):
         try:
@@ -566,7 +588,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
             expected = since_hello % S
             h0 = counts.hellos
             rec = _record(transport, scene, N, rate, wd, counts=counts, silence=silence,
-                          stop=stop)
+                          stop=stop, guard=guard)
             since_hello = 0 if counts.hellos != h0 else since_hello + 1
         except DeviceError as exc:
             if "FAULT" in str(exc).split("\n")[0]:
@@ -604,7 +626,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
            "hello": hello, "counts": counts.as_dict(), "lost": counts.lost,
            "recovered": counts.recovered, "incomplete": None,
            "frames": "compact" if getattr(transport, "compact", False) else "full",
-           "stop": "end" if not stopped() else stop_reason(stop)}
+           "stop": ("end" if not stopped() else guard.reason or stop_reason(stop)),
+           "safety": guard.to_dict()}
     dec = getattr(transport, "decoder", None)
     st = getattr(dec, "stats", None)
     out["bad_frames"] = (None if st is None else int(

@@ -257,7 +257,8 @@ def _over_port(scene, opts, a: float, progress):
         # as the 1-D loop: SCHED_FIFO where permitted, no collection while it runs
         with rt:
             gc.disable()
-            res = measure_felt_port(tr, scene, progress=progress, amplitude=a, stop=stop)
+            res = measure_felt_port(tr, scene, progress=progress, amplitude=a, stop=stop,
+                                    late_guard=not opts.lockstep)
     finally:
         for s, h in old.items():
             signal.signal(s, h)
