@@ -150,7 +150,7 @@ class RecordGuard:
 
     def stop_device(self, transport, m, pos, receive_timeout: float = 0.05) -> None:
         """After a breach at STATE ``m``: brake the handle (module notes), then send the
-        zero FORCE (the caller sends STOP).
+        zero FORCE, whatever ended the braking (the caller sends STOP).
 
         Parameters
         ----------
@@ -171,6 +171,7 @@ class RecordGuard:
         if self.lag < 0 or self.lag > self.d + IGNORED_TICKS:
             # the device took none of the host's FORCEs lately: STOP at once
             self.brake = law.report(0, 0.0, "ignored")
+            transport.send(fp.Force(int(m.seq), zero))
             return
         law.observe(pos, None)
         first, last = int(m.seq), int(m.seq)
@@ -215,8 +216,7 @@ class RecordGuard:
                 break
             cur = nxt
         self.brake = law.report(sent, (last - first) / self.rate, ended)
-        if ended != "ignored":
-            transport.send(fp.Force(int(cur.seq), zero))
+        transport.send(fp.Force(int(cur.seq), zero))
 
     def to_dict(self) -> dict:
         """The record's safety as a run reports it (``safety`` in ``--json``).
