@@ -14,6 +14,14 @@ that ran away this prints where the guarded run stopped (time, why) and the larg
 excursion of the handle in units of its start ``x0``; for those that decayed, whether the
 guard stopped any (it must not). Deterministic (seeded, simulated time).
 
+``--family n-D`` draws 2-D and 3-D loops instead (:func:`nd_case`: a cartesian device on
+a spring-damper, stable on time; a link that holds some of the device's frames 3-12 ms),
+each measured over the port as ``hapsim run`` measures a 2-D or 3-D scene
+(:func:`hapsim.pipeline.felt_port.measure_felt_port`, its records' safety
+:mod:`hapsim.pipeline.record_guard`), without the lateness guard and with it (the
+position bound, 20 a, on both): "ran away" reached the bound, "decayed" had every
+record's last 60 rows below half its first 60.
+
 ``--rates`` prints instead, for a few walls and uniform holds, the loop's growth a period
 as a record without the guard measures it (the slope of its envelope's log, the largest
 |x| of each 0.4 s, over up to 10 s) beside the guard's frozen estimate ``g(G) / G``.
@@ -23,6 +31,7 @@ Usage::
     python tools/late_guard.py                     # seeds 1-4, 20 cases each
     python tools/late_guard.py --seeds 7 8 --cases 14
     python tools/late_guard.py --family "late link" --seeds 1 2 --cases 20
+    python tools/late_guard.py --family n-D --seeds 11 12 13 14 15 --cases 16
     python tools/late_guard.py --rates
     python tools/late_guard.py --plot docs/late_guard.png
 
@@ -49,7 +58,7 @@ from hapsim.engine import Engine
 from hapsim.host.loop import HostLoop, LoopConfig
 from hapsim.host.telemetry import Telemetry
 from hapsim.analysis.late_growth import late_growth
-from hapsim.scene import parse_scene
+from hapsim.scene import parse_scene, parse_scene_nd
 
 LIMIT = 10.0        # force limit [N]
 X0 = 0.005          # the handle's start [m]
@@ -316,11 +325,115 @@ def late_link(seeds, cases: int) -> int:
     return 1 if braked_ignored or later else 0
 
 
+#: The n-D records' amplitude [m] (a hand's, not the mock's 1e-8 default: the guard
+#: stops only a handle faster than the braking's rest speed).
+ND_A = 0.002
+
+
+def nd_text(n, m, b0, K, B, d, brake=True) -> str:
+    """A cartesian n-D scene (diagonal mass [kg] and friction [N s/m]) on a
+    spring-damper (K [N/m], B [N s/m]) to the origin, delay ``d`` periods, at 1 kHz."""
+    z = "[" + ", ".join(["0.0"] * n) + "]"
+    vec = "[{}]".format
+    return (f"dimension: {n}\nrate_hz: 1000\nmasses:\n  - {{name: hand, kind: port}}\n"
+            f"  - {{name: c, kind: ground, x0: {z}}}\nlinks:\n"
+            f"  - {{name: s, kind: spring_damper, between: [hand, c], stiffness: {K:.9g}, "
+            f"damping: {B:.9g}}}\ndevice: {{kind: cartesian, "
+            f"mass: {vec(', '.join(f'{float(x):.9g}' for x in m))}, "
+            f"friction: {vec(', '.join(f'{float(x):.9g}' for x in b0))}, position: {z}, "
+            f"delay: {d}}}\n" + ("" if brake else "safety: {brake: false}\n"))
+
+
+def nd_case(rng):
+    """A random 2-D or 3-D loop stable on time (``(scene, faults, fault_seed)``), and a
+    link holding some of the device's frames 3-12 ms (half the cases milder: at most
+    10 % held, at most 6 ms)."""
+    from hapsim.analysis.scene_check import closed_loop_nd
+    while True:
+        n = int(rng.integers(2, 4))
+        sc = parse_scene_nd(nd_text(n, rng.uniform(0.05, 0.3, n), rng.uniform(0.1, 1.5, n),
+                                    rng.uniform(200, 4000), rng.uniform(0.0, 4.0),
+                                    int(rng.integers(1, 3))), "<case>")
+        if max(abs(np.linalg.eigvals(closed_loop_nd(sc)[0]))) < 1.0:
+            break
+    mild = rng.random() < 0.5
+    p = rng.uniform(0.02, 0.1) if mild else rng.uniform(0.02, 0.5)
+    G = rng.uniform(3, 6) if mild else rng.uniform(3, 12)
+    return sc, f"spike={p:.3f}:{G:.1f}ms", int(rng.integers(1, 1000))
+
+
+def nd_measure(sc, faults, seed, guard):
+    """The n-D measurement over the n-axis mock on a virtual clock (faults seeded; None:
+    a link that holds nothing): ``(result, transport)``, every message sent kept in
+    ``transport.sent``."""
+    from hapsim.emulated.mock import MockDeviceND
+    from hapsim.pipeline.felt_port import measure_felt_port
+    tr = SimTransport(MockDeviceND(sc, lockstep=False, amplitude=ND_A),
+                      parse_faults(faults, seed) if faults else None)
+    tr.sent = []
+    return measure_felt_port(tr, sc, amplitude=ND_A, late_guard=guard), tr
+
+
+def nd_kind(res) -> str:
+    """"ran away" (a safety stop), "decayed" (every record's, after the one from rest,
+    largest distance from rest over its last 60 rows below half that of its first 60)
+    or "other"."""
+    if res["stop"].startswith("safety"):
+        return "ran away"
+    env = []
+    for m in res["moved"][1:]:
+        r = np.linalg.norm(m, axis=1)
+        env.append(r[-60:].max() / r[:60].max())
+    return "decayed" if max(env) < 0.5 else "other"
+
+
+def stopped_at(res) -> tuple:
+    """(record, row) where an n-D measurement stopped: its first start not wholly
+    recorded."""
+    return next(((j, r) for j, r in enumerate(res["rows"]) if r < res["samples"]),
+                (len(res["rows"]), 0))
+
+
+def late_stop(res) -> bool:
+    """An n-D measurement stopped by the lateness guard."""
+    return res["stop"].startswith("safety: the host's FORCEs came too late")
+
+
+def n_d(seeds, cases: int) -> int:
+    """``--family n-D``: the counts, and each case the guard stopped that did not run
+    away. 1 when a guarded run stopped later than without, or stopped one that
+    decayed."""
+    seen = {"ran away": 0, "decayed": 0, "other": 0}
+    sooner = later = decayed_stopped = other_stopped = 0
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        for _ in range(cases):
+            sc, faults, fseed = nd_case(rng)
+            off, on = nd_measure(sc, faults, fseed, False)[0], nd_measure(sc, faults, fseed,
+                                                                          True)[0]
+            kind = nd_kind(off)
+            seen[kind] += 1
+            if kind == "ran away":
+                later += stopped_at(on) > stopped_at(off)
+                sooner += late_stop(on) and stopped_at(on) < stopped_at(off)
+            elif on["stop"] != "end":
+                decayed_stopped += kind == "decayed"
+                other_stopped += kind == "other"
+                print(f"seed {seed} {sc.dimension}-D {faults}: {kind}, stopped by the guard "
+                      f"at record {stopped_at(on)[0]} (rows {off['rows']} without)")
+    print(f"cases: {seen['ran away']} ran away, {seen['decayed']} decayed, {seen['other']} "
+          f"neither ({other_stopped} of them stopped by the guard)")
+    print(f"ran away: {sooner} stopped sooner by the guard, {later} later")
+    print(f"decayed: {decayed_stopped} stopped by the guard")
+    return 1 if later or decayed_stopped else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
     ap.add_argument("--cases", type=int, default=20, help="cases per seed")
-    ap.add_argument("--family", choices=("wall", "two masses", "late link"), default="wall",
+    ap.add_argument("--family", choices=("wall", "two masses", "late link", "n-D"),
+                    default="wall",
                     help="the scenes and hosts drawn (module notes of case())")
     ap.add_argument("--rates", action="store_true",
                     help="the measured and estimated growth of uniform holds instead")
@@ -335,6 +448,8 @@ def main(argv=None) -> int:
         return 0
     if a.family == "late link":
         return late_link(a.seeds, a.cases)
+    if a.family == "n-D":
+        return n_d(a.seeds, a.cases)
     counts = {"ran away": 0, "decayed": 0, "other": 0}
     worst, wrong, others, later, slow_stopped = 0.0, 0, 0, 0, 0
     fast, fast_guarded, fast_worst = 0, 0, 0.0     # ran away within FAST_S
