@@ -177,3 +177,51 @@ def test_hapsim_run_reports_a_safety_stop_of_a_2d_run_and_exits_1():
     sf = rep["safety"]
     assert sf["stop"] == rep["stop"] and sf["position_limit"] == 0.1
     assert sf["late_guard"]["modes"] >= 1 and sf["brake"]["ended"] == "ignored"
+
+
+def test_a_port_that_fails_under_the_braking_ends_the_measurement_on_its_stop(monkeypatch):
+    """The port fails as the braking begins (a cable pulled): the braking ends ("port"),
+    the measurement ends at once on its safety stop, reported, with no wait for the port
+    to come back (a lost port is otherwise waited for, ``reconnect_time``)."""
+    from hapsim.emulated.links import SimTransport
+    from hapsim.emulated.mock import MockDeviceND
+    from hapsim.errors import DeviceError
+    from hapsim.pipeline import record_guard
+    from hapsim.pipeline.felt_port import measure_felt_port
+
+    class Pulled:
+        """A transport whose port is gone once ``gone`` is set."""
+
+        def __init__(self, inner):
+            self.inner, self.gone, self.reopens = inner, False, 0
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def send(self, msg):
+            if self.gone:
+                raise DeviceError("write failed: the port vanished")
+            self.inner.send(msg)
+
+        def receive(self, timeout=0.0):
+            if self.gone:
+                raise DeviceError("read failed: the port vanished")
+            return self.inner.receive(timeout)
+
+        def reopen(self):
+            self.reopens += 1
+            raise DeviceError("no such port")
+
+    brake = record_guard.RecordGuard._brake
+
+    def pulled_at_the_brake(self, transport, *args):
+        transport.gone = True
+        return brake(self, transport, *args)
+    monkeypatch.setattr(record_guard.RecordGuard, "_brake", pulled_at_the_brake)
+    sc = parse_scene_nd(_text(2, [0.1, 0.15], [0.3, 0.5], 20000.0, 5.0, 1), "<unstable>")
+    tr = Pulled(SimTransport(MockDeviceND(sc, lockstep=False, amplitude=A)))
+    t0 = tr.clock()
+    res = measure_felt_port(tr, sc, amplitude=A, reconnect_time=10.0)
+    assert res["stop"].startswith("safety: position") and res["incomplete"]
+    assert res["safety"]["brake"]["ended"] == "port" and tr.reopens == 0
+    assert tr.clock() - t0 < 2.0                # no 10 s wait for the port

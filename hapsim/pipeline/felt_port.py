@@ -593,6 +593,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         except DeviceError as exc:
             if "FAULT" in str(exc).split("\n")[0]:
                 raise
+            if guard.reason is not None:
+                break                           # a safety stop, then the port failed
             if lost_since is None:
                 lost_since = clock()
                 counts.lost += 1

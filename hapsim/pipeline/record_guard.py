@@ -35,6 +35,7 @@ import numpy as np
 
 import firmware_protocol as fp
 from hapsim.braking import BRAKE_MAX_S, IGNORED_TICKS, Brake, brake_damping, brake_rest
+from hapsim.errors import DeviceError
 from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP,
                                         late_growth_reason, late_growth_step,
                                         open_hold_growth)
@@ -162,12 +163,28 @@ class RecordGuard:
             Its handle position [m].
         receive_timeout : float
             Each wait for the next STATE [s].
+
+        Raises
+        ------
+        DeviceError
+            The port failed under the braking (:attr:`brake` then says ``"port"``).
         """
         zero = tuple(0.0 for _ in range(self.n))
         if self.damping is None:
             transport.send(fp.Force(int(m.seq), zero))
             return
         law = Brake(self.damping, self.force_limit, self.rest_speed)
+        try:
+            self._brake(transport, m, pos, law, zero, receive_timeout)
+        except DeviceError:
+            # the port failed under the braking: nothing more can be sent (the caller's
+            # STOP fails too, and the measurement ends on its safety stop)
+            b = law.report(0, 0.0, "port")
+            self.brake = b if self.brake is None else {**self.brake, "ended": "port"}
+            raise
+
+    def _brake(self, transport, m, pos, law, zero, receive_timeout: float) -> None:
+        """:meth:`stop_device`'s braking (the law made), its report in :attr:`brake`."""
         if self.lag < 0 or self.lag > self.d + IGNORED_TICKS:
             # the device took none of the host's FORCEs lately: STOP at once
             self.brake = law.report(0, 0.0, "ignored")
