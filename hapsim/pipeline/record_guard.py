@@ -19,9 +19,10 @@ A breach ends the measurement: the host brakes the handle (:mod:`hapsim.braking`
 -B v``, ``B = g M / T`` with ``M`` the device's Cartesian mass matrix, the one the framed
 device's axes carry; for a pantograph or a delta, its Cartesian mass at the operating
 point: a handle away from it, whose true mass is ``M'``, sees each mode's gain ``g``
-times an eigenvalue of ``M'^-1 M``, stable while below the delayed loop's bound over
-``g``, :func:`hapsim.braking.gain_bound`: 4 at ``d = 1``, 2.5 at 2), then sends the zero
-FORCE and STOP, and the run reports the stop
+times an eigenvalue of ``M'^-1 M``; the backward-difference loop of each mode,
+:func:`hapsim.braking.brake_mode_polynomial`, is stable to a gain of 0.83 at ``d = 1``
+and 0.54 at 2, so for eigenvalues up to 3.3 and 2.1 times), then sends the zero FORCE and
+STOP, and the run reports the stop
 ("safety: ...") with what was recorded by then (the felt matrices are then not
 measured). As in 1-D, no braking is sent to a device that takes none of the host's FORCEs:
 the last STATE names a FORCE more than ``d +`` :data:`hapsim.braking.IGNORED_TICKS` ticks
