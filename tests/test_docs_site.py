@@ -15,7 +15,6 @@ a benchmark is shown unmarked.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import re
@@ -24,6 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from from_file import load_module  # same directory
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,11 +33,7 @@ BLOCK = re.compile(r"^<!-- test: (run|output) -->\n```(sh|console)\n(.*?)^```", 
 
 
 def _macros():
-    spec = importlib.util.spec_from_file_location("docs_macros",
-                                                  ROOT / "tools" / "docs_macros.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_module(ROOT / "tools" / "docs_macros.py")
 
 
 def _blocks(kind: str) -> list:

@@ -13,12 +13,12 @@ these are).
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from from_file import load_module  # same directory
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.stability import stability_limit
 from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP, LateGrowth,
@@ -30,16 +30,8 @@ from tolerance import sum_tol  # same directory
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _tool():
-    """tools/late_guard.py as a module: the cases' scenes, host and runs."""
-    spec = importlib.util.spec_from_file_location("late_guard",
-                                                  ROOT / "tools" / "late_guard.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-lg = _tool()
+#: tools/late_guard.py as a module: the cases' scenes, host and runs
+lg = load_module(ROOT / "tools" / "late_guard.py")
 wall, run, X0, WATCHDOG_S = lg.wall, lg.run, lg.X0, lg.WATCHDOG_S
 
 

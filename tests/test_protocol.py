@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import ast
 import dataclasses
-import importlib.util
 import json
 import math
 import random
@@ -18,6 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from from_file import load_module  # same directory
 import pytest
 from hypothesis import given, settings, strategies as st
 
@@ -33,15 +33,7 @@ CLASSES = {"HELLO": fp.Hello, "HELLO_REQUEST": fp.HelloRequest, "CONFIG": fp.Con
            "FORCE_COMPACT": fp.ForceCompact}
 
 
-def _oracle():
-    spec = importlib.util.spec_from_file_location("check_vectors",
-                                                  PKG / "vectors" / "check_vectors.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-ORACLE = _oracle()
+ORACLE = load_module(PKG / "vectors" / "check_vectors.py")
 
 
 def message_of(vector: dict):

@@ -6,7 +6,6 @@ late for the device is late, never waited for."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
+from from_file import load_module  # same directory
 from hapsim.analysis.late_growth import late_growth
 from hapsim.analysis.scene_check import closed_loop_nd
 from hapsim.braking import BRAKE_MAX_S
@@ -26,16 +26,8 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _tool():
-    """tools/late_guard.py as a module: the n-D cases' scenes, links and runs."""
-    spec = importlib.util.spec_from_file_location("late_guard",
-                                                  ROOT / "tools" / "late_guard.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-lg = _tool()
+#: tools/late_guard.py as a module: the n-D cases' scenes, links and runs
+lg = load_module(ROOT / "tools" / "late_guard.py")
 A, _text, _measure, _stopped_at = lg.ND_A, lg.nd_text, lg.nd_measure, lg.stopped_at
 
 

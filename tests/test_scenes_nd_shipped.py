@@ -7,7 +7,6 @@ its ellipse at the operating point is the check's felt stiffness."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
+from from_file import load_module  # same directory
 from hapsim.analysis.ths import MatrixLoop, render
 from hapsim.cli import main
 from hapsim.kinematics import device
@@ -29,11 +29,7 @@ SHIPPED_ND = [n for n in ALL_ND if "kind: port" in (CONFIGS / n).read_text()]
 
 
 def _generator():
-    spec = importlib.util.spec_from_file_location("make_nd_scenes",
-                                                  ROOT / "tools" / "make_nd_scenes.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_module(ROOT / "tools" / "make_nd_scenes.py")
 
 
 def test_the_shipped_nd_scenes_are_the_generators():

@@ -3,16 +3,15 @@ them, accepts the justified ones, and ``--check`` guards the converted files (is
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
 
+from from_file import load_module  # same directory
+
 ROOT = Path(__file__).resolve().parent.parent
 TOOL = ROOT / "tools" / "tolerance_audit.py"
-_spec = importlib.util.spec_from_file_location("tolerance_audit", TOOL)
-audit_mod = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(audit_mod)
+audit_mod = load_module(TOOL)
 
 SRC = '''\
 import numpy as np, pytest

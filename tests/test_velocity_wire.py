@@ -12,7 +12,6 @@ firmware's answer is tested on simavr in ``tests/test_firmware.py``.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
 from pathlib import Path
@@ -21,6 +20,7 @@ import numpy as np
 import pytest
 
 import firmware_protocol as fp
+from from_file import load_module  # same directory
 from hapsim.analysis.loop import LoopModel
 from hapsim.analysis.ths import render
 from hapsim.emulated.mock import MockDevice
@@ -272,11 +272,7 @@ def test_run_refuses_velocity_sensor_on_a_device_without_it(tmp_path, capsys, an
 # --------------------------------------------------------------------------- compiled loop
 
 def _compiled_helpers():
-    spec = importlib.util.spec_from_file_location("_compiled_loop_helpers",
-                                                  HERE / "test_compiled_loop.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_module(HERE / "test_compiled_loop.py", "_compiled_loop_helpers")
 
 
 @pytest.mark.parametrize("seed", [1, 2])
