@@ -556,7 +556,12 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     names (force_seq), so the verdict is the lockstep one's: never "differs" (the felt
     matrices within the stated uncertainty, or "not measurable" for the stated reason:
     here the Hapkit's sensor and PWM, as in lockstep). The compact frames are used (the
-    leader offers them, the host asks a device whose HELLO gives a force step)."""
+    leader offers them, the host asks a device whose HELLO gives a force step).
+
+    The lateness guard is off here: this is the account's test, and the shipped wall is
+    stable only at its own delay (1 period), so on a loaded machine the guard stops it
+    as it stops a run ("the host's FORCEs came too late ...: a loaded machine?"; seen
+    once in CI, "grow it x2.4"); its stops are tests/test_record_guard.py's."""
     from hapsim.analysis.linearisation import linearisation_bound
     from hapsim.emulated.pantograph_board import JointLevelTransport, wire_term
     from hapsim.pipeline.felt_port import measure_felt_port
@@ -566,7 +571,7 @@ def test_realtime_run_felt_verdict_holds_whatever_the_load(built, scene, tmp_pat
     with _board(tmp_path, scene, a, realtime=True) as (proc, port, report):
         tr = JointLevelTransport(SerialTransport(port), scene)
         try:
-            res = measure_felt_port(tr, scene, samples=150)
+            res = measure_felt_port(tr, scene, samples=150, late_guard=False)
         finally:
             tr.close()
     rep = json.loads(report.read_text())
