@@ -327,12 +327,17 @@ def test_play_ends_on_a_signal_with_its_report(tmp_path, sig):
 
 def test_run_osc_changes_the_running_daemon():
     """hapsim run --osc (real-time embedded mock on a pty): an accepted change is ramped
-    into the running engine and reported with its prediction, a refused one is not."""
+    into the running engine and reported with its prediction, a refused one is not.
+
+    The run keeps its default real-time priority (SCHED_FIFO where permitted, as a user's
+    run): at normal priority on a loaded CI machine its host was once descheduled long
+    enough for the lateness guard to stop the wall (stable to 3 periods of delay; a 60 ms
+    stall of the host stops it, "grow it x2.4"), which is the guard's business, not this
+    test's."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
     hst = os.path.join(os.environ.get("TMPDIR", "/tmp"), f"osc-{os.getpid()}.hst")
     proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", SCENE, "--osc", "0",
-                             "--duration", "0", "--rt-priority", "0", "--json",
-                             "--telemetry", hst],
+                             "--duration", "0", "--json", "--telemetry", hst],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=ROOT,
                             text=True)
     port = None
