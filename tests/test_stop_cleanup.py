@@ -69,7 +69,7 @@ def _stopped_run(argv, tmp_path, after, sig):
     # the report's end beside stderr: an unexpected exit code says why (a safety stop, a
     # fault, an unfit link: hapsim.pipeline.report), not only that it happened
     return (p.returncode, sorted(os.listdir(tmp)), _alive_naming(str(tmp)),
-            err + ("\n--- stdout's end:\n" + out[-1500:] if out else ""))
+            err + ("\n--- stdout's end:\n" + out[-4000:] if out else ""))
 
 
 _RNG = random.Random(31)
@@ -88,12 +88,15 @@ def test_a_stopped_run_leaves_nothing(sig, after, tmp_path):
         after, sig)
     assert not left and not alive, (sig, after, code, left, alive, err)
     # stopped: 130 (Ctrl-C) / 143 (SIGTERM) before the loop is armed, 0 once it stops
-    # cleanly; or it had finished (0). (The first wall, stable up to a delay of 5
-    # samples: configs/wall.yaml's margin is one sample, and once, beside the suite's
-    # real-time loops and more load, its run with 30 late FORCEs in 161 ticks braked to
-    # rest and exited 1, a safety stop's code: the scene's documented behaviour under
-    # load, not this test's subject.)
-    assert code in (0, 130 if sig == signal.SIGINT else 143), (code, err)
+    # cleanly; or it had finished (0). Or a safety stop's 1, where the report says so:
+    # the first wall is stable up to a delay of 5 samples, and beside the suite's
+    # real-time loops and CI's load its host has been late enough for a safety stop
+    # (30 late FORCEs in 161 ticks, braked to rest; once, 57 late in 284 ticks, the
+    # device naming none of the host's FORCEs, STOP sent at once): the scene's
+    # documented behaviour under load (docs/reliability.md, "The lateness guard"), not
+    # this test's subject, which is what is left behind.
+    safety = code == 1 and "stop: safety: " in err
+    assert code in (0, 130 if sig == signal.SIGINT else 143) or safety, (code, err)
 
 
 def test_a_finished_and_a_failed_run_leave_nothing(tmp_path):
