@@ -43,7 +43,7 @@ from hapsim.errors import DeviceError
 
 # BRAKE_GAIN, BRAKE_MAX_S and brake_damping live in hapsim.braking (the law of every
 # dimension, the n-D drivers' too); named here as before
-__all__ = ["Recovery", "BRAKE_GAIN", "BRAKE_MAX_S", "brake_damping"]
+__all__ = ["Recovery", "BRAKE_GAIN", "BRAKE_MAX_S", "brake_damping", "names_older"]
 
 
 def _stored_energy(engine) -> float:
@@ -56,10 +56,30 @@ def _stored_energy(engine) -> float:
     return e if math.isfinite(e) else 0.0
 
 
-def _names_older(state, seq0: int, d: int, applied: bool) -> bool:
-    """A STATE at least ``IGNORED_TICKS`` ticks past the tick FORCE ``seq0`` was due at
-    (``seq0 + d``) that still names an older FORCE as applied (or, on a device that flags
-    what it applies, none): the device took none of the braking's FORCEs."""
+def names_older(state, seq0: int, d: int, applied: bool) -> bool:
+    """Whether a STATE at least :data:`~hapsim.braking.IGNORED_TICKS` ticks past the tick
+    FORCE ``seq0`` was due at (``seq0 + d``) still names an older FORCE as applied (or, on
+    a device that flags what it applies, none): the device took none of the braking's
+    FORCEs. The 1-D braking's test (:meth:`Recovery._brake`) and the n-D records'
+    (:mod:`hapsim.pipeline.record_guard`).
+
+    Parameters
+    ----------
+    state : firmware_protocol.State
+        The STATE (``seq``, ``force_seq``, ``status``; u32 counters).
+    seq0 : int
+        The braking's first FORCE.
+    d : int
+        The delay [ticks].
+    applied : bool
+        The device has set ``STATUS_FORCE_APPLIED`` on this or an earlier STATE.
+
+    Returns
+    -------
+    bool
+        False before tick ``seq0 + d + IGNORED_TICKS`` (mod 2^32) or without a
+        ``force_seq``.
+    """
     past = (state.seq - seq0 - d) & SEQ_MASK
     if past >= SEQ_HALF or past < IGNORED_TICKS or state.force_seq < 0:
         return False
@@ -98,7 +118,7 @@ class Recovery:
         reading, the Hapkit's paddle to its end stops 6 cm out, after runs that ended on
         their duration). Nothing after a non-finite reading, a lost device or any other
         end. Nothing either, or no more, once the device is seen taking none of the host's
-        FORCEs (:meth:`_ignoring` before the first, :func:`_names_older` after): its
+        FORCEs (:meth:`_ignoring` before the first, :func:`names_older` after): its
         braking would be as late as every other answer, and the zero FORCE and STOP that
         :meth:`_shutdown` sends next are what it applies at once (``ended``
         ``"ignored"``). What it did is :attr:`LoopResult.brake`.
@@ -144,7 +164,7 @@ class Recovery:
                         and math.isfinite(msg.position[0]):
                     st = msg
             if st is not None:
-                if _names_older(st, seq0, d, applied):
+                if names_older(st, seq0, d, applied):
                     ended = "ignored"
                     break
                 seq = st.seq

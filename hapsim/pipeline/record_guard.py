@@ -41,6 +41,7 @@ import numpy as np
 import firmware_protocol as fp
 from hapsim.braking import BRAKE_MAX_S, IGNORED_TICKS, Brake, brake_damping, brake_rest
 from hapsim.errors import DeviceError
+from hapsim.host.recovery import names_older
 from hapsim.kernels.late_growth import (LATE_GROWTH_SLACK, LATE_GROWTH_STOP,
                                         late_growth_reason, late_growth_step,
                                         open_hold_growth)
@@ -88,6 +89,8 @@ class RecordGuard:
         self.n = scene.dimension
         self.rate = float(scene.rate_hz)
         self.rest = np.asarray(dev.position, float).reshape(self.n)
+        self._rest = [float(v) for v in self.rest]
+        self._prev = [0.0] * self.n         # the last STATE's position, kept in place
         self.d = int(dev.delay)
         self.bound = max(POSITION_FLOOR, POSITION_SCALE * abs(float(amplitude)))
         self.rest_speed = brake_rest(self.bound, dev.mass, dev.friction)
@@ -105,7 +108,7 @@ class RecordGuard:
         self.acc = [0.0] * (len(self.tables) if self.tables is not None else 0)
         self.named = -1
         self.applied = False
-        self.prev = None                    # the last STATE's position (floats)
+        self._seen = False                  # a STATE of this record read already
         self.lag = -1
 
     def check(self, m, pos) -> str | None:
@@ -135,16 +138,17 @@ class RecordGuard:
                                           self.tables, step)
             grown = open_hold_growth(self.acc, self.named, int(m.seq), lag, self.d,
                                      self.tables, step)
-        # per STATE no array is made (the real-time rule): n <= 3 floats
-        prev, rest = self.prev, self.rest
+        # per STATE nothing is made (the real-time rule): n <= 3 floats, updated in place
+        prev, rest, seen = self._prev, self._rest, self._seen
         step = off2 = 0.0
-        now = [pos.item(a) for a in range(self.n)]
         for a in range(self.n):
-            if prev is not None:
-                step = max(step, abs(now[a] - prev[a]))
-            e = now[a] - rest.item(a)
+            x = pos.item(a)
+            if seen:
+                step = max(step, abs(x - prev[a]))
+            prev[a] = x
+            e = x - rest[a]
             off2 += e * e
-        self.prev = now
+        self._seen = True
         speed = step * self.rate            # the largest component's, as the braking's
         off = math.sqrt(off2)
         if not off <= self.bound:           # (a position not finite stops too)
@@ -231,9 +235,7 @@ class RecordGuard:
             st = int(nxt.status)
             if st & fp.STATUS_FORCE_APPLIED:
                 self.applied = True
-            lag = named_delay(int(nxt.seq), int(nxt.force_seq), st, self.applied)
-            named = int(nxt.seq) - lag if lag >= 0 else -1
-            if last - (first + self.d) >= IGNORED_TICKS and named < first:
+            if names_older(nxt, first, self.d, self.applied):
                 ended = "ignored"                   # none of the braking's FORCEs taken
                 break
             cur = nxt
