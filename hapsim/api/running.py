@@ -249,10 +249,17 @@ class RunReportND(Report):
         Over a port only: the records' bounds and what a breach did
         (:meth:`hapsim.pipeline.record_guard.RecordGuard.to_dict`: ``position_limit``
         [m], ``stop``, ``brake``, ``brake_damping``, ``late_guard``).
+    error : dict or None
+        ``type`` and ``message`` of the device error that ended the run (the device lost
+        beyond recovery, ``stop`` "device lost"), as :class:`RunReport`'s; None when it
+        ran to its end.
+
+    Other attributes: ``exit_code``, what ``hapsim run`` exits with (0, or 1 after a
+    safety stop or a device lost for good).
     """
 
     _OPTIONAL = ("port", "late", "watchdog", "delay", "lost", "rows", "counts",
-                 "bad_frames", "incomplete", "stop", "safety")
+                 "bad_frames", "incomplete", "stop", "safety", "error")
 
     scene: str
     dof: int
@@ -281,6 +288,13 @@ class RunReportND(Report):
     incomplete: Any = None
     stop: Any = None
     safety: Any = None
+    error: dict | None = None
+
+    @property
+    def ok(self) -> bool:
+        """Ran to its end, or was stopped by a signal, with no safety stop and no device
+        error: what exit code 0 means."""
+        return getattr(self, "exit_code", 0) == 0
 
     @property
     def k(self) -> np.ndarray:
@@ -342,10 +356,11 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
                  delay=res["delay"], lost=res["lost"], rows=res["rows"],
                  counts=res["counts"], bad_frames=res["bad_frames"],
                  incomplete=res["incomplete"], stop=res.get("stop", "end"),
-                 safety=res.get("safety"))
+                 safety=res.get("safety"), error=res.get("error"))
     if res.get("wire") is not None:
         d.update(wire=res["wire"], uncertainty=v["uncertainty"])
-    return RunReportND.from_dict(d)
+    failed = (res.get("safety") or {}).get("stop") or res.get("error")
+    return RunReportND.from_dict(d, exit_code=1 if failed else 0)
 
 
 #: What a run of a scene with several ports takes (every other option refused by name).
@@ -472,8 +487,9 @@ def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
         A scene with a port and a device, or its path (the embedded mock loads this file).
     options : hapsim.pipeline.options.RunOptions
         ``port``, ``baud``, ``lockstep``, ``allow_unstable``, ``rt_priority``,
-        ``rate_hz``, ``faults``, ``fault_seed``, ``stop``, ``handle_signals``; any other
-        option set is refused by name.
+        ``rate_hz``, ``faults``, ``fault_seed``, ``frames``, ``reconnect``,
+        ``reconnect_time``, ``reconnect_attempts``, ``stop``, ``handle_signals``; any
+        other option set is refused by name.
     amplitude : float, optional
         The excitation ``a`` [m] (default
         :data:`hapsim.pipeline.felt_run.DEFAULT_AMPLITUDE`, 1e-8).
@@ -482,7 +498,9 @@ def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
     -------
     RunReportND
         Also when a stop was requested (``stop`` names it; "not measurable" unless every
-        start was recorded).
+        start was recorded), after a safety stop, and when the device was lost for good
+        after its first record (``stop`` "device lost", ``error``; ``exit_code`` 1 for
+        either, ``ok`` False).
 
     Raises
     ------
@@ -492,7 +510,7 @@ def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
     UnstableConfigError
         The check finds the loop unstable and ``allow_unstable`` is false.
     DeviceError, ProtocolError
-        The device failed (no HELLO, a FAULT, lost beyond recovery).
+        The device failed before its first record (no HELLO, a wrong one, a FAULT).
     """
     from hapsim.pipeline.felt_run import measure_scene_nd, refuse_options, scene_for_run
     opts = options.check_values()

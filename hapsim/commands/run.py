@@ -45,8 +45,10 @@ each; minus the response from rest) give the felt stiffness and damping MATRICES
 beside check's prediction with their largest difference, the linearisation bound at that
 amplitude and the verdict (within, differs, or not measurable). --lockstep runs it
 in-process, exactly; without it the n-axis mock (the pantograph's or delta's joint-space
-dynamics) serves it in real time, late ticks accounted per axis; --driver haply speaks the
-Haply 2DIY's bytes to its emulated board on a pantograph scene.
+dynamics) serves it in real time, late ticks accounted per axis (a port lost is recovered as
+in 1-D: --no-reconnect, --reconnect-time, --reconnect-attempts; lost for good, the report of
+what was recorded, then exit 1); --driver haply speaks the Haply 2DIY's bytes to its
+emulated board on a pantograph scene.
 
 --driver falcon --firmware FILE closes a delta scene's loop on a Novint Falcon over USB
 (pyftdi, pip install 'hapsim[falcon]'): the firmware loaded (the image is yours: hapsim
@@ -536,14 +538,19 @@ def run_nd(args) -> int:
     Returns
     -------
     int
-        0 when the loop is stable (the measurement then reported, whatever it finds),
-        1 when the check finds it unstable and ``--allow-unstable`` is not given, or the
-        device fails (no HELLO, a FAULT, STATEs lost).
+        0 when the loop is stable (the measurement then reported, whatever it finds);
+        1 after a safety stop or a device lost for good (the report printed first, then
+        the error on stderr).
 
     Raises
     ------
     ConfigError
         An option the n-D run does not take; a bad amplitude or scene (file, line, key).
+    UnstableConfigError
+        The check finds the loop unstable and ``--allow-unstable`` is not given (exit 1).
+    DeviceError, ProtocolError
+        The device failed before its first record: no HELLO, a wrong one, a FAULT
+        (exit 1, cli's error line and ``--json`` error object).
 
     Notes
     -----
@@ -575,19 +582,26 @@ def run_nd(args) -> int:
     n = scene.dimension
     in_process = args.lockstep and not args.port
     label = "run (lockstep)" if in_process else "run (over the port)"
-    from hapsim.errors import DeviceError, ProtocolError
+    # (a device that fails before its first record raises: exit 1, cli's error line)
     with Progress(2 * n if in_process else 2 * n + 1, label, unit="records") as bar:
-        try:
-            res, port_info = measure_scene_nd(scene, opts, a, progress=bar.update)
-        except (DeviceError, ProtocolError) as exc:
-            print(f"hapsim run: {exc}", file=sys.stderr)
-            return 1
+        res, port_info = measure_scene_nd(scene, opts, a, progress=bar.update)
+    code = _report_nd(args, scene, a, res, in_process, port_info)
+    error = res.get("error")
+    if error is not None:               # the report first, then why the run ended
+        print(f"hapsim run: {error['type']}: {error['message']}", file=sys.stderr)
+    return code
+
+
+def _report_nd(args, scene, a: float, res: dict, in_process: bool, port_info) -> int:
+    """Print an n-D run's report (text, or ``--json``); return its exit code: 1 after a
+    safety stop or a device lost for good, as the 1-D run's (docs/commands.md, 'Exit
+    codes'), else 0."""
+    n = scene.dimension
     where = "in-process" if in_process else (
         f"over {port_info['port']}" + (" (embedded mock, real time)"
                                        if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
-    # a safety stop is exit 1, as the 1-D run's (docs/commands.md, 'Exit codes')
-    code = 1 if (res.get("safety") or {}).get("stop") else 0
+    code = 1 if (res.get("safety") or {}).get("stop") or res.get("error") else 0
     if args.json:
         from hapsim.api import run_report_nd
         out = run_report_nd(scene, res, in_process, port_info).to_dict()
@@ -630,7 +644,9 @@ def run_nd(args) -> int:
 
     def mat(name, m, unit):
         if m is None:
-            print(f"  {name}: none (fewer than {n} rendered pairs)", file=o)
+            why = ("not measured: see the verdict" if res.get("incomplete")
+                   else f"fewer than {n} rendered pairs")
+            print(f"  {name}: none ({why})", file=o)
             return
         print(f"  {name} [{unit}]", file=o)
         for row in m:

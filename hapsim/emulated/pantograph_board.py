@@ -12,7 +12,7 @@ UART to a pseudo-terminal, in lockstep (the emulated clock waits for each FORCE)
 time (the emulated clock locked to the wall clock; a FORCE that misses its tick's DRIVE
 slot is applied a tick later and named by the STATEs' ``force_seq``, the known input
 :func:`hapsim.pipeline.felt_port.measure_felt_port` takes it as). The leader offers the compact
-frames, which :func:`hapsim.pipeline.felt_port.handshake_nd` asks for: at 1 kHz they leave a
+frames, which :func:`hapsim.pipeline.port_session.handshake_nd` asks for: at 1 kHz they leave a
 host 372 us to answer, the full frames none (``docs/pantograph.md``).
 
 The leader is a joint-level device (the Haply 2DIY's division of labour): STATE carries

@@ -9,7 +9,8 @@ Modules
     :mod:`hapsim.pipeline.measure`, its options :mod:`hapsim.pipeline.options`, its report
     :mod:`hapsim.pipeline.report`, its start-up :mod:`hapsim.pipeline.startup`.
 :mod:`hapsim.pipeline.felt_port`
-    The run of a 2-D or 3-D scene.
+    The run of a 2-D or 3-D scene (its session over the port, HELLO, quiet between
+    records and the port opened again after a loss: :mod:`hapsim.pipeline.port_session`).
 :mod:`hapsim.pipeline.identify_run`, :mod:`hapsim.pipeline.excitation`
     ``hapsim identify``'s run: the device's mass, friction and delay from a record, and
     the excitation it designs from what the device shows.

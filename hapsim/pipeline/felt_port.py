@@ -21,18 +21,18 @@ responses, fitted as in lockstep (:func:`hapsim.analysis.pencil.fit_felt_nd`).
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
 
 import firmware_protocol as fp
 from hapsim.applied import account_from_force_seq
-from hapsim.host.loop_types import LATCHED_FAULTS, SENSORS_TRIES, SENSORS_WAIT, signame
+from hapsim.host.loop_types import LATCHED_FAULTS
 from hapsim.errors import ConfigError, DeviceError, ProtocolError
+from hapsim.pipeline.port_session import (clock_of, handshake_nd, quiesce, reopen_port,
+                                          stop_reason)
 
-__all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "handshake_nd",
-           "stop_reason"]
+__all__ = ["RecordND", "measure_felt_port", "disturbance_response_nd", "verdict_nd"]
 
 #: CONFIG's force limit [N]: the scene's device has none (finite, as CONFIG requires).
 FORCE_LIMIT = 1e9
@@ -60,123 +60,6 @@ class RecordND:
         self.force_seq = np.zeros(N, np.int64)
         self.position = np.zeros((N, n))
         self.force = np.zeros((N, n))
-
-
-def _clock_of(transport):
-    """The transport's clock [s] (``clock()`` of a virtual-clock transport, else
-    :func:`time.monotonic`) and its ``sleep``."""
-    return (getattr(transport, "clock", time.monotonic),
-            getattr(transport, "sleep", time.sleep))
-
-
-def handshake_nd(transport, n: int, timeout: float = 1.0,
-                 compact_rate: float | None = None) -> fp.Hello:
-    """Ask the device's HELLO and check it speaks version 1 with ``n`` axes; then, when
-    ``compact_rate`` is given, the device applies its forces in steps (HELLO
-    ``force_scale > 0``) and the transport can (``set_compact``), ask for the compact
-    frames (SENSORS_REQUEST bit COMPACT, ``PROTOCOL.md`` §4 "Compact frames", as the 1-D
-    host does for such a device: :mod:`hapsim.host.handshake`).
-
-    A device that offers them (the Hapkit pantograph's leader) then sends STATE_COMPACT and
-    takes FORCE_COMPACT: 32 bytes a tick on the wire instead of 64 and no binary64 codec on
-    its 8-bit chip, which leaves the host ~4,000 cycles more of the 1 kHz period
-    (``docs/pantograph.md``). A device that does not answer within ``SENSORS_TRIES *
-    SENSORS_WAIT``, or leaves the bit out, keeps the full frames.
-
-    Parameters
-    ----------
-    transport : transport of :mod:`hapsim.host.transport`
-    n : int
-        Axes the scene has.
-    timeout : float
-        Wait per request [s] (3 requests), on the transport's clock.
-    compact_rate : float, optional
-        The session's tick rate [Hz] (the compact STATE's time is ``seq / rate``); None:
-        full frames.
-
-    Returns
-    -------
-    firmware_protocol.Hello
-
-    Raises
-    ------
-    DeviceError
-        No HELLO after 3 requests; the port failed.
-    ProtocolError
-        Another protocol version or another number of axes.
-    """
-    clock, _ = _clock_of(transport)
-    for _ in range(3):
-        transport.send(fp.HelloRequest(fp.PROTOCOL_VERSION))
-        end = clock() + timeout
-        while clock() < end:
-            for m in transport.receive(0.02):
-                if isinstance(m, fp.Hello):
-                    if m.protocol_version != fp.PROTOCOL_VERSION:
-                        raise ProtocolError(f"device speaks protocol version "
-                                            f"{m.protocol_version}, hapsim "
-                                            f"{fp.PROTOCOL_VERSION}")
-                    if m.n_axes != n:
-                        raise ProtocolError(f"device has {m.n_axes} axes, the scene "
-                                            f"{n} (dimension)")
-                    _ask_compact(transport, m, compact_rate)
-                    return m
-    raise DeviceError("no HELLO from the device after 3 requests\nlast frames:\n"
-                      + transport.last_frames())
-
-
-def _ask_compact(transport, hello, rate: float | None) -> bool:
-    """The compact frames asked of a device that applies its forces in steps (module
-    notes of :func:`handshake_nd`); True when the session uses them."""
-    set_compact = getattr(transport, "set_compact", None)
-    if set_compact is None:
-        return False
-    set_compact(None)                           # full frames until the device says so
-    if rate is None or not hello.force_scale > 0:
-        return False
-    clock, _ = _clock_of(transport)
-    for _ in range(SENSORS_TRIES):
-        transport.send(fp.SensorsRequest(fp.FEATURE_COMPACT))
-        end = clock() + SENSORS_WAIT
-        while clock() < end:
-            for m in transport.receive(0.02):
-                if type(m) is fp.Sensors:
-                    if m.enabled & fp.FEATURE_COMPACT:
-                        set_compact(float(rate))
-                        return True
-                    return False
-    return False
-
-
-def _drain(transport, quiet: float = 0.03, limit: float = 1.0, counts=None) -> bool:
-    """Read and drop until nothing but disarmed STATEs came for ``quiet`` seconds (at most
-    ``limit``), on the transport's clock: a device sends STATE every tick, armed or not
-    (``PROTOCOL.md`` §5.1: the Hapkit firmware does), so a disarmed device is never
-    silent. True when it went quiet, False when armed frames kept coming."""
-    clock, _ = _clock_of(transport)
-    now = clock()
-    end = now + limit
-    last = now
-    while now < end:
-        for m in transport.receive(quiet):
-            if not (isinstance(m, fp.State) and not m.status & fp.STATUS_ARMED):
-                last = clock()
-            if counts is not None and isinstance(m, fp.Hello):
-                counts.hellos += 1              # the device (re)started its hand's cycle
-        now = clock()
-        if now - last >= quiet:
-            return True
-    return False
-
-
-def _quiesce(transport, tries: int = 4, counts=None) -> bool:
-    """STOP until the device falls silent (a STOP lost or a CONFIG held back by the link
-    can leave it armed, ticking a session the host does not want); True when it did."""
-    for _ in range(tries):
-        transport.send(fp.Stop())
-        if _drain(transport, 0.03, 0.3, counts):
-            return True
-    return False
 
 
 class _Counts:
@@ -212,7 +95,7 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
     """
     from hapsim.engine import Engine
     counts = counts if counts is not None else _Counts()
-    clock, _ = _clock_of(transport)
+    clock, _ = clock_of(transport)
     n = scene.dimension
     rec = RecordND(N, n)
     eng = Engine(scene)
@@ -440,7 +323,8 @@ def min_rows(N: int, order: int, n: int) -> int:
 
 def measure_felt_port(transport, scene, *, samples: int | None = None, progress=None,
                       watchdog_periods: int = 20, amplitude: float | None = None,
-                      max_configs: int | None = None, reconnect_time: float = 10.0,
+                      max_configs: int | None = None, reconnect: bool = True,
+                      reconnect_time: float = 10.0, reconnect_attempts: int | None = None,
                       backoff: float = 0.05, backoff_max: float = 1.0,
                       frames: str = "auto", stop=None, late_guard: bool = True) -> dict:
     """The felt matrices of ``scene`` measured over ``transport`` (module notes).
@@ -457,7 +341,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     fitted and the result says why (``incomplete``: the verdict is "not measurable").
     A port that fails (the device's port vanished) is opened again with backoff, HELLO
     asked, and the records go on (``lost``, ``recovered``); each record's engine starts
-    at its own first STATE, the handle of the new session.
+    at its own first STATE, the handle of the new session. A device lost for good once
+    it has said HELLO (``reconnect`` off, or the time or attempts allowed used up) ends
+    the measurement as a stop does: what was recorded by then is returned, ``stop``
+    "device lost" and ``error`` say why (the 1-D run's report after such a loss, exit 1).
 
     Parameters
     ----------
@@ -478,13 +365,18 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         :data:`hapsim.emulated.mock.DEFAULT_AMPLITUDE`).
     max_configs : int, optional
         CONFIGs sent at most (default ``4 (2n + 1)``).
+    reconnect : bool
+        Recover a lost device (``--no-reconnect``: False, the loss ends the measurement).
     reconnect_time : float
-        Time allowed to open a failed port again [s], per loss.
+        Time allowed to open a failed port again [s], per loss (``--reconnect-time``).
+    reconnect_attempts : int, optional
+        Attempts allowed to open it per loss (``--reconnect-attempts``); None: as many as
+        ``reconnect_time`` allows.
     backoff, backoff_max : float
         First wait between attempts [s], doubled up to ``backoff_max``.
     frames : {"auto", "full"}
         ``"auto"``: the compact frames with a device that applies its forces in steps and
-        offers them (:func:`handshake_nd`); ``"full"``: never.
+        offers them (:func:`hapsim.pipeline.port_session.handshake_nd`); ``"full"``: never.
     stop : hapsim.spawn.StopFlag, optional
         A stop requested (``stop.set``: a signal handler's) ends the record under way at
         its next read and the measurement there: the starts with a whole record by then
@@ -524,16 +416,17 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
         ``bad_frames`` (the host decoder's count, when it has one), ``incomplete``
         (None, or why nothing was fitted), ``hello`` (the device's first HELLO),
         ``frames`` (``"compact"`` or ``"full"``: the last session's), ``stop``
-        (``"end"``, ``"signal NAME"`` / the stop's reason when one was requested, or a
-        safety stop's ``"safety: ..."``), ``safety``
+        (``"end"``, ``"signal NAME"`` / the stop's reason when one was requested, a
+        safety stop's ``"safety: ..."``, or ``"device lost"``), ``error`` (None, or the
+        ``type`` and ``message`` of the error that lost the device for good), ``safety``
         (:meth:`hapsim.pipeline.record_guard.RecordGuard.to_dict`: the position bound,
         the lateness guard, a safety stop and its braking).
 
     Raises
     ------
     DeviceError, ProtocolError
-        No or a wrong HELLO, a latched FAULT, a port that does not come back within
-        ``reconnect_time``.
+        No or a wrong HELLO before the first record, a latched FAULT; a port failing
+        before the device ever said HELLO and not back within ``reconnect_time``.
     ConfigError
         ``samples`` too short for the loop's order; ``frames`` not one of its choices.
     """
@@ -557,7 +450,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     # which the watchdog ensures at 250 periods or fewer (PROTOCOL.md §4)
     compact = frames != "full" and watchdog_periods <= 250
     rest_pos = np.asarray(scene.device.position, float)
-    clock, sleep = _clock_of(transport)
+    clock, _ = clock_of(transport)
     counts = _Counts()
     budget = 4 * S if max_configs is None else int(max_configs)
     silence = max(0.25, 2.0 * wd * 1e-6)
@@ -565,6 +458,8 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     hello = None
     need_hello = True
     lost_since = None
+    lost_for_good = None                        # the DeviceError that ended it
+    tried = 0                                   # reconnect attempts before this loss
     since_hello = 0                             # CONFIGs the device took since its HELLO
     # the records' bounds, checked STATE by STATE (hapsim.pipeline.record_guard)
     from hapsim.analysis.late_growth import late_growth
@@ -573,6 +468,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                         FORCE_LIMIT)
     stopped = ((lambda: guard.reason is not None) if stop is None else
                (lambda: bool(stop.set) or guard.reason is not None))
+    asked = (lambda: False) if stop is None else (lambda: bool(stop.set))
     while (counts.configs < budget and not all(r is not None and r.rows == N for r in best)
            and not stopped()):
         try:
@@ -582,7 +478,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                 need_hello = False
                 since_hello = 0
             h0 = counts.hellos
-            _quiesce(transport, counts=counts)
+            quiesce(transport, counts=counts)
             if counts.hellos != h0:
                 since_hello = 0                 # a HELLO: the hand starts from rest again
             expected = since_hello % S
@@ -598,8 +494,22 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
             if lost_since is None:
                 lost_since = clock()
                 counts.lost += 1
-            _reconnect(transport, counts, exc, clock, sleep, lost_since + reconnect_time,
-                       backoff, backoff_max)
+                tried = counts.reconnect_attempts
+            try:
+                if not reconnect:
+                    raise DeviceError(f"device lost ({str(exc).splitlines()[0]}); "
+                                      "reconnect is off (--no-reconnect)\nlast frames:\n"
+                                      + transport.last_frames())
+                left = (None if reconnect_attempts is None else
+                        max(0, reconnect_attempts - (counts.reconnect_attempts - tried)))
+                reopen_port(transport, exc, counts, until=lost_since + reconnect_time,
+                            most=left, backoff=backoff, backoff_max=backoff_max,
+                            stopped=asked)
+            except DeviceError as gone:
+                if hello is None:
+                    raise                       # it never said HELLO: nothing ran
+                lost_for_good = gone
+                break
             need_hello = True
             continue
         if rec.rows and lost_since is not None:
@@ -621,14 +531,17 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
             if progress is not None and rec.rows == N:
                 progress(sum(r is not None and r.rows == N for r in best), S)
     try:
-        _quiesce(transport, 2)
+        quiesce(transport, 2)
     except DeviceError:
         pass
     out = {"predicted": chk, "order": order, "records": 2 * n, "samples": N,
            "hello": hello, "counts": counts.as_dict(), "lost": counts.lost,
            "recovered": counts.recovered, "incomplete": None,
            "frames": "compact" if getattr(transport, "compact", False) else "full",
-           "stop": ("end" if not stopped() else guard.reason or stop_reason(stop)),
+           "stop": ("device lost" if lost_for_good is not None else
+                    "end" if not stopped() else guard.reason or stop_reason(stop)),
+           "error": (None if lost_for_good is None else
+                     {"type": type(lost_for_good).__name__, "message": str(lost_for_good)}),
            "safety": guard.to_dict()}
     dec = getattr(transport, "decoder", None)
     st = getattr(dec, "stats", None)
@@ -646,7 +559,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                                f"{sum(r is not None and r.rows == N for r in best)} of "
                                f"the {S} starts wholly recorded: the felt matrices are "
                                "not measured"
-                               if stopped() else
+                               if stopped() or lost_for_good is not None else
                                f"{len(short)} of the {S} starts got no record of "
                                f"{need} rows or more in {counts.configs} CONFIGs (STATEs "
                                f"missed: {counts.missed}, records cut short: {counts.cut}, "
@@ -708,51 +621,6 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                excursion=excursion, moved=moved, watchdog=wdog, delay=delays,
                rows=[min(r.rows, L) for r in best], responses=recs)
     return out
-
-
-def stop_reason(stop) -> str:
-    """What ended a measurement a stop was requested of, as the 1-D loop says it
-    (:class:`hapsim.host.loop.HostLoop`'s ``stop_reason``).
-
-    Parameters
-    ----------
-    stop : hapsim.spawn.StopFlag
-        A flag that is set.
-
-    Returns
-    -------
-    str
-        ``"signal NAME"`` (a signal's), the stop's own ``reason`` (another caller's, e.g.
-        the live view's stop button), or ``"stop requested"``.
-    """
-    if getattr(stop, "signal", None) is not None:
-        return f"signal {signame(stop.signal)}"
-    return getattr(stop, "reason", None) or "stop requested"
-
-
-def _reconnect(transport, counts: _Counts, exc, clock, sleep, until: float,
-               backoff: float, backoff_max: float) -> None:
-    """The port failed, or the device said no HELLO: open the port again (when it
-    failed) with backoff until it comes back; the caller asks HELLO again. Raises
-    :class:`DeviceError` once the clock passes ``until`` (a device lost for good), or at
-    once from a transport that cannot reopen."""
-    if not hasattr(transport, "reopen"):
-        raise exc
-    wait = backoff
-    while True:
-        if clock() + wait > until:
-            raise DeviceError(f"device lost ({str(exc).splitlines()[0]}); it did not come "
-                              f"back in time ({counts.reconnect_attempts} attempts to "
-                              f"open the port again)\nlast frames:\n"
-                              + transport.last_frames())
-        sleep(wait)
-        wait = min(2 * wait, backoff_max)
-        counts.reconnect_attempts += 1
-        try:
-            transport.reopen()
-            return
-        except DeviceError:
-            continue
 
 
 def verdict_nd(res: dict) -> dict:

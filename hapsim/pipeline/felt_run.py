@@ -29,7 +29,8 @@ __all__ = ["ND_TAKES", "DEFAULT_AMPLITUDE", "refuse_options", "scene_for_run",
 #: (``driver`` takes ``haply`` on a pantograph scene and ``falcon`` on a delta scene:
 #: the command's own routes).
 ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver",
-            "rate_hz", "faults", "fault_seed")
+            "rate_hz", "faults", "fault_seed", "frames", "reconnect", "reconnect_attempts",
+            "reconnect_time")
 
 #: Default excitation amplitude [m]: small enough that the scenes' Euclidean links depart
 #: from their linearisation by ~1e-7 (c_link ~ 30 /m), large enough against the round-off
@@ -247,6 +248,7 @@ def _over_port(scene, opts, a: float, progress):
     gc_was = gc.isenabled()
     rt = RealtimePriority(int(opts.rt_priority or 0))
     stop = opts.stop or StopFlag()
+    lost = [False]          # the device lost for good, or the measurement raised
     old = {}
     if opts.handle_signals and threading.current_thread() is threading.main_thread():
         # Ctrl-C and SIGTERM end the record under way and report what was measured, as
@@ -257,8 +259,17 @@ def _over_port(scene, opts, a: float, progress):
         # as the 1-D loop: SCHED_FIFO where permitted, no collection while it runs
         with rt:
             gc.disable()
-            res = measure_felt_port(tr, scene, progress=progress, amplitude=a, stop=stop,
-                                    late_guard=not opts.lockstep)
+            # the 1-D run's recovery options; the compact frames whenever the device
+            # offers them ("auto" and "compact" alike: the n-D frames are the larger)
+            lost[0] = True                      # until the measurement returns
+            res = measure_felt_port(
+                tr, scene, progress=progress, amplitude=a, stop=stop,
+                late_guard=not opts.lockstep,
+                reconnect=(not opts.lockstep) if opts.reconnect is None else opts.reconnect,
+                reconnect_time=opts.reconnect_time,
+                reconnect_attempts=opts.reconnect_attempts,
+                frames="full" if opts.frames == "full" else "auto")
+            lost[0] = res.get("error") is not None
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -267,6 +278,10 @@ def _over_port(scene, opts, a: float, progress):
         tr.close()
         note = None
         if child is not None:
+            if lost[0]:
+                # a mock whose port is gone (vanish) never sees the host leave: it
+                # is asked to end (SIGTERM: it writes its report), not waited for
+                child.terminate()
             try:
                 _, err = child.communicate(timeout=5)
                 note = (err or "").strip().splitlines()[-1:] or None

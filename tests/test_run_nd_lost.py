@@ -1,0 +1,169 @@
+"""A 2-D or 3-D run whose device goes away for good: as the 1-D run
+(``tests/test_run_device_lost.py``), the measurement ends there with what was recorded,
+says "device lost" and why, and exits 1 after its report; a device that never said HELLO is
+the error alone. The 1-D run's recovery options (``--no-reconnect``, ``--reconnect-time``,
+``--reconnect-attempts``) mean the same over an n-axis port.
+
+The property runs the n-axis mock on a virtual clock (:class:`SimTransport`, seeded: never
+timed) with its port vanishing at a random tick for a random time, against random recovery
+options, and sorts each case by what the options allow: an outage shorter than the first
+backoff step is always recovered, one longer than every wait the options allow never is.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+
+import pytest
+
+from hapsim.analysis.linearisation import linearisation_bound
+from hapsim.emulated.faults import parse_faults
+from hapsim.emulated.mock import MockDeviceND
+from hapsim.emulated.links import SimTransport
+from hapsim.errors import DeviceError
+from hapsim.pipeline.felt_port import measure_felt_port, verdict_nd
+from hapsim.scene import load_scene_nd
+
+from seeds import seeds  # same directory (pytest prepend import mode)
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+SCENES = ("pantograph_wall.yaml", "pantograph_spring.yaml", "delta_sphere.yaml")
+N = 150                         # STATEs per record: 5 or 7 records of 0.15 s
+
+
+def _waits(attempts: int, backoff: float = 0.05, backoff_max: float = 1.0) -> float:
+    """The time the first ``attempts`` reopening attempts have waited by their end [s]
+    (:func:`hapsim.pipeline.port_session.reopen_port`'s doubling backoff)."""
+    w, total = backoff, 0.0
+    for _ in range(attempts):
+        total += w
+        w = min(2 * w, backoff_max)
+    return total
+
+
+def _case(seed: int):
+    rng = random.Random(seed)
+    name = rng.choice(SCENES)
+    tick = rng.randrange(50, 600)                        # inside the records
+    outage = rng.choice([0.02, 0.3, 1.5, 4.0, 30.0])     # [s]
+    reconnect = rng.random() < 0.8
+    time_allowed = rng.choice([0.5, 2.0, 10.0])
+    attempts = rng.choice([None, 1, 3, 8])
+    return name, tick, outage, reconnect, time_allowed, attempts
+
+
+@pytest.mark.parametrize("seed", seeds(range(1, 41), kept=[1, 2, 3, 4, 5, 6, 10]))
+def test_a_device_lost_for_good_ends_with_what_was_recorded_never_a_wrong_verdict(seed):
+    """Random 2-D / 3-D scene, vanish tick, outage and recovery options. Always: a
+    result (never an exception once the device said HELLO), ``stop`` "device lost" with
+    ``error`` exactly when the device was not recovered, and then never a "within"
+    verdict from rows the device did not send. An outage shorter than the first wait
+    (0.05 s) is recovered whenever reconnect is on; one longer than every wait the options
+    allow never is, and its attempts are no more than allowed; ``--no-reconnect`` tries
+    none."""
+    name, tick, outage, reconnect, time_allowed, attempts = _case(seed)
+    sc = load_scene_nd(CONFIGS / name)
+    plan = parse_faults(f"vanish@{tick}:{int(outage * 1000)}ms", seed)
+    tr = SimTransport(MockDeviceND(sc, lockstep=False), plan)
+    res = measure_felt_port(tr, sc, samples=N, reconnect=reconnect,
+                            reconnect_time=time_allowed, reconnect_attempts=attempts)
+    assert tr.device.plan.injected.get("vanish") == 1
+    assert res["lost"] >= 1
+    lost = res["stop"] == "device lost"
+    assert lost == (res["error"] is not None) == (res["counts"]["recovered"] < res["lost"])
+    most = time_allowed if attempts is None else min(time_allowed, _waits(attempts))
+    if not reconnect:
+        assert lost and res["counts"]["reconnect_attempts"] == 0
+        assert "reconnect is off" in res["error"]["message"]
+    elif outage < 0.05:
+        assert not lost, res["error"]
+    elif outage > most + 1.0:       # (+ the HELLO's and the port's own waits)
+        assert lost, res["counts"]
+        assert res["error"]["type"] == "DeviceError"
+        assert "did not come back" in res["error"]["message"]
+        if attempts is not None:
+            assert res["counts"]["reconnect_attempts"] <= attempts
+    res["bound"] = linearisation_bound(sc, max(1e-8, res["excursion"]),
+                                       res["predicted"].render.rendered_poles)
+    v = verdict_nd(res)
+    if lost:
+        assert v["verdict"] in ("not measurable", "within"), v
+        if v["verdict"] == "not measurable":
+            assert "device lost" in v["reason"], v["reason"]
+    if v["verdict"] == "within":         # the rows kept are the device's own: exact
+        assert max(res["deviation"].values()) < 1e-6, res["deviation"]
+    else:
+        assert res["deviation"] is None or lost
+
+
+def test_a_device_that_never_said_hello_is_the_error_alone():
+    """nohello with reconnect off: the DeviceError at once (after the HELLO's three
+    requests), no result; with reconnect on, after the time allowed."""
+    sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
+    for reconnect in (False, True):
+        tr = SimTransport(MockDeviceND(sc, lockstep=False), parse_faults("nohello", 0))
+        with pytest.raises(DeviceError, match="no HELLO"):
+            measure_felt_port(tr, sc, samples=N, reconnect=reconnect, reconnect_time=1.0)
+        assert tr.now_us < (4.5e6 if not reconnect else 9e6), tr.now_us
+
+
+def _cli(argv, capsys):
+    from hapsim.cli import main
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.xdist_group("realtime")
+def test_hapsim_run_reports_a_2d_device_lost_then_exits_1(capsys):
+    """Real time, the embedded mock's port gone at tick 300 for 30 s, the host allowed
+    0.3 s: the report (text, then ``--json``) of what was recorded, "device lost" and the
+    error, exit 1, then the error line on stderr; ``--no-reconnect`` the same with no
+    attempt."""
+    scene = str(CONFIGS / "pantograph_wall.yaml")
+    lose = ["--faults", "vanish@300:30s", "--reconnect-time", "0.3"]
+    code, out, err = _cli(["run", scene, *lose], capsys)
+    assert code == 1, err
+    assert "stopped: device lost" in out and "verdict: not measurable" in out, out
+    assert "hapsim run: DeviceError: device lost" in err, err
+    code, out, err = _cli(["run", scene, *lose, "--json"], capsys)
+    assert code == 1, err
+    rep = json.loads(out)
+    assert rep["stop"] == "device lost" and rep["verdict"] == "not measurable"
+    assert rep["error"]["type"] == "DeviceError" and rep["lost"] == 1
+    assert rep["counts"]["recovered"] == 0 and rep["counts"]["reconnect_attempts"] >= 1
+    assert rep["port"]["faults_injected"] == {"vanish": 1}     # the mock asked to end
+    code, out, err = _cli(["run", scene, "--faults", "vanish@300:30s", "--no-reconnect",
+                           "--json"], capsys)
+    assert code == 1, err
+    rep = json.loads(out)
+    assert rep["stop"] == "device lost" and rep["counts"]["reconnect_attempts"] == 0
+    assert "reconnect is off" in rep["error"]["message"]
+
+
+@pytest.mark.xdist_group("realtime")
+def test_hapsim_run_json_says_a_device_that_never_said_hello(capsys):
+    """nohello, ``--no-reconnect --json``: exit 1 and the error object on stdout (the run
+    had nothing to report)."""
+    code, out, err = _cli(["run", str(CONFIGS / "delta_sphere.yaml"), "--faults", "nohello",
+                           "--no-reconnect", "--json"], capsys)
+    assert code == 1, err
+    rep = json.loads(out)
+    assert rep["error"]["type"] == "DeviceError" and "no HELLO" in rep["error"]["message"]
+
+
+@pytest.mark.xdist_group("realtime")
+def test_the_api_returns_the_report_of_a_lost_device():
+    """``hapsim.run`` of a 2-D scene whose device is lost for good: the RunReportND (not an
+    exception), ``ok`` False, ``exit_code`` 1, ``error`` and ``stop`` set; a run to its end
+    is ``ok``."""
+    import hapsim
+    scene = CONFIGS / "pantograph_wall.yaml"
+    rep = hapsim.run(str(scene), faults="vanish@300:30s", reconnect_time=0.3)
+    assert isinstance(rep, hapsim.RunReportND)
+    assert not rep.ok and rep.exit_code == 1 and rep.stop == "device lost"
+    assert rep.error["type"] == "DeviceError" and rep.verdict == "not measurable"
+    rep = hapsim.run(str(scene), lockstep=True)
+    assert rep.ok and rep.exit_code == 0 and rep.error is None
