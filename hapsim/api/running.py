@@ -488,8 +488,8 @@ def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
     options : hapsim.pipeline.options.RunOptions
         ``port``, ``baud``, ``lockstep``, ``allow_unstable``, ``rt_priority``,
         ``rate_hz``, ``faults``, ``fault_seed``, ``frames``, ``reconnect``,
-        ``reconnect_time``, ``reconnect_attempts``, ``stop``, ``handle_signals``; any
-        other option set is refused by name.
+        ``reconnect_time``, ``reconnect_attempts``, ``lost_timeout``, ``stop``,
+        ``handle_signals``; any other option set is refused by name.
     amplitude : float, optional
         The excitation ``a`` [m] (default
         :data:`hapsim.pipeline.felt_run.DEFAULT_AMPLITUDE`, 1e-8).

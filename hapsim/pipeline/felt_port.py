@@ -51,10 +51,17 @@ class RecordND:
         Force sent answering each STATE [N].
     rows : int
         Rows measured (the first ``rows`` of each array; ``N`` for a whole record).
+    silent : float or None
+        How long the device had sent no frame at all [s] when the record ended for want
+        of a usable STATE (a device or link gone quiet: a loss, as the 1-D loop's
+        ``lost_timeout``); None otherwise (a record cut by a STATE missed, or by a
+        device that kept sending what the record could not use, a CONFIG it did not
+        take).
     """
 
     def __init__(self, N: int, n: int) -> None:
         self.rows = N
+        self.silent = None
         self.seq = np.zeros(N, np.int64)
         self.status = np.zeros(N, np.int64)
         self.force_seq = np.zeros(N, np.int64)
@@ -112,15 +119,22 @@ def _record(transport, scene, N: int, rate_hz: float, watchdog_us: int, *,
     if guard is not None:
         guard.start()
     k = 0
-    last = clock()
+    last = heard = clock()
     end = False
     ahead = None                                # a STATE k + 1 that came before STATE k
     while not end:
         if stop is not None and stop.set:
             break                               # Ctrl-C, SIGTERM: the device is stopped below
         msgs = transport.receive(0.05)
-        if clock() - last > (first_wait if k == 0 else silence):
-            counts.silences += 1                # nothing usable came for that long
+        now = clock()
+        if msgs:
+            heard = now
+        if now - last > (first_wait if k == 0 else silence):
+            # nothing usable came for that long: the record ends here (a host that
+            # stalled as long reads the STATEs that waited, a burst: it ends too, as ever)
+            counts.silences += 1
+            if now - heard > silence:
+                rec.silent = now - heard        # ... nor anything at all: a loss
             break
         for m in msgs:
             if type(m) is not State:
@@ -325,6 +339,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                       watchdog_periods: int = 20, amplitude: float | None = None,
                       max_configs: int | None = None, reconnect: bool = True,
                       reconnect_time: float = 10.0, reconnect_attempts: int | None = None,
+                      lost_timeout: float | None = None,
                       backoff: float = 0.05, backoff_max: float = 1.0,
                       frames: str = "auto", stop=None, late_guard: bool = True) -> dict:
     """The felt matrices of ``scene`` measured over ``transport`` (module notes).
@@ -372,6 +387,12 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     reconnect_attempts : int, optional
         Attempts allowed to open it per loss (``--reconnect-attempts``); None: as many as
         ``reconnect_time`` allows.
+    lost_timeout : float, optional
+        Silence after which the device is lost [s] (``--lost-timeout``): no frame at all
+        for that long in a record (or for ``max(1, lost_timeout)`` s after a CONFIG) is a
+        loss, recovered as a failed port is (HELLO asked again). Default: two watchdog
+        periods, at least 0.25 s. A device that goes on sending what the record cannot
+        use (a CONFIG it did not take) only ends that record.
     backoff, backoff_max : float
         First wait between attempts [s], doubled up to ``backoff_max``.
     frames : {"auto", "full"}
@@ -453,13 +474,15 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     clock, _ = clock_of(transport)
     counts = _Counts()
     budget = 4 * S if max_configs is None else int(max_configs)
-    silence = max(0.25, 2.0 * wd * 1e-6)
+    silence = max(0.25, 2.0 * wd * 1e-6) if lost_timeout is None else float(lost_timeout)
     best: list = [None] * S
     hello = None
     need_hello = True
     lost_since = None
     lost_for_good = None                        # the DeviceError that ended it
+    silent = None                               # a record ended by the device's silence
     tried = 0                                   # reconnect attempts before this loss
+    first = None                                # this loss's first error
     since_hello = 0                             # CONFIGs the device took since its HELLO
     # the records' bounds, checked STATE by STATE (hapsim.pipeline.record_guard)
     from hapsim.analysis.late_growth import late_growth
@@ -472,6 +495,9 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     while (counts.configs < budget and not all(r is not None and r.rows == N for r in best)
            and not stopped()):
         try:
+            if silent is not None:
+                exc, silent = silent, None
+                raise exc                       # the last record's silence: a loss
             if need_hello:
                 h = handshake_nd(transport, n, compact_rate=rate if compact else None)
                 hello = hello or h
@@ -484,7 +510,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
             expected = since_hello % S
             h0 = counts.hellos
             rec = _record(transport, scene, N, rate, wd, counts=counts, silence=silence,
-                          stop=stop, guard=guard)
+                          first_wait=max(1.0, silence), stop=stop, guard=guard)
             since_hello = 0 if counts.hellos != h0 else since_hello + 1
         except DeviceError as exc:
             if "FAULT" in str(exc).split("\n")[0]:
@@ -495,16 +521,17 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                 lost_since = clock()
                 counts.lost += 1
                 tried = counts.reconnect_attempts
+                first = exc
             try:
                 if not reconnect:
                     raise DeviceError(f"device lost ({str(exc).splitlines()[0]}); "
                                       "reconnect is off (--no-reconnect)\nlast frames:\n"
                                       + transport.last_frames())
-                left = (None if reconnect_attempts is None else
-                        max(0, reconnect_attempts - (counts.reconnect_attempts - tried)))
-                reopen_port(transport, exc, counts, until=lost_since + reconnect_time,
-                            most=left, backoff=backoff, backoff_max=backoff_max,
-                            stopped=asked)
+                reopen_port(transport, counts, first=first, last=exc, since=lost_since,
+                            until=lost_since + reconnect_time,
+                            tried=counts.reconnect_attempts - tried,
+                            most=reconnect_attempts, backoff=backoff,
+                            backoff_max=backoff_max, stopped=asked)
             except DeviceError as gone:
                 if hello is None:
                     raise                       # it never said HELLO: nothing ran
@@ -512,6 +539,10 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                 break
             need_hello = True
             continue
+        if rec.silent is not None:
+            # its rows are kept; the device is then lost (recovered at the loop's top)
+            silent = DeviceError(f"the device fell silent (no frame for {rec.silent:.3g} "
+                                 f"s)\nlast frames:\n" + transport.last_frames())
         if rec.rows and lost_since is not None:
             counts.recovered += 1           # a record again after the loss
             lost_since = None

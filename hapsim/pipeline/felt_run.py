@@ -30,7 +30,7 @@ __all__ = ["ND_TAKES", "DEFAULT_AMPLITUDE", "refuse_options", "scene_for_run",
 #: the command's own routes).
 ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver",
             "rate_hz", "faults", "fault_seed", "frames", "reconnect", "reconnect_attempts",
-            "reconnect_time")
+            "reconnect_time", "lost_timeout")
 
 #: Default excitation amplitude [m]: small enough that the scenes' Euclidean links depart
 #: from their linearisation by ~1e-7 (c_link ~ 30 /m), large enough against the round-off
@@ -267,7 +267,7 @@ def _over_port(scene, opts, a: float, progress):
                 late_guard=not opts.lockstep,
                 reconnect=(not opts.lockstep) if opts.reconnect is None else opts.reconnect,
                 reconnect_time=opts.reconnect_time,
-                reconnect_attempts=opts.reconnect_attempts,
+                reconnect_attempts=opts.reconnect_attempts, lost_timeout=opts.lost_timeout,
                 frames="full" if opts.frames == "full" else "auto")
             lost[0] = res.get("error") is not None
     finally:

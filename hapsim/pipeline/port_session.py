@@ -201,22 +201,26 @@ def stop_reason(stop) -> str:
     return getattr(stop, "reason", None) or "stop requested"
 
 
-def reopen_port(transport, exc, counts, *, until: float, most: int | None = None,
-                backoff: float = 0.05, backoff_max: float = 1.0, stopped=None) -> bool:
-    """After a loss (the port failed, or the device said no HELLO): open the port again
-    with backoff until it comes back; the caller asks HELLO again.
+def reopen_port(transport, counts, *, first, last, since: float, until: float,
+                tried: int = 0, most: int | None = None, backoff: float = 0.05,
+                backoff_max: float = 1.0, stopped=None) -> bool:
+    """After a loss (the port failed, the device fell silent or said no HELLO): open the
+    port again with backoff until it comes back; the caller asks HELLO again.
 
     Parameters
     ----------
     transport : transport of :mod:`hapsim.host.transport`
         One with ``reopen()``; another cannot come back.
-    exc : DeviceError
-        What the loss was (its first line is named in the error).
     counts : object
         Its ``reconnect_attempts`` counts every attempt (the run's total).
-    until : float
-        The transport's clock [s] past which the device is lost for good (the loss's
-        start plus the time allowed, ``--reconnect-time``).
+    first, last : DeviceError
+        The loss's first error and its latest (the first line of each is named in the
+        error, as the 1-D loop's recovery does).
+    since, until : float
+        The transport's clock [s] at the loss's start, and past which the device is lost
+        for good (``since`` plus the time allowed, ``--reconnect-time``).
+    tried : int
+        Attempts already made for this loss.
     most : int, optional
         Attempts allowed for this loss (``--reconnect-attempts``); None: no limit but
         ``until``.
@@ -234,18 +238,18 @@ def reopen_port(transport, exc, counts, *, until: float, most: int | None = None
     ------
     DeviceError
         The device lost for good: the time or the attempts allowed used up, or a
-        transport that cannot reopen (``exc`` itself).
+        transport that cannot reopen (``last`` itself).
     """
     if not hasattr(transport, "reopen"):
-        raise exc
+        raise last
     clock, sleep = clock_of(transport)
     wait = backoff
-    tried = 0
     while stopped is None or not stopped():
         if clock() + wait > until or (most is not None and tried >= most):
-            raise DeviceError(f"device lost ({str(exc).splitlines()[0]}); it did not come "
-                              f"back in time ({tried} attempts to open the port again)"
-                              f"\nlast frames:\n" + transport.last_frames())
+            raise DeviceError(
+                f"device lost ({str(first).splitlines()[0]}); it did not come back in time: "
+                f"{tried} attempts to open the port again in {clock() - since:.3g} s (last: "
+                f"{str(last).splitlines()[0]})\nlast frames:\n" + transport.last_frames())
         sleep(wait)
         wait = min(2 * wait, backoff_max)
         tried += 1
@@ -253,6 +257,6 @@ def reopen_port(transport, exc, counts, *, until: float, most: int | None = None
         try:
             transport.reopen()
             return True
-        except DeviceError:
-            continue
+        except DeviceError as exc:
+            last = exc
     return False
