@@ -392,7 +392,9 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
     -------
     RunReportND
         ``dof`` the number of ports; ``ports`` and ``delays`` [periods] beside the
-        fields (rows and columns of the matrices in port order).
+        fields (rows and columns of the matrices in port order). In real time also
+        after a safety stop or a board lost in the middle of the run (``realtime.stop``,
+        ``error``; ``exit_code`` 1, ``ok`` False).
 
     Raises
     ------
@@ -416,12 +418,17 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
         # the verdict of the records (a stopped run's says why it is not measurable)
         rep.update({k: v[k] for k in ("verdict", "within", "reason", "statements",
                                       "not_stated")})
+        # a safety stop or the board lost in the middle: exit 1, as every run's
+        failed = (res.get("error") is not None
+                  or str(res["realtime"]["stop"]).startswith("safety"))
         return RunReportND.from_dict({**rep, "ports": list(res["predicted"].ports),
                                       "delays": [float(d) for d in res["predicted"].delays],
                                       "realtime": res["realtime"],
+                                      "error": res.get("error"),
                                       "amplitude": res["amplitude"],
                                       # said before the run: what it cannot state, or None
-                                      "stated_before_run": res.get("stated_before_run")})
+                                      "stated_before_run": res.get("stated_before_run")},
+                                     exit_code=1 if failed else 0)
     name = (lambda f: "--" + f.replace("_", "-")) if by == "flag" else (lambda f: f)
     refuse_options(opts, by, PORTS_TAKES, "a scene with several ports",
                    f"it takes {', '.join(name(f) for f in PORTS_TAKES + ('amplitude',))}")

@@ -709,7 +709,9 @@ def run_ports(args) -> int:
     Returns
     -------
     int
-        0 when the loop is stable (the measurement reported, whatever it finds).
+        0 when the loop is stable (the measurement reported, whatever it finds); 1 after
+        a safety stop or the board lost in the middle of the run (the report first, then
+        the error on stderr).
 
     Raises
     ------
@@ -732,9 +734,19 @@ def run_ports(args) -> int:
         file=sys.stderr, flush=True))
     scene = load_scene_ports(args.scene)
     rep = run_scene_ports(scene, opts, getattr(args, "amplitude", None), by="flag")
+    code = _report_ports(args, scene, rep)
+    if rep.error is not None:           # the report first, then why the run ended
+        print(f"hapsim run: {rep.error['type']}: {rep.error['message']}", file=sys.stderr)
+    return code
+
+
+def _report_ports(args, scene, rep) -> int:
+    """Print a run of several ports' report (text, or ``--json``); return its exit code
+    (1 after a safety stop or a board lost, else 0: ``rep.exit_code``)."""
+    code = getattr(rep, "exit_code", 0)
     if args.json:
         print(json.dumps(rep.to_dict()))
-        return 0
+        return code
     o = sys.stdout
     x = rep.extra
     rt = x.get("realtime")
@@ -767,4 +779,4 @@ def run_ports(args) -> int:
         from hapsim.pipeline.felt_run import print_statements
         print_statements(rep.to_dict(), o)
     print(f"  verdict: {rep.verdict}: {rep.reason}", file=o)
-    return 0
+    return code

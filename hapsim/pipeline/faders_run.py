@@ -217,8 +217,10 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     from hapsim.drivers.firefader import (CENTRE, FORCE_MAX, HAND_PASSES, METRES_PER_COUNT,
                                           RecordDecoder, Records, encode_packet,
                                           force_counts)
+    from hapsim.drivers.device_port import DevicePort
     from hapsim.host.realtime import sleep_until_ns
     from hapsim.lockstep_ports import LockstepPorts
+    ser = DevicePort(ser, "the FireFader")      # the port failing: a DeviceError
     T = scene.period
     Tns = int(round(T * 1e9))
     zeroed = [0]
@@ -256,75 +258,88 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     H = HAND_PASSES
     if watchdog is not None:
         watchdog.arm()
+    error = None                             # the DeviceError that ended the run
     for j in range(starts):
-        put(zero)
-        if pace:
-            time.sleep(PAUSE_S)              # the silence rule: forces off, the hand
-        else:
-            ser.idle(PAUSE_S)
-        records.clear(ser)
-        pos = np.full((samples, P), np.nan)
-        frc = np.zeros((samples, P))
-        late = np.zeros(samples)
-        clamped = np.zeros(samples, bool)
-        f = np.zeros(P)
-        t0 = time.monotonic_ns()
-        # the loop's buffers, made once per record: a sample allocates no array
-        x = np.empty(P)
-        raw = np.empty(host.x.size)
-        for w in range(H - 1 + samples):
-            k = w - (H - 1)                   # the row this write's pass reads
-            due = t0 + w * Tns
-            wait(due)
-            pk = (zero if k <= 0 else
-                  encode_packet(*(max(force_counts(v, fs), -FORCE_MAX) for v in f)))
-            owed = put(pk)
-            lag = (time.monotonic_ns() - due) * 1e-9 if pace else 0.0
-            latest = max(latest, lag)
-            if lag > LATE_STOP_S:
-                stop = f"host late: a write {lag * 1e3:.0f} ms behind its time"
-                break
-            rec, got = records.answers(ser, owed, REPLY_TIMEOUT_S, MERGE_WAIT_PERIODS * T)
-            if rec is None:
-                stop = f"no record within {REPLY_TIMEOUT_S:g} s (the board lost)"
-                break
-            if got < owed:
-                # the watchdog's zero writes in a stall, then this write, and the board
-                # merged packets that waited for its pass: no record says whose it is, and
-                # the run stops rather than take a reading a pass off its row
-                stop = (f"host late: the watchdog zeroed the forces in a "
-                        f"{lag * 1e3:.0f} ms stall, and the board answered {got} "
-                        f"of the {owed} packets within "
-                        f"{MERGE_WAIT_PERIODS * T * 1e3:.0f} ms (it merges those that "
-                        f"wait for its pass): which record is whose is lost")
-                break
-            if k < 0:
-                continue
-            for i in range(P):
-                x[i] = (float(rec[i]) - CENTRE) * METRES_PER_COUNT
-            pos[k], late[k] = x, lag
-            far = 0                           # the fader furthest out (no closure made)
-            for i in range(1, P):
-                if abs(x[i]) > abs(x[far]):
-                    far = i
-            if abs(x[far]) > WORKSPACE_M:
-                stop = (f"safety: fader {'AB'[far]} {abs(x[far]) * 1e3:.1f} mm from the "
-                        f"centre, beyond the workspace's {WORKSPACE_M * 1e3:.1f} mm")
-                break
-            host.xp[:P] = pos[k - 1] if k > 0 else x
-            host.x[:P] = x
-            host.forces(out=raw)
-            hit = False
-            for i in range(P):
-                r, m = float(raw[i]), float(lim[i])
-                v = min(max(r, -m), m)
-                f[i] = v
-                c = max(force_counts(v, fs), -FORCE_MAX)
-                frc[k, i] = c * force_scale
-                hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
-            clamped[k] = hit
-        # both faders at zero force, its record
-        records.answers(ser, put(zero), REPLY_TIMEOUT_S, MERGE_WAIT_PERIODS * T)
+        pos = frc = late = clamped = None
+        try:
+            put(zero)
+            if pace:
+                time.sleep(PAUSE_S)              # the silence rule: forces off, the hand
+            else:
+                ser.idle(PAUSE_S)
+            records.clear(ser)
+            pos = np.full((samples, P), np.nan)
+            frc = np.zeros((samples, P))
+            late = np.zeros(samples)
+            clamped = np.zeros(samples, bool)
+            f = np.zeros(P)
+            t0 = time.monotonic_ns()
+            # the loop's buffers, made once per record: a sample allocates no array
+            x = np.empty(P)
+            raw = np.empty(host.x.size)
+            for w in range(H - 1 + samples):
+                k = w - (H - 1)                   # the row this write's pass reads
+                due = t0 + w * Tns
+                wait(due)
+                pk = (zero if k <= 0 else
+                      encode_packet(*(max(force_counts(v, fs), -FORCE_MAX) for v in f)))
+                owed = put(pk)
+                lag = (time.monotonic_ns() - due) * 1e-9 if pace else 0.0
+                latest = max(latest, lag)
+                if lag > LATE_STOP_S:
+                    stop = f"host late: a write {lag * 1e3:.0f} ms behind its time"
+                    break
+                rec, got = records.answers(ser, owed, REPLY_TIMEOUT_S, MERGE_WAIT_PERIODS * T)
+                if rec is None:
+                    stop = f"no record within {REPLY_TIMEOUT_S:g} s (the board lost)"
+                    break
+                if got < owed:
+                    # the watchdog's zero writes in a stall, then this write, and the board
+                    # merged packets that waited for its pass: no record says whose it is, and
+                    # the run stops rather than take a reading a pass off its row
+                    stop = (f"host late: the watchdog zeroed the forces in a "
+                            f"{lag * 1e3:.0f} ms stall, and the board answered {got} "
+                            f"of the {owed} packets within "
+                            f"{MERGE_WAIT_PERIODS * T * 1e3:.0f} ms (it merges those that "
+                            f"wait for its pass): which record is whose is lost")
+                    break
+                if k < 0:
+                    continue
+                for i in range(P):
+                    x[i] = (float(rec[i]) - CENTRE) * METRES_PER_COUNT
+                pos[k], late[k] = x, lag
+                far = 0                           # the fader furthest out (no closure made)
+                for i in range(1, P):
+                    if abs(x[i]) > abs(x[far]):
+                        far = i
+                if abs(x[far]) > WORKSPACE_M:
+                    stop = (f"safety: fader {'AB'[far]} {abs(x[far]) * 1e3:.1f} mm from the "
+                            f"centre, beyond the workspace's {WORKSPACE_M * 1e3:.1f} mm")
+                    break
+                host.xp[:P] = pos[k - 1] if k > 0 else x
+                host.x[:P] = x
+                host.forces(out=raw)
+                hit = False
+                for i in range(P):
+                    r, m = float(raw[i]), float(lim[i])
+                    v = min(max(r, -m), m)
+                    f[i] = v
+                    c = max(force_counts(v, fs), -FORCE_MAX)
+                    frc[k, i] = c * force_scale
+                    hit = hit or abs(r) >= m or abs(round(v / force_scale)) > FORCE_MAX
+                clamped[k] = hit
+            # both faders at zero force, its record
+            records.answers(ser, put(zero), REPLY_TIMEOUT_S, MERGE_WAIT_PERIODS * T)
+        except DeviceError as exc:
+            # the port failed in the middle of the run (a board unplugged, its process
+            # ended): the run stops there with what it recorded, the board left to its
+            # own watchdog (nothing more can be written)
+            error = exc
+            stop = f"device lost: {str(exc).splitlines()[0]}"
+            if pos is not None:
+                out.append({"position": pos, "force": frc, "late": late,
+                            "clamped": clamped})
+            break
         out.append({"position": pos, "force": frc, "late": late, "clamped": clamped})
         if progress is not None:
             progress(j + 1, starts)
@@ -333,6 +348,8 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     if watchdog is not None:
         watchdog.arm(False)
     return {"records": out, "stop": stop, "latest": latest, "watchdog_zeroed": zeroed[0],
+            "error": None if error is None else {"type": type(error).__name__,
+                                                 "message": str(error)},
             "late_ticks": [int(np.sum(departures(r) > CUT_PERIODS * T)) for r in out]}
 
 
@@ -650,7 +667,9 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
     UnstableConfigError
         The coupled loop is unstable and ``allow_unstable`` is false.
     DeviceError
-        The port cannot be opened, or the board does not answer.
+        The port cannot be opened, or the board does not answer while it is armed. A
+        port that fails later ends the run (``realtime.stop`` "device lost: ...",
+        ``error`` its type and message) with what it recorded.
     """
     import dataclasses
 
@@ -740,6 +759,7 @@ def run_faders(scene, options, amplitude: float | None = None, *, by: str = "fie
                          excluded={n: why for n in pre["not_stated"]})
     held = (None if report is None else
             [report.get("held_at_end"), report.get("held_b_at_end")])
+    res["error"] = run["error"]           # the board lost in the middle of the run
     res["realtime"] = {"stop": run["stop"], "late_ticks": run["late_ticks"],
                        "latest": run["latest"], "usable": res["usable"],
                        "held_at_end": held,

@@ -1,0 +1,168 @@
+"""The FireFader's two faders in real time when the board goes away in the middle of the run
+(unplugged, its process ended): the run ends there with its report of what was recorded,
+"device lost" and the error, and exit 1, as every run's; never pyserial's traceback (a
+killed emulated board gave ``SerialException: write failed: [Errno 32] Broken pipe`` and no
+report before). A board that fails while it is armed, before any record, is the error
+alone."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import serial
+
+from hapsim.drivers.firefader import FireFader
+from hapsim.emulated.firefader_board import FireFaderDevice
+from hapsim.emulated.links import LockstepBoardLink
+from hapsim.errors import DeviceError
+from hapsim.lockstep import excitation_starts
+from hapsim.pipeline.faders_run import FADER_AMPLITUDE, measure_faders, record_faders
+from hapsim.scene import load_scene_ports
+
+from seeds import seeds  # same directory (pytest prepend import mode)
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+SCENE = CONFIGS / "two_faders.yaml"
+N = 120                         # rows per record
+
+
+class _FailingLink:
+    """The lockstep board's link, whose ``op`` ("write" or "read") fails from its
+    ``at``-th call on, as a port unplugged fails: with ``exc``."""
+
+    def __init__(self, link, op: str, at: int, exc: BaseException) -> None:
+        self.link, self.op, self.at, self.exc, self.calls = link, op, at, exc, 0
+
+    def _count(self, op: str) -> None:
+        if op == self.op:
+            self.calls += 1
+            if self.calls >= self.at:
+                raise self.exc
+
+    def write(self, data):
+        self._count("write")
+        return self.link.write(data)
+
+    def read(self, n: int = 1):
+        self._count("read")
+        return self.link.read(n)
+
+    @property
+    def in_waiting(self) -> int:
+        return self.link.in_waiting
+
+    def __getattr__(self, attr):
+        return getattr(self.link, attr)
+
+
+def _board(scene):
+    drv = FireFader()
+    starts = excitation_starts(2, FADER_AMPLITUDE, scene.period)
+    (_, da), (_, db) = scene.devices
+    dev = FireFaderDevice(da, scene.rate_hz, None, clock="lockstep", device_b=db,
+                          hand=[(x0[0], x0[1], v0[0], v0[1]) for x0, v0 in starts],
+                          **drv.mock_hardware())
+    return drv, len(starts), LockstepBoardLink(dev)
+
+
+@pytest.mark.parametrize("seed", seeds(range(1, 25), kept=[1, 2, 3, 4]))
+def test_a_board_lost_mid_run_ends_it_with_what_was_recorded(seed):
+    """The board's port fails (a write or a read; pyserial's SerialException, the
+    system's OSError or a write timeout) at a random call. Failing while the board is
+    armed, before any record: a DeviceError naming the FireFader's port. Later: a result,
+    ``stop`` "device lost: ...", ``error`` a DeviceError's, at most as many records as
+    began, and the verdict of those records never "within" from rows not read (the
+    records of a run cut short are "not measurable")."""
+    rng = random.Random(seed)
+    scene = load_scene_ports(SCENE)
+    drv, starts, link = _board(scene)
+    exc = rng.choice([serial.SerialException("read failed: [Errno 104] Connection reset"),
+                      OSError(5, "Input/output error"),
+                      serial.SerialTimeoutException("Write timeout")])
+    op = rng.choice(["write", "read"])
+    at = rng.choice([5, 50]) if seed % 4 == 1 else rng.randrange(100, starts * (N + 20))
+    ser = _FailingLink(link, op, at, exc)
+    try:
+        run = record_faders(ser, scene, N, starts, force_scale=drv.force_scale, pace=False)
+    except DeviceError as err:
+        assert "the FireFader's port failed" in str(err)
+        assert seed % 4 == 1, "a DeviceError after the arming"      # raised while arming
+        return
+    assert ser.calls >= at, "the port never failed"
+    assert run["stop"].startswith("device lost: ") and "FireFader's port failed" in run["stop"]
+    assert run["error"]["type"] == "DeviceError"
+    assert len(run["records"]) <= starts
+    from hapsim.analysis.ports import check_ports
+    chk = check_ports(scene)
+    res = measure_faders(scene, run, FADER_AMPLITUDE, samples=N, order=chk.states // 2,
+                         chk=chk, force_scale=drv.force_scale)
+    assert res["verdict"]["verdict"] == "not measurable", res["verdict"]
+    assert "device lost" in res["verdict"]["reason"]
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            return fh.read()
+    except OSError:
+        return b""
+
+
+def _descendants(pid: int) -> list:
+    """The processes below ``pid`` (from /proc: each one's parent)."""
+    parent = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as fh:
+                    parent[int(d)] = int(fh.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        kids = [c for c, pp in parent.items() if pp == p]
+        out += kids
+        todo += kids
+    return out
+
+
+@pytest.mark.xdist_group("realtime")
+def test_hapsim_run_of_two_faders_whose_board_is_killed_reports_and_exits_1():
+    """``hapsim run configs/two_faders.yaml --json`` in real time, its emulated board's
+    process killed (SIGKILL) once its records have begun: exit 1, the report (or, killed
+    while still arming, the error object) on stdout with the DeviceError, and no
+    traceback on stderr."""
+    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", str(SCENE), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        board = None
+        end = time.monotonic() + 30
+        while board is None and time.monotonic() < end:
+            board = next((p for p in _descendants(proc.pid)
+                          if b"driver_mock" in _cmdline(p)), None)
+            time.sleep(0.05)
+        assert board is not None, "the embedded board never started"
+        time.sleep(1.5)                 # the prediction in lockstep, the arming, records
+        os.kill(board, signal.SIGKILL)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 1, err
+    assert "Traceback" not in err, err
+    rep = json.loads(out)
+    assert rep["error"]["type"] == "DeviceError", rep
+    if "realtime" in rep:               # the report of a run the loss ended
+        assert rep["realtime"]["stop"].startswith("device lost: ")
+        assert rep["verdict"] == "not measurable"
