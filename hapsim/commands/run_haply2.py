@@ -38,18 +38,20 @@ def run_haply2_command(args) -> int:
     -------
     int
         0 (the measurement and its verdict reported, whatever it finds: "within",
-        "differs" or "not measurable"); 1 when the board lost a reply.
+        "differs" or "not measurable").
 
     Raises
     ------
     ConfigError
         With ``--port`` (a real board has no hand to start each record), a scene that is
         not a 2-D pantograph, a bad amplitude.
+    DeviceError
+        The board lost (its port failed, a reply lost): exit 1, cli's error line and
+        ``--json`` error object.
     """
     import gc
 
     from hapsim.emulated.haply2_lockstep import measure_felt_haply2
-    from hapsim.errors import DeviceError
     from hapsim.progress import Progress
     if args.port:
         raise ConfigError("--driver haply on a 2-D scene runs against the emulated board, "
@@ -68,54 +70,48 @@ def run_haply2_command(args) -> int:
         # state (the same records in lockstep, the board on its lockstep clock, asked
         # for by name; ~1.5 s of CPU): what will not be stated is said first, and the
         # real-time records (cut, estimated) never state it
-        try:
-            with Progress(5, "run (2DIY bytes: what its records can state, in lockstep)",
-                          unit="records") as bar:
-                pre = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
-                                          progress=bar.update)
-        except DeviceError as exc:
-            print(f"hapsim run: {exc}", file=sys.stderr)
-            return 1
+        with Progress(5, "run (2DIY bytes: what its records can state, in lockstep)",
+                      unit="records") as bar:
+            pre = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
+                                      progress=bar.update)
         excluded, said = prediction_haply2(pre, a)
         if said is not None:
             print(f"hapsim run: {scene.path}: {said}; the run goes on (exit code 0: not a "
                   "device fault)", file=sys.stderr, flush=True)
+    # a board lost (its port failing) raises DeviceError: exit 1 with cli's error line
+    # and, with --json, its error object (the records are not reported yet)
     with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
                   unit="records") as bar:
-        try:
-            if realtime:
-                from hapsim.pipeline.haply2_embedded import Embedded2DIY
-                from hapsim.pipeline.haply2_host import measure_felt_haply2_port
-                from hapsim.host.realtime import RealtimePriority
-                prio = max(int(getattr(args, "rt_priority", 0) or 0), 0)
-                # the board takes SCHED_FIFO itself once started (a real board's MCU is
-                # never descheduled), the host loop here: as the 1-D run's loop and mock
-                child = Embedded2DIY(args.scene, gen, amplitude=a, cpr=HAPLY_CPR,
-                                     rate_hz=scene.rate_hz, rt_priority=prio)
-                gc_was = gc.isenabled()
-                rt = RealtimePriority(prio)
-                try:
-                    gc.disable()                 # no collection while the clock runs
-                    # the emulated board advances one period per write unless it
-                    # says it keeps the wall clock: a host stall costs its record
-                    # nothing then
-                    with rt:
-                        res = measure_felt_haply2_port(
-                            child.port, scene, gen, amplitude=a, resolution=HAPLY_CPR,
-                            progress=bar.update,
-                            lockstep_board=getattr(child, "clock", "lockstep") == "lockstep",
-                            excluded=excluded)
-                    res["scheduling"] = rt.note
-                finally:
-                    if gc_was:
-                        gc.enable()
-                    child.close()
-            else:
-                res = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
-                                          progress=bar.update)
-        except DeviceError as exc:
-            print(f"hapsim run: {exc}", file=sys.stderr)
-            return 1
+        if realtime:
+            from hapsim.pipeline.haply2_embedded import Embedded2DIY
+            from hapsim.pipeline.haply2_host import measure_felt_haply2_port
+            from hapsim.host.realtime import RealtimePriority
+            prio = max(int(getattr(args, "rt_priority", 0) or 0), 0)
+            # the board takes SCHED_FIFO itself once started (a real board's MCU is
+            # never descheduled), the host loop here: as the 1-D run's loop and mock
+            child = Embedded2DIY(args.scene, gen, amplitude=a, cpr=HAPLY_CPR,
+                                 rate_hz=scene.rate_hz, rt_priority=prio)
+            gc_was = gc.isenabled()
+            rt = RealtimePriority(prio)
+            try:
+                gc.disable()                 # no collection while the clock runs
+                # the emulated board advances one period per write unless it
+                # says it keeps the wall clock: a host stall costs its record
+                # nothing then
+                with rt:
+                    res = measure_felt_haply2_port(
+                        child.port, scene, gen, amplitude=a, resolution=HAPLY_CPR,
+                        progress=bar.update,
+                        lockstep_board=getattr(child, "clock", "lockstep") == "lockstep",
+                        excluded=excluded)
+                res["scheduling"] = rt.note
+            finally:
+                if gc_was:
+                    gc.enable()
+                child.close()
+        else:
+            res = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
+                                      progress=bar.update)
     chk, fit, dev = res["predicted"], res["measured"], res["deviation"]
     bound, wire = res["bound"], res["wire"]
     real = res["quantum_encoders"]

@@ -1,9 +1,11 @@
-"""The FireFader's two faders in real time when the board goes away in the middle of the run
-(unplugged, its process ended): the run ends there with its report of what was recorded,
-"device lost" and the error, and exit 1, as every run's; never pyserial's traceback (a
-killed emulated board gave ``SerialException: write failed: [Errno 32] Broken pipe`` and no
-report before). A board that fails while it is armed, before any record, is the error
-alone."""
+"""A device-specific run whose board goes away in the middle (unplugged, its process
+ended). The FireFader's two faders in real time end there with their report of what was
+recorded, "device lost" and the error, and exit 1, as every run's; never pyserial's
+traceback (a killed emulated board gave ``SerialException: write failed: [Errno 32] Broken
+pipe`` and no report before). A board that fails while it is armed, before any record, is
+the error alone; so is the Haply 2DIY's (exit 1 and, with ``--json``, the error object,
+where it printed nothing on stdout before). The 1-D driver runs' losses are
+``tests/test_run_device_lost.py``'s, the framed n-D run's ``tests/test_run_nd_lost.py``'s."""
 
 from __future__ import annotations
 
@@ -136,12 +138,17 @@ def _descendants(pid: int) -> list:
 
 
 @pytest.mark.xdist_group("realtime")
-def test_hapsim_run_of_two_faders_whose_board_is_killed_reports_and_exits_1():
-    """``hapsim run configs/two_faders.yaml --json`` in real time, its emulated board's
-    process killed (SIGKILL) once its records have begun: exit 1, the report (or, killed
-    while still arming, the error object) on stdout with the DeviceError, and no
-    traceback on stderr."""
-    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", str(SCENE), "--json"],
+@pytest.mark.parametrize("scene, extra, board_process", [
+    (SCENE, [], b"driver_mock"),
+    (CONFIGS / "pantograph_spring.yaml", ["--driver", "haply"], b"haply2_embedded")],
+    ids=["two_faders", "haply_2diy"])
+def test_hapsim_run_whose_emulated_board_is_killed_says_so_and_exits_1(scene, extra,
+                                                                       board_process):
+    """``hapsim run SCENE --json`` in real time, its emulated board's process killed
+    (SIGKILL) once its records have begun: exit 1, the report (the two faders') or the
+    error object on stdout with the DeviceError, and no traceback on stderr."""
+    proc = subprocess.Popen([sys.executable, "-m", "hapsim", "run", str(scene), "--json",
+                             *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
@@ -149,7 +156,7 @@ def test_hapsim_run_of_two_faders_whose_board_is_killed_reports_and_exits_1():
         end = time.monotonic() + 30
         while board is None and time.monotonic() < end:
             board = next((p for p in _descendants(proc.pid)
-                          if b"driver_mock" in _cmdline(p)), None)
+                          if board_process in _cmdline(p)), None)
             time.sleep(0.05)
         assert board is not None, "the embedded board never started"
         time.sleep(1.5)                 # the prediction in lockstep, the arming, records
