@@ -157,19 +157,14 @@ def _play(args: argparse.Namespace, stop) -> int:
     """The play itself (:func:`run`, its signal handlers in place); ``stop`` is the
     :class:`~hapsim.host.loop_types.StopFlag` they set:
     :func:`hapsim.pipeline.play.play_scene`, its report printed (``--json``: one object;
-    else :func:`hapsim.pipeline.play.play_text`), a refusal before playing printed on
-    stderr (exit 1)."""
+    else :func:`hapsim.pipeline.play.play_text`); a refusal before playing raised (exit 1,
+    cli's error line and ``--json`` error object)."""
     from hapsim.commands.dimension import refuse_ports_scene
     from hapsim.pipeline.play import play_scene, play_text
-    from hapsim.errors import DeviceError, UnstableConfigError
     refuse_ports_scene(args.scene, "play")        # several ports: nothing to hear
-    try:
-        code, report = play_scene(args, stop)
-    except (UnstableConfigError, DeviceError) as exc:
-        if not getattr(exc, "before_play", False):
-            raise
-        print(f"hapsim play: {exc}", file=sys.stderr)
-        return 1
+    # a refusal before playing (an unstable loop, a device that failed) raises: exit 1,
+    # cli's error line and, with --json, its error object
+    code, report = play_scene(args, stop)
     if args.json:
         print(json.dumps(json_safe(report)))
     else:

@@ -106,9 +106,8 @@ def run_falcon_command(args) -> int:
                       "in lockstep and the rounding's draws)", unit="steps") as bar:
             predicted = felt_prediction(scene, real=not emulated, progress=bar.update)
             bar.update(bar.total)
-    except DeviceError as exc:
-        print(f"hapsim run: the felt matrices' feasibility: {exc}", file=sys.stderr)
-        return 1
+    except DeviceError as exc:       # exit 1: cli's error line, --json's error object
+        raise DeviceError(f"the felt matrices' feasibility: {exc}") from exc
     if predicted.get("statement"):
         print(f"hapsim run: {scene.path}: {predicted['statement']}; the run goes on (exit "
               "code 0: not a device fault)", file=sys.stderr, flush=True)
@@ -133,9 +132,6 @@ def run_falcon_command(args) -> int:
                 res = run_falcon(scene, link, image, packets, truth=truth,
                                  progress=bar.update, paced=paced)
             res["scheduling"] = rt.note
-    except DeviceError as exc:
-        print(f"hapsim run: {exc}", file=sys.stderr)
-        return 1
     finally:
         if link is not None:
             link.close()
@@ -148,9 +144,8 @@ def run_falcon_command(args) -> int:
             felt = felt_statement(scene, image if emulated else None,
                                   clock=dev.clock if emulated else "wall",
                                   predicted=predicted, progress=bar.update)
-    except DeviceError as exc:
-        print(f"hapsim run: the felt matrices' records: {exc}", file=sys.stderr)
-        return 1
+    except DeviceError as exc:       # exit 1: cli's error line, --json's error object
+        raise DeviceError(f"the felt matrices' records: {exc}") from exc
     where = ("the emulated Falcon (an emulated FT232R under pyftdi's code)" if emulated
              else f"the Falcon at {args.port}")
     pos = res["position"]

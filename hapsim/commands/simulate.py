@@ -10,7 +10,7 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, HapsimError
 from hapsim.outputs import check_writable
 from hapsim.progress import Progress
 from hapsim.option_values import Number
@@ -233,9 +233,8 @@ def _run_audio(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     try:
         info = write_wav(args.audio, audio, scene.audio.rate_hz)
-    except ValueError as exc:
-        print(f"hapsim simulate: {exc}; nothing written (hapsim check {args.scene})")
-        return 1
+    except ValueError as exc:   # a sound that diverged: exit 1, cli's line and JSON
+        raise HapsimError(f"{exc}; nothing written (hapsim check {args.scene})") from None
     if args.out is not None:
         T = scene.period
         write_trajectory(args.out, np.arange(args.steps) * T,
@@ -397,9 +396,8 @@ def _run_audio_nd(args) -> int:
     elapsed = time.perf_counter() - t0
     try:
         info = write_wav(args.audio, audio, scene.rate_hz)
-    except ValueError as e:
-        print(f"hapsim simulate: {e}", file=sys.stderr)
-        return 1
+    except ValueError as exc:   # a sound that diverged: exit 1, cli's line and JSON
+        raise HapsimError(f"{exc}; nothing written (hapsim check {args.scene})") from None
     summary = {"scene": args.scene, "audio": args.audio, "dimension": scene.dimension,
                "steps": args.steps, "rate_hz": scene.rate_hz, "frames": info["frames"],
                "channels": info["channels"], "peak": info["peak"],
