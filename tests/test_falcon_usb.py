@@ -6,6 +6,8 @@ unplug mid-run) against the emulated encoders' true counts."""
 
 from __future__ import annotations
 
+import json
+
 import os
 from pathlib import Path
 
@@ -371,7 +373,8 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
 
 def test_cli_unplugged_mid_run_is_exit_1(capsys, tmp_path, monkeypatch):
     """The emulated Falcon leaves the bus mid-loop under 'hapsim run': exit 1, stderr says
-    it went away and after how many packets; nothing on stdout (no verdict claimed)."""
+    it went away and after how many packets; on stdout the error object alone (no
+    verdict claimed)."""
     import hapsim.pipeline.falcon_run as fr
     from hapsim.cli import main
     real = fr.emulated_falcon
@@ -383,7 +386,9 @@ def test_cli_unplugged_mid_run_is_exit_1(capsys, tmp_path, monkeypatch):
                  "--firmware", str(fw), "--packets", "400", "--json"]) == 1
     cap = capsys.readouterr()
     assert "went away" in cap.err and "packets since the firmware load" in cap.err
-    assert cap.out == ""
+    out = json.loads(cap.out)
+    assert list(out) == ["error", "exit"] and out["exit"] == 1
+    assert out["error"]["type"] == "DeviceError" and "went away" in out["error"]["message"]
 
 
 def test_a_failed_echo_is_loaded_again_from_the_loaders_restart(scene):
