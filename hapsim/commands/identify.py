@@ -228,6 +228,9 @@ def run(args) -> int:
         if device is None:
             raise ConfigError("the scene has no device section", file=args.mock_scene,
                               key="device")
+        if args.driver == DEFAULT and not args.lockstep and args.port is None:
+            from hapsim.emulated.mock import require_whole_delay
+            require_whole_delay(device.delay, file=args.mock_scene, command="identify")
     dopts = None
     drv = None
     mopts = None

@@ -94,7 +94,8 @@ from hapsim.scene import Device, Excitation
 
 __all__ = ["zoh_step_coefficients", "ideal_step_coefficients", "hand_force_samples",
            "MockPhysics", "MockDevice", "MockStats", "MOCK_DEVICE_ID", "DEFAULT_DEVICE",
-           "DEFAULT_EXCITATION", "PhysicsND", "MockDeviceND", "DEFAULT_AMPLITUDE"]
+           "DEFAULT_EXCITATION", "PhysicsND", "MockDeviceND", "DEFAULT_AMPLITUDE",
+           "require_whole_delay"]
 
 #: HELLO.device_id of the mock ("MOCK" in ASCII).
 MOCK_DEVICE_ID = 0x4D4F434B
@@ -110,6 +111,35 @@ _WATCHDOG = fp.STATUS_WATCHDOG_TRIPPED
 _CLAMPED = fp.STATUS_FORCE_CLAMPED
 _ARMED_CONFIGURED = fp.STATUS_ARMED | fp.STATUS_CONFIGURED
 _SENSOR_VELOCITY = fp.SENSOR_VELOCITY
+
+
+def require_whole_delay(delay: float, *, file: str | None = None, command: str = "run"
+                        ) -> None:
+    """Refuse a device delay the real-time mock cannot give: its delay line is whole
+    periods (each FORCE applied at a tick after the one it answers), so ``d < 1`` would
+    need a force before its tick. Said before the mock starts (the mock refuses it too,
+    in its own process, where the host saw only its port close).
+
+    Parameters
+    ----------
+    delay : float
+        The device's delay ``d`` [periods].
+    file : str, optional
+        The scene it came from (named in the error).
+    command : str
+        The command refused (``"run"``, ``"identify"``), for what to give instead.
+
+    Raises
+    ------
+    ConfigError
+        ``d < 1``, keyed ``device.delay``.
+    """
+    if float(delay) < 1:
+        raise ConfigError(f"device delay d = {float(delay):g} < 1 period: hapsim's mock "
+                          "applies each FORCE at a tick after the one it answers, so a "
+                          f"real-time {command} needs d >= 1 (or --lockstep; a driver's "
+                          "board such as the FireFader's takes d < 1 from its own timing: "
+                          "--driver)", file=file, key="device.delay")
 
 
 # --------------------------------------------------------------------------- physics

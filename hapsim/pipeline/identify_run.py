@@ -205,7 +205,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             tr = InProcessTransport(mock)
         elif transport == "pty":
             from hapsim.emulated.links import EmbeddedMock
+            from hapsim.emulated.mock import require_whole_delay
             from hapsim.host.transport import SerialTransport
+            if not lock:
+                require_whole_delay(dev.delay, command="identify")
             embedded = EmbeddedMock(dev, Excitation(), rate_hz, lockstep=lock, seed=noise_seed)
             tr = SerialTransport(embedded.port, baud)
             embedded.release_slave()

@@ -47,7 +47,7 @@ from hapsim.host.loop import HostLoop, LoopConfig, StopFlag
 from hapsim.braking import brake_damping, brake_rest
 from hapsim.pipeline.measure import (LATE_SHARE_MAX, identify_run, informative_s,  # noqa: F401
                                      timing_verdict)
-from hapsim.emulated.mock import MockDevice
+from hapsim.emulated.mock import MockDevice, require_whole_delay
 from hapsim.pipeline.options import RunOptions
 from hapsim.host.realtime import RealtimePriority
 from hapsim.pipeline.report import build_report, format_report
@@ -113,14 +113,10 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
         raise ConfigError("device delay d = 0 (force applied at once) can only be closed in "
                           "lockstep (--lockstep); a real-time device needs d >= 1",
                           file=scene.path, key="device.delay")
-    if float(dev.delay) < 1 and not opts.lockstep and opts.driver is None:
-        # the framed mock's delay line is whole periods: d < 1 would need the force of a
-        # tick before that tick; a driver's board gives the fraction by its own timing
-        raise ConfigError(f"device delay d = {float(dev.delay):g} < 1 period: hapsim's mock "
-                          "applies each FORCE at a tick after the one it answers, so a "
-                          "real-time run needs d >= 1 (or --lockstep; a driver's board "
-                          "such as the FireFader's takes d < 1 from its own timing)",
-                          file=scene.path, key="device.delay")
+    if not opts.lockstep and opts.driver is None:
+        # the framed mock's delay line is whole periods; a driver's board gives the
+        # fraction by its own timing
+        require_whole_delay(dev.delay, file=scene.path)
     model, pred = timed_prediction(scene, drv_lat)
     if pred["stable"] is False and not opts.allow_unstable:
         raise refusal(model, pred)

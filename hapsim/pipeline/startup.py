@@ -354,7 +354,9 @@ def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool =
     -------
     EmbeddedMock or None
         None when the run would refuse the scene before starting a device (no port or
-        device section, or a delay of 0 outside lockstep): the run then says why.
+        device section, or a delay below one period outside lockstep:
+        :func:`hapsim.emulated.mock.require_whole_delay`): the run then says why, alone
+        (the mock started would have said its own refusal beside it).
 
     Raises
     ------
@@ -362,7 +364,7 @@ def start_embedded_mock(scene, *, rate_hz: float | None = None, lockstep: bool =
         A bad fault SPEC.
     """
     dev = scene.device
-    if dev is None or scene.port is None or (dev.delay == 0 and not lockstep):
+    if dev is None or scene.port is None or (float(dev.delay) < 1 and not lockstep):
         return None
     from hapsim.emulated.links import EmbeddedMock
     base_dir = os.path.dirname(os.path.abspath(scene.path)) if scene.path != "<string>" \

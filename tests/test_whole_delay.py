@@ -1,0 +1,54 @@
+"""A framed device whose delay is under one period cannot be closed in real time by
+hapsim's mock (its delay line is whole periods). ``run`` refused it, but only after its
+early-started mock had printed a refusal of its own beside it ("d = 0", the delay
+truncated); ``identify --mock-scene`` started that mock and then said the port had failed
+(a DeviceError, exit 1: the shipped FireFader scene, d = 0.725, gave it). Both now refuse
+it in one line naming the file and the key, exit 2, before any device starts; in lockstep
+and with the driver's own board (d < 1 by its timing) it is taken."""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import pytest
+
+from hapsim.cli import main
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def _scene(tmp_path, d: float) -> Path:
+    text = (CONFIGS / "wall.yaml").read_text()
+    old = "  delay: 1  "
+    assert old in text
+    path = tmp_path / "wall.yaml"
+    path.write_text(text.replace(old, f"  delay: {d!r}  "))
+    return path
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_run_and_identify_refuse_a_delay_under_one_period_in_one_line(tmp_path, capfd, seed):
+    """Random d in (0, 1): ``run`` and ``identify --mock-scene`` exit 2 with one line on
+    stderr (the child's own refusal would be a second) naming the file, ``device.delay``
+    and d; ``--lockstep`` is not refused for it."""
+    d = round(random.Random(seed).uniform(0.05, 0.95), 3)
+    path = _scene(tmp_path, d)
+    for argv in (["run", str(path)], ["identify", "--mock-scene", str(path)]):
+        assert main(argv) == 2, argv
+        err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+        assert len(err) == 1, err
+        assert f"{path}: device.delay: device delay d = {d:g} < 1 period" in err[0], err
+    assert main(["run", str(path), "--lockstep", "--duration", "0.05"]) in (0, 1)
+    assert "device.delay" not in capfd.readouterr().err
+
+
+def test_the_shipped_firefader_scene_names_its_driver():
+    """configs/firefader.yaml (d = 0.725, the board's own timing) under identify without
+    --driver: the refusal names its delay and says to give the driver."""
+    import contextlib
+    import io
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert main(["identify", "--mock-scene", str(CONFIGS / "firefader.yaml")]) == 2
+    assert "--driver" in err.getvalue() and "d = 0.725" in err.getvalue()
