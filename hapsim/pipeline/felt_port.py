@@ -481,7 +481,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
     lost_since = None
     lost_for_good = None                        # the DeviceError that ended it
     silent = None                               # a record ended by the device's silence
-    tried = 0                                   # reconnect attempts before this loss
+    attempts0 = 0                               # reconnect attempts before this loss
     first = None                                # this loss's first error
     since_hello = 0                             # CONFIGs the device took since its HELLO
     # the records' bounds, checked STATE by STATE (hapsim.pipeline.record_guard)
@@ -520,7 +520,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
             if lost_since is None:
                 lost_since = clock()
                 counts.lost += 1
-                tried = counts.reconnect_attempts
+                attempts0 = counts.reconnect_attempts
                 first = exc
             try:
                 if not reconnect:
@@ -529,7 +529,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
                                       + transport.last_frames())
                 reopen_port(transport, counts, first=first, last=exc, since=lost_since,
                             until=lost_since + reconnect_time,
-                            tried=counts.reconnect_attempts - tried,
+                            tried=counts.reconnect_attempts - attempts0,
                             most=reconnect_attempts, backoff=backoff,
                             backoff_max=backoff_max, stopped=asked)
             except DeviceError as gone:
