@@ -61,3 +61,15 @@ def test_simulate_audio_of_a_scene_that_diverged(tmp_path, capsys, name, old, ne
     assert code == 1 and obj["exit"] == 1, obj
     assert "diverged" in obj["error"]["message"] and "diverged" in err
     assert not wav.exists()
+
+
+@pytest.mark.parametrize("name", ["pantograph_wall.yaml", "delta_sphere.yaml"])
+def test_an_nd_run_whose_port_does_not_open(tmp_path, capsys, name):
+    """A 2-D or 3-D run on a port that is not there fails before its first record: exit 1
+    and the DeviceError's object (the n-D run printed its line and left stdout empty, as
+    for a device that never says HELLO)."""
+    port = tmp_path / "no-such-tty"
+    code, obj, err = _json(capsys, ["run", str(CONFIGS / name), "--port", str(port),
+                                    "--json"])
+    assert code == 1 and obj["exit"] == 1
+    assert obj["error"]["type"] == "DeviceError" and str(port) in obj["error"]["message"]
