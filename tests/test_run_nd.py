@@ -215,20 +215,22 @@ def test_nd_run_refuses_every_run_option_it_does_not_take(capsys):
     value other than its default (0 included: --osc 0 is any free port, --duration 0 an
     open-ended run, which a list of set values compared with (None, False) took for
     unset), is refused with exit 2 naming it, before anything runs."""
-    from hapsim.pipeline.felt_run import ND_TAKES
+    from hapsim.pipeline.felt_run import ND_REFUSED_WHY, ND_TAKES
     from hapsim.pipeline.options import command_line_fields
     scene = str(CONFIGS / "pantograph_wall.yaml")
-    cases = [(["--osc", "0"], "--osc"), (["--duration", "0"], "--duration")]
+    cases = [(["--osc", "0"], "--osc", "osc"), (["--duration", "0"], "--duration", "duration")]
     for f in command_line_fields():
         meta = f.metadata["cli"]
         if f.name not in ND_TAKES:
-            cases.append(([meta["flag"], *_set_value(meta)], meta["flag"]))
+            cases.append(([meta["flag"], *_set_value(meta)], meta["flag"], f.name))
     # (the recovery options and --frames are taken since 2026-11-29: 10 fields left)
     assert len(cases) >= 12
-    for extra, key in cases:
+    for extra, key, name in cases:
         assert main(["run", scene, "--lockstep", *extra]) == 2, extra
         err = capsys.readouterr().err
         assert key in err and "does not take" in err, (extra, err)
+        # each with its own reason (what to use instead, or why not)
+        assert f"({ND_REFUSED_WHY[name]})" in err, (extra, err)
     # the options it takes are checked by their declarations, as a 1-D run's are
     for extra, key in ((["--rt-priority", "500"], "--rt-priority"), (["--baud", "0"], "--baud")):
         assert main(["run", scene, "--lockstep", *extra]) == 2, extra

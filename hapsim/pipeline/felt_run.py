@@ -21,7 +21,7 @@ import math
 
 from hapsim.errors import ConfigError
 
-__all__ = ["ND_TAKES", "DEFAULT_AMPLITUDE", "refuse_options", "scene_for_run",
+__all__ = ["ND_TAKES", "ND_REFUSED_WHY", "DEFAULT_AMPLITUDE", "refuse_options", "scene_for_run",
            "measure_scene_nd", "print_statements"]
 
 #: The run options (:class:`hapsim.pipeline.options.RunOptions` fields) an n-D run takes;
@@ -31,6 +31,21 @@ __all__ = ["ND_TAKES", "DEFAULT_AMPLITUDE", "refuse_options", "scene_for_run",
 ND_TAKES = ("port", "baud", "lockstep", "allow_unstable", "rt_priority", "driver",
             "rate_hz", "faults", "fault_seed", "frames", "reconnect", "reconnect_attempts",
             "reconnect_time", "lost_timeout")
+
+#: Why an n-D run does not take each run option it refuses (said with the refusal; an
+#: option not named here: "1-D scenes only").
+ND_REFUSED_WHY = {
+    "duration": "it measures 2n + 1 records whose length the fit sets",
+    "host_clocked": "the n-axis device keeps its own clock, a STATE every tick",
+    "loop": "its record loop is the Python one; the compiled host loop is 1-D",
+    "telemetry": "its records are kept in memory, for the fit only",
+    "seed": "the n-axis mock has no sensor noise",
+    "osc": "a 2-D or 3-D scene is played live by 'hapsim play SCENE --osc PORT'",
+    "osc_ramp": "a 2-D or 3-D scene is played live by 'hapsim play SCENE --osc PORT'",
+    "sound": "a 2-D or 3-D scene is heard live through 'hapsim play SCENE'",
+    "jack_server": "a 2-D or 3-D scene is heard live through 'hapsim play SCENE'",
+    "view": "a 2-D or 3-D scene's live view is 'hapsim play SCENE --view'",
+}
 
 #: Default excitation amplitude [m]: small enough that the scenes' Euclidean links depart
 #: from their linearisation by ~1e-7 (c_link ~ 30 /m), large enough against the round-off
@@ -66,6 +81,7 @@ def refuse_options(opts, by: str = "flag", takes: tuple = ND_TAKES,
     def same(v, d) -> bool:
         return type(v) is type(d) and v == d
     given = []
+    fields = {}                             # what is named -> the field's name
     for f in command_line_fields():
         if f.name in takes:
             continue
@@ -73,7 +89,10 @@ def refuse_options(opts, by: str = "flag", takes: tuple = ND_TAKES,
         # the command line's default (--loop auto) or the field's (a Python caller's)
         if not same(v, f.metadata["cli"]["cli_default"] if by == "flag" else f.default):
             given.append(f.metadata["cli"]["flag"] if by == "flag" else f.name)
+            fields[given[-1]] = f.name
     if given:
+        if takes is ND_TAKES:               # the n-D run's own reason per option
+            why = ND_REFUSED_WHY.get(fields[given[0]], why)
         raise ConfigError(f"{what} does not take {given[0]} yet ({why})", key=given[0])
 
 
