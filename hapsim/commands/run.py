@@ -47,8 +47,8 @@ amplitude and the verdict (within, differs, or not measurable). --lockstep runs 
 in-process, exactly; without it the n-axis mock (the pantograph's or delta's joint-space
 dynamics) serves it in real time, late ticks accounted per axis (a port lost is recovered as
 in 1-D: --no-reconnect, --reconnect-time, --reconnect-attempts, --lost-timeout; lost for
-good, the report of what was recorded, then exit 1); --driver haply speaks the Haply 2DIY's bytes to its
-emulated board on a pantograph scene.
+good, the report of what was recorded, then exit 1); --driver haply speaks the Haply
+2DIY's bytes to its emulated board on a pantograph scene.
 
 --driver falcon --firmware FILE closes a delta scene's loop on a Novint Falcon over USB
 (pyftdi, pip install 'hapsim[falcon]'): the firmware loaded (the image is yours: hapsim
