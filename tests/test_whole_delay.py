@@ -4,7 +4,8 @@ early-started mock had printed a refusal of its own beside it ("d = 0", the dela
 truncated); ``identify --mock-scene`` started that mock and then said the port had failed
 (a DeviceError, exit 1: the shipped FireFader scene, d = 0.725, gave it). Both now refuse
 it in one line naming the file and the key, exit 2, before any device starts; in lockstep
-and with the driver's own board (d < 1 by its timing) it is taken."""
+and with the driver's own board (d < 1 by its timing) it is taken. ``identify
+--mock-scene`` also takes the scene's rate, as ``run`` does."""
 
 from __future__ import annotations
 
@@ -52,3 +53,19 @@ def test_the_shipped_firefader_scene_names_its_driver():
     with contextlib.redirect_stderr(err):
         assert main(["identify", "--mock-scene", str(CONFIGS / "firefader.yaml")]) == 2
     assert "--driver" in err.getvalue() and "d = 0.725" in err.getvalue()
+
+
+def test_identify_takes_the_mock_scenes_rate(tmp_path, capsys):
+    """``identify --mock-scene`` runs at the scene's rate unless ``--rate`` is given (it ran
+    at 1000 Hz whatever the scene said: the FireFader's 250 Hz scene with ``--driver
+    firefader`` was refused, 1000 Hz being more than its board holds): 1 s of a 500 Hz
+    wall in lockstep is 500 samples, and ``--rate 1000`` still 1000."""
+    import json
+    text = (CONFIGS / "wall.yaml").read_text()
+    assert "rate_hz: 1000\n" in text
+    path = tmp_path / "wall500.yaml"
+    path.write_text(text.replace("rate_hz: 1000\n", "rate_hz: 500\n", 1))
+    for extra, samples in (([], 500), (["--rate", "1000"], 1000)):
+        assert main(["identify", "--mock-scene", str(path), "--lockstep", "--json",
+                     "--duration", "1", *extra]) == 0
+        assert json.loads(capsys.readouterr().out)["loop"]["samples"] == samples

@@ -137,8 +137,8 @@ def register(sub) -> None:
                    default=4.0, metavar="S",
                    help="excitation length [s] (default 4)")
     p.add_argument("--rate", type=declared("identify", "rate_hz"),
-                   default=1000.0, metavar="HZ",
-                   help="loop rate [Hz] (default 1000)")
+                   default=None, metavar="HZ",
+                   help="loop rate [Hz] (default: --mock-scene's rate_hz, else 1000)")
     p.add_argument("--max-delay", type=declared("identify", "max_delay"), default=20, metavar="D",
                    help="largest device delay [samples] the centring loop is stable for "
                         "and, for a protocol that does not report the force it applied, "
@@ -224,13 +224,17 @@ def run(args) -> int:
         if getattr(scene, "dimension", 1) > 1:
             return _run_space(args, scene)
         from hapsim.commands.dimension import load_one_d_scene
-        device = load_one_d_scene(args.mock_scene, "identify", "--mock-scene").device
+        scene = load_one_d_scene(args.mock_scene, "identify", "--mock-scene")
+        device = scene.device
         if device is None:
             raise ConfigError("the scene has no device section", file=args.mock_scene,
                               key="device")
+        if args.rate is None:               # the scene's rate, as hapsim run's
+            args.rate = float(scene.rate_hz)
         if args.driver == DEFAULT and not args.lockstep and args.port is None:
             from hapsim.emulated.mock import require_whole_delay
             require_whole_delay(device.delay, file=args.mock_scene, command="identify")
+    args.rate = 1000.0 if args.rate is None else args.rate
     dopts = None
     drv = None
     mopts = None
