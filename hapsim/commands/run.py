@@ -601,11 +601,11 @@ def _report_nd(args, scene, a: float, res: dict, in_process: bool, port_info) ->
         f"over {port_info['port']}" + (" (embedded mock, real time)"
                                        if port_info["embedded"] else ""))
     fit, chk, dev, bound = res["measured"], res["predicted"], res["deviation"], res["bound"]
-    code = 1 if (res.get("safety") or {}).get("stop") or res.get("error") else 0
+    from hapsim.api import run_report_nd
+    rep = run_report_nd(scene, res, in_process, port_info)
+    code = rep.exit_code                # (its rule: hapsim.api.running.run_report_nd)
     if args.json:
-        from hapsim.api import run_report_nd
-        out = run_report_nd(scene, res, in_process, port_info).to_dict()
-        print(json.dumps(out))
+        print(json.dumps(rep.to_dict()))
         return code
     o = sys.stdout
     if in_process:
