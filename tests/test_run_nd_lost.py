@@ -204,3 +204,32 @@ def test_a_host_that_stalled_did_not_lose_its_device(seed):
     assert res["lost"] == 0 and res["stop"] == "end", res["counts"]
     assert res["counts"]["hellos"] == 0
     assert max(res["deviation"].values()) < 1e-6, res["deviation"]
+
+
+class _Called(Exception):
+    """The measurement's keyword arguments, raised by the spy below."""
+
+
+@pytest.mark.parametrize("flags, want", [
+    ([], {"frames": "auto", "reconnect": True, "reconnect_time": 10.0,
+          "reconnect_attempts": 8, "lost_timeout": None, "late_guard": True}),
+    (["--frames", "full", "--no-reconnect", "--reconnect-time", "2.5",
+      "--reconnect-attempts", "3", "--lost-timeout", "0.4"],
+     {"frames": "full", "reconnect": False, "reconnect_time": 2.5, "reconnect_attempts": 3,
+      "lost_timeout": 0.4, "late_guard": True}),
+    (["--frames", "compact"], {"frames": "auto"})], ids=["defaults", "given", "compact"])
+def test_the_run_options_reach_the_measurement(monkeypatch, flags, want):
+    """What ``hapsim run SCENE`` (2-D, over the embedded mock) hands
+    :func:`measure_felt_port` for its frames and recovery options: the 1-D defaults, each
+    option given, and ``--frames compact`` as ``auto`` (both the compact frames whenever
+    offered). The spy stops the run at once; the mock's child is gone after it."""
+    import hapsim.pipeline.felt_port as fp_mod
+    from hapsim.cli import main
+
+    def spy(transport, scene, **kw):
+        raise _Called(kw)
+    monkeypatch.setattr(fp_mod, "measure_felt_port", spy)
+    with pytest.raises(_Called) as got:
+        main(["run", str(CONFIGS / "pantograph_wall.yaml"), "--rt-priority", "0", *flags])
+    kw = got.value.args[0]
+    assert {k: kw[k] for k in want} == want, kw
