@@ -69,3 +69,19 @@ def test_identify_takes_the_mock_scenes_rate(tmp_path, capsys):
         assert main(["identify", "--mock-scene", str(path), "--lockstep", "--json",
                      "--duration", "1", *extra]) == 0
         assert json.loads(capsys.readouterr().out)["loop"]["samples"] == samples
+
+
+def test_a_2d_run_and_the_mock_refuse_it_too(tmp_path, capfd):
+    """The pantograph wall at d = 0.5: ``run`` exits 2 in one line naming the file and
+    ``device.delay`` (its embedded n-axis mock refused it in its own process, which the
+    host reported as "the embedded n-D mock did not start", exit 1, with "d = 0"), and
+    ``hapsim mock --scene`` says d = 0.5, not 0."""
+    text = (CONFIGS / "pantograph_wall.yaml").read_text()
+    assert "delay: 1}" in text
+    path = tmp_path / "pantograph_wall.yaml"
+    path.write_text(text.replace("delay: 1}", "delay: 0.5}", 1))
+    assert main(["run", str(path)]) == 2
+    err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and f"{path}: device.delay: device delay d = 0.5 < 1" in err[0], err
+    assert main(["mock", "--scene", str(path), "--once"]) == 2
+    assert "device delay d = 0.5 < 1" in capfd.readouterr().err

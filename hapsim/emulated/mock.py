@@ -132,8 +132,12 @@ def require_whole_delay(delay: float, *, file: str | None = None, command: str =
     Raises
     ------
     ConfigError
-        ``d < 1``, keyed ``device.delay``.
+        ``d < 1`` (``d = 0``: "exists in lockstep only"), keyed ``device.delay``.
     """
+    if float(delay) == 0:
+        raise ConfigError("device delay d = 0 (force applied at once) exists in lockstep "
+                          f"only; a real-time {command} needs d >= 1", file=file,
+                          key="device.delay")
     if float(delay) < 1:
         raise ConfigError(f"device delay d = {float(delay):g} < 1 period: hapsim's mock "
                           "applies each FORCE at a tick after the one it answers, so a "
@@ -333,9 +337,8 @@ class MockDevice:
         self.seed = seed
         self.base_dir = base_dir
         self.delay = int(device.delay)
-        if self.delay == 0 and not self.lockstep:
-            raise ConfigError("delay d = 0 (force applied at once) exists in lockstep only; "
-                              "a real-time device needs d >= 1", key="device.delay")
+        if not self.lockstep:
+            require_whole_delay(device.delay, command="mock")
         self._hand_cache: dict = {}
         self._init_protocol(float(device.force_limit))
 
@@ -713,10 +716,8 @@ class MockDeviceND(MockDevice):
         self.native_rate_hz = float(native_rate_hz or scene.rate_hz)
         self.lockstep = bool(lockstep)
         self.delay = int(scene.device.delay)
-        if self.delay == 0 and not self.lockstep:
-            raise ConfigError("delay d = 0 (force applied at once) exists in lockstep only; "
-                              "a real-time device needs d >= 1", file=scene.path,
-                              key="device.delay")
+        if not self.lockstep:
+            require_whole_delay(scene.device.delay, file=scene.path, command="mock")
         self._zero = (0.0,) * self.dim
         _nd_models()          # imported now, not while the first CONFIG waits for its answer
         self._init_protocol(math.inf)

@@ -231,6 +231,9 @@ def _over_port(scene, opts, a: float, progress):
     stop_token = at_stop(undo)
     try:
         if port is None:
+            if not opts.lockstep:           # refused here, not by the child's mock
+                from hapsim.emulated.mock import require_whole_delay
+                require_whole_delay(scene.device.delay, file=scene.path)
             cmd = [sys.executable, "-m", "hapsim", "mock", "--scene", str(scene.path),
                    "--once", "--amplitude", repr(a), "--rt-priority",
                    str(int(opts.rt_priority or 0)), "--rate", repr(float(scene.rate_hz)),
