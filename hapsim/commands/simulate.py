@@ -198,13 +198,23 @@ def _announce_compilation(scene) -> None:
                                  scene=scene, command="hapsim simulate")
 
 
+def _write_sound(args, audio, rate_hz: float) -> dict:
+    """Write ``--audio``'s WAV (:func:`hapsim.audio.offline.write_wav`'s summary); a sound
+    that diverged raises :class:`HapsimError` (exit 1, cli's line and ``--json`` object),
+    nothing written."""
+    from hapsim.audio.offline import write_wav
+    try:
+        return write_wav(args.audio, audio, rate_hz)
+    except ValueError as exc:
+        raise HapsimError(f"{exc}; nothing written (hapsim check {args.scene})") from None
+
+
 def _run_audio(args: argparse.Namespace) -> int:
     """``simulate --audio``: render a gesture through the multi-rate scene to a WAV file
     (and the device trajectory to ``--out`` when given). Exit 0, 1 when the sound
     diverged (an unstable scene), 2 on bad input."""
     import numpy as np
-    from hapsim.audio.offline import (closed_loop_pluck, load_gesture, open_loop_gesture,
-                                      write_wav)
+    from hapsim.audio.offline import closed_loop_pluck, load_gesture, open_loop_gesture
     from hapsim.engine import Engine
     from hapsim.scene import load_scene
 
@@ -231,10 +241,7 @@ def _run_audio(args: argparse.Namespace) -> int:
             xs = load_gesture(args.gesture, scene.rate_hz, args.steps)
             audio, fs = open_loop_gesture(engine, xs, progress=bar.update)
     elapsed = time.perf_counter() - t0
-    try:
-        info = write_wav(args.audio, audio, scene.audio.rate_hz)
-    except ValueError as exc:   # a sound that diverged: exit 1, cli's line and JSON
-        raise HapsimError(f"{exc}; nothing written (hapsim check {args.scene})") from None
+    info = _write_sound(args, audio, scene.audio.rate_hz)
     if args.out is not None:
         T = scene.period
         write_trajectory(args.out, np.arange(args.steps) * T,
@@ -365,7 +372,6 @@ def _outcome(args, summary: dict, diverged: str | None, written: str) -> int:
 
 def _run_audio_nd(args) -> int:
     """``simulate --audio`` on an n-D scene: its listening points to a WAV file."""
-    from hapsim.audio.offline import write_wav
     from hapsim.audio.offline import render_nd
     from hapsim.engine import Engine
     from hapsim.outputs import check_writable
@@ -394,10 +400,7 @@ def _run_audio_nd(args) -> int:
     with Progress(args.steps, "simulate", unit="samples") as bar:
         audio = render_nd(Engine(scene), args.steps, progress=bar.update)
     elapsed = time.perf_counter() - t0
-    try:
-        info = write_wav(args.audio, audio, scene.rate_hz)
-    except ValueError as exc:   # a sound that diverged: exit 1, cli's line and JSON
-        raise HapsimError(f"{exc}; nothing written (hapsim check {args.scene})") from None
+    info = _write_sound(args, audio, scene.rate_hz)
     summary = {"scene": args.scene, "audio": args.audio, "dimension": scene.dimension,
                "steps": args.steps, "rate_hz": scene.rate_hz, "frames": info["frames"],
                "channels": info["channels"], "peak": info["peak"],

@@ -33,6 +33,22 @@ class DevicePort:
         self.ser = ser
         self.name = name
 
+    @classmethod
+    def of(cls, ser, name: str) -> "DevicePort":
+        """``ser`` as a :class:`DevicePort` (itself when it is one already).
+
+        Parameters
+        ----------
+        ser : serial.Serial, serial-like or DevicePort
+        name : str
+            The device, for the error.
+
+        Returns
+        -------
+        DevicePort
+        """
+        return ser if isinstance(ser, cls) else cls(ser, name)
+
     def _failed(self, what: str, exc: BaseException) -> DeviceError:
         return DeviceError(f"{what} {self.name}'s port failed: {str(exc).splitlines()[0]}")
 

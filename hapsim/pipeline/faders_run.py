@@ -220,7 +220,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     from hapsim.drivers.device_port import DevicePort
     from hapsim.host.realtime import sleep_until_ns
     from hapsim.lockstep_ports import LockstepPorts
-    ser = DevicePort(ser, "the FireFader")      # the port failing: a DeviceError
+    ser = DevicePort.of(ser, "the FireFader")   # the port failing: a DeviceError
     T = scene.period
     Tns = int(round(T * 1e9))
     zeroed = [0]

@@ -270,7 +270,7 @@ def _over_port(scene, opts, a: float, progress):
     gc_was = gc.isenabled()
     rt = RealtimePriority(int(opts.rt_priority or 0))
     stop = opts.stop or StopFlag()
-    lost = [False]          # the device lost for good, or the measurement raised
+    lost = False            # the device lost for good, or the measurement raised
     old = {}
     if opts.handle_signals and threading.current_thread() is threading.main_thread():
         # Ctrl-C and SIGTERM end the record under way and report what was measured, as
@@ -283,7 +283,7 @@ def _over_port(scene, opts, a: float, progress):
             gc.disable()
             # the 1-D run's recovery options; the compact frames whenever the device
             # offers them ("auto" and "compact" alike: the n-D frames are the larger)
-            lost[0] = True                      # until the measurement returns
+            lost = True                         # until the measurement returns
             res = measure_felt_port(
                 tr, scene, progress=progress, amplitude=a, stop=stop,
                 late_guard=not opts.lockstep,
@@ -291,7 +291,7 @@ def _over_port(scene, opts, a: float, progress):
                 reconnect_time=opts.reconnect_time,
                 reconnect_attempts=opts.reconnect_attempts, lost_timeout=opts.lost_timeout,
                 frames="full" if opts.frames == "full" else "auto")
-            lost[0] = res.get("error") is not None
+            lost = res.get("error") is not None
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -300,7 +300,7 @@ def _over_port(scene, opts, a: float, progress):
         tr.close()
         note = None
         if child is not None:
-            if lost[0]:
+            if lost:
                 # a mock whose port is gone (vanish) never sees the host leave: it
                 # is asked to end (SIGTERM: it writes its report), not waited for
                 child.terminate()

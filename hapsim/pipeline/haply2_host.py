@@ -332,6 +332,8 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                if own else port)
     except (serial.SerialException, OSError, ValueError) as exc:
         raise DeviceError(f"cannot open port {port}: {exc}") from None
+    from hapsim.drivers.device_port import DevicePort
+    ser = DevicePort.of(ser, "the 2DIY")         # its failures: DeviceError
     from hapsim.engine import Engine
     Engine(scene).step()               # the compiled kernels loaded before the clock
     runs = []

@@ -1,12 +1,13 @@
 """The 2DIY's port as the record loop and the wiring probe use it: non-blocking reads,
-writes whose failure is a :class:`~hapsim.errors.DeviceError`, and :class:`PortLink`
-(:mod:`hapsim.pipeline.haply2_record`)."""
+whole writes, and :class:`PortLink` (:mod:`hapsim.pipeline.haply2_record`). The port is a
+:class:`hapsim.drivers.device_port.DevicePort` (:func:`hapsim.pipeline.haply2_record.
+record_realtime` and :func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port` make it
+one): its failures are :class:`~hapsim.errors.DeviceError`."""
 
 from __future__ import annotations
 
 import time
 
-from hapsim.errors import DeviceError
 
 __all__ = ["PortLink", "read_waiting", "write_all"]
 
@@ -16,7 +17,7 @@ def read_waiting(ser) -> bytes:
 
     Parameters
     ----------
-    ser : serial.Serial or serial-like
+    ser : hapsim.drivers.device_port.DevicePort
         An open port (``in_waiting``, ``read``).
 
     Returns
@@ -29,11 +30,8 @@ def read_waiting(ser) -> bytes:
     DeviceError
         The read failed.
     """
-    try:
-        n = ser.in_waiting
-        return ser.read(n) if n else b""
-    except Exception as exc:  # serial.SerialException, OSError
-        raise DeviceError(f"read from the 2DIY's port failed: {exc}") from None
+    n = ser.in_waiting
+    return ser.read(n) if n else b""
 
 
 def write_all(ser, data: bytes) -> None:
@@ -41,7 +39,7 @@ def write_all(ser, data: bytes) -> None:
 
     Parameters
     ----------
-    ser : serial.Serial or serial-like
+    ser : hapsim.drivers.device_port.DevicePort
         An open port (``write``).
     data : bytes
 
@@ -50,10 +48,7 @@ def write_all(ser, data: bytes) -> None:
     DeviceError
         The write failed.
     """
-    try:
-        ser.write(data)
-    except Exception as exc:  # serial.SerialException, OSError, timeouts
-        raise DeviceError(f"write to the 2DIY's port failed: {exc}") from None
+    ser.write(data)
 
 
 class PortLink:
@@ -62,7 +57,7 @@ class PortLink:
 
     Parameters
     ----------
-    ser : serial.Serial or serial-like
+    ser : hapsim.drivers.device_port.DevicePort
         An open port with ``in_waiting``, ``read`` and ``write`` (non-blocking reads);
         left open.
     """

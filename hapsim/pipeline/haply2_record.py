@@ -209,6 +209,8 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
         :data:`ARM_TRIES` armings in a row whose first reply did not come or did not
         read the offsets sent; the port failing.
     """
+    from hapsim.drivers.device_port import DevicePort
+    ser = DevicePort.of(ser, "the 2DIY")     # its failures: DeviceError (haply2_port)
     from hapsim.engine import Engine
     from hapsim.kinematics import device
     dev = scene.device
@@ -341,7 +343,7 @@ def record_realtime(ser, driver: Haply2DIY, scene, samples: int, *, engine=None,
                     wd_count[2] += n
                     wd_due[0] = True
 
-    link = PortLink(ser)                    # (its write: write_all's DeviceError)
+    link = PortLink(ser)                    # (its write: the port's DeviceError)
 
     def send(data, before: int, holding: bool, swap: bool = True) -> bool:
         """Write ``data``, host write ``before`` (``holding``: it leaves a torque), the
