@@ -7,6 +7,7 @@ late for the device is late, never waited for."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ import firmware_protocol as fp
 from from_file import load_module  # same directory
 from hapsim.analysis.late_growth import late_growth
 from hapsim.analysis.scene_check import closed_loop_nd
-from hapsim.braking import BRAKE_MAX_S
+from hapsim.braking import BRAKE_MAX_S, brake_text
 from hapsim.pipeline.record_guard import RecordGuard
 from hapsim.scene import parse_scene, parse_scene_nd
 from seeds import seeds
@@ -162,14 +163,29 @@ def test_hapsim_run_reports_a_safety_stop_of_a_2d_run_and_exits_1():
     code, out, err = hapsim_main(args)
     assert code == 1, (out, err)
     assert "stopped: safety: the host's FORCEs came too late" in out, out
-    assert "no braking after the stop" in out and "verdict: not measurable" in out
+    assert "verdict: not measurable" in out, out
+    # what the host did after: one braking line, whichever the device's last STATE
+    # allowed (most often none: the device had applied none of the late FORCEs; on a
+    # loaded machine the stop can come where it had, and the braking runs, once in a
+    # fresh clone's CI)
+    assert len(re.findall(_BRAKE_LINE, out)) == 1, out
     code, out, err = hapsim_main(args + ["--json"])
     assert code == 1, (out, err)
     rep = json.loads(out)
     assert rep["stop"].startswith("safety: ") and rep["verdict"] == "not measurable"
     sf = rep["safety"]
     assert sf["stop"] == rep["stop"] and sf["position_limit"] == 0.1
-    assert sf["late_guard"]["modes"] >= 1 and sf["brake"]["ended"] == "ignored"
+    br = sf["brake"]
+    assert sf["late_guard"]["modes"] >= 1 and br["ended"] in ("ignored", "rest", "time"), br
+    assert br["periods"] > 0 or br["ended"] == "ignored", br   # (none run: none applied)
+    assert re.fullmatch(_BRAKE_LINE, brake_text(br)), brake_text(br)
+
+
+#: The report's line of what the host did after a safety stop
+#: (:func:`hapsim.braking.brake_text`): no braking, or a braking and how it ended.
+_BRAKE_LINE = (r"(no braking after the stop: the device applied none of the host's FORCEs"
+               r"[^\n]*|braked after the stop: damping [^\n]* ended: (rest|time|ignored)"
+               r"[^\n]*)")
 
 
 def test_a_port_that_fails_under_the_braking_ends_the_measurement_on_its_stop(monkeypatch):
