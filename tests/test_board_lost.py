@@ -170,6 +170,123 @@ def test_hapsim_run_whose_emulated_board_is_killed_says_so_and_exits_1(scene, ex
     assert "Traceback" not in err, err
     rep = json.loads(out)
     assert rep["error"]["type"] == "DeviceError", rep
-    if "realtime" in rep:               # the report of a run the loss ended
-        assert rep["realtime"]["stop"].startswith("device lost: ")
-        assert rep["verdict"] == "not measurable"
+    # the report of a run the loss ended (the two faders': "realtime"; the 2DIY's, once
+    # its first record was whole: at the top), or the error object alone
+    stop = (rep.get("realtime") or rep).get("stop")
+    if stop is not None:
+        assert stop.startswith("device lost: ") and rep["verdict"] == "not measurable", rep
+    else:
+        assert set(rep) == {"error", "exit"}, rep
+
+
+class _Haply2Link:
+    """A lockstep emulated 2DIY behind ``write``/``in_waiting``/``read``: each write's
+    replies readable at once."""
+
+    def __init__(self, board) -> None:
+        self.board, self.out = board, bytearray()
+
+    def write(self, data):
+        self.out += self.board.feed(bytes(data))
+        return len(data)
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self.out)
+
+    def read(self, n: int = 1):
+        b = bytes(self.out[:n])
+        del self.out[:n]
+        return b
+
+
+#: Rows per record of the 2DIY's property test, and the port's calls of each kind a whole
+#: run of it makes (measured: 615 writes, 610 reads).
+N_2DIY, CALLS_2DIY = 120, 615
+
+
+@pytest.mark.parametrize("seed", seeds(range(1, 25), kept=[1, 2, 6]))
+def test_a_2diy_lost_mid_run_reports_the_records_made(seed):
+    """The Haply 2DIY's port fails (a write or a read; pyserial's SerialException, the
+    system's OSError or a write timeout) at a random call of a real-time run's records
+    (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`, the board in lockstep
+    in process). Before the first record is whole: the DeviceError. After it: a result,
+    never an exception, ``stop`` "device lost: ...", ``error`` a DeviceError's, the
+    records made counted (each per-record entry one per record made, fewer than 5),
+    nothing fitted and "not measurable" (before, any loss was the error alone, the
+    records made lost with it)."""
+    from hapsim.emulated.haply2_board import Haply2DIYBoard
+    from hapsim.lockstep import identification_plan
+    from hapsim.pipeline.haply2_host import measure_felt_haply2_port
+    from hapsim.scene import load_scene_nd
+    rng = random.Random(seed)
+    sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
+    exc = rng.choice([serial.SerialException("read failed: [Errno 104] Connection reset"),
+                      OSError(5, "Input/output error"),
+                      serial.SerialTimeoutException("Write timeout")])
+    op = rng.choice(["write", "read"])
+    at = rng.randrange(1, CALLS_2DIY + 10)
+    link = _FailingLink(_Haply2Link(board), op, at, exc)
+    try:
+        r = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4,
+                                     resolution=2.0 ** 22, samples=N_2DIY,
+                                     plan=identification_plan(sc, N_2DIY),
+                                     probe_wiring=False, lockstep_board=True)
+    except DeviceError as err:
+        assert "2DIY" in str(err), err
+        assert at <= N_2DIY + 10, ("the error alone after the first record", at)
+        return
+    if link.calls < at:                         # the run ended before the failing call
+        assert r["stop"] == "end" and r["error"] is None and r["records"] == 4
+        return
+    made = r["records"] + 1
+    assert r["stop"].startswith("device lost: ") and "2DIY" in r["stop"], r["stop"]
+    assert r["error"]["type"] == "DeviceError" and 1 <= made < 5, (r["error"], made)
+    assert r["verdict"] == "not measurable" and r["within"] is None and not r["statements"]
+    assert r["measured"] is None and f"after {made} of the 5 records" in r["reason"]
+    for k in ("estimated", "late_ticks", "replies", "writes", "resyncs", "left", "brake"):
+        assert len(r[k]) == made, (k, r[k])
+    assert r["writes"] == [N_2DIY + 2] * made       # (lockstep: every record whole)
+
+
+@pytest.mark.parametrize("as_json", [False, True], ids=["text", "json"])
+def test_hapsim_run_reports_a_2diy_lost_after_its_records_then_the_error(as_json, capsys):
+    """``hapsim run --driver haply``'s report of a run whose board was lost in its third
+    record (the port's 300th write fails): what the two records made counted, "stopped:
+    device lost: ...", the prediction, "not measurable" and why, text or one ``--json``
+    object with ``stop`` and ``error``; then the error on stderr, exit 1."""
+    import argparse
+
+    from hapsim.commands.run_haply2 import _report_lost
+    from hapsim.emulated.haply2_board import Haply2DIYBoard
+    from hapsim.lockstep import identification_plan
+    from hapsim.pipeline.haply2_host import measure_felt_haply2_port
+    from hapsim.scene import load_scene_nd
+    sc = load_scene_nd(CONFIGS / "pantograph_wall.yaml")
+    board = Haply2DIYBoard(sc, "gen3", cpr=2.0 ** 22, amplitude=1e-4, clock="lockstep")
+    link = _FailingLink(_Haply2Link(board), "write", 300,
+                        serial.SerialException("write failed: [Errno 32] Broken pipe"))
+    res = measure_felt_haply2_port(link, sc, "gen3", amplitude=1e-4, resolution=2.0 ** 22,
+                                   samples=N_2DIY, plan=identification_plan(sc, N_2DIY),
+                                   probe_wiring=False, lockstep_board=True)
+    res["scheduling"] = "SCHED_OTHER (test)"
+    code = _report_lost(argparse.Namespace(json=as_json), sc, res, "gen3", 1e-4, None,
+                        None, None)
+    out, err = capsys.readouterr()
+    assert code == 1
+    assert err.strip() == ("hapsim run: DeviceError: write to the 2DIY's port failed: "
+                           "write failed: [Errno 32] Broken pipe"), err
+    if as_json:
+        rep = json.loads(out)
+        assert rep["stop"] == "device lost: " + rep["error"]["message"]
+        assert rep["error"]["type"] == "DeviceError" and rep["measured"] is None
+        assert rep["verdict"] == "not measurable" and rep["within"] is None
+        assert rep["writes"] == [N_2DIY + 2] * 2 and rep["records"] == 1
+        assert rep["predicted"]["felt_stiffness"][0][0] > 0
+    else:
+        assert "replies read [122, 122] of [122, 122]" in out, out
+        assert "stopped: device lost: write to the 2DIY's port failed" in out, out
+        assert "predicted felt stiffness k [N/m]" in out and "measured felt" not in out
+        assert ("verdict: not measurable: the board was lost after 2 of the 5 records"
+                in out), out

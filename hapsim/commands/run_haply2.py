@@ -38,7 +38,9 @@ def run_haply2_command(args) -> int:
     -------
     int
         0 (the measurement and its verdict reported, whatever it finds: "within",
-        "differs" or "not measurable").
+        "differs" or "not measurable"); 1 when the board was lost after the first record
+        (the records made reported, "stopped: device lost: ...", then the error on
+        stderr; ``--json``: one object with ``stop`` and ``error``).
 
     Raises
     ------
@@ -46,8 +48,8 @@ def run_haply2_command(args) -> int:
         With ``--port`` (a real board has no hand to start each record), a scene that is
         not a 2-D pantograph, a bad amplitude.
     DeviceError
-        The board lost (its port failed, a reply lost): exit 1, cli's error line and
-        ``--json`` error object.
+        The board lost before its first record (its port failed, a reply lost): exit 1,
+        cli's error line and ``--json`` error object.
     """
     import gc
 
@@ -78,8 +80,9 @@ def run_haply2_command(args) -> int:
         if said is not None:
             print(f"hapsim run: {scene.path}: {said}; the run goes on (exit code 0: not a "
                   "device fault)", file=sys.stderr, flush=True)
-    # a board lost (its port failing) raises DeviceError: exit 1 with cli's error line
-    # and, with --json, its error object (the records are not reported yet)
+    # a board lost (its port failing) before the first record raises DeviceError: exit 1
+    # with cli's error line and, with --json, its error object; after it, the records
+    # made are reported, then the error (exit 1)
     with Progress(5, "run (2DIY bytes, " + ("real time)" if realtime else "lockstep)"),
                   unit="records") as bar:
         if realtime:
@@ -112,27 +115,21 @@ def run_haply2_command(args) -> int:
         else:
             res = measure_felt_haply2(scene, gen, amplitude=a, cpr=HAPLY_CPR,
                                       progress=bar.update)
-    chk, fit, dev = res["predicted"], res["measured"], res["deviation"]
-    bound, wire = res["bound"], res["wire"]
-    real = res["quantum_encoders"]
-
     from hapsim.api.common import matrix_list as mat
     from hapsim.outputs import finite_or_none as num
+    chk = res["predicted"]
+    if res.get("error") is not None:
+        return _report_lost(args, scene, res, gen, a, designed, said, excluded)
+    fit, dev = res["measured"], res["deviation"]
+    bound, wire = res["bound"], res["wire"]
+    real = res["quantum_encoders"]
     if args.json:
         print(json.dumps({
             "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
             "lockstep": not realtime, "rate_hz": scene.rate_hz, "amplitude": a,
             "amplitude_limited_by": designed,
             "emulated_cpr": HAPLY_CPR,
-            **({"estimated": res["estimated"], "late_ticks": res["late_ticks"],
-                "replies": res["replies"], "writes": res["writes"],
-                "resyncs": res["resyncs"], "skipped": res["skipped"],
-                # the host's watchdog (the board has none): hapsim.drivers.host_watchdog
-                "watchdog": res.get("watchdog"),
-                "scheduling": res.get("scheduling"),
-                # per record: the tick the joints left the envelope (-1: none) and the
-                # braking after it (hapsim.braking; None: none)
-                "left": res["left"], "brake": res["brake"]} if realtime else {}),
+            **(_realtime_json(res) if realtime else {}),
             "direction_probe": res.get("direction_probe"),
             "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
                           "felt_damping": mat(chk.render.felt_damping)},
@@ -169,29 +166,7 @@ def run_haply2_command(args) -> int:
                if said is not None else {})}))
         return 0
     o = sys.stdout
-    print(f"{scene.path}: the Haply 2DIY's bytes ({gen} set-up, firmware V1.5 board "
-          f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), "
-          + ("in real time (the board in a child process behind a pty)" if realtime
-             else "in lockstep"), file=o)
-    if realtime:
-        print(f"  estimated samples (replies not read by their tick) per record: "
-              f"{res['estimated']}; ticks the host began a period late: "
-              f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}; "
-              f"host loop scheduling: {res.get('scheduling')}", file=o)
-        wd = res.get("watchdog")
-        if wd is not None:
-            # the host's watchdog (the board has none), as the 1-DoF report words it; its
-            # robust writes each followed by the host's re-arming, the record cut there
-            from hapsim.drivers.torque_watchdog import watchdog_text
-            again = sum(wd.get("resyncs") or ())
-            print("  " + watchdog_text(wd, "the zero command")
-                  + (f"; the host re-armed the board after {again} of them (records cut "
-                     "there)" if again else ""), file=o)
-    if realtime:
-        for j, bk in enumerate(res["brake"]):
-            if bk:
-                print(f"  record {j + 1}, the joints out of the envelope at tick "
-                      f"{res['left'][j]}: " + brake_text(bk, "N m s/rad", "rad/s"), file=o)
+    _print_head(scene, res, gen, realtime, o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
           f"a = {a:.3g} m (minus the response from rest"
           + ("" if designed is None else f"; the largest start the scene's linear range "
@@ -235,6 +210,81 @@ def run_haply2_command(args) -> int:
           f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "
           f"{real['gen2']:.2e}, gen3 {real['gen3']:.2e} of a", file=o)
     return 0
+
+
+def _realtime_json(res: dict) -> dict:
+    """A real-time run's own entries of ``--json``: per record, what the host's loop
+    counted, its watchdog and scheduling, the tick the joints left the envelope (-1:
+    none) and the braking after it (:mod:`hapsim.braking`; None: none)."""
+    return {k: res.get(k) for k in ("estimated", "late_ticks", "replies", "writes",
+                                    "resyncs", "skipped", "watchdog", "scheduling",
+                                    "left", "brake")}
+
+
+def _print_head(scene, res: dict, gen: str, realtime: bool, o) -> None:
+    """The report's first lines: the run, and in real time what the host's loop counted
+    per record, its watchdog's writes and each braking."""
+    print(f"{scene.path}: the Haply 2DIY's bytes ({gen} set-up, firmware V1.5 board "
+          f"emulated, encoders of {HAPLY_CPR:.0f} counts/rev), "
+          + ("in real time (the board in a child process behind a pty)" if realtime
+             else "in lockstep"), file=o)
+    if not realtime:
+        return
+    print(f"  estimated samples (replies not read by their tick) per record: "
+          f"{res['estimated']}; ticks the host began a period late: "
+          f"{res['late_ticks']}; replies read {res['replies']} of {res['writes']}; "
+          f"host loop scheduling: {res.get('scheduling')}", file=o)
+    wd = res.get("watchdog")
+    if wd is not None:
+        # the host's watchdog (the board has none), as the 1-DoF report words it; its
+        # robust writes each followed by the host's re-arming, the record cut there
+        from hapsim.drivers.torque_watchdog import watchdog_text
+        again = sum(wd.get("resyncs") or ())
+        print("  " + watchdog_text(wd, "the zero command")
+              + (f"; the host re-armed the board after {again} of them (records cut "
+                 "there)" if again else ""), file=o)
+    for j, bk in enumerate(res["brake"]):
+        if bk:
+            print(f"  record {j + 1}, the joints out of the envelope at tick "
+                  f"{res['left'][j]}: " + brake_text(bk, "N m s/rad", "rad/s"), file=o)
+
+
+def _report_lost(args, scene, res: dict, gen: str, a: float, designed, said,
+                 excluded) -> int:
+    """Report a real-time run whose board was lost after its first record
+    (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`'s ``error``): what the
+    records made counted, the prediction, "not measurable" and why, text or one
+    ``--json`` object with ``stop`` and ``error``; then the error on stderr. Returns 1."""
+    from hapsim.api.common import matrix_list as mat
+    chk = res["predicted"]
+    if args.json:
+        print(json.dumps({
+            "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
+            "lockstep": False, "rate_hz": scene.rate_hz, "amplitude": a,
+            "amplitude_limited_by": designed, "emulated_cpr": HAPLY_CPR,
+            **_realtime_json(res), "direction_probe": res.get("direction_probe"),
+            "predicted": {"felt_stiffness": mat(chk.render.felt_stiffness),
+                          "felt_damping": mat(chk.render.felt_damping)},
+            "measured": None, "statements": [], "not_stated": res["not_stated"],
+            "verdict": res["verdict"], "within": None, "reason": res["reason"],
+            "records": res["records"], "stop": res["stop"], "error": res["error"],
+            **({"stated_before_run": said, "not_stated_before_run": list(excluded)}
+               if said is not None else {})}))
+    else:
+        o = sys.stdout
+        _print_head(scene, res, gen, True, o)
+        print(f"  stopped: {res['stop']}", file=o)
+        for name, m in (("predicted felt stiffness k [N/m]", chk.render.felt_stiffness),
+                        ("predicted felt damping b [N s/m]", chk.render.felt_damping)):
+            print(f"  {name}", file=o)
+            for row in m:
+                print("    " + "  ".join(f"{v:+14.8g}" for v in row), file=o)
+        if said is not None:
+            print(f"  stated before the run: {said}", file=o)
+        print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
+    err = res["error"]
+    print(f"hapsim run: {err['type']}: {err['message']}", file=sys.stderr)
+    return 1
 
 
 def _limit_text(designed: str) -> str:

@@ -306,11 +306,16 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
         ``wire["hold_s"]``); a "differs" there stands only when the departure is beyond
         the uncertainty with :data:`LINK_JITTER_S` of unseen latency variation too
         (``link_uncertainty``), else "not measurable" with the departure in the reason.
+        ``stop`` ("end") and ``error`` (None). A board lost after the first record
+        (:func:`record_realtime`'s DeviceError) ends the run there: the records made are
+        counted, nothing is fitted (``measured`` None), the verdict is "not measurable",
+        ``stop`` is "device lost: ..." and ``error`` its type and message.
 
     Raises
     ------
     DeviceError
-        As :func:`record_realtime`; the port cannot be opened.
+        As :func:`record_realtime`, before the first record was made; the port cannot be
+        opened.
     ConfigError
         Not a 2-D pantograph scene.
     IdentificationError
@@ -340,6 +345,7 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
     probe = None
     wd, wd_why = None, "a lockstep board: its time is the writes'"
     ended = False
+    lost = None                 # the DeviceError that ended the records after the first
     if not lockstep_board:
         # the board has no watchdog: the host's beside it (hapsim.drivers.host_watchdog)
         # with its robust write (the loop's re-arming: a board whose parser lost its
@@ -369,11 +375,19 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                 ended = True                # (the probe's refusal: its stop made, in step)
                 raise
         for j in range(5):
-            runs.append(record_realtime(ser, drv, scene, N, lockstep_board=lockstep_board,
-                                        running=j > 0 or probe is not None, watchdog=wd))
+            try:
+                runs.append(record_realtime(ser, drv, scene, N,
+                                            lockstep_board=lockstep_board,
+                                            running=j > 0 or probe is not None,
+                                            watchdog=wd))
+            except DeviceError as exc:
+                if not runs:
+                    raise                   # lost before any record: the error alone
+                lost = exc                  # the records made by then are reported
+                break
             if progress is not None:
                 progress(j + 1, 5)
-        ended = True
+        ended = lost is None
     finally:
         from hapsim.drivers.torque_watchdog import watchdog_report
         wd_report = watchdog_report(wd, wd_why)
@@ -424,16 +438,14 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
             w_hat = np.where(np.asarray(r["usable"], bool)[:, None], hc["state"], 0.0)
             r["position"] = np.asarray(r["position"], float) - hold_motion(scene, w_hat)
             r["holds"] = hc
+    if lost is not None:
+        return _lost_result(chk, runs, lost, wd_report, probe)
     runs = in_hand_order(runs, 0 if probe is None else probe.setups)
     out = felt_verdict_of_runs(scene, runs, (chk, order, N), drv.resolution, amplitude,
                                excluded=excluded)
     out["direction_probe"] = None if probe is None else probe.to_dict()
-    # (the host's re-armings after the watchdog's robust writes among them)
-    resyncs = [r["resyncs"] + (r["rearmed_at_end"] and not r.get("rearmed_for_watchdog"))
-               + r.get("watchdog_resyncs", 0) for r in runs]
-    stalls = [int(r["stalled"].sum()) for r in runs]
-    zeroed = [int(r["held_zero"]) for r in runs]
-    left = [int(r.get("left", -1)) for r in runs]
+    counts = _record_counts(runs, wd_report)
+    left = counts["left"]
     if any(v >= 0 for v in left):
         # the joints left the measurement's envelope (braked, then zero torque from
         # there): the loop was not the linear one predicted, whatever else the records say
@@ -485,20 +497,53 @@ def measure_felt_haply2_port(port: str, scene, generation: str = "gen3", *,
                                  "recorded, or a scene delay other than the board's one "
                                  "period)")
                               + " (rerun with the board in lockstep to measure the loop)")
-    out.update(estimated=[int(r["estimated"].sum()) for r in runs],
-               stalls=stalls, held_zero=zeroed,
-               usable=[int(np.count_nonzero(r["usable"])) for r in runs],
-               late_ticks=[r["late_ticks"] for r in runs],
-               replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
-               rearm_writes=[r.get("rearm_writes", 0) for r in runs],
-               resyncs=resyncs, skipped=[r["decoder"]["skipped"] for r in runs],
-               realigned=[int(r.get("realigned", 0)) for r in runs],
-               probes=[int(r.get("probes", 0)) for r in runs],
-               left=left, brake=[r.get("brake") for r in runs],
-               watchdog=dict(wd_report, zeroed=[r.get("watchdog_zeroed", 0) for r in runs],
-                             replies=[r.get("watchdog_replies", 0) for r in runs],
-                             resyncs=[r.get("watchdog_resyncs", 0) for r in runs]))
+    out.update(counts)
+    out["stop"], out["error"] = "end", None
     return out
+
+
+def _record_counts(runs: list, wd_report: dict) -> dict:
+    """What each record of a real-time run counted (:func:`measure_felt_haply2_port`'s
+    per-record entries: ``estimated``, ``stalls``, ``held_zero``, ``usable``,
+    ``late_ticks``, ``replies``, ``writes``, ``rearm_writes``, ``resyncs`` with the
+    host's re-armings after the watchdog's robust writes, ``skipped``, ``realigned``,
+    ``probes``, ``left``, ``brake``, and ``watchdog``: ``wd_report`` with its writes per
+    record)."""
+    return dict(
+        estimated=[int(r["estimated"].sum()) for r in runs],
+        stalls=[int(r["stalled"].sum()) for r in runs],
+        held_zero=[int(r["held_zero"]) for r in runs],
+        usable=[int(np.count_nonzero(r["usable"])) for r in runs],
+        late_ticks=[r["late_ticks"] for r in runs],
+        replies=[r["replies"] for r in runs], writes=[r["writes"] for r in runs],
+        rearm_writes=[r.get("rearm_writes", 0) for r in runs],
+        resyncs=[r["resyncs"] + (r["rearmed_at_end"] and not r.get("rearmed_for_watchdog"))
+                 + r.get("watchdog_resyncs", 0) for r in runs],
+        skipped=[r["decoder"]["skipped"] for r in runs],
+        realigned=[int(r.get("realigned", 0)) for r in runs],
+        probes=[int(r.get("probes", 0)) for r in runs],
+        left=[int(r.get("left", -1)) for r in runs], brake=[r.get("brake") for r in runs],
+        watchdog=dict(wd_report, zeroed=[r.get("watchdog_zeroed", 0) for r in runs],
+                      replies=[r.get("watchdog_replies", 0) for r in runs],
+                      resyncs=[r.get("watchdog_resyncs", 0) for r in runs]))
+
+
+def _lost_result(chk, runs: list, lost: Exception, wd_report: dict, probe) -> dict:
+    """The result of a run whose board was lost after its first record: the records
+    made by then counted (:func:`_record_counts`), nothing fitted (the felt matrices need
+    all ``2n + 1 = 5``), "not measurable" with the loss as the reason, ``stop`` ("device
+    lost: ...") and ``error`` (type and message), as the other runs' losses
+    (:func:`hapsim.pipeline.felt_port.measure_felt_port`)."""
+    why = f"device lost: {lost}"
+    return {"predicted": chk, "measured": None, "deviation": None,
+            "verdict": "not measurable", "within": None, "uncertainty": None,
+            "statements": [], "not_stated": ["felt stiffness", "felt damping"],
+            "reason": f"the board was lost after {len(runs)} of the 5 records (the felt "
+                      "matrices need all 5): nothing was fitted",
+            "records": len(runs) - 1,     # (free responses: the one from rest first)
+            "direction_probe": None if probe is None else probe.to_dict(),
+            "stop": why, "error": {"type": type(lost).__name__, "message": str(lost)},
+            **_record_counts(runs, wd_report)}
 
 
 if __name__ == "__main__":
