@@ -3,8 +3,9 @@ ended). The FireFader's two faders in real time end there with their report of w
 recorded, "device lost" and the error, and exit 1, as every run's; never pyserial's
 traceback (a killed emulated board gave ``SerialException: write failed: [Errno 32] Broken
 pipe`` and no report before). A board that fails while it is armed, before any record, is
-the error alone; so is the Haply 2DIY's (exit 1 and, with ``--json``, the error object,
-where it printed nothing on stdout before). The 1-D driver runs' losses are
+the error alone (exit 1 and, with ``--json``, the error object). The Haply 2DIY's run
+reports the records made once its first is whole (before, every loss was the error alone,
+and with ``--json`` stdout was empty before that). The 1-D driver runs' losses are
 ``tests/test_run_device_lost.py``'s, the framed n-D run's ``tests/test_run_nd_lost.py``'s."""
 
 from __future__ import annotations
