@@ -617,9 +617,11 @@ def test_m3_bytes_that_make_no_record_before_a_silence_get_the_robust_write():
             break
     assert rep["stray_suspected"], rep
     wd = rep["watchdog"]
-    # (the first write robust: no second one in that silence; beside the suite's
-    # real-time workers the host may stall once more)
-    assert wd["running"] and wd["fired"] >= 1 and wd["robust"] == wd["fired"], wd
+    # (the silence's write robust: one per silence. A later stall of a loaded host, the
+    # board back in step, gets the plain zero command, rightly: robust == fired failed
+    # so beside two bursts; the board's hold below fails where this silence got the plain
+    # one, which the board that lost its place does not take)
+    assert wd["running"] and wd["robust"] >= 1 and wd["fired"] >= wd["robust"], wd
     assert rep["resync_reasons"].get("watchdog") == wd["robust"], rep["resync_reasons"]
     assert board["longest_hold_s"] <= _stated(wd) + 1e-3, (
         board["longest_hold_s"], board["longest_gap_s"], wd)
