@@ -95,7 +95,8 @@ def test_run_refuses_an_unknown_option_with_the_valid_ones():
 def test_identify_report_fields_are_the_commands_json_keys():
     """The command prints the API's report (out and plot filled in); its keys are the
     fields (the identification itself is tested in test_identify.py)."""
-    assert _fields(hapsim.IdentifyReport) == ["device", "loop", "hand", "out", "plot", "note"]
+    assert _fields(hapsim.IdentifyReport) == ["device", "loop", "hand", "out", "plot", "note",
+                                              "error"]
     src = (ROOT / "hapsim" / "commands" / "identify.py").read_text()
     assert 'json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot})' in src
 

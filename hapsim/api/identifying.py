@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from hapsim.drivers import DEFAULT
-from hapsim.errors import ConfigError, HapsimError, IdentificationError
+from hapsim.errors import ConfigError, DeviceError, HapsimError, IdentificationError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
 from hapsim.results import Report
@@ -31,13 +31,17 @@ class IdentifyReport(Report):
     out, plot : str or None
         The files the command wrote (None from the API).
     note : str or None
+    error : dict or None
+        The device lost during the excitation, its record fitted up to the loss: the
+        error's ``type`` and ``message`` (``hapsim identify`` then exits 1, the report
+        first); None otherwise.
 
     Other attributes: ``fit`` (the :class:`~hapsim.analysis.device_fit.DeviceFit`) and
     ``record`` (the excitation's columns and loop facts). Its chart (``plot`` is the
     command's file field here): :func:`hapsim.plots.plot_identify` ``(report)``.
     """
 
-    _OPTIONAL = ("note",)
+    _OPTIONAL = ("note", "error")
 
     device: dict
     loop: dict
@@ -45,6 +49,7 @@ class IdentifyReport(Report):
     out: str | None
     plot: str | None
     note: str | None = None
+    error: dict | None = None
 
     def device_yaml(self, force_limit: float = 2.0, driver=None) -> str:
         """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``;
@@ -122,7 +127,9 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
     IdentificationError
         A record too short or that the fit cannot explain.
     DeviceError, ProtocolError
-        As :func:`run`.
+        As :func:`run`, before the excitation's first row; a device lost after it whose
+        record up to the loss does not identify it (a DeviceError saying why). A record
+        that does is returned, with ``error`` set.
 
     Notes
     -----
@@ -144,7 +151,7 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
                          driver_options=driver_options, mock_options=mock_options,
                          travel=travel, rt_priority=rt_priority)
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
-         "plot": None}
+         "plot": None, "error": rec["loop"].get("error")}
     if hand:
         d["note"] = "mass and friction are the THS's: hand + handle, for this grip"
     return IdentifyReport.from_dict(json_safe(d), fit=fit, record=rec)
@@ -191,7 +198,9 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
     ConfigError
         Bad values; a record too short to fit (a safety stop at once).
     DeviceError, ProtocolError
-        As ``hapsim run``.
+        As ``hapsim run``, before the excitation's first row; a device lost after it
+        whose record up to the loss does not identify it. A record that does is fitted
+        and returned, ``rec["lost"]`` the DeviceError.
     """
     from hapsim.analysis.device_fit import fit_device
     from hapsim.pipeline.identify_run import record
@@ -226,17 +235,28 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         if acc is not None:
             rec["loop"]["account"] = acc.to_dict()
         try:
-            fit = fit_device(rec["position"], rec["force"], rec["period"],
-                             late=rec["late"], max_delay=max_delay + 1, applied=acc, seq=seq)
-        except IdentificationError as exc:
-            raise IdentificationError(f"{exc}{_safety_note(rec, envelope)}") from None
-        except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
-            if isinstance(exc, HapsimError):
+            try:
+                fit = fit_device(rec["position"], rec["force"], rec["period"],
+                                 late=rec["late"], max_delay=max_delay + 1, applied=acc,
+                                 seq=seq)
+            except IdentificationError as exc:
+                raise IdentificationError(f"{exc}{_safety_note(rec, envelope)}") from None
+            except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
+                if isinstance(exc, HapsimError):
+                    raise
+                # the fit failed numerically: the record does not carry what the model
+                # needs
+                raise IdentificationError(f"the record cannot be identified: the fit "
+                                          f"failed ({type(exc).__name__}: {exc}); "
+                                          f"{_record_summary(rec, a, b)}") from None
+        except (IdentificationError, ConfigError) as exc:
+            lost = rec.get("lost")
+            if lost is None:
                 raise
-            # the fit failed numerically: the record does not carry what the model needs
-            raise IdentificationError(f"the record cannot be identified: the fit failed "
-                                      f"({type(exc).__name__}: {exc}); "
-                                      f"{_record_summary(rec, a, b)}") from None
+            # a device lost before its record could identify it: the loss is the error,
+            # what the record lacked said with it
+            raise DeviceError(f"the device was lost after {b} samples, which do not "
+                              f"identify it ({str(exc).splitlines()[0]}): {lost}") from None
         return fit, rec
     finally:
         for s, h in old.items():

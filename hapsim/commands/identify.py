@@ -55,7 +55,8 @@ limits: the Coulomb model is the first-order one of the mock (held -fc sign(v), 
   compliant transmission or a resonance makes the verdict negative (exit code 1).
 exit codes: 0 identified and explained, 1 identified but the model does not explain the
   data (or a safety stop / device fault), or the record cannot be identified (the reason
-  is printed: too short, the device hardly moved, ...), 2 bad arguments
+  is printed: too short, the device hardly moved, ...), or the device was lost (the
+  record up to the loss fitted and reported first, then the error), 2 bad arguments
 delay: a framed device shows it (force_seq); for another protocol every delay up to
   --max-delay is tried, and one that another fits as well (a coarse encoder) is not
   stated as certain: delay_certain false, delay_range and the verdict name them
@@ -202,8 +203,10 @@ def run(args) -> int:
     Returns
     -------
     int
-        0 identified and explained, 1 the model does not explain the data or the
-        excitation ended on a safety stop or device fault.
+        0 identified and explained, 1 the model does not explain the data, the
+        excitation ended on a safety stop or device fault, or the device was lost after
+        the excitation's first row (its record up to the loss fitted and reported, then
+        the error on stderr; ``--json``: ``error`` in the report).
 
     Raises
     ------
@@ -277,7 +280,7 @@ def run(args) -> int:
         # the driver as the record found it (the Haply motor direction, probed first)
         drv = get_driver(args.driver, **rec["protocol_options"])
     scale = None
-    if args.added_mass is not None:
+    if args.added_mass is not None and rep.error is None:
         # the second identification in the units the first found (the position scale
         # of the sweep), without sweeping again
         kw.update(driver_options=drv.options(), travel=None)
@@ -315,7 +318,8 @@ def run(args) -> int:
     if args.plot:
         _plot(fit, rec, args.plot)
     loop = rec["loop"]
-    code = 0 if fit.explained and not loop["safety_stop"] and not loop["faults"] else 1
+    code = 0 if (fit.explained and not loop["safety_stop"] and not loop["faults"]
+                 and rep.error is None) else 1
     if scale is not None:
         # the report of the device in its own units, with the scale found (an extra key)
         from hapsim.api import IdentifyReport
@@ -334,8 +338,15 @@ def run(args) -> int:
                   "(hand + handle)")
         print(text, end="")
         print(f"# excitation: {loop['samples']}/{loop['requested']} samples, stop: "
-              f"{loop['stop_reason']}, late {loop['late']}, clamped {loop['clamped']}")
+              f"{loop['stop_reason']}, late {loop['late']}, clamped {loop['clamped']}"
+              + ("" if rep.error is None else
+                 " (the device was lost: the fit is of the record up to the loss"
+                 + ("; the added mass was not identified" if args.added_mass is not None
+                    else "") + ")"))
     sys.stdout.flush()
+    if rep.error is not None:           # the report first, then why the excitation ended
+        print(f"hapsim identify: {rep.error['type']}: {rep.error['message']}",
+              file=sys.stderr)
     return code
 
 

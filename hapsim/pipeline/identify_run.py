@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, DeviceError
 from hapsim.pipeline.excitation import ExcitationEngine, excitation_plan
 
 __all__ = ["record"]
@@ -102,7 +102,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
         ``direction_probe``: what a driver that finds its motor direction first found,
         :class:`hapsim.drivers.haply_probe.DirectionProbe`, else None; ``travel_sweep``:
         :class:`hapsim.drivers.firefader_travel.TravelSweep` as a dict, or None),
-        ``protocol_options`` (the driver's parameters, the direction found included).
+        ``protocol_options`` (the driver's parameters, the direction found included),
+        ``lost`` (None, or the DeviceError that ended the excitation after its first row:
+        the record up to it is returned, ``loop["stop_reason"]`` "device lost: ..." and
+        ``loop["error"]`` its type and message).
         ``force`` is the force the device applied for each sample: what the host sent,
         on the actuator's grid when the device reports one (a driver's protocol
         resolution, or a framed device's ``HELLO.force_scale`` > 0 [N], the nearest
@@ -114,7 +117,8 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     ConfigError
         Bad values (:func:`excitation_plan`), an unknown transport.
     DeviceError, ProtocolError
-        As :meth:`hapsim.host.loop.HostLoop.run`.
+        As :meth:`hapsim.host.loop.HostLoop.run`, before the first row was recorded (a
+        DeviceError after it ends the record: ``lost``).
     IdentificationError
         The Haply joint's motor direction cannot be found (it does not move under the
         probe's torque pulses, or moves the same way under both signs); the FireFader's
@@ -163,6 +167,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     plan.clock = None if lock else time.monotonic
     probe = None
     sweep = None
+    lost = None             # the DeviceError that ended the excitation after its first row
     try:
         if use_driver:
             from hapsim.drivers.transport import DriverTransport
@@ -238,7 +243,16 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
             # its force and passed the envelope the excitation had planned within
             with RealtimePriority(rt_priority if transport in ("pty", "serial") and not lock
                                   else 0) as rt:
-                res = loop.run()
+                try:
+                    res = loop.run()
+                except DeviceError as exc:
+                    if not tel.n:
+                        raise                   # nothing recorded: the error alone
+                    # the record up to the loss is kept, as hapsim run's report is
+                    # (hapsim.pipeline.runner); the caller fits it and says the loss
+                    lost = exc
+                    res = loop.finish()
+                    res.stop_reason = f"device lost: {str(exc).splitlines()[0]}"
         finally:
             evt.set()
             if th is not None:
@@ -301,8 +315,10 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "centring": {"K": plan.kc, "B": plan.bc}, "force_scale": fs,
                      "driver": tr.report() if use_driver else None,
                      "direction_probe": None if probe is None else probe.to_dict(),
-                     "travel_sweep": None if sweep is None else sweep.to_dict()},
-            "protocol_options": drv.options() if use_driver else None}
+                     "travel_sweep": None if sweep is None else sweep.to_dict(),
+                     "error": None if lost is None else {"type": type(lost).__name__,
+                                                         "message": str(lost)}},
+            "protocol_options": drv.options() if use_driver else None, "lost": lost}
 
 
 def _sweep_travel(drv, port: str, travel: float, force_limit: float, rate_hz: float,
