@@ -9,6 +9,7 @@ import json
 import pytest
 
 from hapsim.cli import main
+from seeds import seeds  # same directory
 
 COULOMB = """rate_hz: 1000
 masses:
@@ -298,3 +299,54 @@ def test_onset_search_on_synthetic_records(root, power):
                                                              "too close")
     Km, (lo, hi), trials, note = locate_onset(close_to_call, 0.0, 1.2 * root, tol=1e-3)
     assert lo <= root <= hi and "undecided: too close" in note and trials[-1].growing is None
+
+
+@pytest.mark.parametrize("seed", seeds(range(1, 13), kept=[1, 5]))
+def test_a_device_lost_mid_sweep_reports_the_points_measured(seed, capsys, monkeypatch):
+    """The device lost (its run raises DeviceError, as ``hapsim run`` does past its
+    recovery) at a random record of a three-point sweep: lost in the first point, the
+    error alone (exit 1 by the cli); later, the points measured before it, each as a
+    whole sweep measures it, ``stop`` "device lost: ... (after i of 3 B values)" and
+    ``error``, then the error on stderr, exit 1. Before, every loss was the error alone,
+    the points measured lost with it."""
+    import random
+
+    import hapsim.pipeline.runner as runner
+    from hapsim.errors import DeviceError
+    real, calls = runner.run_scene, [0]
+    argv = ["zwidth", "--lockstep", "--B", "1.5", "3.0", "4.5", "--start", "0.9", "--json"]
+    assert main(argv) == 0
+    whole = json.loads(capsys.readouterr().out)["points"]
+
+    def counted(*a, **k):
+        calls[0] += 1
+        return real(*a, **k)
+    monkeypatch.setattr(runner, "run_scene", counted)
+    main(argv[:4] + argv[6:])                           # the first point alone
+    first, calls[0] = calls[0], 0
+    main(argv)
+    capsys.readouterr()
+    at = random.Random(seed).randrange(1, calls[0] + 1)
+    calls[0] = 0
+
+    def lost_at(*a, **k):
+        calls[0] += 1
+        if calls[0] >= at:
+            raise DeviceError("device lost (port failed: read failed); 3 reconnect "
+                              "attempts in 10 s failed")
+        return real(*a, **k)
+    monkeypatch.setattr(runner, "run_scene", lost_at)
+    code = main(argv)
+    out, err = capsys.readouterr()
+    rep = json.loads(out)
+    if "points" not in rep:                             # the cli's error object
+        assert code == 1 and rep["error"]["type"] == "DeviceError", rep
+        assert at <= first, ("the error alone after the first point", at, first)
+        return
+    n = len(rep["points"])
+    assert code == 1 and 1 <= n < 3, (code, n)
+    assert rep["stop"] == (f"device lost: device lost (port failed: read failed); 3 reconnect"
+                           f" attempts in 10 s failed (after {n} of 3 B values)")
+    assert rep["error"]["type"] == "DeviceError"
+    assert rep["points"] == whole[:n]                   # (lockstep: the same records)
+    assert err.strip().splitlines()[-1].startswith("hapsim zwidth: DeviceError: device lost")

@@ -140,13 +140,18 @@ def run(args) -> int:
     Returns
     -------
     int
-        0 every point measured, 1 some point without a bracket.
+        0 every point measured, 1 some point without a bracket, or the device lost
+        after the first point (the points measured reported, with ``stop`` "device lost:
+        ..." and ``error``, then the error on stderr).
 
     Raises
     ------
     ConfigError
         Bad option or scene (exit 2).
+    DeviceError
+        The device lost before the first point was measured (exit 1).
     """
+    from hapsim.errors import DeviceError
     from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import (ZPoint, device_loop, locate_onset, predicted_coulomb,
                                         release)
@@ -194,14 +199,21 @@ def run(args) -> int:
     measure = run_measure(base, x0, duration=args.duration, **opts)
     fc = float(base.device.coulomb or 0.0)
     points = []
+    lost = None             # the DeviceError that ended the sweep after its first point
     try:
         with Progress(len(args.B), "measuring K_max(B)", "B values") as bar:
             for i, B in enumerate(args.B):
                 Kp = stability_limit(loop, B)
                 Kc = (predicted_coulomb(base.device, base.rate_hz, B,
                                         lambda K: release(x0, flim, K)) if fc > 0 else None)
-                Km, iv, trials, note = locate_onset(measure, B, Kc or Kp, tol=args.tol,
-                                                    start=args.start)
+                try:
+                    Km, iv, trials, note = locate_onset(measure, B, Kc or Kp, tol=args.tol,
+                                                        start=args.start)
+                except DeviceError as exc:
+                    if not points:
+                        raise               # nothing measured: the error alone
+                    lost = exc              # the points measured are reported, as a
+                    break                   # run's records up to a loss are
                 points.append(ZPoint(B=float(B), K_max_predicted=Kp,
                                      K_max_predicted_coulomb=Kc, K_max_measured=Km,
                                      K_max_measured_interval=iv, trials=trials, note=note))
@@ -211,6 +223,10 @@ def run(args) -> int:
             proc.terminate()
             proc.wait(timeout=10)
     rep = report(points, base, where, x0, fc)
+    if lost is not None:
+        rep.update(stop=f"device lost: {str(lost).splitlines()[0]} (after {len(points)} of "
+                        f"{len(args.B)} B values)",
+                   error={"type": type(lost).__name__, "message": str(lost)})
     if args.plot:
         from hapsim.plots import save_figure
         from hapsim.plots.zwidth import plot_zwidth
@@ -219,8 +235,14 @@ def run(args) -> int:
         print(json.dumps(rep))
     else:
         print(format_report(rep))
+        if lost is not None:
+            print(f"stopped: {rep['stop']}")
         if args.plot:
             print(f"figure: {args.plot}")
+    if lost is not None:                # the report first, then why the sweep ended
+        sys.stdout.flush()
+        print(f"hapsim zwidth: {type(lost).__name__}: {lost}", file=sys.stderr)
+        return 1
     return 0 if all(p.K_max_measured is not None for p in points) else 1
 
 
