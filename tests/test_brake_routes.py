@@ -228,9 +228,10 @@ def test_no_braking_after_a_lost_falcon(monkeypatch):
     link, dev, chip = fr.emulated_falcon(sc, IMAGE, clock="lockstep", unplug_after=400)
     began = []
     try:
-        with pytest.raises(DeviceError):
-            fr.run_falcon(sc, link, IMAGE, 2000, timeout=0.002,
-                          before_loop=lambda: began.append(True))
+        res = fr.run_falcon(sc, link, IMAGE, 2000, timeout=0.002,
+                            before_loop=lambda: began.append(True))
     finally:
         link.close()
     assert began and calls == []                 # lost in the loop, not braked
+    assert res["error"]["type"] == DeviceError.__name__ and res["brake"] is None
+    assert res["stopped"][1].startswith("device lost: ")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -242,12 +243,21 @@ def test_hostile_streams_are_counted_never_called_ok(scene, spec):
         assert t["exact"] == t["compared"]
 
 
-def test_unplugged_mid_run_fails_with_the_packet_count(scene):
-    """The chip leaves the bus after 300 bulk transfers: a DeviceError that says the
-    Falcon went away and after how many packets; the link closes cleanly after it."""
+def test_unplugged_mid_run_ends_the_loop_with_its_rows_and_the_packet_count(scene):
+    """The chip leaves the bus after 300 bulk transfers, in the loop: the loop ends there
+    with the rows read up to it (none after), ``stopped`` at that packet, "device lost",
+    and ``error`` a DeviceError that says the Falcon went away and after how many
+    packets; the verdict says the stop; the link closes cleanly after it. (Before, the
+    rows were lost with the error.)"""
     link, dev, chip = emulated_falcon(scene, IMAGE, unplug_after=300, clock="lockstep")
-    with pytest.raises(DeviceError, match=r"went away \(USB unplugged.*after \d+ packets"):
-        run_falcon(scene, link, IMAGE, 400, timeout=FAST)
+    res = run_falcon(scene, link, IMAGE, 400, timeout=FAST)
+    assert res["error"]["type"] == "DeviceError"
+    assert re.search(r"went away \(USB unplugged.*after \d+ packets", res["error"]["message"])
+    k, why = res["stopped"]
+    assert why.startswith("device lost: ") and 0 < k < 400
+    read = np.flatnonzero(~np.isnan(res["position"][:, 0]))
+    assert read.size and read[-1] < k, (read[-1:], k)
+    assert res["verdict"] == "degraded" and "device lost" in res["reason"]
     assert not chip.plugged and chip.transfers == 301
     link.close()
     with pytest.raises(DeviceError, match="no Novint Falcon"):
@@ -373,8 +383,8 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
 
 def test_cli_unplugged_mid_run_is_exit_1(capsys, tmp_path, monkeypatch):
     """The emulated Falcon leaves the bus mid-loop under 'hapsim run': exit 1, stderr says
-    it went away and after how many packets; on stdout the error object alone (no
-    verdict claimed)."""
+    it went away and after how many packets; on stdout the report of the loop up to the
+    loss with ``error``, the felt matrices not measured (no records taken)."""
     import hapsim.pipeline.falcon_run as fr
     from hapsim.cli import main
     real = fr.emulated_falcon
@@ -387,8 +397,9 @@ def test_cli_unplugged_mid_run_is_exit_1(capsys, tmp_path, monkeypatch):
     cap = capsys.readouterr()
     assert "went away" in cap.err and "packets since the firmware load" in cap.err
     out = json.loads(cap.out)
-    assert list(out) == ["error", "exit"] and out["exit"] == 1
     assert out["error"]["type"] == "DeviceError" and "went away" in out["error"]["message"]
+    assert out["stopped"][1].startswith("device lost: ") and out["verdict"] == "degraded"
+    assert out["felt_matrices"]["verdict"] == "not measurable"
 
 
 def test_a_failed_echo_is_loaded_again_from_the_loaders_restart(scene):

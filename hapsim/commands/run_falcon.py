@@ -63,9 +63,12 @@ def run_falcon_command(args) -> int:
         statement beside it, :func:`hapsim.pipeline.falcon_run.felt_statement`: on the
         emulated Falcon, where its counts allow, measured; what they cannot state is said
         on stderr before the loop, :func:`hapsim.pipeline.falcon_run.felt_prediction`,
-        and is no device fault); 1 when the device
-        failed (not found, no permission, the loader's handshake, unplugged: the message
-        says what to check) or the loop is unstable without ``--allow-unstable``.
+        and is no device fault); 1 when the loop stopped on the motion (a leg beyond its
+        envelope, the host too late: a safety stop, as every run's) or the Falcon was lost
+        in it (its rows up to the loss reported, the error on stderr after the report,
+        ``error`` in ``--json``), the device failed before the loop (not found, no
+        permission, the loader's handshake, unplugged: the message says what to check)
+        or the loop is unstable without ``--allow-unstable``.
 
     Raises
     ------
@@ -138,14 +141,24 @@ def run_falcon_command(args) -> int:
     # the felt matrices: where the prediction says the Falcon's counts state something,
     # on the emulated Falcon, measured: the identification's records, each from a hand's
     # start on a fresh emulated Falcon on the same clock (~7 x 0.3 s)
-    try:
-        with Progress(1, "run (Falcon: the felt matrices' records and the rounding's draws)",
-                      unit="steps") as bar:
-            felt = felt_statement(scene, image if emulated else None,
-                                  clock=dev.clock if emulated else "wall",
-                                  predicted=predicted, progress=bar.update)
-    except DeviceError as exc:       # exit 1: cli's error line, --json's error object
-        raise DeviceError(f"the felt matrices' records: {exc}") from exc
+    lost = res["error"]
+    if lost is not None:
+        # the Falcon went away in the loop: its rows up to the loss are reported, the
+        # felt matrices' records are not taken (the run ended there)
+        felt = {"verdict": "not measurable",
+                "reason": "the Falcon was lost in the loop: no records were taken"}
+    else:
+        try:
+            with Progress(1, "run (Falcon: the felt matrices' records and the rounding's "
+                          "draws)", unit="steps") as bar:
+                felt = felt_statement(scene, image if emulated else None,
+                                      clock=dev.clock if emulated else "wall",
+                                      predicted=predicted, progress=bar.update)
+        except DeviceError as exc:   # exit 1: cli's error line, --json's error object
+            raise DeviceError(f"the felt matrices' records: {exc}") from exc
+    # a stop on the motion (a leg beyond the envelope, the host too late) or the Falcon
+    # lost: exit 1 after the report, as every run's
+    code = 1 if res["stopped"] is not None else 0
     where = ("the emulated Falcon (an emulated FT232R under pyftdi's code)" if emulated
              else f"the Falcon at {args.port}")
     pos = res["position"]
@@ -169,10 +182,11 @@ def run_falcon_command(args) -> int:
            "stopped": res["stopped"], "brake": res["brake"],
            # the host's watchdog over the loop (its firmware holds the last command)
            "watchdog": res["watchdog"],
-           "verdict": res["verdict"], "reason": res["reason"]}
+           "verdict": res["verdict"], "reason": res["reason"],
+           **({} if lost is None else {"error": lost})}
     if args.json:
         print(json.dumps(out))
-        return 0
+        return _said(code, lost)
     o = sys.stdout
     print(f"{scene.path}: the Novint Falcon's bytes over USB (pyftdi), {where}", file=o)
     print(f"  firmware: {out['firmware_bytes']} bytes in {out['firmware_chunks']} chunks, "
@@ -217,4 +231,13 @@ def run_falcon_command(args) -> int:
                   file=o)
     print(f"  felt matrices: {felt['verdict']}: {felt['reason']}", file=o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
-    return 0
+    return _said(code, lost)
+
+
+def _said(code: int, lost) -> int:
+    """``code``, the loss (``lost``: the error's type and message, or None) said on stderr
+    after the report."""
+    if lost is not None:
+        sys.stdout.flush()
+        print(f"hapsim run: {lost['type']}: {lost['message']}", file=sys.stderr)
+    return code

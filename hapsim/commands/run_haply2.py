@@ -38,7 +38,9 @@ def run_haply2_command(args) -> int:
     -------
     int
         0 (the measurement and its verdict reported, whatever it finds: "within",
-        "differs" or "not measurable"); 1 when the board was lost after the first record
+        "differs" or "not measurable"); 1 when the joints left the envelope in a real-time
+        record (braked, then zero torque: a safety stop, as every run's, reported first),
+        or when the board was lost after the first record
         (the records made reported, "stopped: device lost: ...", then the error on
         stderr; ``--json``: one object with ``stop`` and ``error``).
 
@@ -123,6 +125,9 @@ def run_haply2_command(args) -> int:
     fit, dev = res["measured"], res["deviation"]
     bound, wire = res["bound"], res["wire"]
     real = res["quantum_encoders"]
+    # the joints out of the envelope in a record (braked, then zero torque): a safety
+    # stop, exit 1 after the report, as every run's
+    code = 1 if realtime and any(v >= 0 for v in res["left"]) else 0
     if args.json:
         print(json.dumps({
             "scene": scene.path, "dof": 2, "driver": "haply", "generation": gen,
@@ -164,7 +169,7 @@ def run_haply2_command(args) -> int:
             "records": res["records"], "samples": res["samples"],
             **({"stated_before_run": said, "not_stated_before_run": list(excluded)}
                if said is not None else {})}))
-        return 0
+        return code
     o = sys.stdout
     _print_head(scene, res, gen, realtime, o)
     print(f"  excitation: {res['records']} free responses of {res['samples']} writes, "
@@ -209,7 +214,7 @@ def run_haply2_command(args) -> int:
     print(f"  one reading step at the handle over a: {res['quantum']:.2e} (one count of the "
           f"emulated encoders or a binary32 ulp, the larger); a real 2DIY's encoders: gen2 "
           f"{real['gen2']:.2e}, gen3 {real['gen3']:.2e} of a", file=o)
-    return 0
+    return code
 
 
 def _realtime_json(res: dict) -> dict:

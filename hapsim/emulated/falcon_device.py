@@ -60,7 +60,7 @@ from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, ENVELOPE_RAD, TORQUE
                                    WORKSPACE_RAD, device_packet, parse_host_packet,
                                    ticks_of)
 from hapsim.drivers.falcon_usb import ft232r_baud
-from hapsim.errors import ConfigError, KinematicsError
+from hapsim.errors import ConfigError, DeviceError, KinematicsError
 from hapsim.joint_device import LocalJointDeviceND
 
 __all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "brake_legs",
@@ -592,7 +592,15 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
         ``commands`` (N, 3) sent, ``missing``, ``unhomed``, ``decoder`` (counters),
         ``held_zero`` (packets sent at zero for want of a fresh reading), ``stopped``
         (None, or ``(packet, reason)`` where the late-stop rule or the envelope ended the
-        loop), ``brake`` (None, or :func:`brake_legs`'s report after a stop).
+        loop, or the Falcon was lost: "device lost: ..."), ``brake`` (None, or
+        :func:`brake_legs`'s report after a stop on the motion), ``error`` (None, or the
+        DeviceError's ``type`` and ``message`` when ``device_feed`` raised one after the
+        loop's first packet: the rows up to it are kept).
+
+    Raises
+    ------
+    DeviceError
+        ``device_feed``'s, at the loop's first packet.
     """
     from hapsim.drivers.base import LATE_STOP, LATE_WINDOW
     from hapsim.drivers.falcon import (DevicePacketDecoder, host_packet, theta_deg,
@@ -638,6 +646,7 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     late_ring = [0.0] * LATE_WINDOW
     late_sum = 0.0
     stopped = None
+    lost = None
     q_op = np.asarray(scene.device.joints, float)
     for k in range(N):
         ok = False
@@ -691,9 +700,16 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
                               "commands sent")
                 break
         cmds[k] = c
-        got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
+        try:
+            got = dec.feed(tx(device_feed(rx(host_packet(c, leds)))))
+        except DeviceError as exc:
+            # the Falcon gone (unplugged, its link failed) after the first packet: the
+            # loop ends there, its rows kept, as every run's loss (nothing to brake)
+            lost = exc
+            stopped = (k + 1, f"device lost: {str(exc).splitlines()[0]}")
+            break
     braked = None
-    if stopped is not None and brake:
+    if stopped is not None and brake and lost is None:
         # the legs' last reading (the envelope's, or the last before a late stop) starts
         # the braking's velocity
         seen = np.flatnonzero(~np.isnan(joints[:stopped[0] + 1, 0]))
@@ -703,4 +719,6 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
                             scene, last, t_read, hold_bound_s=hold_bound_s)
     return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
             "unhomed": unhomed, "decoder": dict(dec.stats), "held_zero": held_zero,
-            "stopped": stopped, "brake": braked}
+            "stopped": stopped, "brake": braked,
+            "error": None if lost is None else {"type": type(lost).__name__,
+                                                "message": str(lost)}}

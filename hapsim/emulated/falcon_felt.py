@@ -59,7 +59,7 @@ import math
 
 import numpy as np
 
-from hapsim.errors import ConfigError
+from hapsim.errors import ConfigError, DeviceError
 
 __all__ = ["measure_felt_falcon", "falcon_felt_verdict", "falcon_usable_rows",
            "quantiser_terms", "felt_feasibility", "COMMAND_CLAMP", "NOT_AT_REST_M"]
@@ -337,7 +337,10 @@ def measure_felt_falcon(scene, amplitude: float = 2e-4, *, plant=None, plan=None
         dev.let_go(x0, v0)
         # a fresh decoder: the hand's start is a jump from the homing's last counts (its
         # first reply taken unchecked, the steps after it checked)
-        r = drive_falcon(dev.feed, scene, N, leds=LED_GREEN, decoder=DevicePacketDecoder(max_step), faults=faults)
+        r = drive_falcon(dev.feed, scene, N, leds=LED_GREEN,
+                         decoder=DevicePacketDecoder(max_step), faults=faults)
+        if r["error"] is not None:          # (a record cut short measures nothing here)
+            raise DeviceError(r["error"]["message"])
         runs.append(r)
         q = np.asarray(r["joints"], float)
         excursion = max(excursion, float(np.nanmax(np.abs(q - scene.device.joints))))

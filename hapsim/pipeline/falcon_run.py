@@ -550,13 +550,15 @@ def run_falcon(scene, link, image: bytes, samples: int, *, truth=None, progress=
         than :data:`SKIP_PERIODS` periods after the one before, or more than one after the
         previous reply was read: the firmware's tick may have passed without a packet,
         the last command held over it, so the row not one period after the last),
-        ``verdict``, ``reason``.
+        ``error`` (None, or the DeviceError's ``type`` and ``message`` when the Falcon
+        went away after the loop's first packet: the rows up to it kept, ``stopped``
+        "device lost: ..."), ``verdict``, ``reason``.
 
     Raises
     ------
     DeviceError
         The firmware load failed (what to check), the legs did not home, the link failed
-        or the Falcon went away (after how many packets).
+        or the Falcon went away (after how many packets) before the loop's first packet.
     """
     from hapsim.drivers.falcon_usb import load_firmware_link
     from hapsim.errors import FirmwareEchoError
@@ -717,11 +719,14 @@ def _probe_home_drive(link, image, scene, samples, fw, truth, timeout, paced,
         progress(1)
     out = {"firmware": fw, "homing": homing, "samples": int(samples),
            "missing": res["missing"], "unhomed": res["unhomed"], "decoder": res["decoder"],
-           "packets_per_s": (samples + 1) / dt if dt > 0 else None,
+           # (every packet of the loop's time: the priming one, the loop's, a braking's;
+           # (samples + 1) before, which overstated the pace of a loop stopped early)
+           "packets_per_s": len(stamps) / dt if dt > 0 else None,
            "position": res["position"], "commands": res["commands"], "truth": None,
            "rate_hz": float(scene.rate_hz), "slow": None, "zeroed": zeroed,
            "held_zero": res["held_zero"], "stopped": res["stopped"],
-           "brake": res["brake"], "joints": res["joints"], "watchdog": watchdog}
+           "brake": res["brake"], "joints": res["joints"], "watchdog": watchdog,
+           "error": res["error"]}
     gaps = np.diff(np.asarray(stamps)) * scene.rate_hz     # [periods]
     # sample k reads the reply of exchange k (stamps[0]: the loop's priming packet). The
     # firmware takes a packet at its next tick, so packet k missed a tick (the command of
