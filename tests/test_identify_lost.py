@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import random
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,18 +25,20 @@ from seeds import seeds  # same directory
 DURATION = 2.0
 
 
-def _lose_from(monkeypatch, cls, at: int) -> list:
-    """``cls.receive`` fails from its ``at``-th call on, as a port unplugged fails (the
-    transport's DeviceError); returns the call count (a one-item list)."""
-    real = cls.receive
+def _lose_from(monkeypatch, cls, at: int, op: str = "receive") -> list:
+    """``cls.receive`` (or ``cls.send``: ``op``) fails from its ``at``-th call on, as a
+    port unplugged fails (the transport's DeviceError); returns the call count (a
+    one-item list)."""
+    real = getattr(cls, op)
     calls = [0]
 
-    def receive(self, timeout=0.0):
+    def failing(self, *a, **k):
         calls[0] += 1
         if calls[0] >= at:
-            raise DeviceError("read failed: [Errno 5] Input/output error")
-        return real(self, timeout)
-    monkeypatch.setattr(cls, "receive", receive)
+            raise DeviceError(("read" if op == "receive" else "write")
+                              + " failed: [Errno 5] Input/output error")
+        return real(self, *a, **k)
+    monkeypatch.setattr(cls, op, failing)
     return calls
 
 
@@ -116,3 +119,36 @@ def test_hapsim_identify_reports_the_record_up_to_the_loss_then_the_error(as_jso
         assert "mass:" in out, out
         assert "stop: device lost: port failed" in out, out
         assert "the fit is of the record up to the loss" in out, out
+
+
+def test_a_device_lost_with_the_added_mass_on_takes_no_scale(monkeypatch, capsys):
+    """``hapsim identify --added-mass`` whose device is lost in the second identification
+    (the mass on): the first identification is the report, no ``scale`` is taken from a
+    record cut short, ``error`` is the loss's, then the error on stderr, exit 1 (the
+    FireFader's driver mock in lockstep, its port failing at the second identification's
+    900th write: its arming's 72 and the excitation's 1,000 ticks, lockstep, whatever
+    the host's timing)."""
+    import hapsim.api
+    from hapsim.cli import main
+    from hapsim.drivers.transport import DriverTransport
+    real, calls, send = hapsim.api.identify, [], DriverTransport.send
+
+    def second_lost(*a, **k):
+        calls.append(1)
+        if len(calls) == 1:
+            monkeypatch.setattr(DriverTransport, "send", send)     # (a run before)
+        else:
+            _lose_from(monkeypatch, DriverTransport, 900, "send")
+        return real(*a, **k)
+    monkeypatch.setattr(hapsim.api, "identify", second_lost)
+    argv = ["identify", "--driver", "firefader", "--mock-option", "full_scale=1.56",
+            "--added-mass", "0.05", "--rate", "250", "--duration", "4", "--force-limit",
+            "0.38", "--envelope", "0.02", "--lockstep", "--mock-scene",
+            str(Path(__file__).resolve().parents[1] / "configs" / "firefader.yaml")]
+    code = main(argv + ["--json"])
+    out, err = capsys.readouterr()
+    rep = json.loads(out)
+    assert code == 1 and len(calls) == 2 and "loop" in rep, (code, out, err)
+    assert "scale" not in rep and rep["error"]["type"] == "DeviceError", rep.get("error")
+    assert rep["loop"]["stop_reason"] == "duration"     # (the first identification's)
+    assert "hapsim identify: DeviceError: " in err, err

@@ -280,13 +280,20 @@ def run(args) -> int:
         # the driver as the record found it (the Haply motor direction, probed first)
         drv = get_driver(args.driver, **rec["protocol_options"])
     scale = None
+    lost_loaded = False         # the device lost in the identification with the mass on
     if args.added_mass is not None and rep.error is None:
         # the second identification in the units the first found (the position scale
         # of the sweep), without sweeping again
         kw.update(driver_options=drv.options(), travel=None)
         rep2 = identify_api(args.port, device=_loaded(device, args), **kw)
-        from hapsim.api import calibrate_scale
-        scale, fit, drv = calibrate_scale(rep, rep2, args.added_mass, drv)
+        if rep2.error is not None:
+            # lost with the mass on: the first identification is the report, no scale
+            # is taken from a record cut short, and the loss is the run's
+            lost_loaded = True
+            rep = rep.replace(error=rep2.error)
+        else:
+            from hapsim.api import calibrate_scale
+            scale, fit, drv = calibrate_scale(rep, rep2, args.added_mass, drv)
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
     text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
@@ -340,6 +347,8 @@ def run(args) -> int:
         print(f"# excitation: {loop['samples']}/{loop['requested']} samples, stop: "
               f"{loop['stop_reason']}, late {loop['late']}, clamped {loop['clamped']}"
               + ("" if rep.error is None else
+                 " (the device was lost with the added mass on: its scale was not found)"
+                 if lost_loaded else
                  " (the device was lost: the fit is of the record up to the loss"
                  + ("; the added mass was not identified" if args.added_mass is not None
                     else "") + ")"))
