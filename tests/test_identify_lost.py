@@ -13,7 +13,6 @@ import math
 import random
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from hapsim.api.identifying import identify
@@ -78,7 +77,9 @@ def test_a_device_lost_mid_excitation_is_identified_from_its_record(seed, monkey
     assert loop["stop_reason"].startswith("device lost: ") and loop["error"] == rep.error
     assert 0 < loop["samples"] < loop["requested"] == int(DURATION * 1000), loop
     fit = rep.fit
+    # measured 2.4e-15 relative (generic 2.2e-15) over the 24 seeds, margin 4e8
     assert abs(fit.mass.value / m - 1) < 1e-6, (seed, m, fit.mass, loop["samples"])
+    # measured 6.2e-14 (generic 6.5e-14) over the 24 seeds, margin 1.5e7
     assert abs(fit.friction.value - b) < 1e-6 * max(b, 1.0), (seed, b, fit.friction)
     assert rep.to_dict()["error"] == rep.error
 
@@ -113,8 +114,10 @@ def test_hapsim_identify_reports_the_record_up_to_the_loss_then_the_error(as_jso
         assert rep["error"]["type"] == "DeviceError", rep.get("error")
         assert rep["loop"]["stop_reason"].startswith("device lost: ")
         assert 0 < rep["loop"]["samples"] < rep["loop"]["requested"]
-        # the default mock's mass (0.1 kg), from the record up to the loss
-        assert np.isclose(rep["device"]["mass"]["value"], 0.1, rtol=0.05), rep["device"]
+        # the default mock's mass (0.1 kg) inside the interval the record up to the loss
+        # states
+        mass = rep["device"]["mass"]
+        assert mass["lo"] <= 0.1 <= mass["hi"], mass
     else:
         assert "mass:" in out, out
         assert "stop: device lost: port failed" in out, out
