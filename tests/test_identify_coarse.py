@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from hapsim.analysis.device_fit import LEVEL
+from hapsim.analysis.device_fit import LEVEL, fit_device
 from hapsim.analysis.device_fit_intervals import MASS_SPAN
 from hapsim.commands.identify import identify
 from hapsim.errors import IdentificationError
@@ -148,3 +148,30 @@ def test_an_undetermined_parameter_has_no_narrow_interval():
         cov = hac_covariance(Jd, rng.normal(size=400), 10)
         assert cov[3, 3] == UNDETERMINED_VARIANCE
         assert np.all(np.isfinite(cov))
+
+
+@pytest.mark.parametrize("moving_rows", [0, 40, 80])
+def test_a_record_that_hardly_moved_says_how_much_more_it_needs(moving_rows):
+    """A 1 s record at 1 kHz in which the device moved one way for ``moving_rows``
+    samples (a ramp of 1 mm, then at rest; none: at rest throughout): refused as "hardly
+    moved", with what the record held and what to change. With some motion, the count
+    of clear-motion samples (the ramp less the difference's margins, 10 samples) and the
+    duration that pace of motion would fill 1.5 times over (ceil(1.5 x 100 / found x 1
+    s)); with none, that no stretch moved one way (no duration can be scaled from
+    nothing). Before, every refusal said only "raise --force-limit or --duration" (the
+    FireFader's scene at its 250 Hz: 4 s too few, 6 s identified)."""
+    n, T = 1000, 1e-3
+    x = np.zeros(n)
+    if moving_rows:
+        x[100:100 + moving_rows] = np.linspace(0.0, 1e-3, moving_rows)
+        x[100 + moving_rows:] = 1e-3
+    f = np.where(np.arange(n) % 50 < 25, 0.1, -0.1)
+    with pytest.raises(IdentificationError, match="hardly moved") as info:
+        fit_device(x, f, T)
+    msg = str(info.value)
+    if moving_rows:
+        found = moving_rows - 10
+        assert f"({found} in {n} samples: raise --force-limit, or --duration to about " \
+               f"{math.ceil(1.5 * 100 / found * n * T)} s at this pace)" in msg, msg
+    else:
+        assert "no stretch of it moved one way" in msg, msg

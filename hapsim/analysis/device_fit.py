@@ -106,6 +106,24 @@ from hapsim.errors import ConfigError, IdentificationError
 __all__ = ["Estimate", "DeviceFit", "fit_device", "applied_force", "POSITION_FLOOR",
            "LEVEL"]
 
+#: Samples of clear motion (:func:`~hapsim.analysis.device_fit_stretches.moving_stretches`)
+#: a record needs before it is fitted.
+MIN_MOVING = 100
+
+
+def _more_motion(moving: int, n: int, T: float) -> str:
+    """What to change when a record of ``n`` samples of ``T`` [s] held ``moving`` samples
+    of clear motion, fewer than :data:`MIN_MOVING`: the force, or the duration that the
+    same pace of motion would fill (the record's own rate, 1.5 times over), as a
+    coarse encoder at a low rate needs (the FireFader's 0.39 mm counts at 250 Hz: 4 s
+    of its default excitation were too few, 8 s identified it)."""
+    if moving <= 0:
+        return ("no stretch of it moved one way by more than 1.5 sensor steps and the "
+                "noise over 10 samples: raise --force-limit or --duration")
+    need = math.ceil(1.5 * MIN_MOVING / moving * n * T)
+    return (f"{moving} in {n} samples: raise --force-limit, or --duration to about "
+            f"{need} s at this pace")
+
 
 def _stretches_fitted(r, offs, share=0.0):
     """Which stretches the model fits: ``None`` when every one (or too few would stay),
@@ -273,9 +291,10 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         d0, h0, m0 = correlation_guess(x, f, T, max_delay, pieces)
     q = encoder_quantum(x)
     st = moving_stretches(x, q.value, pieces=pieces)
-    if st[0].size == 0 or int(np.sum(st[1] - st[0])) < 100:
-        raise IdentificationError("the device hardly moved: fewer than 100 samples of "
-                                  "clear motion (raise --force-limit or --duration)")
+    moving = int(np.sum(st[1] - st[0])) if st[0].size else 0
+    if moving < MIN_MOVING:
+        raise IdentificationError(f"the device hardly moved: fewer than {MIN_MOVING} samples "
+                                  f"of clear motion ({_more_motion(moving, n, T)})")
     cands = search_candidates(x, f, T, late, holds, max_delay, st, d0, h0, m0, known, seq)
     if cands:
         # a stretch the best model misses by far hides an unseen reversal of the velocity
