@@ -30,6 +30,7 @@ __all__ = [
     "fixed",
     "dash",
     "plural",
+    "error_record",
     "DAMAGED_FILE_ERRORS",
 ]
 
@@ -325,3 +326,19 @@ def dash(value, spec: str) -> str:
 def plural(n: int, word: str, many: str | None = None) -> str:
     """``"1 link"``, ``"3 links"``: a count with its noun in the right number."""
     return f"{n} {word if n == 1 else (many or word + 's')}"
+
+
+def error_record(exc: BaseException | None) -> dict | None:
+    """The ``error`` entry of a report whose run an exception ended (a device lost
+    after its first record): ``{"type": class name, "message": str(exc)}``; None for
+    None.
+
+    Parameters
+    ----------
+    exc : BaseException or None
+
+    Returns
+    -------
+    dict or None
+    """
+    return None if exc is None else {"type": type(exc).__name__, "message": str(exc)}

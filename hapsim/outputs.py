@@ -13,7 +13,7 @@ import os
 from hapsim.errors import ConfigError
 
 __all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe",
-           "finite_or_none", "write_json"]
+           "finite_or_none", "write_json", "say_error_after"]
 
 
 def check_writable(path: str, option: str) -> None:
@@ -186,3 +186,21 @@ def json_safe(obj):
     if isinstance(obj, (list, tuple)):
         return [json_safe(v) for v in obj]
     return obj
+
+
+def say_error_after(command: str, error: dict | None) -> None:
+    """After a report, why its run ended: ``hapsim COMMAND: TYPE: MESSAGE`` on stderr, the
+    report flushed to stdout first (nothing for None).
+
+    Parameters
+    ----------
+    command : str
+        The command's name (``"run"``, ``"identify"``, ``"zwidth"``).
+    error : dict or None
+        :func:`hapsim.errors.error_record`'s.
+    """
+    import sys
+    if error is None:
+        return
+    sys.stdout.flush()
+    print(f"hapsim {command}: {error['type']}: {error['message']}", file=sys.stderr)

@@ -353,9 +353,8 @@ def run(args) -> int:
                  + ("; the added mass was not identified" if args.added_mass is not None
                     else "") + ")"))
     sys.stdout.flush()
-    if rep.error is not None:           # the report first, then why the excitation ended
-        print(f"hapsim identify: {rep.error['type']}: {rep.error['message']}",
-              file=sys.stderr)
+    from hapsim.outputs import say_error_after
+    say_error_after("identify", rep.error)  # the report first, then why it ended
     return code
 
 

@@ -586,9 +586,8 @@ def run_nd(args) -> int:
     with Progress(2 * n if in_process else 2 * n + 1, label, unit="records") as bar:
         res, port_info = measure_scene_nd(scene, opts, a, progress=bar.update)
     code = _report_nd(args, scene, a, res, in_process, port_info)
-    error = res.get("error")
-    if error is not None:               # the report first, then why the run ended
-        print(f"hapsim run: {error['type']}: {error['message']}", file=sys.stderr)
+    from hapsim.outputs import say_error_after
+    say_error_after("run", res.get("error"))    # the report first, then why it ended
     return code
 
 
@@ -735,8 +734,8 @@ def run_ports(args) -> int:
     scene = load_scene_ports(args.scene)
     rep = run_scene_ports(scene, opts, getattr(args, "amplitude", None), by="flag")
     code = _report_ports(args, scene, rep)
-    if rep.error is not None:           # the report first, then why the run ended
-        print(f"hapsim run: {rep.error['type']}: {rep.error['message']}", file=sys.stderr)
+    from hapsim.outputs import say_error_after
+    say_error_after("run", rep.error)   # the report first, then why the run ended
     return code
 
 

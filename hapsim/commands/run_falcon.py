@@ -80,6 +80,7 @@ def run_falcon_command(args) -> int:
                                             run_falcon)
     from hapsim.drivers.falcon_usb import FalconUSB, parse_url
     from hapsim.errors import DeviceError
+    from hapsim.outputs import say_error_after
     from hapsim.progress import Progress
     from hapsim.scene import load_scene_nd
     from hapsim.pipeline.options import command_line_fields
@@ -186,7 +187,8 @@ def run_falcon_command(args) -> int:
            **({} if lost is None else {"error": lost})}
     if args.json:
         print(json.dumps(out))
-        return _said(code, lost)
+        say_error_after("run", lost)
+        return code
     o = sys.stdout
     print(f"{scene.path}: the Novint Falcon's bytes over USB (pyftdi), {where}", file=o)
     print(f"  firmware: {out['firmware_bytes']} bytes in {out['firmware_chunks']} chunks, "
@@ -231,13 +233,5 @@ def run_falcon_command(args) -> int:
                   file=o)
     print(f"  felt matrices: {felt['verdict']}: {felt['reason']}", file=o)
     print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
-    return _said(code, lost)
-
-
-def _said(code: int, lost) -> int:
-    """``code``, the loss (``lost``: the error's type and message, or None) said on stderr
-    after the report."""
-    if lost is not None:
-        sys.stdout.flush()
-        print(f"hapsim run: {lost['type']}: {lost['message']}", file=sys.stderr)
+    say_error_after("run", lost)        # the report first, then why the loop ended
     return code

@@ -287,8 +287,8 @@ def _report_lost(args, scene, res: dict, gen: str, a: float, designed, said,
         if said is not None:
             print(f"  stated before the run: {said}", file=o)
         print(f"  verdict: {res['verdict']}: {res['reason']}", file=o)
-    err = res["error"]
-    print(f"hapsim run: {err['type']}: {err['message']}", file=sys.stderr)
+    from hapsim.outputs import say_error_after
+    say_error_after("run", res["error"])
     return 1
 
 

@@ -151,7 +151,8 @@ def run(args) -> int:
     DeviceError
         The device lost before the first point was measured (exit 1).
     """
-    from hapsim.errors import DeviceError
+    from hapsim.errors import DeviceError, error_record
+    from hapsim.outputs import say_error_after
     from hapsim.analysis.stability import stability_limit
     from hapsim.analysis.zwidth import (ZPoint, device_loop, locate_onset, predicted_coulomb,
                                         release)
@@ -225,8 +226,7 @@ def run(args) -> int:
     rep = report(points, base, where, x0, fc)
     if lost is not None:
         rep.update(stop=f"device lost: {str(lost).splitlines()[0]} (after {len(points)} of "
-                        f"{len(args.B)} B values)",
-                   error={"type": type(lost).__name__, "message": str(lost)})
+                        f"{len(args.B)} B values)", error=error_record(lost))
     if args.plot:
         from hapsim.plots import save_figure
         from hapsim.plots.zwidth import plot_zwidth
@@ -240,8 +240,7 @@ def run(args) -> int:
         if args.plot:
             print(f"figure: {args.plot}")
     if lost is not None:                # the report first, then why the sweep ended
-        sys.stdout.flush()
-        print(f"hapsim zwidth: {type(lost).__name__}: {lost}", file=sys.stderr)
+        say_error_after("zwidth", rep["error"])
         return 1
     return 0 if all(p.K_max_measured is not None for p in points) else 1
 

@@ -60,7 +60,7 @@ from hapsim.drivers.falcon import (CHECK_REPLY, CHECK_SEND, ENVELOPE_RAD, TORQUE
                                    WORKSPACE_RAD, device_packet, parse_host_packet,
                                    ticks_of)
 from hapsim.drivers.falcon_usb import ft232r_baud
-from hapsim.errors import ConfigError, DeviceError, KinematicsError
+from hapsim.errors import ConfigError, DeviceError, KinematicsError, error_record
 from hapsim.joint_device import LocalJointDeviceND
 
 __all__ = ["FalconDevice", "load_firmware", "home", "drive_falcon", "brake_legs",
@@ -720,5 +720,4 @@ def drive_falcon(device_feed, scene, samples: int, *, faults=None, leds: int = 0
     return {"position": pos, "joints": joints, "commands": cmds, "missing": missing,
             "unhomed": unhomed, "decoder": dict(dec.stats), "held_zero": held_zero,
             "stopped": stopped, "brake": braked,
-            "error": None if lost is None else {"type": type(lost).__name__,
-                                                "message": str(lost)}}
+            "error": error_record(lost)}

@@ -65,7 +65,7 @@ import time
 import numpy as np
 
 from hapsim.analysis.write_holds import HOLD_CUT_PERIODS
-from hapsim.errors import ConfigError, DeviceError
+from hapsim.errors import ConfigError, DeviceError, error_record
 from hapsim.emulated.links import LockstepBoardLink  # noqa: F401  (re-exported)
 
 __all__ = ["WORKSPACE_M", "LATE_STOP_S", "CUT_PERIODS", "FADERS_TAKES", "FADER_AMPLITUDE",
@@ -348,8 +348,7 @@ def record_faders(ser, scene, samples: int, starts: int, *, force_scale: float,
     if watchdog is not None:
         watchdog.arm(False)
     return {"records": out, "stop": stop, "latest": latest, "watchdog_zeroed": zeroed[0],
-            "error": None if error is None else {"type": type(error).__name__,
-                                                 "message": str(error)},
+            "error": error_record(error),
             "late_ticks": [int(np.sum(departures(r) > CUT_PERIODS * T)) for r in out]}
 
 

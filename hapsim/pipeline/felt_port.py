@@ -28,7 +28,7 @@ import numpy as np
 import firmware_protocol as fp
 from hapsim.applied import account_from_force_seq
 from hapsim.host.loop_types import LATCHED_FAULTS
-from hapsim.errors import ConfigError, DeviceError, ProtocolError
+from hapsim.errors import ConfigError, DeviceError, ProtocolError, error_record
 from hapsim.pipeline.port_session import (clock_of, handshake_nd, quiesce, reopen_port,
                                           stop_reason)
 
@@ -571,8 +571,7 @@ def measure_felt_port(transport, scene, *, samples: int | None = None, progress=
            "frames": "compact" if getattr(transport, "compact", False) else "full",
            "stop": ("device lost" if lost_for_good is not None else
                     "end" if not stopped() else guard.reason or stop_reason(stop)),
-           "error": (None if lost_for_good is None else
-                     {"type": type(lost_for_good).__name__, "message": str(lost_for_good)}),
+           "error": error_record(lost_for_good),
            "safety": guard.to_dict()}
     dec = getattr(transport, "decoder", None)
     st = getattr(dec, "stats", None)

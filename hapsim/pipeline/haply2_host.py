@@ -38,7 +38,7 @@ from hapsim.emulated.haply2_board import PASS_S, in_hand_order
 from hapsim.emulated.haply2_verdict import felt_verdict_of_runs
 from hapsim.drivers.haply import MAX_TORQUE
 from hapsim.drivers.haply2 import Haply2DIY
-from hapsim.errors import ConfigError, DeviceError
+from hapsim.errors import ConfigError, DeviceError, error_record
 from hapsim.pipeline.haply2_record import (ARM_TIMEOUT, ENVELOPE_RAD, WORKSPACE_RAD, PortLink,
                                            record_realtime)
 
@@ -542,7 +542,7 @@ def _lost_result(chk, runs: list, lost: Exception, wd_report: dict, probe) -> di
                       "matrices need all 5): nothing was fitted",
             "records": len(runs) - 1,     # (free responses: the one from rest first)
             "direction_probe": None if probe is None else probe.to_dict(),
-            "stop": why, "error": {"type": type(lost).__name__, "message": str(lost)},
+            "stop": why, "error": error_record(lost),
             **_record_counts(runs, wd_report)}
 
 

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from hapsim.errors import ConfigError, DeviceError
+from hapsim.errors import ConfigError, DeviceError, error_record
 from hapsim.pipeline.excitation import ExcitationEngine, excitation_plan
 
 __all__ = ["record"]
@@ -316,8 +316,7 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
                      "driver": tr.report() if use_driver else None,
                      "direction_probe": None if probe is None else probe.to_dict(),
                      "travel_sweep": None if sweep is None else sweep.to_dict(),
-                     "error": None if lost is None else {"type": type(lost).__name__,
-                                                         "message": str(lost)}},
+                     "error": error_record(lost)},
             "protocol_options": drv.options() if use_driver else None, "lost": lost}
 
 

@@ -56,7 +56,7 @@ from hapsim.pipeline.startup import compile_notice, compiled_loop_possible, prel
 from hapsim.host.telemetry import ChunkWriter, Telemetry, convert, load
 from hapsim.host.transport import open_transport
 from hapsim.device_model import hand_force_samples
-from hapsim.errors import ConfigError, DeviceError, ProtocolError
+from hapsim.errors import ConfigError, DeviceError, ProtocolError, error_record
 from hapsim.scene import Scene
 
 __all__ = ["prepare_scene", "predict", "identify", "run_scene", "format_report",
@@ -724,7 +724,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
         _restore_signals(conn.old_signals)
     if run.error is not None:          # device lost beyond recovery: the report goes with it
         rep["exit_code"] = 1
-        rep["error"] = {"type": type(run.error).__name__, "message": str(run.error)}
+        rep["error"] = error_record(run.error)
         run.error.report = rep
         raise run.error
     return rep
