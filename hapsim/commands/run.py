@@ -17,7 +17,7 @@ import dataclasses
 import json
 import sys
 
-from hapsim.drivers import DEFAULT
+from hapsim.drivers import DEFAULT, protocol_of
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
 
@@ -261,7 +261,7 @@ def _announce(port, n_samples, protocol: str = "the framed protocol", note: str 
     n_samples : int
         Samples to run; 0 for an open-ended run.
     protocol : str
-        What :func:`protocol_of` says (``"the framed protocol"``, ``"the firefader
+        What :func:`hapsim.drivers.protocol_of` says (``"the framed protocol"``, ``"the firefader
         protocol (the scene's device.protocol)"``, ...).
     note : str
         Appended (which host loop runs, when it is not the one asked for).
@@ -270,35 +270,6 @@ def _announce(port, n_samples, protocol: str = "the framed protocol", note: str 
     print(f"hapsim run: closing the loop on {port or 'the in-process mock'} in {protocol} "
           f"for {length} (SIGINT/SIGTERM stop cleanly){note}",
           file=sys.stderr, flush=True)
-
-
-def protocol_of(scene, driver: str | None) -> tuple[str, str]:
-    """The protocol a run speaks, and where that choice comes from.
-
-    Parameters
-    ----------
-    scene : hapsim.scene.Scene
-        The scene (its ``device.protocol``; ``"framed"`` without a device).
-    driver : str or None
-        ``--driver`` (None when not given).
-
-    Returns
-    -------
-    name : str
-        One of :data:`hapsim.drivers.DRIVERS`.
-    said : str
-        The name with its source, for the start-up line: ``"the framed protocol"``,
-        ``"the firefader protocol (the scene's device.protocol)"``, ``"the haply protocol
-        (--driver; the scene's device.protocol is firefader)"``.
-    """
-    named = scene.device.protocol if scene.device is not None else DEFAULT
-    if driver is None:
-        return named, (f"the {named} protocol" + ("" if named == DEFAULT
-                                                   else " (the scene's device.protocol)"))
-    if driver != named:
-        return driver, (f"the {driver} protocol (--driver; the scene's device.protocol "
-                        f"is {named})")
-    return driver, f"the {driver} protocol"
 
 
 def run(args) -> int:

@@ -26,7 +26,8 @@ import importlib
 
 from hapsim.errors import ConfigError
 
-__all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver", "device_driver"]
+__all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver", "device_driver",
+           "protocol_of"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,6 +151,38 @@ def family(name: str, dimension: int = 1) -> Family:
     raise ConfigError("a 2-D or 3-D scene takes " + " or ".join(
         f"--driver {f.name} ({f.device})" for f in FAMILIES if f.dimension > 1)
         + f", not {name!r}", key="--driver")
+
+
+def protocol_of(scene, driver: str | None) -> tuple[str, str]:
+    """The protocol a 1-D run or identification speaks, and where that choice comes from:
+    ``--driver`` when given, else the scene's ``device.protocol`` (``hapsim run`` and
+    ``hapsim identify --mock-scene`` both take it here: one rule).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or None
+        The scene (its ``device.protocol``); ``"framed"`` without a scene or a device.
+    driver : str or None
+        ``--driver`` (None when not given).
+
+    Returns
+    -------
+    name : str
+        One of :data:`DRIVERS` (not checked here: :func:`family` refuses an unknown one).
+    said : str
+        The name with its source, for the start-up line: ``"the framed protocol"``,
+        ``"the firefader protocol (the scene's device.protocol)"``, ``"the haply protocol
+        (--driver; the scene's device.protocol is firefader)"``.
+    """
+    device = getattr(scene, "device", None)
+    named = getattr(device, "protocol", None) or DEFAULT
+    if driver is None:
+        return named, (f"the {named} protocol" + ("" if named == DEFAULT
+                                                   else " (the scene's device.protocol)"))
+    if driver != named:
+        return driver, (f"the {driver} protocol (--driver; the scene's device.protocol "
+                        f"is {named})")
+    return driver, f"the {driver} protocol"
 
 
 def get_driver(name: str, **options):
