@@ -58,9 +58,10 @@ class IdentifyReport(Report):
         return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
 
 
-def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 115200,
-             device=None, force_limit: float = 2.0, envelope: float = 0.01,
-             duration: float = 4.0, rate_hz: float = 1000.0, max_delay: int = 20,
+def identify(port: str | None = None, *, scene=None, driver: str | None = None,
+             baud: int = 115200, device=None, force_limit: float | None = None,
+             envelope: float | None = None, duration: float | None = None,
+             rate_hz: float | None = None, max_delay: int = 20,
              lockstep: bool = False, seed: int = 0, hand: bool = False,
              transport: str | None = None, progress: bool = False,
              handle_signals: bool = False,
@@ -73,19 +74,29 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
     ----------
     port : str, optional
         Serial port of the device; None: the embedded mock of ``device``.
-    driver : str
-        Its protocol (:data:`hapsim.drivers.DRIVERS`).
+    scene : hapsim.scene.Scene or str, optional
+        A 1-D scene (or its file) whose device the mock models, as ``hapsim identify
+        --mock-scene``: its ``device.protocol`` (unless ``driver`` is given) with its
+        ``protocol_options``, its rate, and the defaults it sets
+        (:func:`hapsim.pipeline.identify_settings.identify_settings`). Not with ``device``.
+    driver : str, optional
+        Its protocol (:data:`hapsim.drivers.DRIVERS`); default the scene's
+        ``device.protocol``, else ``"framed"``.
     baud : int
     device : hapsim.scene.Device, optional
         What the mock models (default m = 0.1 kg, b0 = 0.5 N s/m, d = 1).
-    force_limit : float
-        Largest force sent [N].
-    envelope : float
-        Position envelope [m] around the start; beyond it the excitation stops.
-    duration : float
-        Excitation length [s].
-    rate_hz : float
-        Loop rate [Hz].
+    force_limit : float, optional
+        Largest force sent [N]; default 2, or the scene's device or protocol limit where
+        smaller (:func:`~hapsim.pipeline.identify_settings.default_force_limit`).
+    envelope : float, optional
+        Position envelope [m] around the start; beyond it the excitation stops. Default
+        0.01, or the scene's ``|excitation.x0|`` where larger
+        (:func:`~hapsim.pipeline.identify_settings.default_envelope`).
+    duration : float, optional
+        Excitation length [s]; default from the rate
+        (:func:`~hapsim.pipeline.identify_settings.default_duration`: 4 s at 1 kHz).
+    rate_hz : float, optional
+        Loop rate [Hz]; default the scene's ``rate_hz``, else 1000.
     max_delay : int
         Largest device delay tried [samples].
     lockstep : bool
@@ -102,7 +113,8 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
         Stop cleanly on SIGINT/SIGTERM (a library leaves them to its caller by default).
     driver_options : dict, optional
         The driver's device parameters (``device.protocol_options``, e.g. the FireFader's
-        ``full_scale``); the mass and friction found are in the units they set.
+        ``full_scale``; over the scene's when the protocol is the scene's); the mass and
+        friction found are in the units they set.
     mock_options : dict, optional
         A driver mock's hardware (e.g. ``{"full_scale": 1.56}``: a fader other than the
         one ``driver_options`` describe); default the driver's own.
@@ -123,7 +135,9 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
     ------
     ConfigError
         Bad values (keyed by the flag of ``hapsim identify``:
-        :data:`hapsim.option_values.API_OPTIONS`), an unknown driver.
+        :data:`hapsim.option_values.API_OPTIONS`), an unknown driver, both ``scene`` and
+        ``device``, a 2-D or 3-D scene or one without a device section (a file: its
+        reading's errors).
     IdentificationError
         A record too short or that the fit cannot explain.
     DeviceError, ProtocolError
@@ -137,12 +151,28 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
     (mass, friction, Coulomb friction, delay, hold) on the recorded positions and forces.
     """
     from hapsim.drivers import family
-    try:
-        family(driver)                  # an unknown name: the valid ones listed
-    except ConfigError as exc:          # named by this function's keyword
-        raise ConfigError(exc.reason, key="driver") from None
+    from hapsim.pipeline.identify_settings import identify_settings
+    if driver is not None:
+        try:
+            family(driver)              # an unknown name: the valid ones listed
+        except ConfigError as exc:      # named by this function's keyword
+            raise ConfigError(exc.reason, key="driver") from None
     check_values("identify", baud=baud, force_limit=force_limit, envelope=envelope,
                  duration=duration, rate_hz=rate_hz, max_delay=max_delay, seed=seed)
+    if scene is not None:
+        if device is not None:
+            raise ConfigError("give a scene or a device, not both", key="device")
+        scene = _one_d_scene(scene)
+    st = identify_settings(scene, driver=driver, rate_hz=rate_hz, duration=duration,
+                           force_limit=force_limit, envelope=envelope, hand=hand,
+                           driver_options=driver_options if driver is not None or
+                           scene is not None else None)
+    if scene is not None:
+        device = st.device
+    if st.driver_options is not None:       # a driver's: the scene's, updated by those given
+        driver_options = st.driver_options
+    driver, rate_hz, duration = st.driver, st.rate_hz, st.duration
+    force_limit, envelope = st.force_limit, st.envelope
     fit, rec = excite_and_fit(port=port, baud=baud, device=device, force_limit=force_limit,
                          envelope=envelope, duration=duration, rate_hz=rate_hz,
                          max_delay=max_delay, lockstep=lockstep, seed=seed,
@@ -155,6 +185,28 @@ def identify(port: str | None = None, *, driver: str = DEFAULT, baud: int = 1152
     if hand:
         d["note"] = "mass and friction are the THS's: hand + handle, for this grip"
     return IdentifyReport.from_dict(json_safe(d), fit=fit, record=rec)
+
+
+def _one_d_scene(scene):
+    """A 1-D scene with a device, from a :class:`~hapsim.scene.Scene` or its file.
+
+    Raises
+    ------
+    ConfigError
+        A 2-D or 3-D scene (``hapsim identify --mock-scene SCENE --lockstep`` identifies
+        those), a scene without a device section, the file's own errors.
+    """
+    if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__"):
+        from hapsim.scene import load_scene
+        scene = load_scene(scene)
+    if getattr(scene, "dimension", 1) > 1:
+        raise ConfigError(f"a {scene.dimension}-D scene: identify(scene=) takes 1-D scenes "
+                          f"('hapsim identify --mock-scene SCENE --lockstep' identifies a "
+                          f"2-D or 3-D scene's device)", key="scene")
+    if getattr(scene, "device", None) is None:
+        raise ConfigError("the scene has no device section: nothing to identify",
+                          file=getattr(scene, "path", None), key="device")
+    return scene
 
 
 def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, envelope=0.01,

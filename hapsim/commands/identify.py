@@ -97,8 +97,9 @@ def register(sub) -> None:
                    help="serial port of the device (default: the embedded mock on a pty)")
     p.add_argument("--baud", type=declared("identify", "baud"),
                    default=115200, metavar="BAUD", help="baud rate")
-    p.add_argument("--driver", default=DEFAULT, metavar="NAME",
-                   help=f"device protocol (default framed; valid: {', '.join(DRIVERS)})")
+    p.add_argument("--driver", default=None, metavar="NAME",
+                   help=f"device protocol (default: --mock-scene's device.protocol, as "
+                        f"hapsim run takes it, else framed; valid: {', '.join(DRIVERS)})")
     p.add_argument("--protocol-option", action="append", default=[], metavar="KEY=VALUE",
                    help="a driver's device parameter (device.protocol_options; repeat: "
                         "e.g. full_scale=0.39 for the FireFader, resolution=4880 for the "
@@ -128,15 +129,18 @@ def register(sub) -> None:
                    help="a hand holds the handle: report the THS (hand + handle) mass and "
                         "damping")
     p.add_argument("--force-limit", type=declared("identify", "force_limit"),
-                   default=2.0, metavar="N",
-                   help="largest force sent [N] (default 2)")
+                   default=None, metavar="N",
+                   help="largest force sent [N] (default 2, or the --mock-scene device's "
+                        "force_limit or its protocol's limit where smaller)")
     p.add_argument("--envelope", type=declared("identify", "envelope"),
-                   default=0.01, metavar="M",
+                   default=None, metavar="M",
                    help="position envelope +-M around the start [m]; beyond it the "
-                        "excitation stops (default 0.01)")
+                        "excitation stops (default 0.01, or --mock-scene's |excitation.x0| "
+                        "where larger, in the scene's units)")
     p.add_argument("--duration", type=declared("identify", "duration"),
-                   default=4.0, metavar="S",
-                   help="excitation length [s] (default 4)")
+                   default=None, metavar="S",
+                   help="excitation length [s] (default: 2.4 s of probe plus 1,600 "
+                        "samples at the rate, at least 4 s: 4 s at 1 kHz, 8.8 s at 250 Hz)")
     p.add_argument("--rate", type=declared("identify", "rate_hz"),
                    default=None, metavar="HZ",
                    help="loop rate [Hz] (default: --mock-scene's rate_hz, else 1000)")
@@ -213,14 +217,15 @@ def run(args) -> int:
     ConfigError
         Bad option values, an unknown driver, an invalid --mock-scene (exit 2).
     """
-    family(args.driver)                 # an unknown name: the valid ones listed
+    if args.driver is not None:
+        family(args.driver)             # an unknown name: the valid ones listed
     if args.plot:
         from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
     if args.out:
         from hapsim.plots import check_output_path
         check_output_path(args.out, "--out")
-    device = None
+    scene = None
     if args.mock_scene:
         from hapsim import load_scene
         scene = load_scene(args.mock_scene)
@@ -228,35 +233,37 @@ def run(args) -> int:
             return _run_space(args, scene)
         from hapsim.commands.dimension import load_one_d_scene
         scene = load_one_d_scene(args.mock_scene, "identify", "--mock-scene")
-        device = scene.device
-        if device is None:
-            raise ConfigError("the scene has no device section", file=args.mock_scene,
-                              key="device")
-        if args.rate is None:               # the scene's rate, as hapsim run's
-            args.rate = float(scene.rate_hz)
-        if args.driver == DEFAULT and not args.lockstep and args.port is None:
-            from hapsim.emulated.mock import require_whole_delay
-            require_whole_delay(device.delay, file=args.mock_scene, command="identify")
-    args.rate = 1000.0 if args.rate is None else args.rate
-    dopts = None
+        if scene.device is None:
+            raise ConfigError("the scene has no device section: nothing to identify",
+                              file=args.mock_scene, key="device")
+    # the protocol (--driver, else the scene's device.protocol, as hapsim run's), the
+    # rate, duration, force limit and envelope: each given, else its default
+    # (hapsim.pipeline.identify_settings: the API's resolver too)
+    from hapsim.pipeline.identify_settings import identify_settings
+    st = identify_settings(scene, driver=args.driver,
+                           driver_options=_key_values(args.protocol_option,
+                                                      "--protocol-option"),
+                           rate_hz=args.rate, duration=args.duration,
+                           force_limit=args.force_limit, envelope=args.envelope,
+                           hand=args.hand)
+    args.driver, args.rate, args.duration = st.driver, st.rate_hz, st.duration
+    args.force_limit, args.envelope = st.force_limit, st.envelope
+    device = st.device
+    if scene is not None and args.driver == DEFAULT and not args.lockstep and args.port is None:
+        from hapsim.emulated.mock import require_whole_delay
+        require_whole_delay(device.delay, file=args.mock_scene, command="identify")
+    dopts = st.driver_options
     drv = None
     mopts = None
     if args.driver != DEFAULT:
         from hapsim.drivers import get_driver
-        dopts = dict(device.protocol_options or {}) if (
-            device is not None and device.protocol == args.driver) else {}
-        dopts.update(_key_values(args.protocol_option, "--protocol-option"))
-        try:
-            drv = get_driver(args.driver, **dopts)
-        except TypeError as exc:
-            raise ConfigError(f"{exc}", key="--protocol-option") from None
+        drv = get_driver(args.driver, **dopts)
         if args.mock_option:
             mopts = {**drv.mock_hardware(), **_key_values(args.mock_option, "--mock-option")}
-    elif args.protocol_option or args.mock_option or args.added_mass is not None:
+    elif args.mock_option or args.added_mass is not None:
         raise ConfigError("the framed protocol takes no options (its device says its units "
                           "in HELLO); give --driver",
-                          key="--protocol-option" if args.protocol_option else
-                          "--mock-option" if args.mock_option else "--added-mass")
+                          key="--mock-option" if args.mock_option else "--added-mass")
     if args.added_mass is not None:       # (its range: the declaration, checked before)
         if drv.scale_option is None:
             from hapsim.drivers import FAMILIES
@@ -337,14 +344,19 @@ def run(args) -> int:
                 "lo": scale.full_scale_lo, "hi": scale.full_scale_hi, "gain": scale.gain,
                 "added_mass": args.added_mass, "protocol_options": drv.options()}}),
             fit=fit, record=rec)
+    settings = {"protocol": st.said, "rate_hz": args.rate, "duration": args.duration,
+                "force_limit": args.force_limit, "envelope": args.envelope}
     if args.json:
-        print(json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot}))
+        print(json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot,
+                          "settings": settings}))
     else:
         if args.hand:
             print("# with the hand on the handle: the mass and damping below are the THS's "
                   "(hand + handle)")
         print(text, end="")
-        print(f"# excitation: {loop['samples']}/{loop['requested']} samples, stop: "
+        print(f"# excitation: {loop['samples']}/{loop['requested']} samples ("
+              f"{args.duration:g} s at {args.rate:g} Hz, force limit {args.force_limit:g}, "
+              f"envelope {args.envelope:g}; {st.said}), stop: "
               f"{loop['stop_reason']}, late {loop['late']}, clamped {loop['clamped']}"
               + ("" if rep.error is None else
                  " (the device was lost with the added mass on: its scale was not found)"
@@ -394,7 +406,10 @@ def _run_space(args, scene) -> int:
 
     from hapsim.pipeline.identify_matrices import identify_matrices_lockstep
     from hapsim.progress import Progress
-    given = {"port": args.port, "driver": args.driver != DEFAULT, "hand": args.hand,
+    from hapsim.pipeline.identify_settings import (DEFAULT_ENVELOPE, DEFAULT_FORCE_LIMIT,
+                                                   default_duration)
+    given = {"port": args.port, "driver": args.driver not in (None, DEFAULT),
+             "hand": args.hand,
              "added_mass": args.added_mass is not None, "travel": args.travel is not None,
              "plot": args.plot}
     for key, why in _SPACE_REFUSED.items():
@@ -402,6 +417,14 @@ def _run_space(args, scene) -> int:
             raise ConfigError(why, key="--" + key.replace("_", "-"))
     if not args.lockstep:
         raise ConfigError(_SPACE_REFUSED["port"] + " (give --lockstep)", key="--lockstep")
+    # the defaults as before (the n-D scenes' devices state no force limit; 4 s at their
+    # 1 kHz, default_duration's floor)
+    if args.force_limit is None:
+        args.force_limit = DEFAULT_FORCE_LIMIT
+    if args.envelope is None:
+        args.envelope = DEFAULT_ENVELOPE
+    if args.duration is None:
+        args.duration = default_duration(float(scene.rate_hz))
     with Progress(1, f"identifying the {scene.dimension}-D device (two records of "
                      f"{args.duration:g} s)", unit="samples") as bar:
         r = identify_matrices_lockstep(

@@ -46,12 +46,23 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["ExcitationPlan", "ExcitationEngine", "excitation_plan", "centring_gains",
-           "MASS_RANGE", "LEVEL_SHARE", "PRBS_SHARE", "HOST_STALL_PRIOR_S"]
+           "MASS_RANGE", "LEVEL_SHARE", "PRBS_SHARE", "HOST_STALL_PRIOR_S", "PROBE_START",
+           "LEVEL_WINDOW_S", "PROBE_S"]
 
 
 #: Growth of the excitation's gain per calm 100 ms (2^(1/4): a force level at most 19 %
 #: above the last one, under which the device moved over less than 30 % of the envelope).
 _GROW = 2.0 ** 0.25
+#: The probe's first level, a share of the top one (the square wave's level starts there).
+PROBE_START = 1.0 / 64.0
+#: The window [s] over which the engine judges the motion before it raises the level by
+#: :data:`_GROW` (a quarter of it while the device is still held at the start).
+LEVEL_WINDOW_S = 0.1
+#: The longest the probe takes to reach the top level [s]: from :data:`PROBE_START` by
+#: :data:`_GROW` a :data:`LEVEL_WINDOW_S` window, 24 windows (2.4 s), when the device
+#: never moves over 40 % of the envelope (``hapsim identify``'s default duration counts it:
+#: :func:`hapsim.pipeline.identify_settings.default_duration`).
+PROBE_S = round(round(math.log(1.0 / PROBE_START) / math.log(_GROW)) * LEVEL_WINDOW_S, 9)
 #: Moving masses [kg] the centring loop is made stable for (a hand on a handle included).
 MASS_RANGE = (0.02, 2.0)
 #: The square wave's largest force level, a share of the force limit: the PRBS on top
@@ -397,11 +408,11 @@ class ExcitationEngine:
         self._xc = 0.0
         self._xp = 0.0
         self._amax = float(scene.level_max)
-        self._g = self._amax / 64.0
+        self._g = self._amax * PROBE_START
         self._edge = _EDGE * scene.envelope
         self._calm = _CALM * scene.envelope
         self._probe_dist = 0.01 * scene.envelope
-        self._win = max(int(0.1 * scene.rate_hz), 1)
+        self._win = max(int(LEVEL_WINDOW_S * scene.rate_hz), 1)
         self._sub = max(int(0.025 * scene.rate_hz), 1)
         self._still = 0.005 * scene.envelope
         self._stuck = True
