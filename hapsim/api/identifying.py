@@ -180,6 +180,9 @@ def identify(port: str | None = None, *, scene=None, driver: str | None = None,
                          transport=transport, handle_signals=handle_signals,
                          driver_options=driver_options, mock_options=mock_options,
                          travel=travel, rt_priority=rt_priority)
+    # what it ran with, each value given or its default (hapsim.pipeline.identify_settings)
+    rec["loop"]["settings"] = {"protocol": st.said, "rate_hz": rate_hz, "duration": duration,
+                               "force_limit": force_limit, "envelope": envelope}
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None, "error": rec["loop"].get("error")}
     if hand:

@@ -282,6 +282,7 @@ def run(args) -> int:
               mock_options=mopts, rt_priority=args.rt_priority,
               travel=None if args.travel is None else args.travel * 1e-3)
     rep = identify_api(args.port, device=device, **kw)
+    rep.loop["settings"]["protocol"] = st.said     # (the API was given the driver resolved)
     fit, rec = rep.fit, rep.record
     if drv is not None and rec.get("protocol_options"):
         # the driver as the record found it (the Haply motor direction, probed first)
@@ -344,11 +345,8 @@ def run(args) -> int:
                 "lo": scale.full_scale_lo, "hi": scale.full_scale_hi, "gain": scale.gain,
                 "added_mass": args.added_mass, "protocol_options": drv.options()}}),
             fit=fit, record=rec)
-    settings = {"protocol": st.said, "rate_hz": args.rate, "duration": args.duration,
-                "force_limit": args.force_limit, "envelope": args.envelope}
     if args.json:
-        print(json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot,
-                          "settings": settings}))
+        print(json.dumps({**rep.to_dict(), "out": args.out, "plot": args.plot}))
     else:
         if args.hand:
             print("# with the hand on the handle: the mass and damping below are the THS's "
