@@ -44,14 +44,17 @@ def test_run_and_identify_refuse_a_delay_under_one_period_in_one_line(tmp_path, 
     assert "device.delay" not in capfd.readouterr().err
 
 
-def test_the_shipped_firefader_scene_names_its_driver():
-    """configs/firefader.yaml (d = 0.725, the board's own timing) under identify without
-    --driver: the refusal names its delay and says to give the driver."""
+def test_the_shipped_firefader_scene_on_the_framed_mock_names_its_driver():
+    """configs/firefader.yaml (d = 0.725, the board's own timing) under identify with the
+    framed mock asked for by name (``--driver framed``: without it the scene's
+    device.protocol is taken, tests/test_identify_scene_defaults.py): the refusal names
+    its delay and says to give the board's driver."""
     import contextlib
     import io
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
-        assert main(["identify", "--mock-scene", str(CONFIGS / "firefader.yaml")]) == 2
+        assert main(["identify", "--mock-scene", str(CONFIGS / "firefader.yaml"),
+                     "--driver", "framed"]) == 2
     assert "--driver" in err.getvalue() and "d = 0.725" in err.getvalue()
 
 
