@@ -42,22 +42,23 @@ PROBES_NEEDED = 12
 #: that agree (:data:`ARM_AGREE`), before its writes go unaligned.
 PROBE_TRIES = 3
 #: Two placements of the boundary at the first arming must agree within this fraction
-#: of a tick (:meth:`TickAligned.tick_phase`); the writes are aligned on their mean. One
-#: sweep of the probes whose replies a loaded host read late in a burst (3-6 probes in a
-#: row, 0.2-0.45 of a tick) still fits cleanly, its jump placed up to half a tick off (45
-#: of 1,000 seeded bursts more than 0.225 off in the in-process model,
-#: tests/test_tick_arming.py), and the writes are never re-timed: beside two CPU-bound
-#: processes and two other real-time test modules one run in 36 placed it 0.39-0.41 of a
-#: tick off (the stop's 8 placements agreeing on it) and 283 of its 478 commands came
-#: within a tenth of a tick of the boundary. Measured between consecutive placements of
-#: a board on the host's clock in those runs: 0.025 of a tick at the median, 0.122 at the
-#: 99th percentile, 0.207 at most (406 pairs: a pair further apart costs a third sweep,
-#: ~0.1 s, not a wrong alignment). The mean of two that agree is within half of this and
-#: the clean one's error of the boundary (0.139 at worst over the model's 1,000 seeds; a
-#: quarter let a placement 0.26 off agree, 0.14 in the mean). A board whose oscillator is
-#: more than ~1,800 ppm off the host's walks a fifth of a tick between two placements
-#: (0.11 s apart) and is not aligned (a single sweep of it is smeared by as much).
-ARM_AGREE = 0.2
+#: of a tick (:meth:`TickAligned.tick_phase`); the writes are aligned on the later one
+#: (the nearest the writes in time: a board whose oscillator is off the host's walks
+#: between the two). One sweep of the probes whose replies a loaded host read late in a
+#: burst (3-6 probes in a row, 0.2-0.45 of a tick) still fits cleanly, its jump placed up
+#: to half a tick off (29 of 1,000 seeded bursts more than 0.275 off in the in-process
+#: model, tests/test_tick_arming.py), and the writes are never re-timed: beside two
+#: CPU-bound processes and two other real-time test modules one run in 36 placed it
+#: 0.39-0.41 of a tick off (the stop's 8 placements agreeing on it) and 283 of its 478
+#: commands came within a tenth of a tick of the boundary. Measured between consecutive
+#: placements of a board on the host's clock in those runs: 0.025 of a tick at the
+#: median, 0.122 at the 99th percentile, 0.207 at most (406 pairs, 3 over 0.125: a pair
+#: further apart costs a third sweep, ~0.1 s, not a wrong alignment). The placement
+#: taken is within this and the other's error of the boundary (0.158 at worst over the
+#: model's 1,000 seeds, all aligned; 0.2 let 0.206 through). A board whose oscillator is
+#: more than ~1,400 ppm off the host's walks 0.15 of a tick between two placements (0.11
+#: s apart) and is not aligned (a single sweep of it is smeared by as much).
+ARM_AGREE = 0.15
 #: Placements of a ticking board's boundary at each stop whose median says how far its
 #: tick moved over the run (:meth:`TickAligned.end_probe`).
 END_PROBES = 3
@@ -291,14 +292,16 @@ def walk_from_placements(j0, tick_ns: int, first, second) -> dict:
 
 
 def agreeing_placement(placed, new, tick_ns: int):
-    """The boundary the writes are aligned on at an arming: ``new`` and the latest of the
-    earlier placements ``placed`` that agrees with it within :data:`ARM_AGREE` of a tick
-    (whole ticks apart or not), averaged; None when none agrees.
+    """The boundary the writes are aligned on at an arming: ``new``, when one of the
+    earlier placements ``placed`` agrees with it within :data:`ARM_AGREE` of a tick
+    (whole ticks apart or not); None when none does.
 
     A placement is one sweep of the probes (:meth:`TickAligned._probe_boundary`), to about
     a sixteenth of a tick; one whose replies a loaded host read late in a burst fits
     cleanly with its jump up to half a tick off (:data:`ARM_AGREE`). Two sweeps a burst
-    left alone agree; one it moved agrees with neither.
+    left alone agree; one it moved agrees with neither. The later of the two is taken,
+    the nearest the writes in time (a board whose oscillator is off the host's walks
+    its tick between them: 0.09 of a tick at 790 ppm).
 
     Parameters
     ----------
@@ -313,15 +316,14 @@ def agreeing_placement(placed, new, tick_ns: int):
     Returns
     -------
     tuple of int or None
-        ``(boundary, t)`` [monotonic ns]: the pair's mean boundary (the earlier one moved
-        by half their folded difference) and their mean time.
+        ``new`` as ``(boundary, t)`` [monotonic ns] when a placement agrees, else None.
     """
     tk = int(tick_ns)
     b1, t1 = (int(v) for v in new)
-    for b0, t0 in reversed(list(placed)):
+    for b0, _ in placed:
         d = ((b1 - int(b0)) / tk + 0.5) % 1.0 - 0.5          # [ticks], folded
         if abs(d) <= ARM_AGREE:
-            return int(b0) + int(round(0.5 * d * tk)), (int(t0) + t1) // 2
+            return b1, t1
     return None
 
 
@@ -563,10 +565,11 @@ class TickAligned:
         its backlog then dropped); a probe whose reply does not come within its spacing
         is left out, and at least :data:`PROBES_NEEDED` must be answered. The sweep is
         made again until two placements agree within :data:`ARM_AGREE` of a tick
-        (:func:`agreeing_placement`; at most ``1 + PROBE_TRIES`` sweeps): the writes are
-        never re-timed after it, and one sweep a loaded host read in a burst of late
-        replies places the boundary up to half a tick off with a clean fit, which put a
-        whole run's writes at the boundary (the writes' median 0.09 of a tick after it).
+        (:func:`agreeing_placement`, the later taken; at most ``1 + PROBE_TRIES`` sweeps):
+        the writes are never re-timed after it, and one sweep a loaded host read in a
+        burst of late replies places the boundary up to half a tick off with a clean fit,
+        which put a whole run's writes at the boundary (their median 0.09 of a tick after
+        it).
 
         Returns
         -------
