@@ -832,10 +832,11 @@ def test_on_the_boards_own_clock_beside_two_hogs_the_writes_are_mid_tick(two_cpu
     design, a fifth of them near the boundary, 6-8 % of the ~480), and the loop's writes,
     put in the tick's middle on the arming's placement (``TickAligned._write_on_grid``:
     not re-centred), near only when the host made them 0.4 of a tick late. Measured beside
-    two hogs and two other real-time test modules: 29-41 of 469-489 in 65 of 66 runs
-    (margin about 6 against half); the 66th, its arming placed 0.41 of a tick off by a
-    burst of late probe replies (before two placements had to agree,
-    ``tests/test_tick_arming.py``), 283 of 478 -- writes systematically at the boundary,
+    two hogs and tests/test_wallclock.py and test_host_watchdog.py looping: 29-45 of
+    484-505 in 46 runs (9.2 % at most: margin 5.4 against half); before two placements
+    at the arming had to agree (``tests/test_tick_arming.py``), 29-41 of 469-489 in 58
+    runs of 59, and in the 59th, its arming placed 0.41 of a tick off by a burst of late
+    probe replies, 283 of 478 -- writes systematically at the boundary,
     the class the aligner exists for (median ~0, 77 % near in the unaligned run it was
     written for). Before: 21 % (median phase 0.81) once in a fresh-clone CI run, 70 % (335
     of 480) once in a load check. The verdict is not "differs" (within, or

@@ -18,8 +18,8 @@ import time
 from hapsim.errors import DeviceError
 
 __all__ = ["TickAligned", "fit_tick_jump", "walk_from_placements", "agreeing_placement",
-           "TICK_PROBES",
-           "PROBE_WAIT_S", "PROBE_QUIET_S", "PROBES_NEEDED", "PROBE_TRIES", "ARM_AGREE", "END_PROBES",
+           "TICK_PROBES", "PROBE_WAIT_S", "PROBE_QUIET_S", "PROBES_NEEDED", "PROBE_TRIES",
+           "ARM_AGREE", "END_PROBES",
            "END_FIRST", "END_GAP_S", "END_GAP_FRACTION", "END_GAP_MAX_S", "REARM_INTERVAL",
            "JUMP_STEPS", "FLAT_STEPS", "LANDED_BINS", "WRITE_LEAD", "SPIN"]
 
@@ -48,9 +48,10 @@ PROBE_TRIES = 3
 #: burst (3-6 probes in a row, 0.2-0.45 of a tick) still fits cleanly, its jump placed up
 #: to half a tick off (29 of 1,000 seeded bursts more than 0.275 off in the in-process
 #: model, tests/test_tick_arming.py), and the writes are never re-timed: beside two
-#: CPU-bound processes and two other real-time test modules one run in 36 placed it
-#: 0.39-0.41 of a tick off (the stop's 8 placements agreeing on it) and 283 of its 478
-#: commands came within a tenth of a tick of the boundary. Measured between consecutive
+#: CPU-bound processes and two other real-time test modules two runs in 59 placed it
+#: 0.37 and 0.41 of a tick off (the stop's 8 placements agreeing on it), their commands
+#: 282 of 478 at 0.1-0.2 of a tick from the boundary and 283 of 478 within a tenth of
+#: it (none in 24 runs with the agreement). Measured between consecutive
 #: placements of a board on the host's clock in those runs: 0.025 of a tick at the
 #: median, 0.122 at the 99th percentile, 0.207 at most (406 pairs, 3 over 0.125: a pair
 #: further apart costs a third sweep, ~0.1 s, not a wrong alignment). The placement
