@@ -91,7 +91,7 @@ from hapsim.drivers.handled_account import LOCKSTEP_WRITE_TIMEOUT_S, HandledAcco
 from hapsim.drivers.host_watchdog import Watched
 from hapsim.drivers.late_replies import LateReplies
 from hapsim.drivers.resync import HOLD_BOUND_S, RING as _RING, SILENCE_LOST_S, Resynchronising
-from hapsim.drivers.tick_align import PROBE_TRIES, REARM_INTERVAL, TickAligned
+from hapsim.drivers.tick_align import REARM_INTERVAL, TickAligned
 from hapsim.errors import DeviceError
 
 __all__ = ["DriverTransport", "DriverStats", "REARM_INTERVAL"]
@@ -416,9 +416,7 @@ class DriverTransport(TickAligned, Resynchronising, LateReplies, Watched, Handle
                 # keeps the board's grid (its tick does not move), and probing then held
                 # zero force while the handle coasted (0.4 s, 12 cm, at three tries)
                 self._tick_probed = True
-                for _ in range(PROBE_TRIES):
-                    if self.tick_phase() is not None:
-                        break
+                self.tick_phase()           # (its sweeps until two agree, or none)
             self._command(arming)
             if self.watchdog is not None:
                 self.watchdog.arm()
