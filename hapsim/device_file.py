@@ -24,8 +24,9 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
     fit : hapsim.analysis.device_fit.DeviceFit
         The identification.
     force_limit : float
-        The excitation's force limit [N] (named in a comment; the device's own limit is
-        not identified, so the file leaves it to the scene).
+        The excitation's force limit [N] ([N m] through a rotary driver; named in a
+        comment; the device's own limit is not identified, so the file leaves it to the
+        scene).
     hand : bool
         The record was taken with a hand on the handle (mass and friction are the THS's).
     source : str
@@ -33,7 +34,9 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
     driver : hapsim.drivers.base.Driver, optional
         The driver the record was taken through: its name is written as ``protocol`` and
         its parameters as ``protocol_options`` (the units the host assumed: the mass and
-        friction found are in them, module notes of :mod:`hapsim.drivers`).
+        friction found are in them, module notes of :mod:`hapsim.drivers`); a rotary
+        one's (:attr:`hapsim.drivers.base.Driver.rotary`) units are the comments'
+        (inertia [kg m^2], [N m s/rad], [N m], [rad]).
 
     Returns
     -------
@@ -42,6 +45,12 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         be replaced by (:func:`load_device`, ``hapsim run --device``).
     """
     lv = f"{fit.level * 100:g}"
+    # a rotary axis's units (hapsim.drivers.base.Driver.rotary): the fit's figures are the
+    # same numbers, in the units the driver's protocol carries
+    if getattr(driver, "rotary", False):
+        u = {"mass": "kg m^2", "friction": "N m s/rad", "force": "N m", "position": "rad"}
+    else:
+        u = {"mass": "kg", "friction": "N s/m", "force": "N", "position": "m"}
 
     def iv(e, scale=1.0, unit=""):
         return f"[{e.lo * scale:.4g}, {e.hi * scale:.4g}]{unit}"
@@ -55,8 +64,8 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
     d0, d1 = fit.delay_range
     lines += [
         "device:",
-        f"  mass: {_num(dev.mass)}              # [kg] {iv(fit.mass)}",
-        f"  friction: {_num(dev.friction)}      # b0 [N s/m] {iv(fit.friction)}",
+        f"  mass: {_num(dev.mass)}              # [{u['mass']}] {iv(fit.mass)}",
+        f"  friction: {_num(dev.friction)}      # b0 [{u['friction']}] {iv(fit.friction)}",
         f"  delay: {dev.delay}                  # [samples] "
         + (f"{d0}..{d1} fit as well" if d1 > d0 else "unambiguous")
         + (f"; d + f = {fit.delay_estimate.value:.3f} {iv(fit.delay_estimate)}"
@@ -64,14 +73,14 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         f"  hold: {dev.hold}                    # "
         + ("the other hold fits worse" if fit.hold_certain else "the other hold fits as well"),
         f"  # force_limit: not identified (the excitation stayed within {_num(force_limit)} "
-        "N); 'hapsim run --device' keeps the scene's",
-        f"  coulomb: {_num(dev.coulomb)}         # [N] {iv(fit.coulomb)}; +: "
+        f"{u['force']}); 'hapsim run --device' keeps the scene's",
+        f"  coulomb: {_num(dev.coulomb)}         # [{u['force']}] {iv(fit.coulomb)}; +: "
         f"{fit.coulomb_pos.value:.4g} {iv(fit.coulomb_pos)}, -: {fit.coulomb_neg.value:.4g} "
         f"{iv(fit.coulomb_neg)}",
-        f"  position_resolution: {_num(dev.position_resolution)}   # [m] "
+        f"  position_resolution: {_num(dev.position_resolution)}   # [{u['position']}] "
         f"{iv(fit.position_resolution)}",
-        f"  noise: {_num(dev.noise)}            # [m] {iv(fit.noise)}",
-        f"# residual RMS {fit.rms_residual:.4g} m over {fit.n_samples} samples at "
+        f"  noise: {_num(dev.noise)}            # [{u['position']}] {iv(fit.noise)}",
+        f"# residual RMS {fit.rms_residual:.4g} {u['position']} over {fit.n_samples} samples at "
         f"{1.0 / fit.period:g} Hz",
     ]
     if driver is not None:

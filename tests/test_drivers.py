@@ -955,6 +955,18 @@ def test_protocol_options_in_the_scene_and_the_device_file(tmp_path):
                                   "direction": 1,
                                   "offset_deg": 0.0, "motor_direction": 1,
                                   "torque_levels": 256}
+    # every driver's file states the units its protocol carries: a rotary axis's (the
+    # Haply joint's: an inertia, torques, angles), else the SI ones, in each comment
+    from hapsim.drivers import DRIVERS
+    rotary_units = ("[kg m^2]", "[N m s/rad]", "0.3 N m)", "# [N m]", "# [rad]",
+                    "0.0001 rad over")
+    linear_units = ("# [kg]", "[N s/m]", "0.3 N)", "# [N]", "# [m]", "0.0001 m over")
+    for name in DRIVERS:
+        text = device_yaml(fit, 0.3, driver=None if name == "framed" else get_driver(name))
+        want, other = ((rotary_units, linear_units) if name == "haply"
+                       else (linear_units, rotary_units))
+        assert all(w in text for w in want), (name, text)
+        assert not any(o in text for o in other), (name, text)
 
 
 def test_driver_account_marks_the_forces_a_missing_answer_leaves_open():

@@ -292,6 +292,9 @@ class Driver:
     #: (``"force"`` or ``"position"``); None: the protocol carries SI units.
     scale_option: str | None = None
     scale_kind = "force"
+    #: The axis turns (one joint): a scene's and an identification's values are in
+    #: rotary units (inertia [kg m^2], torque [N m], angle [rad]), not [kg], [N], [m].
+    rotary = False
     #: The device's position scale can be found by a sweep between its end stops
     #: (``hapsim identify --travel``; :mod:`hapsim.drivers.firefader_travel`).
     travel_sweep = False

@@ -255,6 +255,7 @@ class HaplyM3(Driver):
     force_rel = 2.0 ** -24
 
     name = "haply"
+    rotary = True
     baud = 115200                     # USB CDC: ignored
     rtscts = False
     native_rate_hz = 1000.0
