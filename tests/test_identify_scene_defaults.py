@@ -91,6 +91,16 @@ def test_a_shipped_scene_identifies_with_the_defaults(paths):
     assert fit.explained, fit.verdict
     assert fit.mass.lo <= dev.mass <= fit.mass.hi, (paths, fit.mass)
     assert fit.friction.lo <= dev.friction <= fit.friction.hi, (paths, fit.friction)
+    # its words in the protocol's units: a rotary joint's (the Haply's) in radians and
+    # newton metres (hapsim.drivers.base.Driver.rotary), every other in metres and newtons
+    from hapsim.drivers import get_driver
+    text = rep.device_yaml(st.force_limit, driver=None if st.driver == DEFAULT else
+                           get_driver(st.driver, **(st.driver_options or {})))
+    if st.driver == "haply":
+        assert "urad" in fit.verdict and " um" not in fit.verdict, fit.verdict
+        assert "[kg m^2]" in text and "N m)" in text, text
+    else:
+        assert "urad" not in fit.verdict and "[kg m^2]" not in text, (fit.verdict, text)
 
 
 def test_the_firefader_scene_identifies_on_the_command_line_with_nothing_else(capsys):

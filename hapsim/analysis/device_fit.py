@@ -173,7 +173,7 @@ def _fraction_and_refine(cands, x, T, late, st, known, seq, f, holds):
 
 def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                holds=("zoh", "ideal"), lag: int = 50, applied=None, seq=None,
-               ambiguous_delay: str = "range") -> DeviceFit:
+               ambiguous_delay: str = "range", length_unit: str = "m") -> DeviceFit:
     """Identify mass, friction, Coulomb friction, delay, hold, quantum and noise.
 
     Parameters
@@ -212,6 +212,10 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         ``delay_range`` holding every such delay, the intervals covering their estimates
         and the verdict naming two of them; ``"refuse"`` raises (a model that explains
         the data; one that does not says so in its verdict either way).
+    length_unit : str
+        The positions' unit in the messages (``"m"``; ``"rad"`` on a rotary axis,
+        :attr:`hapsim.drivers.base.Driver.rotary`): the figures are the same, only said
+        in it (micro-units).
 
     Returns
     -------
@@ -386,7 +390,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     if len(same) > 1:
         rival = min((c for c in cands if c["delay"] != best["delay"] and close(c)),
                     key=lambda c_: c_["cost"])
-        ambiguity = ambiguity_sentence(best, rival, nu, n_lr, q.value)
+        ambiguity = ambiguity_sentence(best, rival, nu, n_lr, q.value, length_unit)
         if ambiguous_delay == "refuse" and explains(best_residual(best), q.value)[0]:
             raise IdentificationError(
                 f"{ambiguity}; no delay is chosen -- raise --force-limit or --duration for "
@@ -424,7 +428,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
         if counts <= n_par:
             raise IdentificationError(
                 f"the record does not determine the device: {counts} encoder steps "
-                f"({q.value * 1e6:.3g} um) on the {mod.starts.size} stretches of clear "
+                f"({q.value * 1e6:.3g} u{length_unit}) on the {mod.starts.size} stretches of clear "
                 f"motion, for {n_par} parameters (each stretch's position and velocity, "
                 f"the mass and frictions); between steps the encoder only says the "
                 f"handle is inside one cell (raise --force-limit or --duration)")
@@ -450,7 +454,7 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
             if boot.shape[0] < REPLICATES // 2:
                 raise IdentificationError(
                     f"the record does not determine the device: fitted again through the "
-                    f"same {q.value * 1e6:.3g} um encoder, {REPLICATES - boot.shape[0]} of "
+                    f"same {q.value * 1e6:.3g} u{length_unit} encoder, {REPLICATES - boot.shape[0]} of "
                     f"{REPLICATES} replicates of it fail (raise --force-limit or "
                     f"--duration)")
 
@@ -579,11 +583,12 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
     freqs = np.fft.rfftfreq(resid.size, T)
     peak = float(freqs[1 + int(np.argmax(spec[1:]))]) if spec.size > 1 else 0.0
     if explained:
-        verdict = (f"the 2nd-order model explains the data: residual RMS {rms * 1e6:.3g} um "
-                   f"against the sensor's {floor * 1e6:.3g} um (quantum and white noise)")
+        verdict = (f"the 2nd-order model explains the data: residual RMS {rms * 1e6:.3g} "
+                   f"u{length_unit} against the sensor's {floor * 1e6:.3g} u{length_unit} (quantum and white noise)")
     else:
         verdict = (f"the 2nd-order model does NOT explain the data: residual RMS "
-                   f"{rms * 1e6:.3g} um against the sensor's {floor * 1e6:.3g} um; the "
+                   f"{rms * 1e6:.3g} u{length_unit} against the sensor's {floor * 1e6:.3g} "
+                   f"u{length_unit}; the "
                    f"residual peaks near {peak:.3g} Hz (a resonance or a compliant "
                    f"transmission the mass-friction model cannot fit, or a nonlinearity)")
     if ambiguity is not None:

@@ -170,7 +170,7 @@ def best_residual(best) -> np.ndarray:
     return mod.residual(best["_res"].x)
 
 
-def ambiguity_sentence(best, rival, nu, n_eff, q) -> str:
+def ambiguity_sentence(best, rival, nu, n_eff, q, length_unit: str = "m") -> str:
     """The sentence naming two delays a record cannot tell apart.
 
     Parameters
@@ -182,7 +182,9 @@ def ambiguity_sentence(best, rival, nu, n_eff, q) -> str:
     n_eff : float
         Effective samples of the likelihood ratio (:func:`effective_samples`).
     q : float >= 0
-        Encoder quantum [m].
+        Encoder quantum [m] ([rad] on a rotary axis).
+    length_unit : str
+        The positions' unit, said in micro-units (``"m"``, or ``"rad"``).
 
     Returns
     -------
@@ -190,8 +192,8 @@ def ambiguity_sentence(best, rival, nu, n_eff, q) -> str:
     """
     def said(c_):
         return (f"d = {c_['delay']} ({c_['hold']} hold, residual RMS "
-                f"{math.sqrt(2.0 * c_['cost'] / nu) * 1e6:.3g} um)")
-    enc = f"a {q * 1e6:.3g} um encoder" if q > 0 else "the sensor's noise"
+                f"{math.sqrt(2.0 * c_['cost'] / nu) * 1e6:.3g} u{length_unit})")
+    enc = f"a {q * 1e6:.3g} u{length_unit} encoder" if q > 0 else "the sensor's noise"
     return (f"the delay is ambiguous: {said(best)} and {said(rival)} explain the record "
             f"alike (likelihood ratio within the {LEVEL:.1%} chi-square bound over "
             f"{n_eff:.0f} effective samples of {nu}: the residual of {enc} is correlated)")

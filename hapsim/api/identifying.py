@@ -58,6 +58,14 @@ class IdentifyReport(Report):
         return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
 
 
+def _length_unit(driver) -> str:
+    """The positions' unit the protocol ``driver`` carries: ``"rad"`` for a rotary axis
+    (:attr:`hapsim.drivers.base.Driver.rotary`), else ``"m"``."""
+    from hapsim.drivers import family
+    cls = family(driver or DEFAULT).load()
+    return "rad" if getattr(cls, "rotary", False) else "m"
+
+
 def identify(port: str | None = None, *, scene=None, driver: str | None = None,
              baud: int = 115200, device=None, force_limit: float | None = None,
              envelope: float | None = None, duration: float | None = None,
@@ -293,7 +301,7 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
             try:
                 fit = fit_device(rec["position"], rec["force"], rec["period"],
                                  late=rec["late"], max_delay=max_delay + 1, applied=acc,
-                                 seq=seq)
+                                 seq=seq, length_unit=_length_unit(driver))
             except IdentificationError as exc:
                 raise IdentificationError(f"{exc}{_safety_note(rec, envelope)}") from None
             except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:
