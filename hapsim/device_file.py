@@ -45,12 +45,8 @@ def device_yaml(fit, force_limit: float, *, hand: bool = False, source: str = ""
         be replaced by (:func:`load_device`, ``hapsim run --device``).
     """
     lv = f"{fit.level * 100:g}"
-    # a rotary axis's units (hapsim.drivers.base.Driver.rotary): the fit's figures are the
-    # same numbers, in the units the driver's protocol carries
-    if getattr(driver, "rotary", False):
-        u = {"mass": "kg m^2", "friction": "N m s/rad", "force": "N m", "position": "rad"}
-    else:
-        u = {"mass": "kg", "friction": "N s/m", "force": "N", "position": "m"}
+    from hapsim.drivers import axis_units
+    u = axis_units(driver)        # (the fit's figures, in the units its protocol carries)
 
     def iv(e, scale=1.0, unit=""):
         return f"[{e.lo * scale:.4g}, {e.hi * scale:.4g}]{unit}"

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from hapsim.drivers import DEFAULT
+from hapsim.drivers import DEFAULT, axis_units
 from hapsim.errors import ConfigError, DeviceError, HapsimError, IdentificationError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
@@ -56,14 +56,6 @@ class IdentifyReport(Report):
         ``driver``: the :class:`hapsim.drivers.base.Driver` whose protocol it names)."""
         from hapsim.device_file import device_yaml
         return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
-
-
-def _length_unit(driver) -> str:
-    """The positions' unit the protocol ``driver`` carries: ``"rad"`` for a rotary axis
-    (:attr:`hapsim.drivers.base.Driver.rotary`), else ``"m"``."""
-    from hapsim.drivers import family
-    cls = family(driver or DEFAULT).load()
-    return "rad" if getattr(cls, "rotary", False) else "m"
 
 
 def identify(port: str | None = None, *, scene=None, driver: str | None = None,
@@ -301,7 +293,7 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
             try:
                 fit = fit_device(rec["position"], rec["force"], rec["period"],
                                  late=rec["late"], max_delay=max_delay + 1, applied=acc,
-                                 seq=seq, length_unit=_length_unit(driver))
+                                 seq=seq, length_unit=axis_units(driver)["position"])
             except IdentificationError as exc:
                 raise IdentificationError(f"{exc}{_safety_note(rec, envelope)}") from None
             except (ArithmeticError, np.linalg.LinAlgError, ValueError) as exc:

@@ -27,7 +27,7 @@ import importlib
 from hapsim.errors import ConfigError
 
 __all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver", "device_driver",
-           "protocol_of"]
+           "protocol_of", "axis_units"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +151,35 @@ def family(name: str, dimension: int = 1) -> Family:
     raise ConfigError("a 2-D or 3-D scene takes " + " or ".join(
         f"--driver {f.name} ({f.device})" for f in FAMILIES if f.dimension > 1)
         + f", not {name!r}", key="--driver")
+
+
+def axis_units(driver) -> dict:
+    """The units a protocol's values are in: a rotary axis's
+    (:attr:`hapsim.drivers.base.Driver.rotary`: the Haply joint) or the SI ones of a
+    linear axis. The one place they are chosen (identify's device file and fit's words).
+
+    Parameters
+    ----------
+    driver : hapsim.drivers.base.Driver or str or None
+        A driver, or its class, or its name (:data:`DRIVERS`); None or ``"framed"``: the
+        framed protocol's (SI).
+
+    Returns
+    -------
+    dict
+        ``mass``, ``friction``, ``force``, ``position``: ``"kg"``, ``"N s/m"``, ``"N"``,
+        ``"m"``, or ``"kg m^2"``, ``"N m s/rad"``, ``"N m"``, ``"rad"``.
+
+    Raises
+    ------
+    ConfigError
+        An unknown driver name (the valid ones listed).
+    """
+    if isinstance(driver, str):
+        driver = family(driver).load()
+    if getattr(driver, "rotary", False):
+        return {"mass": "kg m^2", "friction": "N m s/rad", "force": "N m", "position": "rad"}
+    return {"mass": "kg", "friction": "N s/m", "force": "N", "position": "m"}
 
 
 def protocol_of(scene, driver: str | None) -> tuple[str, str]:
