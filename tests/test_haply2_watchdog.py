@@ -202,7 +202,8 @@ def _faulted_host(action: str, robust: bool = True, at: int = 305):
     return rep, gone
 
 
-def _stray_came_first(action: str, robust: bool = True, tries: int = 3):
+def _stray_came_first(action: str, robust: bool = True, tries: int = 3,
+                      tells=None):
     """:func:`_faulted_host` for a test whose premise is that the stray byte reached the
     board before the watchdog could write in the host's silence. A run whose host was
     descheduled for the bound or more between its last write and the stray byte
@@ -219,6 +220,10 @@ def _stray_came_first(action: str, robust: bool = True, tries: int = 3):
     stray byte, the beat then fresh: once in CI, a hold of 23.9 ms, the host's silence
     before the stray byte under the bound).
 
+    ``tells(rep)``, when given, is the rest of a test's premise: whether the run can
+    tell what the test tells apart (False: the emulator itself was late by so much that
+    both outcomes fit its bounds); such a run is made again too.
+
     Returns
     -------
     rep, gone
@@ -230,15 +235,19 @@ def _stray_came_first(action: str, robust: bool = True, tries: int = 3):
         assert rep is not None and gone, (rep, gone)
         silent = rep.get("host_silent_s")
         assert silent is not None, rep          # (the host printed its two times)
-        if silent < HOLD_BOUND_S and not rep.get("fired_before_stray"):
+        if (silent < HOLD_BOUND_S and not rep.get("fired_before_stray")
+                and (tells is None or tells(rep))):
             return rep, gone
         if robust:
             assert rep["held_at_end"] == 0.0, rep
         late.append(f"{silent * 1e3:.1f} ms"
-                    + (", the watchdog's write first" if rep.get("fired_before_stray") else ""))
+                    + (", the watchdog's write first" if rep.get("fired_before_stray") else "")
+                    + (f", the emulator {rep['longest_gap_s'] * 1e3:.1f} ms late"
+                       if tells is not None and not tells(rep) else ""))
     pytest.fail(f"in {tries} runs the host was descheduled for the bound "
                 f"({HOLD_BOUND_S * 1e3:g} ms) or more between its last write and the stray "
-                f"byte, or the watchdog wrote before the stray byte ({'; '.join(late)}): "
+                f"byte, or the watchdog wrote before the stray byte, or the emulator was "
+                f"too late to tell ({'; '.join(late)}): "
                 "the machine's load, not the watchdog, but the test's premise could not be "
                 "made")
 
@@ -309,7 +318,15 @@ def test_a_lossy_2diy_link_stopped_in_the_bytes_that_lost_its_place_gets_the_rob
     ``ROBUST_AFTER`` bounds, a check and the latency, plus the robust write's own time
     and the board's lateness. (On a link that has lost nothing no robust write goes in a
     silence before evidence is read: docs/drivers.md, "The host's watchdog".)"""
-    rep, gone = _stray_came_first("stop at once")
+    def tells(rep):
+        # the zero command, taken, ends the hold by the bound, a check, the latency and
+        # the emulator's own lateness; the robust write goes at ROBUST_AFTER bounds: an
+        # emulator late by the difference cannot tell them (under a sampling profiler
+        # once: 94 ms late, a hold of 66 ms, the robust write's, against 129 ms)
+        return (HOLD_BOUND_S + CHECK_S + rep["watchdog_latency_s"] + rep["longest_gap_s"]
+                < ROBUST_AFTER * HOLD_BOUND_S)
+
+    rep, gone = _stray_came_first("stop at once", tells=tells)
     assert rep["held_at_end"] == 0.0, rep
     bound = ROBUST_AFTER * HOLD_BOUND_S + CHECK_S + rep["watchdog_latency_s"]
     assert rep["longest_hold_s"] <= bound + ROBUST_S + rep["longest_gap_s"], (

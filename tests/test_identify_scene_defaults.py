@@ -96,6 +96,8 @@ def test_a_shipped_scene_identifies_with_the_defaults(paths):
     from hapsim.drivers import get_driver
     text = rep.device_yaml(st.force_limit, driver=None if st.driver == DEFAULT else
                            get_driver(st.driver, **(st.driver_options or {})))
+    # the report knows the driver it identified through: without one it says the same
+    assert rep.device_yaml(st.force_limit) == text
     if st.driver == "haply":
         assert "urad" in fit.verdict and " um" not in fit.verdict, fit.verdict
         assert "[kg m^2]" in text and "N m)" in text, text

@@ -52,9 +52,30 @@ class IdentifyReport(Report):
     error: dict | None = None
 
     def device_yaml(self, force_limit: float = 2.0, driver=None) -> str:
-        """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``;
-        ``driver``: the :class:`hapsim.drivers.base.Driver` whose protocol it names)."""
+        """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``).
+
+        Parameters
+        ----------
+        force_limit : float
+            The excitation's force limit (its comment) [N] ([N m] on a rotary axis).
+        driver : hapsim.drivers.base.Driver, optional
+            The driver whose protocol and units it names; default the one this report
+            identified through (``loop.settings.driver`` with the record's
+            ``protocol_options``: a Haply joint's file then says [kg m^2]), the framed
+            protocol's SI units where the report has none.
+
+        Returns
+        -------
+        str
+            YAML text (:func:`hapsim.device_file.device_yaml`).
+        """
         from hapsim.device_file import device_yaml
+        if driver is None:
+            name = (self.loop.get("settings") or {}).get("driver")
+            if name is not None and name != DEFAULT:
+                from hapsim.drivers import get_driver
+                rec = getattr(self, "record", None) or {}
+                driver = get_driver(name, **(rec.get("protocol_options") or {}))
         return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
 
 
@@ -181,7 +202,8 @@ def identify(port: str | None = None, *, scene=None, driver: str | None = None,
                          driver_options=driver_options, mock_options=mock_options,
                          travel=travel, rt_priority=rt_priority)
     # what it ran with, each value given or its default (hapsim.pipeline.identify_settings)
-    rec["loop"]["settings"] = {"protocol": st.said, "rate_hz": rate_hz, "duration": duration,
+    rec["loop"]["settings"] = {"protocol": st.said, "driver": driver,
+                               "rate_hz": rate_hz, "duration": duration,
                                "force_limit": force_limit, "envelope": envelope}
     d = {"device": fit.to_dict(), "loop": rec["loop"], "hand": bool(hand), "out": None,
          "plot": None, "error": rec["loop"].get("error")}
