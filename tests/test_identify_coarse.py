@@ -171,7 +171,8 @@ def test_a_record_that_hardly_moved_says_how_much_more_it_needs(moving_rows):
     msg = str(info.value)
     if moving_rows:
         found = moving_rows - 10
-        assert f"({found} in {n} samples: raise --force-limit, or --duration to about " \
+        assert f"({found} in {n} samples: raise --force-limit, --envelope (the reach it " \
+               f"moves within), or --duration to about " \
                f"{math.ceil(1.5 * 100 / found * n * T)} s at this pace)" in msg, msg
     else:
         assert "no stretch of it moved one way" in msg, msg

@@ -113,16 +113,19 @@ MIN_MOVING = 100
 
 def _more_motion(moving: int, n: int, T: float) -> str:
     """What to change when a record of ``n`` samples of ``T`` [s] held ``moving`` samples
-    of clear motion, fewer than :data:`MIN_MOVING`: the force, or the duration that the
-    same pace of motion would fill (the record's own rate, 1.5 times over), as a
+    of clear motion, fewer than :data:`MIN_MOVING`: the force, the envelope (the
+    excitation reverses within it: a coarse encoder's counts over a narrow envelope, the
+    Haply joint's 0.01 rad, are few), or the duration that the same pace of motion would
+    fill (the record's own rate, 1.5 times over), as a
     coarse encoder at a low rate needs (the FireFader's 0.39 mm counts at 250 Hz: 4 s
     of its default excitation were too few, 8 s identified it)."""
     if moving <= 0:
         return ("no stretch of it moved one way by more than 1.5 sensor steps and the "
-                "noise over 10 samples: raise --force-limit or --duration")
+                "noise over 10 samples: raise --force-limit, --envelope (the reach it "
+                "moves within) or --duration")
     need = math.ceil(1.5 * MIN_MOVING / moving * n * T)
-    return (f"{moving} in {n} samples: raise --force-limit, or --duration to about "
-            f"{need} s at this pace")
+    return (f"{moving} in {n} samples: raise --force-limit, --envelope (the reach it "
+            f"moves within), or --duration to about {need} s at this pace")
 
 
 def _stretches_fitted(r, offs, share=0.0):
@@ -431,7 +434,8 @@ def fit_device(position, force, period: float, *, late=None, max_delay: int = 5,
                 f"({q.value * 1e6:.3g} u{length_unit}) on the {mod.starts.size} stretches of clear "
                 f"motion, for {n_par} parameters (each stretch's position and velocity, "
                 f"the mass and frictions); between steps the encoder only says the "
-                f"handle is inside one cell (raise --force-limit or --duration)")
+                f"handle is inside one cell (raise --force-limit, --envelope or "
+                f"--duration)")
     t_q = float(stdtrit(max(REPLICATES - 1, 1), 0.5 + LEVEL / 2))   # scipy.stats.t.ppf's
 
     def intervals(mod_c, ym_c, p_c, J_c, nn_c):
