@@ -141,3 +141,44 @@ def _cli(argv):
     cmd.register(parser.add_subparsers())
     args = parser.parse_args(argv)
     return args.func(args)
+
+
+ONE_D_DRIVERS = [f.name for f in FAMILIES if f.dimension == 1 and f.driver]
+
+
+@pytest.mark.parametrize("name", ONE_D_DRIVERS)
+def test_without_a_scene_every_1d_protocols_defaults_are_held_by_its_board(name):
+    """``hapsim identify --driver NAME`` with nothing else (over a port or on the mock):
+    the default rate is one the board holds (its own refusal, :meth:`check_rate`, is the
+    test), 1000 Hz where it can (before, 1000 Hz for every board: refused on the FireFader
+    and the Hapkit sketch), and the envelope spans more than a few of the protocol's
+    encoder counts. The rate and envelope are derived from the driver, not listed here:
+    a new 1-D family is in the class."""
+    from hapsim.drivers import get_driver
+    from hapsim.pipeline.identify_settings import DEFAULT_RATE_HZ, RATE_LADDER
+    st = identify_settings(None, driver=name)
+    drv = get_driver(name, **(st.driver_options or {}))
+    drv.check_rate(st.rate_hz)                              # held: no ConfigError
+    # the highest the ladder offers it: the default never leaves a higher held rate
+    higher = [r for r in drv.board_rates(RATE_LADDER) if r > st.rate_hz]
+    assert not higher and st.rate_hz <= DEFAULT_RATE_HZ, (st.rate_hz, higher)
+    # the mock's device is the protocol's own where it has one, hapsim's default else
+    assert (st.device is None) == (drv.identify_device is None), st.device
+    assert st.envelope >= (drv.identify_envelope or 0.01)
+
+
+def test_the_haply_joint_identifies_with_nothing_but_its_driver():
+    """The Haply joint without a scene, in lockstep: the protocol's own device and reach
+    (:attr:`hapsim.drivers.haply.HaplyDriver.identify_device`): its inertia and friction
+    inside their intervals, in its units. Before: hapsim's default mock device (0.1
+    kg m^2 read as an inertia) did not turn under the board's 0.123 N m ("the motor
+    direction cannot be found"), and 0.01 rad spans 8 of its counts. About 2.5 CPU-s."""
+    rep = identify(driver="haply", lockstep=True)
+    dev = identify_settings(None, driver="haply").device
+    fit = rep.fit
+    assert fit.explained, fit.verdict
+    assert fit.mass.lo <= dev.mass <= fit.mass.hi, fit.mass
+    assert fit.friction.lo <= dev.friction <= fit.friction.hi, fit.friction
+    assert rep.loop["settings"]["driver"] == "haply"
+    assert rep.loop["settings"]["protocol"] == "the haply protocol (--driver)"
+    assert "[kg m^2]" in rep.device_yaml(0.123)

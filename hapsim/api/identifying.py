@@ -105,19 +105,23 @@ def identify(port: str | None = None, *, scene=None, driver: str | None = None,
         ``device.protocol``, else ``"framed"``.
     baud : int
     device : hapsim.scene.Device, optional
-        What the mock models (default m = 0.1 kg, b0 = 0.5 N s/m, d = 1).
+        What the mock models (default the protocol's
+        :attr:`~hapsim.drivers.base.Driver.identify_device`, else m = 0.1 kg,
+        b0 = 0.5 N s/m, d = 1).
     force_limit : float, optional
         Largest force sent [N]; default 2, or the scene's device or protocol limit where
         smaller (:func:`~hapsim.pipeline.identify_settings.default_force_limit`).
     envelope : float, optional
         Position envelope [m] around the start; beyond it the excitation stops. Default
-        0.01, or the scene's ``|excitation.x0|`` where larger
+        0.01 (the protocol's own where it has one), or the scene's ``|excitation.x0|``
+        where larger
         (:func:`~hapsim.pipeline.identify_settings.default_envelope`).
     duration : float, optional
         Excitation length [s]; default from the rate
         (:func:`~hapsim.pipeline.identify_settings.default_duration`: 4 s at 1 kHz).
     rate_hz : float, optional
-        Loop rate [Hz]; default the scene's ``rate_hz``, else 1000.
+        Loop rate [Hz]; default the scene's ``rate_hz``, else 1000 or the highest rate
+        of a ladder the board holds (:func:`~hapsim.pipeline.identify_settings.default_rate`).
     max_delay : int
         Largest device delay tried [samples].
     lockstep : bool
@@ -188,7 +192,7 @@ def identify(port: str | None = None, *, scene=None, driver: str | None = None,
                            force_limit=force_limit, envelope=envelope, hand=hand,
                            driver_options=driver_options if driver is not None or
                            scene is not None else None)
-    if scene is not None:
+    if device is None:              # the scene's, or the protocol's where no scene says
         device = st.device
     if st.driver_options is not None:       # a driver's: the scene's, updated by those given
         driver_options = st.driver_options

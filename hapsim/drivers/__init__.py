@@ -209,6 +209,8 @@ def protocol_of(scene, driver: str | None) -> tuple[str, str]:
         return named, (f"the {named} protocol" + ("" if named == DEFAULT
                                                    else " (the scene's device.protocol)"))
     if driver != named:
+        if device is None:          # no scene (or none with a device): nothing to contrast
+            return driver, f"the {driver} protocol (--driver)"
         return driver, (f"the {driver} protocol (--driver; the scene's device.protocol "
                         f"is {named})")
     return driver, f"the {driver} protocol"

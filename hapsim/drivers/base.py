@@ -295,6 +295,12 @@ class Driver:
     #: The axis turns (one joint): a scene's and an identification's values are in
     #: rotary units (inertia [kg m^2], torque [N m], angle [rad]), not [kg], [N], [m].
     rotary = False
+    #: What ``hapsim identify`` through this protocol takes where no scene says: the
+    #: embedded mock's device (:class:`hapsim.scene.Device` fields over
+    #: :data:`hapsim.device_model.DEFAULT_DEVICE`) and the envelope [the protocol's
+    #: units]; None: hapsim's defaults (:mod:`hapsim.pipeline.identify_settings`).
+    identify_device: dict | None = None
+    identify_envelope: float | None = None
     #: The device's position scale can be found by a sweep between its end stops
     #: (``hapsim identify --travel``; :mod:`hapsim.drivers.firefader_travel`).
     travel_sweep = False

@@ -256,6 +256,13 @@ class HaplyM3(Driver):
 
     name = "haply"
     rotary = True
+    #: ``hapsim identify --driver haply`` without a scene: a joint in the range of the
+    #: shipped scene's (configs/haply.yaml: 0.001 kg m^2, 0.001 N m s/rad), and the
+    #: scene's 0.2 rad of reach. hapsim's default mock device read in these units (0.1
+    #: kg m^2, 0.5 N m s/rad) did not turn 3 counts under the board's 0.123 N m, and
+    #: 0.01 rad spans 8 of its encoder's counts: "hardly moved".
+    identify_device = {"mass": 0.001, "friction": 0.001}
+    identify_envelope = 0.2
     baud = 115200                     # USB CDC: ignored
     rtscts = False
     native_rate_hz = 1000.0

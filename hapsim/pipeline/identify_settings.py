@@ -11,13 +11,18 @@ The defaults (docs/identify.md, "The defaults"):
 - the protocol: ``--driver``, else the scene's ``device.protocol``, as ``hapsim run``
   takes it (:func:`hapsim.drivers.protocol_of`: one rule), with the scene's
   ``device.protocol_options`` when the protocol is the scene's;
-- the rate: ``--rate``, else the scene's ``rate_hz``, else 1000 Hz;
+- the rate: ``--rate``, else the scene's ``rate_hz``, else 1000 Hz or, through a board
+  that cannot hold it, the highest rate of :data:`RATE_LADDER` it holds
+  (:func:`default_rate`: the FireFader's 250 Hz, the Hapkit sketch's 201.613 Hz);
+- without a scene, the embedded mock's device and the envelope the protocol's own where
+  it has them (:attr:`hapsim.drivers.base.Driver.identify_device`: the Haply joint's);
 - the duration (:func:`default_duration`): the probe's longest time plus 16 times the
   fit's samples of clear motion, and never less than 4 s;
 - the force limit (:func:`default_force_limit`): 2 N, or less where the scene's device or
   its protocol allows less;
-- the envelope (:func:`default_envelope`): 0.01, or the scene's own start ``|x0|`` where
-  it is larger (in the scene's units: a rotary axis's radians).
+- the envelope (:func:`default_envelope`): 0.01 (the protocol's own where it has one),
+  or the scene's own start ``|x0|`` where it is larger (in the scene's units: a rotary
+  axis's radians).
 """
 
 from __future__ import annotations
@@ -28,11 +33,15 @@ import math
 from hapsim.errors import ConfigError
 
 __all__ = ["IdentifySettings", "identify_settings", "default_duration",
-           "default_force_limit", "default_envelope", "DEFAULT_RATE_HZ",
+           "default_force_limit", "default_envelope", "default_rate", "DEFAULT_RATE_HZ",
+           "RATE_LADDER",
            "DEFAULT_FORCE_LIMIT", "DEFAULT_ENVELOPE", "DURATION_FLOOR_S", "MOVING_FACTOR"]
 
 #: The loop rate without ``--rate`` or a scene [Hz].
 DEFAULT_RATE_HZ = 1000.0
+#: The rates a board that cannot hold :data:`DEFAULT_RATE_HZ` is offered, increasing [Hz]
+#: (its highest held is the default: :func:`default_rate`).
+RATE_LADDER = (100.0, 200.0, 250.0, 500.0, 1000.0)
 #: The largest force sent without ``--force-limit`` [N], where neither the scene's device
 #: nor its protocol allows less.
 DEFAULT_FORCE_LIMIT = 2.0
@@ -59,7 +68,9 @@ class IdentifySettings:
     ----------
     device : hapsim.scene.Device or None
         The scene's device (what the embedded mock models), without the scene's hand
-        unless ``hand``; None without a scene.
+        unless ``hand``; without a scene the protocol's
+        (:attr:`hapsim.drivers.base.Driver.identify_device`), else None (hapsim's
+        default mock device).
     driver : str
         The protocol (:data:`hapsim.drivers.DRIVERS`).
     said : str
@@ -124,6 +135,35 @@ def default_duration(rate_hz: float) -> float:
     return max(DURATION_FLOOR_S, math.ceil(round(need * 10.0, 6)) / 10.0)
 
 
+def default_rate(driver=None) -> float:
+    """The loop rate when neither ``--rate`` nor a scene gives one [Hz]:
+    :data:`DEFAULT_RATE_HZ`, or through a board that cannot hold it the highest rate of
+    :data:`RATE_LADDER` it holds (:meth:`hapsim.drivers.base.Driver.board_rates`: its
+    round trip, and the Hapkit sketch's whole ticks).
+
+    Before, 1000 Hz was refused on the FireFader (a 2.99 ms round trip) and the Hapkit
+    sketch (4.27 ms): ``hapsim identify --driver firefader`` failed with its defaults.
+
+    Parameters
+    ----------
+    driver : hapsim.drivers.base.Driver, optional
+        The protocol's driver; None: hapsim's framed protocol (no bound of its own).
+
+    Returns
+    -------
+    float
+        Rate [Hz]: 1000 where the board holds it; the FireFader's 250, the Hapkit
+        sketch's 201.613 (5 of its 0.992 ms ticks); 1000 where it holds none of the
+        ladder (its own refusal then says why).
+    """
+    if driver is None:
+        return DEFAULT_RATE_HZ
+    held = driver.board_rates(RATE_LADDER)
+    if not held or held[-1] >= DEFAULT_RATE_HZ:
+        return DEFAULT_RATE_HZ
+    return float(held[-1])
+
+
 def default_force_limit(device=None, driver=None) -> float:
     """The largest force sent when none is given [N]: :data:`DEFAULT_FORCE_LIMIT`, or the
     scene's ``device.force_limit`` or the protocol's own limit where smaller.
@@ -153,9 +193,10 @@ def default_force_limit(device=None, driver=None) -> float:
     return min(limits)
 
 
-def default_envelope(scene=None) -> float:
-    """The position envelope when none is given: :data:`DEFAULT_ENVELOPE`, or the scene's
-    own start ``|excitation.x0|`` where it is larger.
+def default_envelope(scene=None, driver=None) -> float:
+    """The position envelope when none is given: :data:`DEFAULT_ENVELOPE` (the protocol's
+    own, :attr:`hapsim.drivers.base.Driver.identify_envelope`, where it has one), or the
+    scene's own start ``|excitation.x0|`` where it is larger.
 
     The scene's start is an excursion its device is already asked to make, in the scene's
     units: 0.01 is metres, and on a rotary axis (the Haply joint of ``configs/haply.yaml``,
@@ -166,18 +207,21 @@ def default_envelope(scene=None) -> float:
     ----------
     scene : hapsim.scene.Scene, optional
         A 1-D scene (its ``excitation.x0``).
+    driver : hapsim.drivers.base.Driver, optional
+        The protocol's driver (its ``identify_envelope``).
 
     Returns
     -------
     float
         The envelope's half-width [m] (the scene's units).
     """
+    base = getattr(driver, "identify_envelope", None) or DEFAULT_ENVELOPE
     x0 = getattr(getattr(scene, "excitation", None), "x0", 0.0)
     try:
         x0 = abs(float(x0))
     except (TypeError, ValueError):
         x0 = 0.0
-    return max(DEFAULT_ENVELOPE, x0) if math.isfinite(x0) else DEFAULT_ENVELOPE
+    return max(base, x0) if math.isfinite(x0) else base
 
 
 def identify_settings(scene=None, *, driver: str | None = None,
@@ -240,10 +284,13 @@ def identify_settings(scene=None, *, driver: str | None = None,
     elif driver_options:
         raise ConfigError("the framed protocol takes no options (its device says its units "
                           "in HELLO); give --driver", key="--protocol-option")
+    if scene is None and getattr(drv, "identify_device", None):
+        from hapsim.device_model import DEFAULT_DEVICE
+        device = dataclasses.replace(DEFAULT_DEVICE, **drv.identify_device)
     if rate_hz is None:
-        rate_hz = float(scene.rate_hz) if scene is not None else DEFAULT_RATE_HZ
+        rate_hz = float(scene.rate_hz) if scene is not None else default_rate(drv)
     return IdentifySettings(
         device=device, driver=name, said=said, driver_options=opts, rate_hz=float(rate_hz),
         duration=default_duration(rate_hz) if duration is None else duration,
         force_limit=default_force_limit(device, drv) if force_limit is None else force_limit,
-        envelope=default_envelope(scene) if envelope is None else envelope)
+        envelope=default_envelope(scene, drv) if envelope is None else envelope)
