@@ -350,3 +350,67 @@ def test_a_device_lost_mid_sweep_reports_the_points_measured(seed, capsys, monke
     assert rep["error"]["type"] == "DeviceError"
     assert rep["points"] == whole[:n]                   # (lockstep: the same records)
     assert err.strip().splitlines()[-1].startswith("hapsim zwidth: DeviceError: device lost")
+
+
+def _shipped_one_d_devices():
+    """Every shipped one-device 1-D scene of configs/ (path, scene)."""
+    import pathlib
+
+    from hapsim.scene import load_scene, scene_dimension, scene_has_ports
+    root = pathlib.Path(__file__).resolve().parents[1] / "configs"
+    out = []
+    for p in sorted(root.glob("*.yaml")):
+        if scene_has_ports(str(p)) or scene_dimension(str(p)) > 1:
+            continue
+        sc = load_scene(str(p))
+        if sc.device is not None:
+            out.append((p.name, sc))
+    return out
+
+
+@pytest.mark.parametrize("name,scene", _shipped_one_d_devices(),
+                         ids=[n for n, _ in _shipped_one_d_devices()])
+def test_every_default_damping_leaves_a_stable_stiffness_on_every_shipped_device(name,
+                                                                                  scene):
+    """``hapsim zwidth --scene SCENE`` without ``--B``: each default damping has a
+    positive, finite predicted limit (the exact linear one, hapsim stability) on every
+    shipped 1-D device, so each point can be measured. Before, the fixed 0, 1.5, 4 N s/m
+    on the Haply joint (0.001 kg m^2 at 1 kHz: B T / m = 1.5) had K_max = 0 at 1.5 and 4:
+    nothing to measure, exit 1. The reference device keeps the old dampings, and a
+    scaled list keeps their B T / m."""
+    from hapsim.analysis.stability import stability_limit
+    from hapsim.analysis.zwidth import DEFAULT_DAMPINGS, default_dampings, device_loop
+    Bs = default_dampings(scene.device.mass, scene.rate_hz)
+    loop = device_loop(scene.device, scene.rate_hz)
+    for B in Bs:
+        K = stability_limit(loop, B)
+        assert 0.0 < K < float("inf"), (name, B, K)
+    m_rate = scene.device.mass * scene.rate_hz
+    if m_rate >= 100.0:
+        assert Bs == list(DEFAULT_DAMPINGS)
+    else:                                       # the same B T / m as the reference's
+        for B, B0 in zip(Bs, DEFAULT_DAMPINGS):
+            # kept to 6 significant digits, the rounding's bound: half a unit of the 6th, a
+            # relative 5e-6 of a leading digit of 1
+            assert B / m_rate == pytest.approx(B0 / 100.0, rel=5e-6)
+
+
+def test_the_haply_scenes_z_width_is_measured_with_the_defaults(capsys):
+    """The shipped Haply scene, lockstep, nothing else: every point measured, in the
+    joint's units (1.4 CPU-s)."""
+    rc = main(["zwidth", "--scene", "configs/haply.yaml", "--lockstep"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "B [N m s/rad]" in out and "kg m^2" in out, out
+
+
+def test_a_damping_that_leaves_no_stable_stiffness_is_named_so():
+    """A predicted limit of 0 (the virtual damping alone destabilises the sampled loop)
+    is said as such, not as a limit that is not finite, and nothing is recorded."""
+    from hapsim.analysis.zwidth import locate_onset
+
+    def measure(K, B):
+        raise AssertionError("no record is made")
+    Km, iv, trials, note = locate_onset(measure, 4.0, 0.0)
+    assert Km is None and iv is None and trials == []
+    assert "K_max = 0" in note and "smaller B" in note, note

@@ -40,7 +40,14 @@ from hapsim.outputs import finite_or_none
 
 __all__ = ["Trial", "ZPoint", "predicted_coulomb", "locate_onset", "wall_scene",
            "device_loop", "release", "FORCE_SHARE", "MIN_GROWTH_TICKS", "RECORD_ATTEMPTS",
-           "record_side"]
+           "record_side", "default_dampings", "DEFAULT_DAMPINGS"]
+
+#: ``hapsim zwidth``'s virtual dampings without ``--B`` on its reference device (0.1 kg
+#: at 1 kHz, configs/wall.yaml's) [N s/m]; :func:`default_dampings` scales them to a
+#: lighter or slower one.
+DEFAULT_DAMPINGS = (0.0, 1.5, 4.0)
+#: The reference device's mass times its rate [kg Hz]: 0.1 kg at 1 kHz.
+_REFERENCE_M_RATE = 100.0
 
 #: Fewest ticks before a safety stop for an unidentified record to count as growing: from
 #: at most 30 % of the force limit a growth of 1 % per sample needs ~120 ticks to reach it,
@@ -206,6 +213,41 @@ class ZPoint:
                 "trials": [t.to_dict() for t in self.trials], "note": self.note}
 
 
+def default_dampings(mass, rate_hz: float) -> list:
+    """``hapsim zwidth``'s virtual dampings when ``--B`` is not given [N s/m] (a rotary
+    axis's [N m s/rad]): :data:`DEFAULT_DAMPINGS` on a device at least as heavy and fast as
+    the reference (0.1 kg at 1 kHz), else the same dimensionless dampings ``B T / m``
+    (0, 0.015, 0.04): scaled by ``m rate / (0.1 kg x 1 kHz)``.
+
+    The sampled loop's stability region depends on ``K T^2 / m`` and ``B T / m`` (with
+    the device's own ``b0 T / m`` and delay; the paper's eq. 12 normalised): 1.5 N s/m
+    on the Haply joint of configs/haply.yaml (0.001 kg m^2 at 1 kHz) is ``B T / m`` = 1.5,
+    where no stiffness is stable (K_max = 0: the sweep measured nothing and exited 1).
+    Devices at or above the reference keep the old dampings (their ``B T / m`` is smaller,
+    well inside the region).
+
+    Parameters
+    ----------
+    mass : float or array_like
+        The device's mass [kg] (an inertia on a rotary axis), or its mass matrix (its
+        smallest eigenvalue counts: the lightest direction).
+    rate_hz : float
+        Sample rate [Hz].
+
+    Returns
+    -------
+    list of float
+        Increasing dampings, the first 0.
+    """
+    import numpy as np
+    m = np.asarray(mass, float)
+    m = float(np.min(np.linalg.eigvalsh(m))) if m.ndim == 2 else float(m)
+    scale = min(1.0, m * float(rate_hz) / _REFERENCE_M_RATE)
+    if not (math.isfinite(scale) and scale > 0):
+        return list(DEFAULT_DAMPINGS)
+    return [float(f"{B * scale:.6g}") for B in DEFAULT_DAMPINGS]
+
+
 def device_loop(device, rate_hz: float, friction: float | None = None):
     """The linear loop model of a scene's device (optionally with another friction).
 
@@ -355,6 +397,10 @@ def locate_onset(measure, B: float, K_guess: float, *, tol: float = 2e-3,
     ``b(K)``: the next ``K`` is the secant root of the bracketing records, whose retained
     end's value is halved when the same end is kept twice, so both ends converge.
     """
+    if K_guess == 0.0:
+        return None, None, [], ("no stiffness is predicted stable with this damping "
+                                "(K_max = 0: the virtual damping alone destabilises the "
+                                "sampled loop): take a smaller B")
     if not (K_guess > 0 and math.isfinite(K_guess)):
         return None, None, [], "no finite predicted limit to start below"
     trials = []

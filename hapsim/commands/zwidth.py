@@ -78,8 +78,10 @@ def register(sub) -> None:
                    help="the embedded mock in lockstep, in process (deterministic); with "
                         "--firmware, the emulated board's clock paced by the host")
     p.add_argument("--B", type=Number(unit="N s/m"),
-                   nargs="+", default=[0.0, 1.5, 4.0], metavar="B",
-                   help="virtual dampings [N s/m] (default 0 1.5 4)")
+                   nargs="+", default=None, metavar="B",
+                   help="virtual dampings [N s/m] (default 0 1.5 4 on a device of 0.1 kg "
+                        "at 1 kHz or heavier and faster; on a lighter or slower one the "
+                        "same B T/m: scaled by mass x rate / 100 kg Hz)")
     p.add_argument("--x0", type=Number(unit="m"), default=None,
                    help="release position [m] (default the scene's excitation x0, or 5 mm)")
     p.add_argument("--duration", type=Number(float, low=0, open_low=True, unit="s"), default=0.3,
@@ -154,8 +156,8 @@ def run(args) -> int:
     from hapsim.errors import DeviceError, error_record
     from hapsim.outputs import say_error_after
     from hapsim.analysis.stability import stability_limit
-    from hapsim.analysis.zwidth import (ZPoint, device_loop, locate_onset, predicted_coulomb,
-                                        release)
+    from hapsim.analysis.zwidth import (ZPoint, default_dampings, device_loop, locate_onset,
+                                        predicted_coulomb, release)
     from hapsim.progress import Progress
 
     if args.lockstep and args.port:
@@ -173,6 +175,8 @@ def run(args) -> int:
     if not (math.isfinite(x0) and x0 > 0):
         raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
     flim = float(base.device.force_limit or math.inf)
+    if args.B is None:
+        args.B = default_dampings(base.device.mass, base.rate_hz)
     loop = device_loop(base.device, base.rate_hz)
     proc = None
     if args.firmware:
@@ -281,6 +285,9 @@ def _run_space(args) -> int:
                           "process)", key="--lockstep")
     base = isotropic_wall(args.scene, 1.0, 0.0)
     dev = base.device
+    if args.B is None:
+        from hapsim.analysis.zwidth import default_dampings
+        args.B = default_dampings(dev.mass, base.rate_hz)
     x0 = args.x0 if args.x0 is not None else 0.001
     if not (math.isfinite(x0) and x0 > 0):
         raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
@@ -339,7 +346,8 @@ def report(points, base, where: str, x0: float, fc: float) -> dict:
     return {"where": where, "x0": x0,
             "device": {"mass": dev.mass, "friction": dev.friction, "coulomb": fc,
                        "delay": dev.delay, "hold": dev.hold, "rate_hz": base.rate_hz,
-                       "force_limit": dev.force_limit},
+                       "force_limit": dev.force_limit,
+                       "protocol": getattr(dev, "protocol", None)},
             "points": pts, "follows": follows, "worst_rel_err": worst}
 
 
@@ -378,18 +386,30 @@ def format_report(rep: dict) -> str:
     str
     """
     d = rep["device"]
-    lines = [f"Z-width of {rep['where']}: m = {d['mass']:g} kg, b0 = {d['friction']:g} N s/m"
-             + (f", Coulomb {d['coulomb']:g} N" if d["coulomb"] else "")
+    u = _units(d)
+    lines = [f"Z-width of {rep['where']}: m = {d['mass']:g} {u['mass']}, b0 = "
+             f"{d['friction']:g} {u['friction']}"
+             + (f", Coulomb {d['coulomb']:g} {u['force']}" if d["coulomb"] else "")
              + f", d = {d['delay']}, {d['hold']}, {d['rate_hz']:g} Hz; records released "
-             f"from x0 = {rep['x0'] * 1e3:g} mm"]
+             f"from x0 = {rep['x0'] * 1e3:g} m{u['position']}"]
     return "\n".join(lines + _table(rep))
+
+
+def _units(d: dict) -> dict:
+    """The units of a report's device: its protocol's (a rotary joint's, the Haply's:
+    :func:`hapsim.drivers.axis_units`), SI without one."""
+    from hapsim.drivers import axis_units
+    try:
+        return axis_units(d.get("protocol"))
+    except ConfigError:
+        return axis_units(None)
 
 
 def _table(rep: dict) -> list:
     """The rows of :func:`format_report` after its first line."""
     d = rep["device"]
     lines = []
-    head = "   B [N s/m]   K_max predicted" + ("   with Coulomb" if d["coulomb"] else "") + \
+    head = f"   B [{_units(d)['friction']}]   K_max predicted" + ("   with Coulomb" if d["coulomb"] else "") + \
         "   measured   interval                  rel. err   records"
     lines.append(head)
     for p in rep["points"]:
