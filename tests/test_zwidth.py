@@ -414,3 +414,24 @@ def test_a_damping_that_leaves_no_stable_stiffness_is_named_so():
     Km, iv, trials, note = locate_onset(measure, 4.0, 0.0)
     assert Km is None and iv is None and trials == []
     assert "K_max = 0" in note and "smaller B" in note, note
+
+
+@pytest.mark.parametrize("name,scene", [(n, s) for n, s in _shipped_one_d_devices()
+                                        if (s.device.protocol or "framed") != "framed"],
+                         ids=[n for n, s in _shipped_one_d_devices()
+                              if (s.device.protocol or "framed") != "framed"])
+def test_a_scene_whose_board_speaks_its_own_protocol_is_never_sent_framed_bytes(
+        name, scene, capsys):
+    """zwidth's records go over hapsim's framed protocol: with ``--port`` on a scene whose
+    device speaks its own (the FireFader's, the Haply's, the Hapkit sketch's) it refuses
+    before opening the port, naming the protocol (a board would take the framed bytes for
+    its own commands); without a port it says it measures hapsim's model of the device.
+    A delay under a period in real time names --lockstep, not the --driver it lacks."""
+    path = f"configs/{name}"
+    assert main(["zwidth", "--scene", path, "--port", "/dev/null"]) == 2
+    err = capsys.readouterr().err
+    assert f"speaks the {scene.device.protocol} protocol" in err and "--port" in err, err
+    if float(scene.device.delay) < 1:
+        assert main(["zwidth", "--scene", path]) == 2
+        err = capsys.readouterr().err
+        assert "(or --lockstep)" in err and "--driver" not in err, err

@@ -175,6 +175,21 @@ def run(args) -> int:
     if not (math.isfinite(x0) and x0 > 0):
         raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
     flim = float(base.device.force_limit or math.inf)
+    protocol = getattr(base.device, "protocol", None) or "framed"
+    if args.port and protocol != "framed":
+        # zwidth's records go over hapsim's framed protocol: a board that speaks its own
+        # would take those bytes for something else
+        raise ConfigError(f"the scene's device speaks the {protocol} protocol; zwidth "
+                          f"measures over hapsim's framed protocol only (a board's own "
+                          f"protocol, its 0.3 s records at the board's rate, is not built "
+                          f"yet): without --port it measures hapsim's mock of the scene's "
+                          f"device", file=getattr(base, "path", None), key="--port")
+    if not (args.lockstep or args.port or args.firmware):
+        # hapsim's mock on a pty (the scene's model of its device, whatever protocol the
+        # scene names): its delay line is whole periods, said before anything starts
+        from hapsim.emulated.mock import require_whole_delay
+        require_whole_delay(base.device.delay, file=getattr(base, "path", None),
+                            command="zwidth")
     if args.B is None:
         args.B = default_dampings(base.device.mass, base.rate_hz)
     loop = device_loop(base.device, base.rate_hz)
@@ -201,6 +216,9 @@ def run(args) -> int:
     else:
         opts = {}
         where = "the embedded mock (real time, on a pty)"
+    if protocol != "framed" and not args.firmware:
+        where += (f", hapsim's model of the scene's device (the {protocol} board's own "
+                  f"protocol is not spoken)")
     measure = run_measure(base, x0, duration=args.duration, **opts)
     fc = float(base.device.coulomb or 0.0)
     points = []
