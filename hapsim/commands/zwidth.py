@@ -427,8 +427,9 @@ def _table(rep: dict) -> list:
     """The rows of :func:`format_report` after its first line."""
     d = rep["device"]
     lines = []
-    head = f"   B [{_units(d)['friction']}]   K_max predicted" + ("   with Coulomb" if d["coulomb"] else "") + \
-        "   measured   interval                  rel. err   records"
+    head = (f"   B [{_units(d)['friction']}]   K_max predicted"
+            + ("   with Coulomb" if d["coulomb"] else "")
+            + "   measured   interval                  rel. err   records")
     lines.append(head)
     for p in rep["points"]:
         iv = p["K_max_measured_interval"]
