@@ -175,8 +175,9 @@ def run(args) -> int:
     if not (math.isfinite(x0) and x0 > 0):
         raise ConfigError(f"must be > 0 [m], got {x0!r}", key="--x0")
     flim = float(base.device.force_limit or math.inf)
-    protocol = getattr(base.device, "protocol", None) or "framed"
-    if args.port and protocol != "framed":
+    from hapsim.drivers import DEFAULT
+    protocol = getattr(base.device, "protocol", None) or DEFAULT
+    if args.port and protocol != DEFAULT:
         # zwidth's records go over hapsim's framed protocol: a board that speaks its own
         # would take those bytes for something else
         raise ConfigError(f"the scene's device speaks the {protocol} protocol; zwidth "
@@ -216,7 +217,7 @@ def run(args) -> int:
     else:
         opts = {}
         where = "the embedded mock (real time, on a pty)"
-    if protocol != "framed" and not args.firmware:
+    if protocol != DEFAULT and not args.firmware:
         where += (f", hapsim's model of the scene's device (the {protocol} board's own "
                   f"protocol is not spoken)")
     measure = run_measure(base, x0, duration=args.duration, **opts)
