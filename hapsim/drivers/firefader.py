@@ -512,6 +512,12 @@ class FireFader(Driver):
     holds_force_s = SILENCE_S
     name = "firefader"
     travel_sweep = True
+    #: ``hapsim identify --driver firefader`` without a scene: the shipped scene's fader
+    #: (configs/firefader.yaml: knob, belt and rotor 0.05 kg, 0.1 N s/m) and its 15 mm
+    #: of reach (38 of the pot's 0.39 mm counts). With hapsim's default mock device
+    #: (0.1 kg, 0.5 N s/m, 10 mm) the mass came out 0.080 in [0.0047, 0.161].
+    identify_device = {"mass": 0.05, "friction": 0.1}
+    identify_envelope = 0.015
     #: Both faders in every packet and record (:mod:`hapsim.pipeline.faders_run`).
     ports_per_board = 2
     baud = 57600
