@@ -312,22 +312,25 @@ def test_a_slow_loop_on_a_real_falcon_is_degraded():
 
 
 def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
-    """hapsim run configs/delta_sphere.yaml --driver falcon --firmware FILE: exit 0, the
-    JSON says the emulated Falcon, the image loaded whole, every reading exact, "ok", and
-    the felt matrices "not measurable" with the figures beside the link's verdict;
-    without --firmware, with a bad --port, --firmware on a 1-D scene or with another
-    driver: exit 2 naming the flag; a --port with no Falcon there: exit 1 saying what to
-    check; --help teaches it."""
+    """hapsim run configs/delta_sphere.yaml --driver falcon: exit 0 on the emulated
+    Falcon, which loads a stand-in image without --firmware (said on stderr; the file's
+    run is tests/test_falcon_spring.py's), the JSON says the emulated Falcon, the image
+    loaded whole, every reading exact, "ok", and the felt matrices "not measurable" with
+    the figures beside the link's verdict; a real port without --firmware, a bad --port,
+    --firmware on a 1-D scene or with another driver: exit 2 naming the flag; a --port
+    with no Falcon there: exit 1 saying what to check; --help teaches it."""
     import json
 
     from hapsim.cli import main
+    from hapsim.commands.run_falcon import STAND_IN_IMAGE
     fw = tmp_path / "falcon.bin"
     fw.write_bytes(IMAGE)
     scene = str(CONFIGS / "delta_sphere.yaml")
-    assert main(["run", scene, "--driver", "falcon", "--firmware", str(fw),
-                 "--packets", "40", "--json"]) == 0
-    out = json.loads(capsys.readouterr().out)
-    assert out["emulated"] and out["firmware_bytes"] == len(IMAGE)
+    assert main(["run", scene, "--driver", "falcon", "--packets", "40", "--json"]) == 0
+    got = capsys.readouterr()
+    out = json.loads(got.out)
+    assert "stand-in image" in got.err, got.err
+    assert out["emulated"] and out["firmware_bytes"] == len(STAND_IN_IMAGE)
     # the emulated Falcon keeps its own time (its firmware's ticks): a reply a loaded
     # host read after its wait is missing, every one read is the true count, and a host
     # the machine stalled, or slowed below the scene's rate, is told so ("degraded": the
@@ -360,7 +363,8 @@ def test_cli_runs_the_emulated_falcon_end_to_end(capsys, tmp_path):
     assert felt["verdict"] == "not measurable", felt
     assert felt["worst"]["felt_stiffness"] > felt["limit"]
     assert "one encoder count is 27-47 um at the handle" in felt["reason"]
-    for argv, key in (([scene, "--driver", "falcon"], "--firmware"),
+    for argv, key in (([scene, "--driver", "falcon", "--port", "ftdi://0x0403:0xcb48/1"],
+                       "--firmware"),
                       ([scene, "--driver", "falcon", "--firmware", str(fw), "--port",
                         "/dev/ttyUSB0"], "--port"),
                       ([scene, "--driver", "falcon", "--firmware", str(tmp_path / "no")],

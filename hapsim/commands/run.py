@@ -222,7 +222,8 @@ def register(sub) -> None:
                         "allows; the linearisation bound at the records' motion)")
     p.add_argument("--firmware", metavar="FILE",
                    help="--driver falcon: the Novint firmware image the Falcon loads at "
-                        "each power-up (yours: hapsim does not ship it)")
+                        "each power-up (yours: hapsim does not ship it; without --port "
+                        "the emulated Falcon takes a stand-in)")
     p.add_argument("--packets", type=Number(int, low=1), metavar="N",
                    help="--driver falcon: packets of the loop, one per sample (default "
                         "1000)")

@@ -30,12 +30,32 @@ _REFUSED = (("--baud", "baud", "the Falcon's rates are its loader's and firmware
              "counts need them; docs/devices.md)"))
 
 
-def _image(path) -> bytes:
+#: What the emulated Falcon loads without ``--firmware``: its loader takes any non-empty
+#: image (:class:`hapsim.emulated.falcon_device.FalconDevice`, ``expected_image`` None);
+#: a real Falcon needs Novint's.
+STAND_IN_IMAGE = b"hapsim: a stand-in for the Novint firmware image (emulated Falcon)"
+
+
+def _image(path, emulated: bool = False) -> bytes:
+    """The firmware image to load: the file ``path``; without one, on the emulated
+    Falcon, :data:`STAND_IN_IMAGE` (said on stderr).
+
+    Raises
+    ------
+    ConfigError
+        No file for a real Falcon, an unreadable or empty one (key ``--firmware``).
+    """
+    if not path and emulated:
+        print("hapsim run: no --firmware: the emulated Falcon loads a stand-in image (a "
+              "real Falcon needs the Novint image: --firmware FILE)", file=sys.stderr,
+              flush=True)
+        return STAND_IN_IMAGE
     if not path:
-        raise ConfigError("--driver falcon needs --firmware FILE: the Novint firmware "
-                          "image the Falcon loads at each power-up (hapsim does not ship "
-                          "it: take it from the Novint SDK, or libnifalcon's firmware/ "
-                          "folder)", key="--firmware")
+        raise ConfigError("--driver falcon needs --firmware FILE on a real Falcon: the "
+                          "Novint firmware image it loads at each power-up (hapsim does "
+                          "not ship it: take it from the Novint SDK, or libnifalcon's "
+                          "firmware/ folder); without --port the emulated Falcon takes "
+                          "a stand-in", key="--firmware")
     try:
         with open(path, "rb") as fh:
             data = fh.read()
@@ -89,7 +109,7 @@ def run_falcon_command(args) -> int:
         v = getattr(args, attr, None)
         if v not in (None, False, "") and v != defaults.get(attr):
             raise ConfigError(f"--driver falcon does not take {flag}: {why}", key=flag)
-    image = _image(getattr(args, "firmware", None))
+    image = _image(getattr(args, "firmware", None), emulated=args.port is None)
     if args.port is not None:
         parse_url(args.port)                      # a bad URL is exit 2, before any USB
     scene = load_scene_nd(args.scene)
