@@ -51,6 +51,24 @@ class IdentifyReport(Report):
     note: str | None = None
     error: dict | None = None
 
+    def found_driver(self):
+        """The driver the identification went through, as its record found it: its
+        ``loop.settings.driver`` with the record's ``protocol_options`` (every parameter,
+        the Haply motor direction probed first included).
+
+        Returns
+        -------
+        hapsim.drivers.base.Driver or None
+            None on the framed protocol, or for a report without its record (read back
+            from JSON).
+        """
+        name = (self.loop.get("settings") or {}).get("driver")
+        opts = (getattr(self, "record", None) or {}).get("protocol_options")
+        if name is None or name == DEFAULT or opts is None:
+            return None
+        from hapsim.drivers import get_driver
+        return get_driver(name, **opts)
+
     def device_yaml(self, force_limit: float = 2.0, driver=None) -> str:
         """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``).
 
@@ -59,10 +77,9 @@ class IdentifyReport(Report):
         force_limit : float
             The excitation's force limit (its comment) [N] ([N m] on a rotary axis).
         driver : hapsim.drivers.base.Driver, optional
-            The driver whose protocol and units it names; default the one this report
-            identified through (``loop.settings.driver`` with the record's
-            ``protocol_options``: a Haply joint's file then says [kg m^2]), the framed
-            protocol's SI units where the report has none.
+            The driver whose protocol and units it names; default :meth:`found_driver`
+            (a Haply joint's file then says [kg m^2]), the framed protocol's SI units
+            where the report has none.
 
         Returns
         -------
@@ -70,13 +87,8 @@ class IdentifyReport(Report):
             YAML text (:func:`hapsim.device_file.device_yaml`).
         """
         from hapsim.device_file import device_yaml
-        if driver is None:
-            name = (self.loop.get("settings") or {}).get("driver")
-            if name is not None and name != DEFAULT:
-                from hapsim.drivers import get_driver
-                rec = getattr(self, "record", None) or {}
-                driver = get_driver(name, **(rec.get("protocol_options") or {}))
-        return device_yaml(self.fit, force_limit, hand=self.hand, driver=driver)
+        return device_yaml(self.fit, force_limit, hand=self.hand,
+                           driver=self.found_driver() if driver is None else driver)
 
 
 def identify(port: str | None = None, *, scene=None, driver: str | None = None,

@@ -284,9 +284,9 @@ def run(args) -> int:
     rep = identify_api(args.port, device=device, **kw)
     rep.loop["settings"]["protocol"] = st.said     # (the API was given the driver resolved)
     fit, rec = rep.fit, rep.record
-    if drv is not None and rec.get("protocol_options"):
+    if drv is not None:
         # the driver as the record found it (the Haply motor direction, probed first)
-        drv = get_driver(args.driver, **rec["protocol_options"])
+        drv = rep.found_driver() or drv
     scale = None
     lost_loaded = False         # the device lost in the identification with the mass on
     if args.added_mass is not None and rep.error is None:

@@ -418,10 +418,7 @@ def _units(d: dict) -> dict:
     """The units of a report's device: its protocol's (a rotary joint's, the Haply's:
     :func:`hapsim.drivers.axis_units`), SI without one."""
     from hapsim.drivers import axis_units
-    try:
-        return axis_units(d.get("protocol"))
-    except ConfigError:
-        return axis_units(None)
+    return axis_units(d.get("protocol"))
 
 
 def _table(rep: dict) -> list:
