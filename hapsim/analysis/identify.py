@@ -522,7 +522,8 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         fit.update(spec=[list(sp_) for sp_ in spec], kept=list(kept))
     out = _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor),
-                              lens=lens_w, ends=kept[-1][1] == bounds[-1][1]),
+                              lens=lens_w, ends=kept[-1][1] == bounds[-1][1],
+                              record_amp=amp0),
                       spec, fi, yw, offset, wire, mass, period, lens_w,
                       None if not bounded else [
                           (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
@@ -697,10 +698,13 @@ def pair_noise_sensitivity(y, period: float, mass: float, sigma: float,
 
 
 def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipped,
-            step=0.0, lens=None, ends=True):
+            step=0.0, lens=None, ends=True, record_amp=math.inf):
     """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]`` (over the
     stretches ``lens`` of ``y``: the amplitude is the largest stretch's, the cycles above
-    the floor are summed over the stretches)."""
+    the floor are summed over the stretches). ``record_amp``: the record's largest
+    excursion from its rest [m] (``record_amplitude``); a record that never leaves the
+    floor's band holds no oscillation above it, whatever amplitude a fit's cancelling
+    modes give the pair."""
     md = _mode_of(spec[fi], mass, period)
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     sig = spec[fi][1] / period
@@ -739,7 +743,14 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
                     f"account does not know acted)")
         else:
             what = f"{MIN_QUANTA:g} sensor steps of {fl:.3g} m (the quantum or the noise)"
-        if amp < MIN_QUANTA * fl:
+        if record_amp < MIN_QUANTA * fl:
+            # (a fit of a record inside a few sensor steps may give its pair an amplitude
+            # of 10^3..10^6 m, cancelled by a slow mode: its cycles "above" the floor then
+            # read ~1e-7, with a remedy of fewer disturbances; measured on the shipped Haply
+            # joint started at 0.002 rad, 3 runs in 5)
+            out["error"] = (f"the record's largest excursion from rest ({record_amp:.3g} m) "
+                            f"is below {what}: no measurement")
+        elif amp < MIN_QUANTA * fl:
             out["error"] = (f"the oscillation ({amp:.3g} m at the window start) is below "
                             f"{what}: no measurement")
         elif out["cycles"] < MIN_CYCLES:
