@@ -48,6 +48,7 @@ one-line message goes to stderr.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import difflib
 import importlib
 import json
@@ -331,6 +332,48 @@ def main(argv: list[str] | None = None) -> int:
             _undo_at_stop(previous)
 
 
+class _UnitsWriter:
+    """``stdout`` with its sentences said in a rotary axis's units
+    (:func:`hapsim.drivers.in_axis_units`; every other attribute the stream's)."""
+
+    def __init__(self, stream, units: dict):
+        self._stream, self._units = stream, units
+
+    def write(self, text):
+        from hapsim.drivers import in_axis_units
+        return self._stream.write(in_axis_units(text, self._units))
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _in_scene_units(args):
+    """Run a command with its stdout in the units of its 1-D scene's axis: a rotary
+    joint's (the Haply's: radians, newton metres) where ``--driver`` or the scene's
+    ``device.protocol`` names one. The 1-D analyses are written in SI words; a scene's
+    figures are in its axis's units. Nothing changes on a linear axis, an n-D scene (its
+    Cartesian coordinates are metres whatever its driver) or without a scene."""
+    path = getattr(args, "scene", None)
+    units = None
+    if isinstance(path, str):
+        from hapsim.drivers import DRIVERS, axis_units
+        from hapsim.scene import scene_dimension, scene_protocol
+        if scene_dimension(path) == 1:
+            proto = getattr(args, "driver", None) or scene_protocol(path)
+            if isinstance(proto, str) and proto in DRIVERS:
+                units = axis_units(proto)
+    if units is None or units["position"] == "m":
+        yield
+        return
+    old = sys.stdout
+    sys.stdout = _UnitsWriter(old, units)
+    try:
+        yield
+    finally:
+        sys.stdout = old
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM received before a command installed its own handler: the command stops as
     on Ctrl-C (what it started is undone, :func:`hapsim.spawn.run_stops`), exit 143."""
@@ -423,7 +466,8 @@ def _main(argv: list[str], want_json: bool, watch) -> int:
             with np.errstate(all="ignore"):
                 # every numeric option in its declared range, before any work
                 check_numbers(_subparser(parser, args.command), args, argv)
-                return int(args.func(args))
+                with _in_scene_units(args):
+                    return int(args.func(args))
         except UnstableConfigError as exc:
             # a negative verdict (unstable, not renderable), even when also a ConfigError
             return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)

@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import re
 
 from hapsim.errors import ConfigError
 
 __all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver", "device_driver",
-           "protocol_of", "axis_units"]
+           "protocol_of", "axis_units", "in_axis_units"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,8 +168,9 @@ def axis_units(driver) -> dict:
     Returns
     -------
     dict
-        ``mass``, ``friction``, ``force``, ``position``: ``"kg"``, ``"N s/m"``, ``"N"``,
-        ``"m"``, or ``"kg m^2"``, ``"N m s/rad"``, ``"N m"``, ``"rad"``.
+        ``mass``, ``friction``, ``force``, ``position``, ``stiffness``, ``speed``:
+        ``"kg"``, ``"N s/m"``, ``"N"``, ``"m"``, ``"N/m"``, ``"m/s"``, or ``"kg m^2"``,
+        ``"N m s/rad"``, ``"N m"``, ``"rad"``, ``"N m/rad"``, ``"rad/s"``.
 
     Raises
     ------
@@ -178,8 +180,53 @@ def axis_units(driver) -> dict:
     if isinstance(driver, str):
         driver = family(driver).load()
     if getattr(driver, "rotary", False):
-        return {"mass": "kg m^2", "friction": "N m s/rad", "force": "N m", "position": "rad"}
-    return {"mass": "kg", "friction": "N s/m", "force": "N", "position": "m"}
+        return {"mass": "kg m^2", "friction": "N m s/rad", "force": "N m", "position": "rad",
+                "stiffness": "N m/rad", "speed": "rad/s"}
+    return {"mass": "kg", "friction": "N s/m", "force": "N", "position": "m",
+            "stiffness": "N/m", "speed": "m/s"}
+
+
+#: An SI unit of a linear axis after a number or in brackets (:func:`in_axis_units`):
+#: the longest first ("N s/m" before "N"), not one already followed by " m" ("N m").
+_SI_UNIT = re.compile(r"(?:(?<=\d )|(?<=\[))(N s/m|N/m|m/s|kg|mm|um|m|N)"
+                      r"(?![\w/^]| m\b| s/)")
+
+
+def in_axis_units(obj, units: dict):
+    """``obj`` with the SI units of a linear axis in its sentences said in ``units``
+    (:func:`axis_units`'s): a 1-D run's measurement and notes are made by the same code
+    for every protocol, in metres and newtons, which on a rotary axis are radians and
+    newton metres.
+
+    A unit is rewritten where it follows a number (``"0.00129 m"`` -> ``"0.00129 rad"``)
+    or stands in brackets (``"[N/m]"``): ``N s/m``, ``N/m``, ``m/s``, ``kg``, ``mm``,
+    ``um``, ``m`` and ``N``. Other words are left as they are.
+
+    Parameters
+    ----------
+    obj : str or dict or list or tuple or object
+        A sentence, or a structure of them (dict values, list and plain tuple items,
+        recursively); anything else is returned as it is.
+    units : dict
+        :func:`axis_units`'s; SI (``position`` ``"m"``) returns ``obj`` itself.
+
+    Returns
+    -------
+    Same type as ``obj``
+        A new structure where something was rewritten (dict keys unchanged).
+    """
+    if units.get("position", "m") == "m":
+        return obj
+    if isinstance(obj, dict):
+        return {k: in_axis_units(v, units) for k, v in obj.items()}
+    if type(obj) in (list, tuple):
+        return type(obj)(in_axis_units(v, units) for v in obj)
+    if not isinstance(obj, str):
+        return obj
+    say = {"N s/m": units["friction"], "N/m": units["stiffness"], "m/s": units["speed"],
+           "kg": units["mass"], "mm": "m" + units["position"], "um": "u" + units["position"],
+           "m": units["position"], "N": units["force"]}
+    return _SI_UNIT.sub(lambda mt: say[mt.group(1)], obj)
 
 
 def protocol_of(scene, driver: str | None) -> tuple[str, str]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from hapsim.analysis.prediction import port_links
-from hapsim.drivers import DEFAULT
+from hapsim.drivers import DEFAULT, axis_units, in_axis_units
 from hapsim.drivers.urlhandler import is_emulated
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import process_start
@@ -194,8 +194,13 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     # the stated bound, does not say "within" (the latter exits 1: the link is unfit)
     from hapsim.host.link_verdict import link_verdict
     unfit = link_verdict(measured, loop_info)
+    # a rotary axis's figures are radians and newton metres: its sentences say so
+    units = axis_units(opts.protocol)
+    measured = in_axis_units(measured, units)
+    loop_info["warnings"] = in_axis_units(loop_info["warnings"], units)
     return {"scene": scene.path, "target": targets[0] if targets else None,
-            "targets": targets, "virtual": virtual, "predicted": prep.pred,
+            "targets": in_axis_units(targets, units), "virtual": virtual,
+            "predicted": in_axis_units(prep.pred, units), "units": units,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
             "sound": run.sound, **verdict_summary(measured),
             "exit_code": 1 if (res.safety_stop or res.faults or unfit) else 0}
@@ -313,12 +318,15 @@ def format_report(rep: dict) -> str:
                  .replace("  ", " "))
     for w in lp.get("warnings") or []:
         lines.append(f"  warning: {w}")
-    lines.append(f"  {'':<12} {'k [N/m]':>12} {'b [N s/m]':>11} {'f0 [Hz]':>10} {'zeta':>9}")
+    u = rep.get("units") or axis_units(None)
+    k_head, b_head = f"k [{u['stiffness']}]", f"b [{u['friction']}]"
+    bw = max(11, len(b_head))            # (a rotary axis's damping unit is longer)
+    lines.append(f"  {'':<12} {k_head:>12} {b_head:>{bw}} {'f0 [Hz]':>10} {'zeta':>9}")
 
     def row(name, d):
         if d is None:
             return
-        lines.append(f"  {name:<12} {dash(d.get('k'), '12.4f')} {dash(d.get('b'), '11.5f')} "
+        lines.append(f"  {name:<12} {dash(d.get('k'), '12.4f')} {dash(d.get('b'), f'{bw}.5f')} "
                      f"{dash(d.get('f0_hz'), '10.4f')} {dash(d.get('damping_ratio'), '9.5f')}")
 
     targets = rep.get("targets")
@@ -335,7 +343,7 @@ def format_report(rep: dict) -> str:
                      + (f" ({reason})" if reason else ""))
     v = rep["virtual"]
     if "K" in v:
-        lines.append(f"  {'virtual K,B':<12} {dash(v['K'], '12.4f')} {dash(v['B'], '11.5f')}"
+        lines.append(f"  {'virtual K,B':<12} {dash(v['K'], '12.4f')} {dash(v['B'], f'{bw}.5f')}"
                      f"   (link {v['link']})")
     p = rep["predicted"]
     row("predicted", p)
@@ -346,19 +354,19 @@ def format_report(rep: dict) -> str:
     if "k" in m:
         row("measured", m)
         re = m["rel_err"]
-        lines.append(f"  {'rel. error':<12} {dash(re['k'], '+12.2e')} {dash(re['b'], '+11.2e')} "
+        lines.append(f"  {'rel. error':<12} {dash(re['k'], '+12.2e')} {dash(re['b'], f'+{bw}.2e')} "
                      f"{dash(re['f0_hz'], '+10.2e')} {dash(re['damping_ratio'], '+9.2e')}")
         if m.get("interval_note"):
             # general format: a stated uncertainty far below the last fixed digit is
             # printed as what it is, not as 0.0000
             lines.append(f"  {'+-':<12} {dash(m['k_interval'], '12.4g')} "
-                         f"{dash(m['b_interval'], '11.4g')}   ({m['interval_note']})")
+                         f"{dash(m['b_interval'], f'{bw}.4g')}   ({m['interval_note']})")
         if m.get("verdict"):
             lines.append(f"  verdict: {m['verdict']}")
         if "rel_err_target" in m:
             rt = m["rel_err_target"]
             lines.append(f"  {'vs target':<12} {dash(rt['k'], '+12.2e')} "
-                         f"{dash(rt['b'], '+11.2e')} {dash(rt['f0_hz'], '+10.2e')} "
+                         f"{dash(rt['b'], f'+{bw}.2e')} {dash(rt['f0_hz'], '+10.2e')} "
                          f"{dash(rt['damping_ratio'], '+9.2e')}")
     elif m.get("comparable") is False:
         lines.append(f"  {'measured':<12} not comparable (see verdict)")
@@ -374,10 +382,11 @@ def format_report(rep: dict) -> str:
     if p.get("stable") is not None:
         # K_max is the limit of the links at the port as one port-ground spring: the felt
         # k of a scene with virtual masses is another quantity, so say which it is there
-        kmax = f"K_max {dash(p['stiffness_limit'], '.6g')} N/m"
+        kmax = f"K_max {dash(p['stiffness_limit'], '.6g')} {u['stiffness']}"
         if p.get("source") == "check_scene" and p.get("port_K") is not None:
             kmax += (f" of the links at the port as a port-ground spring (K = "
-                     f"{p['port_K']:g} N/m, B = {p['port_B']:g} N s/m), not of the felt k")
+                     f"{p['port_K']:g} {u['stiffness']}, B = {p['port_B']:g} "
+                     f"{u['friction']}), not of the felt k")
         used = (": not comparable" if m.get("comparable") is False
                 else f" from {m.get('samples_used', 0)} samples")
         lines.append(f"  stable: {'yes' if p['stable'] else 'NO'} (spectral radius "
@@ -479,7 +488,8 @@ def format_report(rep: dict) -> str:
         if tl.get("writer_error"):
             extra += f"; journal writer stopped: {tl['writer_error']}"
         lines.append(f"telemetry: {tl['path']} ({tl['samples']} samples{extra})")
-    return "\n".join(lines)
+    # a rotary axis: the lines made in SI words (the braking's, the mock's, the losses')
+    return in_axis_units("\n".join(lines), u)
 
 
 def loss_lines(events: list) -> list:

@@ -127,7 +127,7 @@ from hapsim.scene.elements import (CORRECTIONS, Audio, Device, DeviceND, Excitat
 from hapsim.scene.model import Scene, SceneND, ScenePorts
 from hapsim.scene.reader import (load_scene, load_scene_nd, load_scene_ports, parse_scene,
                                  parse_scene_nd, parse_scene_ports, scene_dimension,
-                                 scene_has_ports)
+                                 scene_has_ports, scene_protocol)
 from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITIES, MASS_KINDS,
                                  PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS)
 
@@ -138,5 +138,5 @@ __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitati
            "PROTOCOLS", "audio_substeps",
            "MassND", "LinkND", "PlaneND", "DeviceND", "ListenND", "ExcitationND", "SafetyND",
            "SceneND",
-           "scene_dimension", "load_scene_nd", "parse_scene_nd", "DEVICE_KINDS",
+           "scene_dimension", "scene_protocol", "load_scene_nd", "parse_scene_nd", "DEVICE_KINDS",
            "ScenePorts", "load_scene_ports", "parse_scene_ports", "scene_has_ports"]

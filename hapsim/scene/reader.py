@@ -30,7 +30,8 @@ from hapsim.scene.lines import LineContext, read_text
 from hapsim.scene.model import Scene, SceneND, ScenePorts
 from hapsim.scene.rules import Invalid, check_key, check_products_nd, coerce
 
-__all__ = ["load_scene", "parse_scene", "read_device", "scene_dimension", "load_scene_nd",
+__all__ = ["load_scene", "parse_scene", "read_device", "scene_dimension", "scene_protocol",
+           "load_scene_nd",
            "load_scene_ports", "parse_scene_ports", "scene_has_ports", "PORTS_REFUSAL",
            "PORTS_TOP_KEYS",
            "parse_scene_nd", "TOP_KEYS_ND", "MASS_KEYS_ND", "LINK_KEYS_ND", "PLANE_KEYS_ND",
@@ -462,6 +463,25 @@ def scene_dimension(path: str | os.PathLike) -> int:
     """
     d = _top_keys(path, "dimension").get("dimension")
     return d if d in (2, 3) and not isinstance(d, bool) else 1
+
+
+def scene_protocol(path: str | os.PathLike) -> str | None:
+    """The ``device.protocol`` a scene file names, read cheaply (as :func:`scene_dimension`).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Scene file.
+
+    Returns
+    -------
+    str or None
+        The value when it is a string, else None (the reader then reads the file and
+        reports any problem with it).
+    """
+    dev = _top_keys(path, "protocol").get("device")
+    proto = dev.get("protocol") if isinstance(dev, dict) else None
+    return proto if isinstance(proto, str) else None
 
 
 def _top_keys(path: str | os.PathLike, word: str) -> dict:

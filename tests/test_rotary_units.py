@@ -1,0 +1,135 @@
+"""A rotary axis's figures said in its units, and a record inside a few sensor steps
+said to be so.
+
+1. The 1-D analyses are one code for every protocol, written in metres and newtons; on a
+   rotary axis (the Haply joint, ``configs/haply.yaml``) those figures are radians and
+   newton metres. ``hapsim run``'s report and every scene command's output say the
+   joint's units (:func:`hapsim.drivers.in_axis_units`); before, ``hapsim run
+   configs/haply.yaml`` printed ``k [N/m]`` and ``K_max 1.33222 N/m`` for a torsion
+   spring of 0.5 N m/rad.
+2. A record that never leaves a band of 5 sensor steps about its rest holds no
+   oscillation above them, whatever amplitude a fit's cancelling modes give its pair: the
+   Haply joint started at 0.002 rad (1.6 of its 0.00129 rad counts) was said to hold
+   "only 1.6e-07 oscillation cycles" above them, with the remedy "fewer disturbances".
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from hapsim.cli import main
+from hapsim.drivers import axis_units, in_axis_units
+
+ROTARY = axis_units("haply")
+SI = axis_units(None)
+
+#: A figure followed by a linear axis's SI unit (what a rotary report must not hold).
+_SI_AFTER_NUMBER = re.compile(r"\d (N s/m|N/m|m/s|kg(?! m\^2)|m|N(?! m))(?![\w/^])")
+
+
+def test_si_units_after_a_number_or_in_brackets_are_said_in_the_joints():
+    said = in_axis_units("k [N/m] b [N s/m]: K_max 1.3 N/m, B 0.2 N s/m, force 0.12 N, "
+                         "mass 0.001 kg, speed 5 m/s, 2.5 mm, 3 um and 0.00129 m", ROTARY)
+    assert said == ("k [N m/rad] b [N m s/rad]: K_max 1.3 N m/rad, B 0.2 N m s/rad, force "
+                    "0.12 N m, mass 0.001 kg m^2, speed 5 rad/s, 2.5 mrad, 3 urad and "
+                    "0.00129 rad")
+    # said once: the rotary words are not said again
+    assert in_axis_units(said, ROTARY) == said
+    # words, milliseconds, microseconds and hertz are no units of length or force
+    for text in ("the mass moved 5 ms later", "5 Hz, 20 ms + 5 us", "sample 5 of the N",
+                 "mode m = 2", "0.1 N m and 2 kg m^2"):
+        assert in_axis_units(text, ROTARY) == text
+    # a linear axis: the same object back
+    text = "K_max 1.3 N/m"
+    assert in_axis_units(text, SI) is text
+    nested = {"a": ["0.5 m", ("1 N",)], "b": 3, "c": None}
+    assert in_axis_units(nested, ROTARY) == {"a": ["0.5 rad", ("1 N m",)], "b": 3, "c": None}
+
+
+def test_hapsim_run_on_the_haply_joint_reports_in_its_units():
+    """The report of a run through the Haply board's bytes (lockstep by name: the words
+    are checked, not the timing), against the framed wall's, SI."""
+    from hapsim.pipeline.report import format_report
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
+                    rt_priority=0, lockstep=True, duration=1.0)
+    assert rep["units"] == ROTARY
+    text = format_report(rep)
+    assert "k [N m/rad]" in text and "b [N m s/rad]" in text and "N m/rad;" in text
+    assert not _SI_AFTER_NUMBER.findall(text), text
+    # the verdict's sentence and the stated interval's note are the joint's too
+    assert not _SI_AFTER_NUMBER.findall(str(rep["measured"]))
+    wall = run_scene(load_scene("configs/wall.yaml"), transport="inprocess", lockstep=True,
+                     handle_signals=False, duration=0.5)
+    assert wall["units"] == SI
+    assert "k [N/m]" in format_report(wall)
+
+
+@pytest.mark.parametrize("command", [["check"], ["advise"], ["stability", "--scene"]])
+def test_the_scene_commands_say_a_rotary_scenes_units(command, capsys):
+    assert main(command + ["configs/haply.yaml"]) in (0, 1)
+    out = capsys.readouterr().out
+    assert "N m/rad" in out and not _SI_AFTER_NUMBER.findall(out), out
+    assert main(command + ["configs/wall.yaml"]) in (0, 1)
+    assert "N/m" in capsys.readouterr().out
+
+
+def test_an_n_d_scene_keeps_its_metres_whatever_its_driver():
+    """The 2DIY's pantograph is driven through the Haply board (``--driver haply``), but
+    its scene's coordinates are Cartesian metres: its output is not rewritten; a 1-D
+    scene named with ``--driver haply`` is."""
+    import argparse
+    import sys
+
+    from hapsim.cli import _in_scene_units
+    before = sys.stdout
+    for scene, driver, rotary in (("configs/pantograph_spring.yaml", "haply", False),
+                                  ("configs/wall.yaml", None, False),
+                                  ("configs/wall.yaml", "haply", True),
+                                  ("configs/haply.yaml", None, True)):
+        with _in_scene_units(argparse.Namespace(scene=scene, driver=driver)):
+            assert (sys.stdout is not before) == rotary, (scene, driver)
+        assert sys.stdout is before
+
+
+@pytest.mark.parametrize("x0", [0.0015, 0.002, 0.0025])
+def test_a_record_inside_five_counts_is_said_to_be_so(x0):
+    """The shipped Haply joint started within 2 of its counts (0.00129 rad): the record
+    never leaves 5 counts about its rest, so the measurement says that, with the record's
+    excursion, never a count of cycles or a remedy of fewer disturbances (before: at
+    0.002 rad, "only 1.6e-07 oscillation cycles ... fewer disturbances are needed")."""
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import parse_scene
+    text = open("configs/haply.yaml").read().replace("x0: 0.2 ", f"x0: {x0} ")
+    assert f"x0: {x0} " in text
+    rep = run_scene(parse_scene(text), driver="haply", handle_signals=False, rt_priority=0,
+                    lockstep=True)
+    m = rep["measured"]
+    q = 2.0 * math.pi / 4880.0              # the joint's count [rad] (configs/haply.yaml)
+    assert m["record_amplitude"] < 5.0 * q
+    assert m.get("k") is None and rep["verdict"] == "not measurable"
+    assert m["error"].startswith("the record's largest excursion from rest ("), m["error"]
+    assert "cycles" not in m["error"] and "disturbances" not in m["error"]
+
+
+def test_a_record_inside_five_steps_over_random_quantised_loops():
+    """The class, on hapsim's framed mock: random lightly damped loops started within
+    0.6..4.5 encoder steps; whenever the record stays inside 5 steps of its rest, the
+    measurement says so by its excursion."""
+    from hapsim.pipeline.runner import run_scene
+    from test_identify_quantised import _random_loop, _scene   # same directory
+    rng = np.random.default_rng(20261129)
+    for i in range(8):
+        m, b0, K, B, d, rate, r = _random_loop(rng)
+        q = float(rng.uniform(5e-6, 50e-6))
+        x0 = float(rng.uniform(0.6, 4.5)) * q
+        rep = run_scene(_scene(m, b0, K, B, d, rate, q, 0.0, x0), transport="inprocess",
+                        lockstep=True, handle_signals=False, duration=1.5, seed=i)
+        meas = rep["measured"]
+        if meas.get("record_amplitude", math.inf) < 5.0 * q:
+            assert meas["error"].startswith("the record's largest excursion"), meas["error"]
