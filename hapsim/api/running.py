@@ -52,6 +52,9 @@ class RunReport(Charted, MeasuredPair, Report):
         Measured = predicted within the stated uncertainty (None: not measurable).
     reason : str
         The verdict in words (``measured``'s sentence).
+    units : dict or None
+        The units of the axis's figures (:func:`hapsim.drivers.axis_units`: SI, or a
+        rotary joint's, in which ``predicted`` and ``measured`` are then said).
 
     Other attributes: ``exit_code``, what ``hapsim run`` exits with (0, or 1 after a
     safety stop or a device fault).
@@ -74,6 +77,7 @@ class RunReport(Charted, MeasuredPair, Report):
     verdict: str | None = None
     within: bool | None = None
     reason: str | None = None
+    units: dict | None = None
 
     _chart = "plot_felt"
 

@@ -159,7 +159,7 @@ def _g(v, spec=".6g"):
 def _member_line(md: dict) -> str:
     kg = md["grip_stiffness"]
     return (f"hand {_g(md['mass'], 'g')} kg, damping {_g(md['damping'], 'g')} N s/m, grip "
-            f"{kg if isinstance(kg, str) else _g(kg, '.6g')} N/m / "
+            f"{kg if isinstance(kg, str) else _g(kg, '.6g') + ' N/m'} / "
             f"{_g(md['grip_damping'], 'g')} N s/m"
             + (f", arm stiffness {_g(md['stiffness'], 'g')} N/m" if md.get("stiffness") else "")
             + f"{' (a corner)' if md['corner'] else ''}: spectral radius "
