@@ -133,3 +133,21 @@ def test_a_record_inside_five_steps_over_random_quantised_loops():
         meas = rep["measured"]
         if meas.get("record_amplitude", math.inf) < 5.0 * q:
             assert meas["error"].startswith("the record's largest excursion"), meas["error"]
+
+
+def test_the_live_views_layout_carries_the_axis_units():
+    """``run --view``: the page labels its traces, sliders and felt pair from the hello's
+    ``layout.units`` (the run's protocol: the scene's, or ``--driver``'s); an n-D scene's
+    are SI. Its script writes no unit of a linear axis other than its SI default."""
+    from pathlib import Path
+
+    from hapsim.scene import load_scene, load_scene_nd
+    from hapsim.view.sources import scene_layout
+    assert scene_layout(load_scene("configs/haply.yaml"))["units"] == ROTARY
+    assert scene_layout(load_scene("configs/wall.yaml"))["units"] == SI
+    assert scene_layout(load_scene("configs/wall.yaml"), "haply")["units"] == ROTARY
+    assert scene_layout(load_scene_nd("configs/pantograph_spring.yaml"), "haply")["units"] == SI
+    js = (Path(__file__).resolve().parents[1] / "hapsim" / "view" / "static" / "view.js"
+          ).read_text()
+    literal = [ln for ln in js.splitlines() if re.search(r"N/m|N s/m|\[m\]|\[N\]", ln)]
+    assert len(literal) == 1 and "units: {" in literal[0], literal

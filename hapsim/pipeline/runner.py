@@ -596,6 +596,7 @@ def _start_view(prep: PreparedRun, conn: Connection, loop: HostLoop, ctl, opts: 
     src = RunSource(prep.scene, conn.tel, lambda: loop.engine, ctl, loop.result.events,
                     prep=prep if live else None, hello_of=lambda: loop.result.hello,
                     measure=measure_record, measure_keys=MEASURE_KEYS)
+    src.protocol = opts.protocol          # (the axis's units: a --driver's)
     return start_view(src, ctl, conn.stop, opts.view, "run")
 
 

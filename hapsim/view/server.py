@@ -123,7 +123,8 @@ class ViewServer:
         self.port = int(port)
         self.what = what
         self.fps = float(fps)
-        self.layout = scene_layout(ctl.scene if ctl is not None else source.scene)
+        self.layout = scene_layout(ctl.scene if ctl is not None else source.scene,
+                                   getattr(source, "protocol", None))
         self.report = None
         self.grid = None
         self.url = None

@@ -17,13 +17,16 @@ from hapsim.outputs import finite_or_none as _num
 __all__ = ["RunSource", "PlaySource", "ChunkSource", "scene_layout"]
 
 
-def scene_layout(scene) -> dict:
+def scene_layout(scene, protocol: str | None = None) -> dict:
     """The scene's masses, links and planes as the page draws them.
 
     Parameters
     ----------
     scene : hapsim.scene.Scene or hapsim.scene.SceneND
         The scene the loop runs (1-D, 2-D or 3-D).
+    protocol : str, optional
+        The protocol the run speaks (``--driver``); default the scene's
+        ``device.protocol``. A 1-D rotary axis's (the Haply joint's) sets ``units``.
 
     Returns
     -------
@@ -33,8 +36,11 @@ def scene_layout(scene) -> dict:
         indices, ``K`` [N/m], ``B`` [N s/m], ``threshold`` [m], ``length`` [m] (n-D rest
         length, 0 in 1-D)), ``planes`` (n-D plane contacts: ``name``, ``normal``,
         ``offset`` [m], ``K``, ``B``, ``masses`` indices), ``targets`` (the links given
-        as a felt target: ``name``, ``k`` [N/m], ``b`` [N s/m]), ``rate_hz`` [Hz].
+        as a felt target: ``name``, ``k`` [N/m], ``b`` [N s/m]), ``rate_hz`` [Hz],
+        ``units`` (:func:`hapsim.drivers.axis_units`: the figures above are in a rotary
+        joint's units where the 1-D axis is one; an n-D scene's are SI).
     """
+    from hapsim.drivers import axis_units
     dim = int(getattr(scene, "dimension", 1) or 1)
     names = [m.name for m in scene.masses]
     idx = {n: i for i, n in enumerate(names)}
@@ -50,8 +56,11 @@ def scene_layout(scene) -> dict:
                "offset": float(p.offset), "K": _num(p.stiffness), "B": _num(p.damping),
                "masses": [idx[n] for n in p.masses if n in idx]}
               for p in getattr(scene, "planes", ()) or ()]
+    if dim == 1:
+        protocol = protocol or getattr(getattr(scene, "device", None), "protocol", None)
     return {"dim": dim, "masses": masses, "links": links, "planes": planes,
-            "targets": targets, "rate_hz": float(scene.rate_hz)}
+            "targets": targets, "rate_hz": float(scene.rate_hz),
+            "units": axis_units(protocol if dim == 1 else None)}
 
 
 class _Base:

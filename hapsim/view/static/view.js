@@ -5,7 +5,9 @@
   const S = { layout: null, t: [], x: [], f: [], et: [], e: [], marks: [], pos: null, portF: null,
               hist: null, grid: null, felt: {}, measured: {}, measurements: [], links: {}, masses: {},
               frames: 0, count: 0, replies: [], journal: [], report: null, box: null,
-              periodUs: 1000, span: 4.0 };
+              periodUs: 1000, span: 4.0,
+              // the axis's units (the hello's layout.units: a rotary joint's, or SI)
+              units: { position: "m", force: "N", stiffness: "N/m", friction: "N s/m" } };
   window.hapsimView = S;
   const $ = (id) => document.getElementById(id);
   const ws = new WebSocket(`ws://${location.host}/ws`);
@@ -45,10 +47,10 @@
     const ax = S.layout.dim > 1 ? ` ${"xyz"[axis] || axis}` : "";
     plotXF = new uPlot({ width: w, height: 190, title: "",
       scales: { x: { time: false }, f: {} },
-      axes: [{ label: "t [s]" }, { label: `position${ax} [m]`, size: 70 },
-             { scale: "f", side: 1, label: `force${ax} [N]`, grid: { show: false }, size: 60 }],
-      series: [{ label: "t [s]" }, { label: `position${ax} [m]`, stroke: "#1565c0" },
-               { label: `force${ax} [N]`, stroke: "#c62828", scale: "f" }],
+      axes: [{ label: "t [s]" }, { label: `position${ax} [${S.units.position}]`, size: 70 },
+             { scale: "f", side: 1, label: `force${ax} [${S.units.force}]`, grid: { show: false }, size: 60 }],
+      series: [{ label: "t [s]" }, { label: `position${ax} [${S.units.position}]`, stroke: "#1565c0" },
+               { label: `force${ax} [${S.units.force}]`, stroke: "#c62828", scale: "f" }],
       hooks: { draw: [marksHook] } }, [[], [], []], $("traces"));
     plotE = new uPlot({ width: w, height: 120,
       scales: { x: { time: false } },
@@ -60,6 +62,7 @@
   // ------------------------------------------------------------------ messages
   function hello(m) {
     S.layout = m.layout; S.periodUs = m.period_us; S.histBins = m.hist_bins;
+    S.units = m.layout.units || S.units;
     $("what").textContent = m.what;
     $("scene-note").textContent = `(${m.layout.dim}-D, ${m.layout.masses.length} masses, ` +
       `${m.layout.links.length} links, ${m.layout.rate_hz} Hz)`;
@@ -128,7 +131,7 @@
     if (m.ok) {
       r.className = "ok";
       r.textContent = `accepted ${m.address} ${JSON.stringify(m.args)}: ramp ${fmt(m.ramp_s)} s, ` +
-        `felt k ${fmt(m.k)} N/m, b ${fmt(m.b)} N s/m`;
+        `felt k ${fmt(m.k)} ${S.units.stiffness}, b ${fmt(m.b)} ${S.units.friction}`;
     } else {
       r.className = "refused";
       r.textContent = `refused ${m.address} ${JSON.stringify(m.args)}: ${m.reason}`;
@@ -182,10 +185,10 @@
       const K = lk.K || 0, B = lk.B || 0;
       const kmax = Math.max(3 * K, 1), bmax = Math.max(3 * Math.abs(B), 1);
       const cur = () => S.links[lk.name] || [K, B];
-      const rK = slider(`${lk.name} (${lk.kind}) K [N/m]`, K, kmax,
+      const rK = slider(`${lk.name} (${lk.kind}) K [${S.units.stiffness}]`, K, kmax,
         (v) => S.request("/hapsim/link/kb", [lk.name, v, cur()[1]]));
       rK.id = `ctl-${lk.name}-K`;
-      const rB = slider(`${lk.name} B [N s/m]`, B, bmax,
+      const rB = slider(`${lk.name} B [${S.units.friction}]`, B, bmax,
         (v) => S.request("/hapsim/link/kb", [lk.name, cur()[0], v]));
       rB.id = `ctl-${lk.name}-B`;
       rows[lk.name] = [rK, rB];
@@ -240,7 +243,7 @@
     const X = (v) => 20 + (v - bx[0]) * sx, Y = (v) => H - 20 - (v - bx[2]) * sy;
     if (dim === 1) {
       ctx.strokeStyle = "#eee"; ctx.beginPath(); ctx.moveTo(0, H - 12); ctx.lineTo(W, H - 12); ctx.stroke();
-      ctx.fillStyle = "#777"; ctx.fillText(`x [m]: ${fmt(bx[0])} … ${fmt(bx[1])}`, 4, H - 2);
+      ctx.fillStyle = "#777"; ctx.fillText(`x [${S.units.position}]: ${fmt(bx[0])} … ${fmt(bx[1])}`, 4, H - 2);
     }
     for (const pl of L.planes || []) {       // a plane contact as its trace in the view
       const nrm = pl.normal, lit = pl.masses.some((i) => dot(S.pos[i], nrm) < pl.offset);
@@ -346,8 +349,8 @@
     g.K[0].forEach((_, j) => line(cols(g.K, j), cols(g.B, j), "#2e7d32", 1.2));
     if (g.boundary_K) line(g.boundary_K, g.boundary_B, "#000", 2.5);
     ctx.fillStyle = "#333";
-    ctx.fillText("K [N/m] →", W - 70, H - 8); ctx.save(); ctx.translate(12, H / 2 + 40);
-    ctx.rotate(-Math.PI / 2); ctx.fillText("B + b0 [N s/m] →", 0, 0); ctx.restore();
+    ctx.fillText(`K [${S.units.stiffness}] →`, W - 70, H - 8); ctx.save(); ctx.translate(12, H / 2 + 40);
+    ctx.rotate(-Math.PI / 2); ctx.fillText(`B + b0 [${S.units.friction}] →`, 0, 0); ctx.restore();
     ctx.fillText(`${fmt(k1)}`, W - 40, H - 18); ctx.fillText(`${fmt(b1)}`, 20, 14);
     const dotAt = (K, B, color, label, ek, eb) => {
       if (K === null || B === null || K === undefined || B === undefined || Number.isNaN(K)) return;
@@ -394,12 +397,12 @@
     const f = S.felt, m = S.measured;
     if (!f || f.k === undefined) return;
     const margin = f.stiffness_limit ? 1 - (f.port_K || 0) / f.stiffness_limit : null;
-    $("felt").textContent = `predicted felt k ${fmt(f.k)} N/m, b ${fmt(f.b)} N s/m ` +
+    $("felt").textContent = `predicted felt k ${fmt(f.k)} ${S.units.stiffness}, b ${fmt(f.b)} ${S.units.friction} ` +
       `(f0 ${fmt(f.f0_hz)} Hz, ζ ${fmt(f.damping_ratio)}); spectral radius ${fmt(f.spectral_radius)} ` +
       `(${f.stable ? "stable" : "UNSTABLE"})` +
-      (margin !== null ? `; stiffness margin to the boundary ${fmt(100 * margin)} % (K max ${fmt(f.stiffness_limit)} N/m)` : "") +
+      (margin !== null ? `; stiffness margin to the boundary ${fmt(100 * margin)} % (K max ${fmt(f.stiffness_limit)} ${S.units.stiffness})` : "") +
       `. Measured: ` + (m.k !== null && m.k !== undefined ?
-        `k ${fmt(m.k)} ± ${fmt(m.k_unc)} N/m, b ${fmt(m.b)} ± ${fmt(m.b_unc)} N s/m` +
+        `k ${fmt(m.k)} ± ${fmt(m.k_unc)} ${S.units.stiffness}, b ${fmt(m.b)} ± ${fmt(m.b_unc)} ${S.units.friction}` +
         (m.rows ? ` on ${m.rows} samples` : "") + (m.final ? " (the report's)" :
           S.measurements.length ? ` (${S.measurements.length} measurements as the record grew)` : "") +
         (m.verdict ? `, ${m.verdict}` : "") : (m.why_not || "–")) +
