@@ -151,3 +151,27 @@ def test_the_live_views_layout_carries_the_axis_units():
           ).read_text()
     literal = [ln for ln in js.splitlines() if re.search(r"N/m|N s/m|\[m\]|\[N\]", ln)]
     assert len(literal) == 1 and "units: {" in literal[0], literal
+
+
+def test_the_charts_of_a_joints_run_and_identification_say_its_units():
+    """``run --plot`` (:func:`hapsim.plots.plot_felt`, the report's ``units``) and
+    ``identify --plot`` (:func:`hapsim.plots.plot_identify`, the driver's units)."""
+    pytest.importorskip("matplotlib", reason="the charts' optional extra (hapsim[plot])")
+    import hapsim
+    from hapsim.plots import plot_felt, plot_identify
+    rep = hapsim.run("configs/haply.yaml", driver="haply", lockstep=True, duration=1.0,
+                     handle_signals=False, rt_priority=0)
+    fig = plot_felt(rep)
+    ax = fig.axes[0]
+    words = [ax.get_xlabel(), ax.get_ylabel()] + [t.get_text() for t in
+                                                  ax.get_legend().get_texts()]
+    assert words[:2] == ["k [N m/rad]", "b [N m s/rad]"]
+    assert not _SI_AFTER_NUMBER.findall(" ".join(words)), words
+    # (the figure's words only: a fit's fields, not an identification's 2 s)
+    from types import SimpleNamespace as NS
+    fit = NS(n_samples=100, period=1e-3, model=np.zeros(100), mass=NS(value=0.001),
+             friction=NS(value=0.001), coulomb=NS(value=0.002), delay=1, hold="zoh")
+    fig = plot_identify(fit, {"position": np.zeros(100), "loop": {}}, ROTARY)
+    top, bottom = fig.axes
+    assert top.get_ylabel() == "position [mrad]" and bottom.get_ylabel().endswith("[urad]")
+    assert "kg m^2" in top.get_title() and not _SI_AFTER_NUMBER.findall(top.get_title())

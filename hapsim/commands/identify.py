@@ -163,9 +163,10 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _plot(fit, rec, path: str) -> None:
+def _plot(fit, rec, path: str, driver=None) -> None:
+    from hapsim.drivers import axis_units
     from hapsim.plots import plot_identify, save_figure
-    save_figure(plot_identify(fit, rec), path)
+    save_figure(plot_identify(fit, rec, axis_units(driver)), path)
 
 
 def _key_values(items, key: str) -> dict:
@@ -331,7 +332,7 @@ def run(args) -> int:
         with open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text)
     if args.plot:
-        _plot(fit, rec, args.plot)
+        _plot(fit, rec, args.plot, drv)
     loop = rec["loop"]
     code = 0 if (fit.explained and not loop["safety_stop"] and not loop["faults"]
                  and rep.error is None) else 1

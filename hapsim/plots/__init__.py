@@ -314,7 +314,8 @@ def plot_felt(report, ax=None, title: str | None = None):
     Returns
     -------
     matplotlib.figure.Figure
-        Axes: k [N/m] (x), b [N s/m] (y). The simulated (K, B) (square), the predicted
+        Axes: k [N/m] (x), b [N s/m] (y), or a rotary joint's units (the report's
+        ``units``). The simulated (K, B) (square), the predicted
         felt pair (circle; the least damped closed-loop pole pair read as m s^2 + b s + k,
         Florens, Voda & Urma), the measured pair with its stated uncertainty (cross with
         error bars; matrix pencil, Hua & Sarkar 1990) and each target (star).
@@ -325,6 +326,11 @@ def plot_felt(report, ax=None, title: str | None = None):
         If matplotlib is missing.
     """
     fig, ax = _figure(ax, (6.0, 4.5))
+    from hapsim.drivers import axis_units, in_axis_units
+    u = getattr(report, "units", None) or axis_units(None)
+
+    def say(text):          # (a rotary joint's run: its units)
+        return in_axis_units(text, u)
 
     def pair(d, k="k", b="b"):
         if not d or d.get(k) is None or d.get(b) is None:
@@ -334,25 +340,25 @@ def plot_felt(report, ax=None, title: str | None = None):
     v = pair(report.virtual, "K", "B")
     if v is not None:
         ax.plot(*v, "s", mfc="none", color="0.5", ms=9,
-                label=f"simulated K = {v[0]:.4g} N/m, B = {v[1]:.3g} N s/m")
+                label=say(f"simulated K = {v[0]:.4g} N/m, B = {v[1]:.3g} N s/m"))
     p = pair(report.predicted)
     if p is not None:
         ax.plot(*p, "o", mfc="none", color="C0", ms=12,
-                label=f"predicted k = {p[0]:.4g} N/m, b = {p[1]:.3g} N s/m")
+                label=say(f"predicted k = {p[0]:.4g} N/m, b = {p[1]:.3g} N s/m"))
     m = pair(report.measured)
     if m is not None:
         unc = report.measured
         ax.errorbar(*m, xerr=unc.get("k_unc") or 0.0, yerr=unc.get("b_unc") or 0.0,
                     fmt="x", color="C3", ms=9, capsize=3,
-                    label=f"measured k = {m[0]:.4g} N/m, b = {m[1]:.3g} N s/m")
+                    label=say(f"measured k = {m[0]:.4g} N/m, b = {m[1]:.3g} N s/m"))
     for t in report.targets or []:
         tp = pair(t)
         if tp is not None:
             ax.plot(*tp, "*", color="C2", ms=12,
-                    label=f"target ({t.get('link')}): k = {tp[0]:.4g} N/m, b = {tp[1]:.3g} "
-                          f"N s/m")
-    ax.set_xlabel("k [N/m]")
-    ax.set_ylabel("b [N s/m]")
+                    label=say(f"target ({t.get('link')}): k = {tp[0]:.4g} N/m, b = "
+                              f"{tp[1]:.3g} N s/m"))
+    ax.set_xlabel(say("k [N/m]"))
+    ax.set_ylabel(say("b [N s/m]"))
     ax.margins(0.25)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.15), fontsize=8, frameon=False)
     ax.set_title(title or getattr(report, "scene", None) or "felt (k, b)")
@@ -360,7 +366,7 @@ def plot_felt(report, ax=None, title: str | None = None):
     return fig
 
 
-def plot_identify(fit, record=None):
+def plot_identify(fit, record=None, units=None):
     """A device identification: the measured response against the fitted model.
 
     Parameters
@@ -372,6 +378,9 @@ def plot_identify(fit, record=None):
     record : dict, optional
         The excitation record (``position`` [m], shape (N,); ``loop.fitted_rows``: the rows
         fitted); taken from the report when ``fit`` is one.
+    units : dict, optional
+        :func:`hapsim.drivers.axis_units` of the device's axis (default SI; a rotary
+        joint's: mrad, urad, kg m^2, N m s/rad, N m).
 
     Returns
     -------
@@ -398,12 +407,15 @@ def plot_identify(fit, record=None):
     fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
     a1.plot(t, x * 1e3, lw=0.8, label="measured")
     a1.plot(t, fit.model * 1e3, lw=0.8, ls="--", label="model")
-    a1.set_ylabel("position [mm]")
+    from hapsim.drivers import axis_units, in_axis_units
+    u = units or axis_units(None)
+    a1.set_ylabel(in_axis_units("position [mm]", u))
     a1.legend(loc="upper right")
-    a1.set_title(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} N s/m, "
-                 f"fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, {fit.hold}")
+    a1.set_title(in_axis_units(f"m = {fit.mass.value:.4g} kg, b0 = {fit.friction.value:.4g} "
+                               f"N s/m, fc = {fit.coulomb.value:.3g} N, d = {fit.delay}, "
+                               f"{fit.hold}", u))
     a2.plot(t, (fit.model - x) * 1e6, lw=0.6)
-    a2.set_ylabel("model - measured [um]")
+    a2.set_ylabel(in_axis_units("model - measured [um]", u))
     a2.set_xlabel("time [s]")
     return fig
 
