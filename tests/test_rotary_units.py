@@ -50,14 +50,22 @@ def test_si_units_after_a_number_or_in_brackets_are_said_in_the_joints():
     assert in_axis_units(nested, ROTARY) == {"a": ["0.5 rad", ("1 N m",)], "b": 3, "c": None}
 
 
-def test_hapsim_run_on_the_haply_joint_reports_in_its_units():
-    """The report of a run through the Haply board's bytes (lockstep by name: the words
-    are checked, not the timing), against the framed wall's, SI."""
+@pytest.fixture(scope="module")
+def haply_run():
+    """A run through the Haply board's bytes (lockstep by name: the words are checked,
+    not the timing): the API's report."""
+    import hapsim
+    return hapsim.run("configs/haply.yaml", driver="haply", lockstep=True, duration=1.0,
+                      handle_signals=False, rt_priority=0)
+
+
+def test_hapsim_run_on_the_haply_joint_reports_in_its_units(haply_run):
+    """The report of a run through the Haply board's bytes, against the framed wall's,
+    SI."""
     from hapsim.pipeline.report import format_report
     from hapsim.pipeline.runner import run_scene
     from hapsim.scene import load_scene
-    rep = run_scene(load_scene("configs/haply.yaml"), driver="haply", handle_signals=False,
-                    rt_priority=0, lockstep=True, duration=1.0)
+    rep = haply_run.to_dict()
     assert rep["units"] == ROTARY
     text = format_report(rep)
     assert "k [N m/rad]" in text and "b [N m s/rad]" in text and "N m/rad;" in text
@@ -153,15 +161,12 @@ def test_the_live_views_layout_carries_the_axis_units():
     assert len(literal) == 1 and "units: {" in literal[0], literal
 
 
-def test_the_charts_of_a_joints_run_and_identification_say_its_units():
+def test_the_charts_of_a_joints_run_and_identification_say_its_units(haply_run):
     """``run --plot`` (:func:`hapsim.plots.plot_felt`, the report's ``units``) and
     ``identify --plot`` (:func:`hapsim.plots.plot_identify`, the driver's units)."""
     pytest.importorskip("matplotlib", reason="the charts' optional extra (hapsim[plot])")
-    import hapsim
     from hapsim.plots import plot_felt, plot_identify
-    rep = hapsim.run("configs/haply.yaml", driver="haply", lockstep=True, duration=1.0,
-                     handle_signals=False, rt_priority=0)
-    fig = plot_felt(rep)
+    fig = plot_felt(haply_run)
     ax = fig.axes[0]
     words = [ax.get_xlabel(), ax.get_ylabel()] + [t.get_text() for t in
                                                   ax.get_legend().get_texts()]
