@@ -333,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 class _UnitsWriter:
-    """``stdout`` with its sentences said in a rotary axis's units
+    """A text stream with its sentences said in a rotary axis's units
     (:func:`hapsim.drivers.in_axis_units`; every other attribute the stream's)."""
 
     def __init__(self, stream, units: dict):
@@ -349,11 +349,12 @@ class _UnitsWriter:
 
 @contextlib.contextmanager
 def _in_scene_units(args):
-    """Run a command with its stdout in the units of its 1-D scene's axis: a rotary
-    joint's (the Haply's: radians, newton metres) where ``--driver`` or the scene's
-    ``device.protocol`` names one. The 1-D analyses are written in SI words; a scene's
-    figures are in its axis's units. Nothing changes on a linear axis, an n-D scene (its
-    Cartesian coordinates are metres whatever its driver) or without a scene."""
+    """Run a command with its stdout and stderr in the units of its 1-D scene's axis: a
+    rotary joint's (the Haply's: radians, newton metres) where ``--driver`` or the
+    scene's ``device.protocol`` names one. The 1-D analyses are written in SI words; a
+    scene's figures are in its axis's units. Nothing changes on a linear axis, an n-D
+    scene (its Cartesian coordinates are metres whatever its driver) or without a
+    scene."""
     path = getattr(args, "scene", None)
     units = None
     if isinstance(path, str):
@@ -366,12 +367,12 @@ def _in_scene_units(args):
     if units is None or units["position"] == "m":
         yield
         return
-    old = sys.stdout
-    sys.stdout = _UnitsWriter(old, units)
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _UnitsWriter(out, units), _UnitsWriter(err, units)
     try:
         yield
     finally:
-        sys.stdout = old
+        sys.stdout, sys.stderr = out, err
 
 
 class Terminated(KeyboardInterrupt):
@@ -458,23 +459,23 @@ def _main(argv: list[str], want_json: bool, watch) -> int:
         command = watch.label = f"hapsim {args.command}"
         if args.command == "mock":      # a server: silent until stopped is its normal state
             watch.stop()
-        try:
-            import numpy as np
-            # overflow/invalid in the analysis of extreme loops shows up in the results
-            # (nan, inf, an unstable verdict); numpy's RuntimeWarnings on stderr only
-            # confuse (issue 10)
-            with np.errstate(all="ignore"):
-                # every numeric option in its declared range, before any work
-                check_numbers(_subparser(parser, args.command), args, argv)
-                with _in_scene_units(args):
+        with _in_scene_units(args):     # (its refusals too)
+            try:
+                import numpy as np
+                # overflow/invalid in the analysis of extreme loops shows up in the
+                # results (nan, inf, an unstable verdict); numpy's RuntimeWarnings on
+                # stderr only confuse (issue 10)
+                with np.errstate(all="ignore"):
+                    # every numeric option in its declared range, before any work
+                    check_numbers(_subparser(parser, args.command), args, argv)
                     return int(args.func(args))
-        except UnstableConfigError as exc:
-            # a negative verdict (unstable, not renderable), even when also a ConfigError
-            return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)
-        except ConfigError as exc:
-            return _fail(command, exc, 2, f"error: {exc}", want_json)
-        except HapsimError as exc:
-            return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)
+            except UnstableConfigError as exc:
+                # a negative verdict (unstable, not renderable), even when a ConfigError
+                return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)
+            except ConfigError as exc:
+                return _fail(command, exc, 2, f"error: {exc}", want_json)
+            except HapsimError as exc:
+                return _fail(command, exc, 1, f"{type(exc).__name__}: {exc}", want_json)
     except KeyboardInterrupt as exc:
         if isinstance(exc, Terminated):     # asked by a process: the code says it
             if want_json:

@@ -180,3 +180,15 @@ def test_the_charts_of_a_joints_run_and_identification_say_its_units(haply_run):
     top, bottom = fig.axes
     assert top.get_ylabel() == "position [mrad]" and bottom.get_ylabel().endswith("[urad]")
     assert "kg m^2" in top.get_title() and not _SI_AFTER_NUMBER.findall(top.get_title())
+
+
+def test_a_refusal_of_a_joints_scene_says_its_units(tmp_path, capsys):
+    """A refusal on stderr (``hapsim run`` of a torsion spring beyond the joint's stability
+    limit) names its K, B and K_max in the joint's units."""
+    path = tmp_path / "stiff_joint.yaml"
+    path.write_text(open("configs/haply.yaml").read().replace("stiffness: 0.5,",
+                                                              "stiffness: 5.0,"))
+    assert main(["run", str(path), "--lockstep"]) == 1
+    err = capsys.readouterr().err
+    assert "K_max = 1.33222 N m/rad" in err and "m = 0.001 kg m^2" in err, err
+    assert not _SI_AFTER_NUMBER.findall(err), err
