@@ -358,10 +358,14 @@ def _in_scene_units(args):
     path = getattr(args, "scene", None)
     units = None
     if isinstance(path, str):
-        from hapsim.drivers import DRIVERS, axis_units
+        from hapsim.drivers import DEFAULT, DRIVERS, axis_units
         from hapsim.scene import scene_dimension, scene_protocol
         if scene_dimension(path) == 1:
-            proto = getattr(args, "driver", None) or scene_protocol(path)
+            # (hapsim.drivers.run_units's rule, on the file: the framed protocol names
+            # no axis, the scene's does)
+            proto = getattr(args, "driver", None)
+            if proto in (None, DEFAULT):
+                proto = scene_protocol(path)
             if isinstance(proto, str) and proto in DRIVERS:
                 units = axis_units(proto)
     if units is None or units["position"] == "m":

@@ -99,7 +99,8 @@ def test_an_n_d_scene_keeps_its_metres_whatever_its_driver():
     for scene, driver, rotary in (("configs/pantograph_spring.yaml", "haply", False),
                                   ("configs/wall.yaml", None, False),
                                   ("configs/wall.yaml", "haply", True),
-                                  ("configs/haply.yaml", None, True)):
+                                  ("configs/haply.yaml", None, True),
+                                  ("configs/haply.yaml", "framed", True)):
         with _in_scene_units(argparse.Namespace(scene=scene, driver=driver)):
             assert (sys.stdout is not before) == rotary, (scene, driver)
         assert sys.stdout is before
@@ -154,6 +155,8 @@ def test_the_live_views_layout_carries_the_axis_units():
     assert scene_layout(load_scene("configs/haply.yaml"))["units"] == ROTARY
     assert scene_layout(load_scene("configs/wall.yaml"))["units"] == SI
     assert scene_layout(load_scene("configs/wall.yaml"), "haply")["units"] == ROTARY
+    # the framed protocol names no axis: the scene's own
+    assert scene_layout(load_scene("configs/haply.yaml"), "framed")["units"] == ROTARY
     assert scene_layout(load_scene_nd("configs/pantograph_spring.yaml"), "haply")["units"] == SI
     js = (Path(__file__).resolve().parents[1] / "hapsim" / "view" / "static" / "view.js"
           ).read_text()
@@ -192,3 +195,37 @@ def test_a_refusal_of_a_joints_scene_says_its_units(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "K_max = 1.33222 N m/rad" in err and "m = 0.001 kg m^2" in err, err
     assert not _SI_AFTER_NUMBER.findall(err), err
+
+
+def test_a_driver_of_the_other_axis_kind_is_refused():
+    """A scene written for a linear axis driven through a rotary joint, or the reverse,
+    is another device (the FireFader's 0.05 kg fader read as a 0.05 kg m^2 joint, 50 times
+    the Haply's inertia, under a 15 N m/rad spring): refused by name, on every pair of
+    the registry's 1-D families of different kinds, by the command and by the API; a
+    framed scene names no axis and takes any driver."""
+    import hapsim
+    from hapsim.drivers import DEFAULT, DRIVERS, protocol_of
+    from hapsim.errors import ConfigError
+    from hapsim.scene import load_scene
+    scenes = {"firefader": "configs/firefader.yaml", "haply": "configs/haply.yaml",
+              "hapkit-serial": "configs/hapkit_serial.yaml"}
+    assert set(scenes) == set(DRIVERS) - {DEFAULT}
+    pairs = 0
+    for named, path in scenes.items():
+        scene = load_scene(path)
+        for driver in DRIVERS:
+            if driver in (named, DEFAULT):
+                assert protocol_of(scene, driver)[0] == driver
+                continue
+            if (axis_units(driver) == ROTARY) == (axis_units(named) == ROTARY):
+                assert protocol_of(scene, driver)[0] == driver      # same kind: taken
+                continue
+            pairs += 1
+            with pytest.raises(ConfigError) as err:
+                protocol_of(scene, driver)
+            assert err.value.key == "--driver" and named in str(err.value)
+            with pytest.raises(ConfigError):
+                hapsim.run(path, driver=driver, lockstep=True, handle_signals=False)
+    assert pairs == 4
+    wall = load_scene("configs/wall.yaml")
+    assert all(protocol_of(wall, d)[0] == d for d in DRIVERS)

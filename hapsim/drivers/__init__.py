@@ -28,7 +28,7 @@ import re
 from hapsim.errors import ConfigError
 
 __all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver", "device_driver",
-           "protocol_of", "axis_units", "in_axis_units"]
+           "protocol_of", "axis_units", "in_axis_units", "run_units"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -186,6 +186,29 @@ def axis_units(driver) -> dict:
             "stiffness": "N/m", "speed": "m/s"}
 
 
+def run_units(scene, driver: str | None = None) -> dict:
+    """The units a 1-D run's figures are in: ``--driver``'s axis, or the scene's
+    ``device.protocol``'s where no driver or the framed protocol (which names no axis)
+    is given; SI for an n-D scene (Cartesian) or without a scene.
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene or hapsim.scene.SceneND or None
+    driver : str or None
+        ``--driver`` (one of :data:`DRIVERS`), or None.
+
+    Returns
+    -------
+    dict
+        :func:`axis_units`'s.
+    """
+    if int(getattr(scene, "dimension", 1) or 1) > 1:
+        return axis_units(None)
+    if driver is None or driver == DEFAULT:
+        driver = getattr(getattr(scene, "device", None), "protocol", None)
+    return axis_units(driver if driver in DRIVERS else None)
+
+
 #: An SI unit of a linear axis after a number or in brackets (:func:`in_axis_units`):
 #: the longest first ("N s/m" before "N"), not one already followed by " m" ("N m").
 _SI_UNIT = re.compile(r"(?:(?<=\d )|(?<=\[))(N s/m|N/m|m/s|kg|mm|um|m|N)"
@@ -247,8 +270,18 @@ def protocol_of(scene, driver: str | None) -> tuple[str, str]:
         One of :data:`DRIVERS` (not checked here: :func:`family` refuses an unknown one).
     said : str
         The name with its source, for the start-up line: ``"the framed protocol"``,
-        ``"the firefader protocol (the scene's device.protocol)"``, ``"the haply protocol
-        (--driver; the scene's device.protocol is firefader)"``.
+        ``"the firefader protocol (the scene's device.protocol)"``, ``"the hapkit-serial
+        protocol (--driver; the scene's device.protocol is firefader)"``.
+
+    Raises
+    ------
+    ConfigError
+        ``--driver`` drives a rotary axis where the scene names a linear one, or the
+        reverse (key ``--driver``): the scene's figures are in its own axis's units, and
+        read in the other's they are another device (the FireFader's 0.05 kg fader read
+        as a 0.05 kg m^2 joint, 50 times the Haply's). The framed protocol names no axis
+        (its HELLO says the device's scales): its scenes take any driver, and any scene
+        runs on its mock in the scene's own units.
     """
     device = getattr(scene, "device", None)
     named = getattr(device, "protocol", None) or DEFAULT
@@ -258,6 +291,19 @@ def protocol_of(scene, driver: str | None) -> tuple[str, str]:
     if driver != named:
         if device is None:          # no scene (or none with a device): nothing to contrast
             return driver, f"the {driver} protocol (--driver)"
+        if DEFAULT not in (named, driver) and driver in DRIVERS and named in DRIVERS:
+            ours, theirs = axis_units(driver), axis_units(named)
+            if ours["position"] != theirs["position"]:
+                def kind(u):
+                    return ("a rotary joint" if u["position"] == "rad" else "a linear axis")
+                raise ConfigError(
+                    f"{driver} drives {kind(ours)} ({ours['mass']}, "
+                    f"{ours['stiffness']}, {ours['position']}), but the scene's "
+                    f"device.protocol is {named}, {kind(theirs)}: its figures are in "
+                    f"{theirs['mass']}, {theirs['stiffness']} and {theirs['position']}, "
+                    f"and read in the other's units they are another device. Give a scene "
+                    f"written for {driver} (device.protocol: {driver}), or leave --driver "
+                    f"out", key="--driver")
         return driver, (f"the {driver} protocol (--driver; the scene's device.protocol "
                         f"is {named})")
     return driver, f"the {driver} protocol"

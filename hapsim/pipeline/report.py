@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from hapsim.analysis.prediction import port_links
-from hapsim.drivers import DEFAULT, axis_units, in_axis_units
+from hapsim.drivers import DEFAULT, axis_units, in_axis_units, run_units
 from hapsim.drivers.urlhandler import is_emulated
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import process_start
@@ -195,7 +195,7 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
     from hapsim.host.link_verdict import link_verdict
     unfit = link_verdict(measured, loop_info)
     # a rotary axis's figures are radians and newton metres: its sentences say so
-    units = axis_units(opts.protocol)
+    units = run_units(scene, opts.protocol)
     measured = in_axis_units(measured, units)
     loop_info["warnings"] = in_axis_units(loop_info["warnings"], units)
     return {"scene": scene.path, "target": targets[0] if targets else None,

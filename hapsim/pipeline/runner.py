@@ -88,15 +88,17 @@ def prepare_run(scene: Scene, opts: RunOptions) -> PreparedRun:
     Raises
     ------
     ConfigError
-        No port/device, or d = 0 outside lockstep.
+        No port/device, or d = 0 outside lockstep; a driver of another axis kind than
+        the scene's device.protocol (:func:`hapsim.drivers.protocol_of`).
     UnstableConfigError
         A target not renderable, or an unstable loop without ``allow_unstable``.
     """
     rate_hz, drv = opts.rate_hz, None
     if opts.driver is not None:
+        from hapsim.drivers import get_driver, protocol_of
+        protocol_of(scene, opts.driver)     # (refuses a driver of the other axis kind)
         # the board's own rate: a board on its own tick runs whole ticks (the Hapkit
         # sketch's 5 x 0.992 ms for 201.613 Hz), and the loop is modelled at that period
-        from hapsim.drivers import get_driver
         drv = get_driver(opts.driver, **(opts.driver_options or {}))
         asked = scene.rate_hz if rate_hz is None else rate_hz
         board = drv.board_rate_hz(asked)

@@ -37,10 +37,10 @@ def scene_layout(scene, protocol: str | None = None) -> dict:
         length, 0 in 1-D)), ``planes`` (n-D plane contacts: ``name``, ``normal``,
         ``offset`` [m], ``K``, ``B``, ``masses`` indices), ``targets`` (the links given
         as a felt target: ``name``, ``k`` [N/m], ``b`` [N s/m]), ``rate_hz`` [Hz],
-        ``units`` (:func:`hapsim.drivers.axis_units`: the figures above are in a rotary
+        ``units`` (:func:`hapsim.drivers.run_units`: the figures above are in a rotary
         joint's units where the 1-D axis is one; an n-D scene's are SI).
     """
-    from hapsim.drivers import axis_units
+    from hapsim.drivers import run_units
     dim = int(getattr(scene, "dimension", 1) or 1)
     names = [m.name for m in scene.masses]
     idx = {n: i for i, n in enumerate(names)}
@@ -56,11 +56,9 @@ def scene_layout(scene, protocol: str | None = None) -> dict:
                "offset": float(p.offset), "K": _num(p.stiffness), "B": _num(p.damping),
                "masses": [idx[n] for n in p.masses if n in idx]}
               for p in getattr(scene, "planes", ()) or ()]
-    if dim == 1:
-        protocol = protocol or getattr(getattr(scene, "device", None), "protocol", None)
     return {"dim": dim, "masses": masses, "links": links, "planes": planes,
             "targets": targets, "rate_hz": float(scene.rate_hz),
-            "units": axis_units(protocol if dim == 1 else None)}
+            "units": run_units(scene, protocol)}
 
 
 class _Base:
