@@ -149,18 +149,10 @@ def register(sub) -> None:
 
 
 def _from_spec(text: str):
-    from hapsim.scene import Device, Excitation, Hand, Impulse
+    from hapsim.scene.elements import device_from_dict, excitation_from_dict
     spec = json.loads(text)
-    d = dict(spec["device"])
-    if d.get("force_limit") is None:
-        d["force_limit"] = math.inf
-    if d.get("hand") is not None:           # a dict in JSON; ranges as lists
-        d["hand"] = Hand(**{k: tuple(v) if isinstance(v, list) else v
-                            for k, v in d["hand"].items()})
-    e = dict(spec["excitation"])
-    if e.get("impulse") is not None:
-        e["impulse"] = Impulse(**e["impulse"])
-    return Device(**d), Excitation(**e), spec.get("base_dir")
+    return (device_from_dict(spec["device"]), excitation_from_dict(spec["excitation"]),
+            spec.get("base_dir"))
 
 
 def _new_pty(link: str | None, announce: bool) -> tuple[int, int]:

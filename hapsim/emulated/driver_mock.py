@@ -439,9 +439,8 @@ def main(argv=None) -> int:
     (``--fd``: a pty's master; ``--listen``: an emulated link's listening socket instead,
     :mod:`hapsim.emulated.stamped_link`)."""
     import argparse
-    import dataclasses
 
-    from hapsim.scene import Device, Excitation
+    from hapsim.scene.elements import device_from_dict, excitation_from_dict
     p = argparse.ArgumentParser(prog="hapsim.emulated.driver_mock")
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--fd", type=int)
@@ -456,23 +455,12 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     opt = json.loads(a.options)
     spec = json.loads(a.spec)
-    d = spec["device"]
-    if d.get("force_limit") is None:
-        d["force_limit"] = math.inf
-    device = Device(**d)
-    exc = spec["excitation"]
-    fields = {f.name for f in dataclasses.fields(Excitation)}
-    if exc.get("impulse"):
-        from hapsim.scene import Impulse
-        exc["impulse"] = Impulse(**exc["impulse"])
-    excitation = Excitation(**{k: v for k, v in exc.items() if k in fields})
+    device = device_from_dict(spec["device"])
+    excitation = excitation_from_dict(spec["excitation"])
     cls = MOCKS[spec["driver"]]
     if isinstance(opt.get("device_b"), dict):
         # a second handle's device (the FireFader's fader B), as the first one's
-        b = opt["device_b"]
-        if b.get("force_limit") is None:
-            b["force_limit"] = math.inf
-        opt["device_b"] = Device(**b)
+        opt["device_b"] = device_from_dict(opt["device_b"])
     dev = cls(device, a.rate, excitation, seed=a.seed, **opt)
     _above_the_hosts()
     flag = {"stop": False}

@@ -19,7 +19,7 @@ import numpy as np
 from hapsim.drivers import DEFAULT
 
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
-           "Listen", "Audio", "audio_substeps", "MassND", "LinkND", "PlaneND", "DeviceND",
+           "Listen", "Audio", "audio_substeps", "device_from_dict", "excitation_from_dict", "MassND", "LinkND", "PlaneND", "DeviceND",
            "ListenND", "ExcitationND", "SafetyND"]
 
 #: Corrections of the virtual element and their parameters (hapsim.analysis.corrections).
@@ -236,6 +236,54 @@ class Excitation:
     v0: float = 0.0
     impulse: Impulse | None = None
     profile: str | None = None
+
+
+def device_from_dict(d: dict) -> Device:
+    """The :class:`Device` of ``dataclasses.asdict(device)`` sent as JSON (an emulated
+    board's start-up spec): its hand a :class:`Hand` again (its ranges tuples), a
+    ``force_limit`` of None (JSON's) infinite.
+
+    Parameters
+    ----------
+    d : dict
+        The device's fields, as JSON gives them back.
+
+    Returns
+    -------
+    Device
+
+    Raises
+    ------
+    TypeError
+        A key that is no field of :class:`Device` or :class:`Hand`.
+    """
+    d = dict(d)
+    if d.get("force_limit") is None:
+        d["force_limit"] = math.inf
+    if isinstance(d.get("hand"), dict):      # (a dict in JSON: read as no hand at all, a
+        # hand of mass 0, it stopped the board the Haply driver's run embeds)
+        d["hand"] = Hand(**{k: tuple(v) if isinstance(v, list) else v
+                            for k, v in d["hand"].items()})
+    return Device(**d)
+
+
+def excitation_from_dict(e: dict) -> Excitation:
+    """The :class:`Excitation` of ``dataclasses.asdict(excitation)`` sent as JSON: its
+    impulse an :class:`Impulse` again; keys that are no field are left out.
+
+    Parameters
+    ----------
+    e : dict
+
+    Returns
+    -------
+    Excitation
+    """
+    fields = Excitation.__dataclass_fields__
+    e = {k: v for k, v in e.items() if k in fields}
+    if isinstance(e.get("impulse"), dict):
+        e["impulse"] = Impulse(**e["impulse"])
+    return Excitation(**e)
 
 
 @dataclass(frozen=True)
