@@ -87,3 +87,17 @@ def test_the_haply_joint_with_a_hand_is_measured_through_its_board():
     # the hand moves the felt pair: 0.4948 N m/rad against the joint alone's 0.5007
     # (configs/haply.yaml), so a board without it could not have matched
     assert rep["predicted"]["k"] == pytest.approx(0.4948, abs=1e-4)
+
+
+def test_a_board_that_cannot_start_says_why_in_one_line(capsys):
+    """A board whose device its model refuses (a hand of mass 0) says so in one line on
+    the terminal the host shares and exits 2, before it touches its port; before, a
+    traceback."""
+    from hapsim.emulated.driver_mock import main
+    dev = dataclasses.asdict(Device(mass=0.001, friction=0.001,
+                                    hand=Hand(mass=0.0, grip_stiffness=5.0)))
+    spec = {"device": dev, "excitation": dataclasses.asdict(Excitation()), "driver": "haply"}
+    assert main(["--fd", "-1", "--spec", json.dumps(spec), "--rate", "1000"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith("hapsim: the emulated haply board cannot start: ConfigError: ")

@@ -27,6 +27,7 @@ from hapsim.emulated.actuated import Actuated, WallClock
 from hapsim.emulated.firefader_board import FireFaderDevice
 from hapsim.emulated.hapkit_serial_board import HapkitSerialDevice
 from hapsim.emulated.haply_board import HaplyDevice
+from hapsim.errors import HapsimError
 from hapsim.outputs import write_json
 from hapsim.spawn import PtyChild
 
@@ -461,7 +462,14 @@ def main(argv=None) -> int:
     if isinstance(opt.get("device_b"), dict):
         # a second handle's device (the FireFader's fader B), as the first one's
         opt["device_b"] = device_from_dict(opt["device_b"])
-    dev = cls(device, a.rate, excitation, seed=a.seed, **opt)
+    try:
+        dev = cls(device, a.rate, excitation, seed=a.seed, **opt)
+    except (HapsimError, TypeError, ValueError) as exc:
+        # said in one line where the host's terminal shows it (the host then finds its
+        # port closed), not as a traceback
+        print(f"hapsim: the emulated {spec['driver']} board cannot start: "
+              f"{type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+        return 2
     _above_the_hosts()
     flag = {"stop": False}
     for s in (signal.SIGTERM, signal.SIGINT):
