@@ -1,7 +1,7 @@
 """An emulated board's start-up spec: the scene's device and excitation sent as JSON to the
 board's own process (:mod:`hapsim.emulated.driver_mock`, ``hapsim mock``) and read back as
-the same dataclasses (:func:`hapsim.scene.elements.device_from_dict`,
-:func:`~hapsim.scene.elements.excitation_from_dict`, one reader for both).
+the same dataclasses (:func:`hapsim.scene.device_from_dict`,
+:func:`~hapsim.scene.excitation_from_dict`, one reader for both).
 
 Before, the driver boards' reader took the hand back as a dict: read as a hand of mass 0,
 it stopped the board at its start with a traceback, and ``hapsim run`` of any scene with a
@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from hapsim.scene import Device, Excitation, Hand, Impulse
-from hapsim.scene.elements import device_from_dict, excitation_from_dict
+from hapsim.scene import device_from_dict, excitation_from_dict
 
 
 def _value(rng, lo, hi):

@@ -149,7 +149,7 @@ def register(sub) -> None:
 
 
 def _from_spec(text: str):
-    from hapsim.scene.elements import device_from_dict, excitation_from_dict
+    from hapsim.scene import device_from_dict, excitation_from_dict
     spec = json.loads(text)
     return (device_from_dict(spec["device"]), excitation_from_dict(spec["excitation"]),
             spec.get("base_dir"))

@@ -441,7 +441,7 @@ def main(argv=None) -> int:
     :mod:`hapsim.emulated.stamped_link`)."""
     import argparse
 
-    from hapsim.scene.elements import device_from_dict, excitation_from_dict
+    from hapsim.scene import device_from_dict, excitation_from_dict
     p = argparse.ArgumentParser(prog="hapsim.emulated.driver_mock")
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--fd", type=int)

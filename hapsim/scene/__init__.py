@@ -123,7 +123,8 @@ from __future__ import annotations
 from hapsim.scene.devices import DEVICE_KINDS
 from hapsim.scene.elements import (CORRECTIONS, Audio, Device, DeviceND, Excitation, ExcitationND,
                                    Hand, Impulse, Link, LinkND, Listen, ListenND, Mass, MassND,
-                                   PlaneND, Safety, SafetyND, audio_substeps)
+                                   PlaneND, Safety, SafetyND, audio_substeps, device_from_dict,
+                                   excitation_from_dict)
 from hapsim.scene.model import Scene, SceneND, ScenePorts
 from hapsim.scene.reader import (load_scene, load_scene_nd, load_scene_ports, parse_scene,
                                  parse_scene_nd, parse_scene_ports, scene_dimension,
@@ -132,7 +133,7 @@ from hapsim.scene_schema import (HOLDS, INTEGRATORS, LINK_KINDS, LISTEN_QUANTITI
                                  PORT_FORCE_MODES, PORT_POSITION_MODES, PROTOCOLS)
 
 __all__ = ["Mass", "Link", "Device", "Hand", "CORRECTIONS", "Impulse", "Excitation", "Safety",
-           "Listen", "Audio",
+           "Listen", "Audio", "device_from_dict", "excitation_from_dict",
            "Scene", "load_scene", "parse_scene", "MASS_KINDS", "LINK_KINDS", "HOLDS",
            "INTEGRATORS", "LISTEN_QUANTITIES", "PORT_POSITION_MODES", "PORT_FORCE_MODES",
            "PROTOCOLS", "audio_substeps",
