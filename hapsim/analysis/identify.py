@@ -522,8 +522,7 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         fit.update(spec=[list(sp_) for sp_ in spec], kept=list(kept))
     out = _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
                               method="varpro", skipped=skip, step=max(float(quantum), floor),
-                              lens=lens_w, ends=kept[-1][1] == bounds[-1][1],
-                              record_amp=amp0),
+                              lens=lens_w, ends=kept[-1][1] == bounds[-1][1], record_amp=amp0),
                       spec, fi, yw, offset, wire, mass, period, lens_w,
                       None if not bounded else [
                           (np.concatenate([np.asarray(e, float)[a:b] for a, b in kept]), r)
@@ -702,9 +701,7 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
     """The measurement dict of :func:`measure_felt` for the pair ``spec[fi]`` (over the
     stretches ``lens`` of ``y``: the amplitude is the largest stretch's, the cycles above
     the floor are summed over the stretches). ``record_amp``: the record's largest
-    excursion from its rest [m] (``record_amplitude``); a record that never leaves the
-    floor's band holds no oscillation above it, whatever amplitude a fit's cancelling
-    modes give the pair."""
+    excursion from rest [m]: one inside the floor's band holds no oscillation above it."""
     md = _mode_of(spec[fi], mass, period)
     i = sum(2 if s[0] == "pair" else 1 for s in spec[:fi])
     sig = spec[fi][1] / period
@@ -744,10 +741,8 @@ def _result(spec, fi, cov, rms, floor, mass, period, y, offset, *, method, skipp
         else:
             what = f"{MIN_QUANTA:g} sensor steps of {fl:.3g} m (the quantum or the noise)"
         if record_amp < MIN_QUANTA * fl:
-            # (a fit of a record inside a few sensor steps may give its pair an amplitude
-            # of 10^3..10^6 m, cancelled by a slow mode: its cycles "above" the floor then
-            # read ~1e-7, with a remedy of fewer disturbances; measured on the shipped Haply
-            # joint started at 0.002 rad, 3 runs in 5)
+            # (a fit's cancelling modes may give its pair 10^3..10^6 m there: "1.6e-07
+            # cycles above", on the Haply joint started at 0.002 rad, test_rotary_units)
             out["error"] = (f"the record's largest excursion from rest ({record_amp:.3g} m) "
                             f"is below {what}: no measurement")
         elif amp < MIN_QUANTA * fl:
