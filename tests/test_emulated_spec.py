@@ -103,3 +103,19 @@ def test_a_board_that_cannot_start_says_why_in_one_line(capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert err.startswith("hapsim: the emulated haply board cannot start: ConfigError: ")
+
+
+def test_a_mock_option_the_board_does_not_take_is_refused_naming_those_it_does(capsys):
+    """``hapsim identify --mock-option KEY=VALUE`` on every driver's board: a key its
+    model does not take is refused before the board starts (exit 2), naming the keys it
+    takes, among them every key of the driver's own ``mock_hardware``; before, the board
+    stopped at its start and the host said only that its port was gone."""
+    from hapsim.cli import main
+    from hapsim.drivers import DEFAULT, DRIVERS, get_driver
+    for driver in set(DRIVERS) - {DEFAULT}:
+        assert main(["identify", "--driver", driver, "--lockstep",
+                     "--mock-option", "bogus=1"]) == 2
+        err = capsys.readouterr().err
+        assert f"bogus: not an option of the {driver} board's model; valid: " in err, err
+        named = err.split("valid: ")[1].split()
+        assert set(get_driver(driver).mock_hardware()) <= {k.rstrip(",") for k in named}

@@ -169,6 +169,23 @@ def _plot(fit, rec, path: str, driver=None) -> None:
     save_figure(plot_identify(fit, rec, axis_units(driver)), path)
 
 
+def _mock_keys_known(driver: str, given: dict) -> None:
+    """Refuse a ``--mock-option`` the driver's board model does not take, naming those it
+    does (its constructor's numeric keywords): before, the board's process stopped at its
+    start on it, and the host said only that its port was gone."""
+    import inspect
+
+    from hapsim.emulated.driver_mock import MOCKS
+    params = inspect.signature(MOCKS[driver].__init__).parameters
+    valid = sorted(n for n, p in params.items() if p.kind is p.KEYWORD_ONLY
+                   and n not in ("clock", "seed", "device_b", "hand")
+                   and any(t in str(p.annotation) for t in ("float", "int", "bool")))
+    bad = sorted(set(given) - set(valid))
+    if bad:
+        raise ConfigError(f"{', '.join(bad)}: not an option of the {driver} board's model; "
+                          f"valid: {', '.join(valid)}", key="--mock-option")
+
+
 def _key_values(items, key: str) -> dict:
     """``KEY=VALUE`` options as a dict of numbers (int when whole)."""
     out = {}
@@ -260,7 +277,9 @@ def run(args) -> int:
         from hapsim.drivers import get_driver
         drv = get_driver(args.driver, **dopts)
         if args.mock_option:
-            mopts = {**drv.mock_hardware(), **_key_values(args.mock_option, "--mock-option")}
+            given = _key_values(args.mock_option, "--mock-option")
+            _mock_keys_known(args.driver, given)
+            mopts = {**drv.mock_hardware(), **given}
     elif args.mock_option or args.added_mass is not None:
         raise ConfigError("the framed protocol takes no options (its device says its units "
                           "in HELLO); give --driver",
