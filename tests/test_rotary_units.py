@@ -160,7 +160,8 @@ def test_the_live_views_layout_carries_the_axis_units():
     assert scene_layout(load_scene_nd("configs/pantograph_spring.yaml"), "haply")["units"] == SI
     js = (Path(__file__).resolve().parents[1] / "hapsim" / "view" / "static" / "view.js"
           ).read_text()
-    literal = [ln for ln in js.splitlines() if re.search(r"N/m|N s/m|\[m\]|\[N\]", ln)]
+    literal = [ln for ln in js.splitlines()
+               if re.search(r"N/m|N s/m|\[m\]|\[N\]|\} N`|force: \"N\"", ln)]
     assert len(literal) == 1 and "units: {" in literal[0], literal
 
 

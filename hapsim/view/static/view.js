@@ -285,7 +285,7 @@
           const ux = fp[0] / mag, uy = -fp[1] / mag;
           ctx.strokeStyle = "#c62828"; ctx.lineWidth = 2; ctx.beginPath();
           ctx.moveTo(px, py); ctx.lineTo(px + len * ux, py + len * uy); ctx.stroke();
-          ctx.fillStyle = "#c62828"; ctx.fillText(`${fmt(Math.hypot(...S.portF))} N`, px + len * ux + 4, py + len * uy);
+          ctx.fillStyle = "#c62828"; ctx.fillText(`${fmt(Math.hypot(...S.portF))} ${S.units.force}`, px + len * ux + 4, py + len * uy);
         }
       } else if (n <= 40 || i % Math.ceil(n / 200) === 0) {
         ctx.fillStyle = "#1565c0"; ctx.beginPath(); ctx.arc(px, py, n > 40 ? 2 : 4, 0, 2 * Math.PI); ctx.fill();
