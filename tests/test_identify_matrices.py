@@ -173,3 +173,12 @@ def test_a_gyroscopic_record_is_still_not_a_device():
     x = x + rng.normal(0.0, 2e-7, x.shape)
     with pytest.raises(ConfigError, match="the fit is not a device"):
         fit_device_matrices(x, F, 1e-3, max_delay=5)
+
+
+def test_a_record_the_fit_cannot_use_says_what_gives_it_more(capsys):
+    """A 2-D identification on too short a record is refused with what would give the fit
+    more to go on: --duration, --envelope, --force-limit."""
+    assert main(["identify", "--mock-scene", "configs/pantograph_spring.yaml",
+                 "--lockstep", "--duration", "0.05"]) == 1
+    err = capsys.readouterr().err
+    assert "cannot determine" in err and "a longer --duration" in err, err

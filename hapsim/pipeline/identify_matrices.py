@@ -213,7 +213,10 @@ def _record(scene, force_limit, envelope, duration, max_delay, seed, progress, p
     try:
         fit = fit_device_matrices(X, F, T, max_delay=max_delay)
     except ConfigError as exc:
-        raise IdentificationError(str(exc)) from None
+        # (what makes a record carry more: longer, or moved further above its noise)
+        raise IdentificationError(
+            f"{exc} ({len(X)} samples of {T * len(X):g} s: a longer --duration, or a "
+            f"larger --envelope or --force-limit, gives the fit more to go on)") from None
     return {"fit": fit, "samples": len(X),
             "excursion": float(np.max(np.linalg.norm(X, axis=1))),
             "largest_force": float(np.max(np.abs(F))), "probe_mass": m_est.tolist(),
