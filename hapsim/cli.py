@@ -351,11 +351,11 @@ class _UnitsWriter:
 def _in_scene_units(args):
     """Run a command with its stdout and stderr in the units of its 1-D scene's axis: a
     rotary joint's (the Haply's: radians, newton metres) where ``--driver`` or the
-    scene's ``device.protocol`` names one. The 1-D analyses are written in SI words; a
-    scene's figures are in its axis's units. Nothing changes on a linear axis, an n-D
-    scene (its Cartesian coordinates are metres whatever its driver) or without a
-    scene."""
-    path = getattr(args, "scene", None)
+    scene's ``device.protocol`` names one (``identify``'s ``--mock-scene`` too). The 1-D
+    analyses are written in SI words; a scene's figures are in its axis's units. Nothing
+    changes on a linear axis, an n-D scene (its Cartesian coordinates are metres whatever
+    its driver) or without a scene."""
+    path = getattr(args, "scene", None) or getattr(args, "mock_scene", None)
     units = None
     if isinstance(path, str):
         from hapsim.drivers import DEFAULT, DRIVERS, axis_units

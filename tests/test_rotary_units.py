@@ -104,6 +104,9 @@ def test_an_n_d_scene_keeps_its_metres_whatever_its_driver():
         with _in_scene_units(argparse.Namespace(scene=scene, driver=driver)):
             assert (sys.stdout is not before) == rotary, (scene, driver)
         assert sys.stdout is before
+        # identify's --mock-scene, by the same rule
+        with _in_scene_units(argparse.Namespace(mock_scene=scene, driver=driver)):
+            assert (sys.stdout is not before) == rotary, (scene, driver)
 
 
 @pytest.mark.parametrize("x0", [0.0015, 0.002, 0.0025])
