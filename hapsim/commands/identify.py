@@ -324,7 +324,10 @@ def run(args) -> int:
             scale, fit, drv = calibrate_scale(rep, rep2, args.added_mass, drv)
     from hapsim.device_file import device_yaml
     source = args.port or "the embedded mock"
-    text = device_yaml(fit, args.force_limit, hand=args.hand, source=source, driver=drv)
+    from hapsim.drivers import in_axis_units, run_units
+    # (the file in its axis's units: a rotary scene's over the framed protocol too)
+    text = in_axis_units(device_yaml(fit, args.force_limit, hand=args.hand, source=source,
+                                     driver=drv), run_units(scene, args.driver))
     probe = rec["loop"].get("direction_probe")
     if probe is not None:
         tried = probe["motor_direction"] if probe["relative"] > 0 else 1 - probe["motor_direction"]
