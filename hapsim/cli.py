@@ -358,16 +358,11 @@ def _in_scene_units(args):
     path = getattr(args, "scene", None) or getattr(args, "mock_scene", None)
     units = None
     if isinstance(path, str):
-        from hapsim.drivers import DEFAULT, DRIVERS, axis_units
+        from hapsim.drivers import units_of
         from hapsim.scene import scene_dimension, scene_protocol
-        if scene_dimension(path) == 1:
-            # (hapsim.drivers.run_units's rule, on the file: the framed protocol names
-            # no axis, the scene's does)
-            proto = getattr(args, "driver", None)
-            if proto in (None, DEFAULT):
-                proto = scene_protocol(path)
-            if isinstance(proto, str) and proto in DRIVERS:
-                units = axis_units(proto)
+        driver = getattr(args, "driver", None)
+        units = units_of(scene_dimension(path), scene_protocol(path),
+                         driver if isinstance(driver, str) else None)
     if units is None or units["position"] == "m":
         yield
         return

@@ -197,7 +197,12 @@ def fit_device_matrices(x, forces, period: float, max_delay: int = 5) -> DeviceM
     _, _, se = _lstsq(x[d:], F[:N - d], n, spread=True)
     E, G1 = theta[:n].T, theta[n:2 * n].T
     ev = np.linalg.eigvals(E)
-    M, B0 = _recover(theta, n, T)
+    try:
+        M, B0 = _recover(theta, n, T)
+    except (np.linalg.LinAlgError, ValueError):
+        # (taps from which no M follows: the check below refuses them, as it did
+        # before M was needed for its bound)
+        M = B0 = np.full((n, n), np.nan)
     Ms, Bs = (M + M.T) / 2, (B0 + B0.T) / 2
     # A device's E is similar to a symmetric matrix through M^(1/2): its eigenvalues are
     # real, and those of the fitted E lie within sqrt(cond M) ||dE||_2 of them (Bauer &
@@ -206,7 +211,7 @@ def fit_device_matrices(x, forces, period: float, max_delay: int = 5) -> DeviceM
     # splits into a complex pair of that order: 3.2e-5 on a 1 s record of
     # configs/delta_sphere.yaml, against 8.5e-5 of standard error, was refused as "not a
     # device" under a fixed 1e-6.
-    lam = np.linalg.eigvalsh(Ms)
+    lam = np.linalg.eigvalsh(Ms) if np.all(np.isfinite(Ms)) else np.zeros(n)
     kappa = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else 1.0
     tol = max(1e-6, COVERAGE * kappa * float(np.linalg.norm(se[:n])))
     if not (np.all(np.abs(ev.imag) <= tol) and np.all(ev.real > 0)
@@ -214,6 +219,9 @@ def fit_device_matrices(x, forces, period: float, max_delay: int = 5) -> DeviceM
         raise ConfigError(f"the fit is not a device: E's eigenvalues {np.round(ev, 6)} "
                           f"(a device with friction has them real, in (0, 1], within "
                           f"{tol:.2g}, the fit's error)", key="record")
+    if not np.all(np.isfinite(Ms)):
+        raise ConfigError("the fit is not a device: no mass matrix follows from its taps",
+                          key="record")
     # the taps' standard errors carried to M and B0 (first order: one tap at a time,
     # the changes added in quadrature, Ljung 1999 sec. 9.3)
     vm, vb = np.zeros((n, n)), np.zeros((n, n))

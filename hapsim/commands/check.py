@@ -257,8 +257,8 @@ def run(args: argparse.Namespace) -> int:
         label = "parasitic modes" if chk.has_port else "modes"
         print(f"{label} (least damped first; k, b with m = {chk.reference_mass:g} kg):")
         # (in the axis's units here: the rotary words, longer, would shift the columns)
-        from hapsim.drivers import axis_units
-        u = axis_units(getattr(scene.device, "protocol", None))
+        from hapsim.drivers import run_units
+        u = run_units(scene)
         k_head, b_head = f"k [{u['stiffness']}]", f"b [{u['friction']}]"
         print(f"  {'|z|':<14} {'f0 [Hz]':<10} {'zeta':<11} {k_head:<12} "
               f"{b_head:<12} kind" + ("  at port" if chk.has_port else ""))

@@ -28,7 +28,7 @@ import re
 from hapsim.errors import ConfigError
 
 __all__ = ["Family", "FAMILIES", "DEFAULT", "DRIVERS", "family", "get_driver", "device_driver",
-           "protocol_of", "axis_units", "in_axis_units", "run_units"]
+           "protocol_of", "axis_units", "in_axis_units", "run_units", "units_of"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,10 +202,33 @@ def run_units(scene, driver: str | None = None) -> dict:
     dict
         :func:`axis_units`'s.
     """
-    if int(getattr(scene, "dimension", 1) or 1) > 1:
+    return units_of(int(getattr(scene, "dimension", 1) or 1),
+                    getattr(getattr(scene, "device", None), "protocol", None), driver)
+
+
+def units_of(dimension: int, protocol: str | None, driver: str | None = None) -> dict:
+    """:func:`run_units`'s rule on what it reads of a scene: its ``dimension`` and its
+    ``device.protocol`` (the command line peeks them from the file,
+    :func:`hapsim.scene.scene_dimension`, :func:`hapsim.scene.scene_protocol`).
+
+    Parameters
+    ----------
+    dimension : int
+        1, 2 or 3.
+    protocol : str or None
+        The scene's ``device.protocol``.
+    driver : str or None
+        ``--driver``.
+
+    Returns
+    -------
+    dict
+        :func:`axis_units`'s.
+    """
+    if dimension > 1:
         return axis_units(None)
     if driver is None or driver == DEFAULT:
-        driver = getattr(getattr(scene, "device", None), "protocol", None)
+        driver = protocol
     return axis_units(driver if driver in DRIVERS else None)
 
 

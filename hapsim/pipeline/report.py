@@ -382,11 +382,10 @@ def format_report(rep: dict) -> str:
     if p.get("stable") is not None:
         # K_max is the limit of the links at the port as one port-ground spring: the felt
         # k of a scene with virtual masses is another quantity, so say which it is there
-        kmax = f"K_max {dash(p['stiffness_limit'], '.6g')} {u['stiffness']}"
+        kmax = f"K_max {dash(p['stiffness_limit'], '.6g')} N/m"
         if p.get("source") == "check_scene" and p.get("port_K") is not None:
             kmax += (f" of the links at the port as a port-ground spring (K = "
-                     f"{p['port_K']:g} {u['stiffness']}, B = {p['port_B']:g} "
-                     f"{u['friction']}), not of the felt k")
+                     f"{p['port_K']:g} N/m, B = {p['port_B']:g} N s/m), not of the felt k")
         used = (": not comparable" if m.get("comparable") is False
                 else f" from {m.get('samples_used', 0)} samples")
         lines.append(f"  stable: {'yes' if p['stable'] else 'NO'} (spectral radius "
