@@ -354,15 +354,20 @@ def _in_scene_units(args):
     scene's ``device.protocol`` names one (``identify``'s ``--mock-scene`` too). The 1-D
     analyses are written in SI words; a scene's figures are in its axis's units. Nothing
     changes on a linear axis, an n-D scene (its Cartesian coordinates are metres whatever
-    its driver) or without a scene."""
+    its driver) or without a scene or a driver."""
     path = getattr(args, "scene", None) or getattr(args, "mock_scene", None)
+    driver = getattr(args, "driver", None)
+    driver = driver if isinstance(driver, str) else None
     units = None
     if isinstance(path, str):
         from hapsim.drivers import units_of
         from hapsim.scene import scene_dimension, scene_protocol
-        driver = getattr(args, "driver", None)
-        units = units_of(scene_dimension(path), scene_protocol(path),
-                         driver if isinstance(driver, str) else None)
+        units = units_of(scene_dimension(path), scene_protocol(path), driver)
+    elif driver is not None:
+        # (no scene: a 1-D device behind --driver, identify's; its refusals said "kg"
+        # of a Haply joint whose fit said "kg m^2")
+        from hapsim.drivers import units_of
+        units = units_of(1, None, driver)
     if units is None or units["position"] == "m":
         yield
         return

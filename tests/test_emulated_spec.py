@@ -119,3 +119,124 @@ def test_a_mock_option_the_board_does_not_take_is_refused_naming_those_it_does(c
         assert f"bogus: not an option of the {driver} board's model; valid: " in err, err
         named = err.split("valid: ")[1].split()
         assert set(get_driver(driver).mock_hardware()) <= {k.rstrip(",") for k in named}
+
+
+def _numeric_options(cls):
+    """A board model's numeric keyword options (not its bools, strings or ``seed``)."""
+    import inspect
+    return [n for n, p in inspect.signature(cls.__init__).parameters.items()
+            if p.kind is p.KEYWORD_ONLY and n != "seed"
+            and any(t in str(p.annotation) for t in ("float", "int"))
+            and "bool" not in str(p.annotation)]
+
+
+def test_every_numeric_board_option_refuses_a_non_finite_value_by_name():
+    """Each board model (:data:`hapsim.emulated.driver_mock.MOCKS`), each of its numeric
+    options, each of NaN, +inf, -inf and a word: the model refuses it where it is built,
+    naming the option's key; before, ``cpr=0`` or ``full_scale=nan`` started a board that
+    divided by it, or never moved, in its own process (a traceback, then the host's "does
+    not answer" or "hardly moved")."""
+    from hapsim.emulated.driver_mock import MOCKS, build_board
+    from hapsim.errors import ConfigError
+    dev, exc = Device(mass=0.001, friction=0.001), Excitation()
+    for driver, cls in MOCKS.items():
+        names = _numeric_options(cls)
+        assert len(names) >= 3, (driver, names)        # the helper still finds them
+        for name in names:
+            for bad in (math.nan, math.inf, -math.inf, "many"):
+                try:
+                    build_board(driver, dev, exc, 1000.0, options={name: bad})
+                except ConfigError as e:
+                    assert e.key == name, (driver, name, bad, e.key, str(e))
+                else:
+                    raise AssertionError(f"{driver} board took {name}={bad!r}")
+
+
+def test_a_board_option_out_of_range_is_refused_before_its_process_starts(monkeypatch):
+    """The embedded board (:class:`hapsim.emulated.driver_mock.EmbeddedDriverMock`)
+    checks its options by building its model in the caller's process: a count of zero
+    per revolution, a full scale of zero or below, a force limit of zero are refused with
+    their key, and no child process is started."""
+    import pytest
+
+    from hapsim.emulated import driver_mock
+    from hapsim.errors import ConfigError
+    started = []
+    monkeypatch.setattr(driver_mock.EmbeddedDriverMock, "start",
+                        lambda self, *a, **k: started.append(a))
+    dev, exc = Device(mass=0.001, friction=0.001), Excitation()
+    for driver, key, bad in (("haply", "cpr", 0), ("haply", "cpr", -4096),
+                             ("haply", "resolution", 0), ("firefader", "full_scale", 0.0),
+                             ("firefader", "full_scale", -1.0),
+                             ("firefader", "metres_per_count", 0.0),
+                             ("firefader", "boot_s", -0.5),
+                             ("hapkit-serial", "force_limit", 0.0)):
+        with pytest.raises(ConfigError) as info:
+            driver_mock.EmbeddedDriverMock(driver, dev, exc, 1000.0,
+                                           options={"clock": "lockstep", key: bad})
+        assert info.value.key == key and "must be a finite number" in str(info.value)
+    assert not started
+
+
+def test_identify_refuses_a_mock_option_out_of_range_in_one_line(capsys):
+    """``hapsim identify --driver haply --mock-option cpr=0``: exit 2 and one line naming
+    the key and its range; before, a traceback from the board's process and "the Haply
+    board does not answer its writes"."""
+    from hapsim.cli import main
+    assert main(["identify", "--driver", "haply", "--lockstep",
+                 "--mock-option", "cpr=0"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "does not answer" not in err
+    assert "cpr: must be a finite number > 0 [counts per revolution], got 0" in err, err
+
+
+class _Link:
+    """A link whose board answers every write with one reply the decoder finds out of
+    reach (``reach``) or with nothing."""
+
+    def __init__(self, dec, reach: bool):
+        self.dec, self.reach = dec, reach
+
+    def write(self, data):
+        if self.reach:
+            self.dec.stats["unreachable"] += 1
+
+    def read(self, timeout):
+        return b""
+
+
+class _Decoder:
+    def __init__(self):
+        self.stats = {"unreachable": 0, "desync": 0, "lone": 0}
+
+    def feed(self, data):
+        return []
+
+
+def test_a_board_whose_replies_are_out_of_reach_is_not_said_to_be_silent():
+    """:class:`hapsim.drivers.exchange.Exchange`: a board that answers every write with
+    a reading no motion reaches (an encoder that counts more per revolution than the
+    driver's resolution says) ends the exchange saying it answers and naming the
+    resolution; a silent board still "does not answer its writes". Before, both were
+    said to be silent (``cpr=1e9`` on the Haply mock: 55 of 86 replies out of reach)."""
+    import pytest
+
+    from hapsim.drivers.exchange import Exchange
+    from hapsim.errors import DeviceError
+    for reach in (True, False):
+        dec = _Decoder()
+
+        class Drv:
+            def decoder(self):
+                return dec
+
+        ex = Exchange(Drv(), _Link(dec, reach), 1000.0, False, 0.0, max_missing=4)
+        with pytest.raises(DeviceError) as info:
+            for _ in range(6):
+                ex.reply(b"\0")
+        msg = str(info.value)
+        if reach:
+            assert msg.startswith("the board answers, but 5 of its replies") and \
+                "--protocol-option resolution=COUNTS" in msg, msg
+        else:
+            assert "does not answer its writes" in msg, msg

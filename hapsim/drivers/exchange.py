@@ -65,7 +65,8 @@ class Exchange:
     Raises
     ------
     DeviceError
-        From :meth:`reply`: more than ``max_missing`` writes in a row without a reply.
+        From :meth:`reply`: more than ``max_missing`` writes in a row without a reply
+        (``lost``; or, where replies came but out of the joint's reach, that said).
     """
 
     def __init__(self, drv, link, rate_hz: float, pace: bool, timeout: float, *,
@@ -93,6 +94,24 @@ class Exchange:
         self.silence = 0.0
         self._next = self._last = time.monotonic()
         self._ev = self._evidence()
+        self._unreach0 = 0              # the decoder's 'unreachable' at the last reply
+
+    def _lost_message(self) -> str:
+        """The error of a board silent for more than ``max_missing`` writes: ``lost``,
+        unless well-formed replies came meanwhile that no motion of the joint reaches (the
+        decoder's ``unreachable``): then the board answers, and what differs is the
+        encoder's scale or the device. Before, a board whose encoder counted 2e5 times
+        the driver's resolution was said not to answer (55 of its 86 replies out of
+        reach)."""
+        u = int(self.dec.stats.get("unreachable", 0)) - self._unreach0
+        if u <= 0:
+            return self.lost
+        return (f"the board answers, but {u} of its replies since the last one taken "
+                f"(over {self.silent} writes) were out of the joint's reach (further from the readings before them than its "
+                f"inertia lets it move under the torque sent, in the time between): the "
+                f"encoder's counts per revolution may differ from the driver's "
+                f"resolution (--protocol-option resolution=COUNTS), or the joint is "
+                f"lighter than the device's mass states")
 
     def _evidence(self) -> int:
         """The decoder's count of evidence that the board lost its place."""
@@ -127,7 +146,7 @@ class Exchange:
             self.missing += 1
             self.silent += 1
             if self.silent > self.max_missing:
-                raise DeviceError(self.lost)
+                raise DeviceError(self._lost_message())
             ev = self._evidence()
             # (or every 5 writes unanswered since: the re-synchronisation's own 62 bytes
             # may lose one, leaving a garbage set-up the decoder counts once)
@@ -143,6 +162,7 @@ class Exchange:
             return None
         self.replies += len(got)
         self.silent = 0
+        self._unreach0 = int(self.dec.stats.get("unreachable", 0))
         if isinstance(got[-1], float):
             self._x = got[-1]
         return got[-1]

@@ -33,7 +33,7 @@ from hapsim.spawn import PtyChild
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
            "WallClock", "MOCKS", "WALL_CLOCK_MOCKS",
-           "EmbeddedDriverMock", "firefader_offline_loop", "main"]
+           "EmbeddedDriverMock", "build_board", "firefader_offline_loop", "main"]
 
 #: The emulated device of each 1-D driver family, by its name (the registry's
 #: :attr:`hapsim.drivers.Family.mock`).
@@ -435,6 +435,58 @@ def _above_the_hosts() -> None:
         pass
 
 
+def build_board(driver: str, device, excitation, rate_hz: float, *, seed: int = 0,
+                options: dict | None = None):
+    """The board model a driver mock serves (one of :data:`MOCKS`), built from its options.
+
+    Parameters
+    ----------
+    driver : str
+        Driver name (a key of :data:`MOCKS`).
+    device, excitation
+        What the board drives (:class:`hapsim.scene.Device`,
+        :class:`~hapsim.scene.Excitation`).
+    rate_hz : float
+        Host rate [Hz].
+    seed : int
+        Sensor-noise seed.
+    options : dict, optional
+        The board's own keywords, as JSON carries them (a ``device_b`` as a dict: the
+        FireFader's fader B, read as a device section).
+
+    Returns
+    -------
+    hapsim.emulated.actuated.Actuated
+        The board (:class:`~hapsim.emulated.firefader_board.FireFaderDevice`,
+        :class:`~hapsim.emulated.haply_board.HaplyDevice` or
+        :class:`~hapsim.emulated.hapkit_serial_board.HapkitSerialDevice`).
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        A driver with no board model, an option the board does not take (the valid ones
+        named), or one out of its range (the board's check, its key named).
+    """
+    import inspect
+
+    from hapsim.errors import ConfigError
+    from hapsim.scene import device_from_dict
+    if driver not in MOCKS:
+        raise ConfigError(f"no mock for driver {driver!r}; valid: {', '.join(MOCKS)}",
+                          key="--driver")
+    opt = dict(options or {})
+    params = inspect.signature(MOCKS[driver].__init__).parameters
+    valid = sorted(n for n, p in params.items() if p.kind is p.KEYWORD_ONLY and n != "seed")
+    bad = sorted(set(opt) - set(valid))
+    if bad:
+        raise ConfigError(f"{', '.join(bad)}: not an option of the {driver} board's model; "
+                          f"valid: {', '.join(valid)}", key="options")
+    if isinstance(opt.get("device_b"), dict):
+        # a second handle's device (the FireFader's fader B), as the first one's
+        opt["device_b"] = device_from_dict(opt["device_b"])
+    return MOCKS[driver](device, rate_hz, excitation, seed=seed, **opt)
+
+
 def main(argv=None) -> int:
     """Child-process entry: ``python -m hapsim.emulated.driver_mock --fd N --spec JSON --rate R``
     (``--fd``: a pty's master; ``--listen``: an emulated link's listening socket instead,
@@ -454,16 +506,11 @@ def main(argv=None) -> int:
     p.add_argument("--faults", default="{}")
     p.add_argument("--handled")
     a = p.parse_args(argv)
-    opt = json.loads(a.options)
     spec = json.loads(a.spec)
-    device = device_from_dict(spec["device"])
-    excitation = excitation_from_dict(spec["excitation"])
-    cls = MOCKS[spec["driver"]]
-    if isinstance(opt.get("device_b"), dict):
-        # a second handle's device (the FireFader's fader B), as the first one's
-        opt["device_b"] = device_from_dict(opt["device_b"])
     try:
-        dev = cls(device, a.rate, excitation, seed=a.seed, **opt)
+        dev = build_board(spec["driver"], device_from_dict(spec["device"]),
+                          excitation_from_dict(spec["excitation"]), a.rate, seed=a.seed,
+                          options=json.loads(a.options))
     except (HapsimError, TypeError, ValueError) as exc:
         # said in one line where the host's terminal shows it (the host then finds its
         # port closed), not as a traceback
@@ -520,7 +567,8 @@ class EmbeddedDriverMock(PtyChild):
     Raises
     ------
     hapsim.errors.ConfigError
-        A driver with no mock, or another ``link``.
+        A driver with no mock, an option out of the board's range (:func:`build_board`),
+        or another ``link``.
 
     Attributes
     ----------
@@ -540,9 +588,10 @@ class EmbeddedDriverMock(PtyChild):
         import dataclasses
 
         from hapsim.errors import ConfigError
-        if driver not in MOCKS:
-            raise ConfigError(f"no mock for driver {driver!r}; valid: {', '.join(MOCKS)}",
-                              key="--driver")
+        # the board's options checked here, by building it once, where the caller gets
+        # the error with its key (in the child, a bad one stopped the board at its start
+        # and the host found only a silent port)
+        build_board(driver, device, excitation, rate_hz, seed=seed, options=options)
         lockstep = (options or {}).get("clock", "lockstep") == "lockstep"
         link = ("pty" if lockstep else WALL_LINK) if link is None else link
         if link not in ("emulated", "pty"):

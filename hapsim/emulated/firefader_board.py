@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 from hapsim.drivers.firefader import HAND_PASSES
-from hapsim.emulated.actuated import Actuated
+from hapsim.emulated.actuated import Actuated, hardware_number
 
 __all__ = ["FireFaderDevice"]
 
@@ -173,8 +173,9 @@ class FireFaderDevice(Actuated):
     Raises
     ------
     ConfigError
-        An unknown firmware or clock, a travel that is no positive length, an ``adc_s``
-        outside the period or a ``reply_s`` before the read.
+        An unknown firmware or clock, a travel, ``full_scale`` or ``metres_per_count``
+        that is no finite number > 0, a ``boot_s`` < 0, an ``adc_s`` outside the period
+        or a ``reply_s`` before the read.
     """
 
     #: From the packet to pot A's read on the board [s]: the issue's measured FireFader
@@ -213,20 +214,23 @@ class FireFaderDevice(Actuated):
         wall = clock == "wall"
         if pass_time and firmware != "pde" and not wall:
             self.reply_delay_s = (3 + 7) * 10 / 57600 + ff.PASS_READS_S
-        self.full_scale = float(full_scale)
-        self.mpc = float(metres_per_count or ff.METRES_PER_COUNT)
+        self.full_scale = hardware_number("full_scale", full_scale, "N")
+        self.mpc = (ff.METRES_PER_COUNT if metres_per_count is None
+                    else hardware_number("metres_per_count", metres_per_count, "m"))
         self.firmware = firmware
         self.touch = bool(touch)
-        self.boot_s = float(boot_s)
-        if travel is not None and not (math.isfinite(travel) and travel > 0):
-            raise ConfigError(f"must be a positive length [m], got {travel!r}", key="travel")
+        self.boot_s = hardware_number("boot_s", boot_s, "s", low_ok=True)
+        if stop_low is not None:
+            hardware_number("stop_low", stop_low, "m", low=-math.inf)
+        if travel is not None:
+            travel = hardware_number("travel", travel, "m")
         self.stops = (None if travel is None else
                       (float(-travel / 2 if stop_low is None else stop_low),
                        float((-travel / 2 if stop_low is None else stop_low) + travel)))
-        self.adc_s = None if adc_s is None else float(adc_s)
+        self.adc_s = None if adc_s is None else hardware_number("adc_s", adc_s, "s")
         T = 1.0 / float(rate_hz)
         if self.adc_s is not None:
-            if not (math.isfinite(self.adc_s) and 0.0 < self.adc_s < T):
+            if not self.adc_s < T:
                 raise ConfigError(f"must be a time inside the period (0, {T:g}) [s], got "
                                   f"{adc_s!r}", key="adc_s")
             # the board's own timing: no queue; over the time from one read to the next
@@ -239,8 +243,9 @@ class FireFaderDevice(Actuated):
         elif wall:
             self.adc_s = self.ADC_S if firmware != "pde" else 0.0
         if wall:
-            rs = (self.REPLY_S if reply_s is None else float(reply_s)) if pass_time \
-                else self.adc_s
+            rs = (self.REPLY_S if reply_s is None
+                  else hardware_number("reply_s", reply_s, "s", low_ok=True)) \
+                if pass_time else self.adc_s
             if firmware == "pde":
                 rs = 0.0
             if not (math.isfinite(rs) and rs >= self.adc_s):

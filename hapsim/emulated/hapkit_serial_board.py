@@ -10,7 +10,7 @@ import math
 import statistics
 
 from hapsim.drivers.hapkit_serial import FIRMWARE_TICK_S, whole_ticks
-from hapsim.emulated.actuated import Actuated, offline_record
+from hapsim.emulated.actuated import Actuated, hardware_number, offline_record
 
 __all__ = ["HapkitSerialDevice", "SketchReader", "hapkit_serial_offline_loop"]
 
@@ -213,6 +213,13 @@ class HapkitSerialDevice(Actuated):
     ready_at : float
         Wall clock: the board's time [s] its last reply has left at (:func:`serve` writes
         it then).
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        A ``force_limit`` that is no finite number > 0, a ``count_m`` or ``render_s`` < 0,
+        ``levels`` other than 256 or 0, an unknown ``reply`` or ``clock``, a
+        ``clock_ppm`` outside (-1e5, 1e5).
     """
 
     #: The sketch's control tick [s]: Timer1 reloaded to 65474 at 16 MHz / 256, 62 counts
@@ -240,9 +247,8 @@ class HapkitSerialDevice(Actuated):
 
         from hapsim.drivers import hapkit_serial as hk
         from hapsim.errors import ConfigError
-        count_m = hk.SKETCH_COUNT_M if count_m is None else float(count_m)
-        if not (math.isfinite(count_m) and count_m >= 0):
-            raise ConfigError(f"must be a step [m] >= 0, got {count_m!r}", key="count_m")
+        count_m = (hk.SKETCH_COUNT_M if count_m is None
+                   else hardware_number("count_m", count_m, "m", low_ok=True))
         if count_m > 0 and not float(getattr(device, "position_resolution", 0.0) or 0.0):
             # the sketch's reading, a whole number of counts (MockPhysics.sample rounds)
             device = dataclasses.replace(device, position_resolution=count_m)
@@ -252,9 +258,8 @@ class HapkitSerialDevice(Actuated):
                               f"applied), got {levels!r}", key="levels")
         if reply not in ("Tp", "force"):
             raise ConfigError(f"must be 'Tp' or 'force', got {reply!r}", key="reply")
-        render_s = hk.RENDER_S if render_s is None else float(render_s)
-        if not (math.isfinite(render_s) and render_s >= 0.0):
-            raise ConfigError(f"must be a time >= 0 [s], got {render_s!r}", key="render_s")
+        render_s = (hk.RENDER_S if render_s is None
+                    else hardware_number("render_s", render_s, "s", low_ok=True))
         if not (isinstance(clock_ppm, (int, float)) and abs(float(clock_ppm)) < 1e5):
             raise ConfigError(f"must be a number of parts per million within (-1e5, 1e5), "
                               f"got {clock_ppm!r}", key="clock_ppm")
@@ -269,7 +274,8 @@ class HapkitSerialDevice(Actuated):
         self._phases: list = []                       # where in its tick each came
         self._ticks: list = []                        # the tick that took each
         self._sampled: list = []                      # wall: each reply's read [s]
-        super().__init__(device, rate_hz, excitation, force_limit, seed, clock=clock)
+        super().__init__(device, rate_hz, excitation,
+                         hardware_number("force_limit", force_limit, "N"), seed, clock=clock)
         # the wall clock's board reads as the sketch does (SketchReader); the lockstep
         # test device, paced by the commands, has no time for its reads' timeout and
         # realigns on the header and function bytes (CommandDecoder)

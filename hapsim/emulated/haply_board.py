@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from hapsim.emulated.actuated import Actuated, offline_record
+from hapsim.emulated.actuated import Actuated, hardware_number, offline_record
 from hapsim.emulated.haply_firmware import PASS_S, pass_at
 
 __all__ = ["HaplyDevice", "haply_offline_loop"]
@@ -73,6 +73,12 @@ class HaplyDevice(Actuated):
     decoder : CommandDecoder
     torque : float
         The torque motor 1 holds [N m].
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        A ``cpr`` or ``resolution`` that is no finite number > 0, a ``motor_sign`` other
+        than 1 or -1, ``torque_levels`` other than 256 or 0, an unknown ``clock``.
     """
 
     #: What a set-up takes on the board [s]: the Encoder constructor's 2 ms wait.
@@ -99,7 +105,10 @@ class HaplyDevice(Actuated):
         super().__init__(device, rate_hz, excitation, hp.MAX_TORQUE, seed, clock=clock)
         # the firmware's single reads of an empty buffer: 255 (CommandDecoder notes)
         self.decoder = CommandDecoder(absent=255)
-        self.cpr = float(resolution or cpr)
+        # (resolution: the set-up packet's name for it; given, it is the count)
+        self.cpr = (hardware_number("cpr", cpr, "counts per revolution")
+                    if resolution is None else
+                    hardware_number("resolution", resolution, "counts per revolution"))
         self._base = 0
         self._base0 = None
         #: The largest error [rad] of the board's frame against the joint's true angle,
