@@ -107,6 +107,19 @@ def test_an_n_d_scene_keeps_its_metres_whatever_its_driver():
         # identify's --mock-scene, by the same rule
         with _in_scene_units(argparse.Namespace(mock_scene=scene, driver=driver)):
             assert (sys.stdout is not before) == rotary, (scene, driver)
+    # identify's --driver with no scene: the driver's axis (before, its refusals said
+    # "kg" of the Haply joint whose fit said "kg m^2")
+    import io
+    err = sys.stderr
+    try:
+        for driver, said in (("haply", "0.000226 kg m^2"), ("firefader", "0.000226 kg"),
+                             ("framed", "0.000226 kg"), (None, "0.000226 kg")):
+            sys.stderr = io.StringIO()
+            with _in_scene_units(argparse.Namespace(mock_scene=None, driver=driver)):
+                sys.stderr.write("0.000226 kg")
+            assert sys.stderr.getvalue() == said, driver
+    finally:
+        sys.stderr = err
 
 
 @pytest.mark.parametrize("x0", [0.0015, 0.002, 0.0025])
