@@ -272,3 +272,76 @@ def test_damaged_files_are_read_or_refused_never_a_traceback(faulted, tmp_path, 
     # the fuzz reached the refusal where a format has one for damage (a zip's checksums;
     # an .hst is read up to its last intact chunk, a .csv's numbers are read as numbers)
     assert ext != ".npz" or 2 in codes, codes
+
+
+def test_a_runs_npz_keeps_its_losses_and_its_description(tmp_path, capsys):
+    """A run's ``--telemetry FILE.npz`` keeps the loop's events (before, the export from
+    memory wrote the columns only: "lost 0, recovered 0" of a run that lost its device
+    and recovered), and the run's own description first (its units, delay and rate)."""
+    from hapsim.commands.telemetry import described, read
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    npz = str(tmp_path / "run.npz")
+    rep = run_scene(load_scene(WALL), transport="sim", faults="drop=0.01,reset@700",
+                    fault_seed=3, duration=1.5, telemetry=npz, handle_signals=False)
+    assert rep["exit_code"] == 0 and rep["loop"]["lost"] >= 1
+    code, s = tel_json(capsys, npz)
+    assert code == 0
+    assert s["events"]["lost"] == rep["loop"]["lost"]
+    assert s["events"]["recovered"] == rep["loop"]["recovered"]
+    assert "run" not in s["events"]             # the description is no loop event
+    said = described(read(npz)[1])
+    assert said["delay"] == 1.0 and said["rate_hz"] == 1000.0
+    assert said["units"]["position"] == "m" and s["units"]["force"] == "N"
+
+
+@pytest.mark.parametrize("ext", [".hst", ".npz"])
+def test_a_joints_telemetry_is_summarised_in_its_units(tmp_path, capsys, ext):
+    """The Haply joint's run (``configs/haply.yaml``, its ``device.protocol`` a rotary
+    axis) writes its units in its telemetry, and ``hapsim telemetry`` says its position
+    in radians and its force in newton metres, in the text, the JSON and the chart's
+    axes; before, "position [m]" and "force [N]" of a joint turning 0.2 rad."""
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    path = str(tmp_path / f"joint{ext}")
+    rep = run_scene(load_scene(os.path.join(ROOT, "configs", "haply.yaml")),
+                    transport="sim", duration=0.3, telemetry=path, handle_signals=False)
+    assert rep["exit_code"] == 0
+    assert main(["telemetry", path]) == 0
+    text = capsys.readouterr().out
+    assert "position [rad]: " in text and "force [N m]: " in text, text
+    assert "[m]" not in text and "[N]" not in text
+    code, s = tel_json(capsys, path)
+    assert s["units"]["position"] == "rad" and s["units"]["force"] == "N m"
+    # the same rows, whatever the label: the joint started at the scene's x0
+    assert s["position_m"]["max"] == pytest.approx(0.2, abs=1e-12)
+    pytest.importorskip("matplotlib")
+    from hapsim.commands.telemetry import described, felt_energy, read
+    from hapsim.plots.telemetry import plot_telemetry
+    cols, info = read(path)
+    fig = plot_telemetry(cols, felt_energy(cols["position"], cols["force"], cols["flags"], 1),
+                         info["events"], units=described(info)["units"])
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert "position [mrad]" in labels and "force [N m]" in labels, labels
+
+
+def test_the_felt_energy_takes_the_delay_the_run_stated(tmp_path, capsys):
+    """Without ``--delay``, the felt energy is summed with the device's delay the run
+    wrote in its file (2 here), not 1; ``--delay`` still overrides it; a ``.csv``
+    (columns only) keeps the default 1."""
+    import dataclasses
+
+    from hapsim.pipeline.runner import run_scene
+    from hapsim.scene import load_scene
+    scene = load_scene(os.path.join(ROOT, "configs", "first_wall.yaml"))  # (stable at 2)
+    scene = dataclasses.replace(scene, device=dataclasses.replace(scene.device, delay=2.0))
+    hst = str(tmp_path / "d2.hst")
+    rep = run_scene(scene, transport="sim", duration=0.3, telemetry=hst,
+                    handle_signals=False)
+    assert rep["exit_code"] == 0
+    assert tel_json(capsys, hst)[1]["felt_energy_j"]["delay"] == 2
+    assert tel_json(capsys, hst, "--delay", "1")[1]["felt_energy_j"]["delay"] == 1
+    csv = str(tmp_path / "d2.csv")
+    assert main(["telemetry", hst, "--out", csv]) == 0
+    capsys.readouterr()
+    assert tel_json(capsys, csv)[1]["felt_energy_j"]["delay"] == 1

@@ -11,7 +11,8 @@ from hapsim.errors import DAMAGED_FILE_ERRORS, ConfigError
 from hapsim.option_values import Number
 from hapsim.outputs import finite_or_none as _finite
 
-__all__ = ["register", "run", "read", "summarize", "felt_energy", "format_summary"]
+__all__ = ["register", "run", "read", "described", "summarize", "felt_energy",
+           "format_summary"]
 
 _FORMATS = (".hst", ".npz", ".csv")
 
@@ -57,9 +58,10 @@ def register(sub) -> None:
     p.add_argument("--plot", metavar="FIG",
                    help="draw position, force, felt energy and flags over time to FIG (.png, "
                         ".svg, ...; needs matplotlib)")
-    p.add_argument("--delay", type=Number(int, low=0), default=1, metavar="D",
+    p.add_argument("--delay", type=Number(int, low=0), default=None, metavar="D",
                    help="samples d between a position and the force answering it, for the "
-                        "felt energy (the scene's device.delay; default 1)")
+                        "felt energy (default: the device.delay the run's file states "
+                        "where whole, else 1)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     p.set_defaults(func=run)
 
@@ -178,6 +180,30 @@ def _range(a: np.ndarray) -> dict:
                                                                           "max": None}
 
 
+def described(info: dict) -> dict:
+    """What the run said of itself in its file (its ``"run"`` event, written first by
+    :func:`hapsim.pipeline.runner.run_loop`; empty for a ``.csv`` or an older file).
+
+    Parameters
+    ----------
+    info : dict
+        From :func:`read`.
+
+    Returns
+    -------
+    dict
+        ``units`` (:func:`hapsim.drivers.axis_units`: the columns' units, a rotary
+        joint's radians and newton metres; SI when the file does not say), ``delay`` (the
+        device's delay [periods], or None) and ``rate_hz`` (or None).
+    """
+    from hapsim.drivers import axis_units
+    ev = next((e for e in info.get("events", []) if e.get("event") == "run"), {})
+    units = ev.get("units")
+    return {"units": units if isinstance(units, dict) and "position" in units
+            else axis_units(None),
+            "delay": ev.get("delay"), "rate_hz": ev.get("rate_hz")}
+
+
 def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     """What a run's telemetry says.
 
@@ -227,6 +253,8 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     events: dict[str, int] = {}
     for ev in info.get("events", []):
         name = str(ev.get("event", "?"))
+        if name == "run":           # (the run's description: described())
+            continue
         events[name] = events.get(name, 0) + 1
     e = felt_energy(cols["position"], cols["force"], flags, delay) if n else np.zeros(0)
     ta = cols["turnaround_us"][np.isfinite(cols["turnaround_us"])]
@@ -358,22 +386,30 @@ def run(args: argparse.Namespace) -> int:
         from hapsim.plots import check_figure_path
         check_figure_path(args.plot, "--plot")
     cols, info = read(args.file)
-    s = summarize(cols, info, args.delay)
+    run_said = described(info)
+    stated = run_said["delay"]
+    delay = args.delay if args.delay is not None else (
+        int(stated) if isinstance(stated, (int, float)) and float(stated).is_integer()
+        and stated >= 0 else 1)
+    s = summarize(cols, info, delay)
     s["file"] = args.file
+    s["units"] = units = run_said["units"]
     if args.out:
         save_columns(cols, args.out, info.get("events"), key="--out")
         s["out"] = args.out
     if args.plot:
         from hapsim.plots.telemetry import plot_telemetry
         from hapsim.plots import save_figure
-        e = felt_energy(cols["position"], cols["force"], cols["flags"], args.delay)
+        e = felt_energy(cols["position"], cols["force"], cols["flags"], delay)
         save_figure(plot_telemetry(cols, e, info.get("events", []),
-                                   title=os.path.basename(args.file)), args.plot)
+                                   title=os.path.basename(args.file), units=units),
+                    args.plot)
         s["plot"] = args.plot
     if args.json:
         print(json.dumps(s, allow_nan=False, default=_json_default))
     else:
-        print(format_summary(args.file, s))
+        from hapsim.drivers import in_axis_units
+        print(in_axis_units(format_summary(args.file, s), units))
         if args.out:
             print(f"wrote {args.out}")
         if args.plot:

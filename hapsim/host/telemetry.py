@@ -559,6 +559,18 @@ class ChunkWriter:
                     self.events_written += 1
             return wrote
 
+    def note(self, event: dict) -> None:
+        """Journal ``event`` now, apart from the loop's events (a run's description: its
+        axis's units and its delay, which ``hapsim telemetry`` reads back).
+
+        Raises
+        ------
+        OSError
+            When the journal cannot be written.
+        """
+        with self._lock:
+            self._chunk(_event_header(event, self.tel.n))
+
     def close(self) -> None:
         """Stop the thread, drain the last rows and events, close the file (idempotent)."""
         self._done.set()

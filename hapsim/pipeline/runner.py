@@ -53,7 +53,7 @@ from hapsim.host.realtime import RealtimePriority
 from hapsim.pipeline.report import build_report, format_report
 from hapsim.pipeline.run_types import Connection, LoopRun, PreparedRun
 from hapsim.pipeline.startup import compile_notice, compiled_loop_possible, preload_numba_blas
-from hapsim.host.telemetry import ChunkWriter, Telemetry, convert, load
+from hapsim.host.telemetry import ChunkWriter, Telemetry, load, save_columns
 from hapsim.host.transport import open_transport
 from hapsim.device_model import hand_force_samples
 from hapsim.errors import ConfigError, DeviceError, ProtocolError, error_record
@@ -493,7 +493,9 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
         if telemetry:
             journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
             writer = ChunkWriter(tel, journal, opts.telemetry_interval,
-                                 events=loop.result.events).start()
+                                 events=loop.result.events)
+            writer.note(_run_event(prep, opts))
+            writer.start()
             if opts.transport == "sim" or (opts.lockstep and not opts.host_clocked):
                 tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
         try:
@@ -602,9 +604,22 @@ def _start_view(prep: PreparedRun, conn: Connection, loop: HostLoop, ctl, opts: 
     return start_view(src, ctl, conn.stop, opts.view, "run")
 
 
-def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | None:
+def _run_event(prep: PreparedRun, opts: RunOptions) -> dict:
+    """The run's description its telemetry keeps (its first event, ``"run"``): the units
+    of its columns (:func:`hapsim.drivers.run_units`: a rotary joint's radians and newton
+    metres), the device's delay [periods] and the rate [Hz], which ``hapsim telemetry``
+    reads back; before, a Haply joint's file was summarised in metres and newtons."""
+    from hapsim.drivers import run_units
+    scene = prep.scene
+    return {"event": "run", "sample": 0, "units": run_units(scene, opts.protocol),
+            "delay": float(scene.device.delay), "rate_hz": float(scene.rate_hz)}
+
+
+def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions,
+                    described: dict) -> dict | None:
     """Export the telemetry file and describe it (None without ``--telemetry``); the
-    whole run's turnaround is read back from the journal once the ring went round."""
+    whole run's turnaround is read back from the journal once the ring went round. An
+    ``.npz`` keeps the run's events, ``described`` (:func:`_run_event`) first."""
     tel, telemetry, journal = conn.tel, opts.telemetry, run.journal
     if not telemetry:
         return None
@@ -613,7 +628,7 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions) -> dict | 
         ta = load(journal)["turnaround_us"]
         run.res.turnaround_us = dict(percentiles_us(ta), samples=int(ta.size))
     if journal != telemetry:
-        _export(tel, journal, telemetry)
+        _export(tel, journal, telemetry, [described, *run.res.events])
     wi = run.writer_info or {}
     return {"path": telemetry, "samples": tel.n,
             "columns": ["time [s]", "position [m]", "force [N]", "seq",
@@ -703,7 +718,7 @@ def run_scene(scene: Scene, options: RunOptions | None = None, **changes) -> dic
     conn = connect(prep, opts)
     try:
         run = run_loop(prep, conn, opts)
-        tel_info = _telemetry_info(conn, run, opts)
+        tel_info = _telemetry_info(conn, run, opts, _run_event(prep, opts))
         # the run's own driver (its parameters: given, or the scene's protocol_options)
         drv = getattr(conn.tr, "driver", None) if opts.driver is not None else None
         measured = identify_run(prep, conn.tel, run.res.hello, driver=drv)
@@ -752,13 +767,12 @@ def _sync_drain(writer: ChunkWriter, tel: Telemetry):
     return drain
 
 
-def _export(tel: Telemetry, journal: str, path: str) -> None:
+def _export(tel: Telemetry, journal: str, path: str, events: list) -> None:
     """Write the ``.npz`` / ``.csv`` telemetry: from memory while every row is there, else
-    from the journal (which has them all); then remove the journal."""
-    if tel.wrapped:
-        convert(journal, path)
-    else:
-        tel.write(path)
+    from the journal (which has them all); then remove the journal. An ``.npz`` keeps
+    ``events`` (before, a run's ``.npz`` had none, its losses and recoveries dropped)."""
+    save_columns(load(journal) if tel.wrapped else tel.columns(), path, events,
+                 key="--telemetry")
     _remove(journal)
 
 

@@ -14,7 +14,8 @@ _FLAG_ROWS = ((1, "late", "tab:orange"), (2, "restart", "tab:red"),
               (4, "ramp", "tab:purple"), (8, "clamped", "tab:brown"))
 
 
-def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = ""):
+def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = "",
+                   units: dict | None = None):
     """Position, force, felt energy and flags of a run over time, on one time axis.
 
     Parameters
@@ -29,6 +30,9 @@ def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = ""
         ``recovered`` are drawn as vertical lines on every panel.
     title : str
         Figure title (the file name).
+    units : dict, optional
+        :func:`hapsim.drivers.axis_units` of the run's axis (default SI; a rotary
+        joint's: position [mrad], torque [N m]).
 
     Returns
     -------
@@ -42,9 +46,11 @@ def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = ""
     ConfigError
         If matplotlib is missing (message: install the plot extra).
     """
+    from hapsim.drivers import axis_units, in_axis_units
     from hapsim.plots import pyplot
 
     plt = pyplot()
+    u = units or axis_units(None)
     t = np.asarray(cols["time"], float)
     t0 = t[0] if t.size else 0.0
     tt = t - t0
@@ -54,9 +60,9 @@ def plot_telemetry(cols: dict, energy: np.ndarray, events: list, title: str = ""
     tb = _break_gaps(tt)          # no line drawn across a stretch without samples
     ax_x.plot(tb, _break_gaps(tt, 1e3 * np.asarray(cols["position"], float)), lw=0.9,
               color="tab:blue")
-    ax_x.set_ylabel("position [mm]")
+    ax_x.set_ylabel(in_axis_units("position [mm]", u))
     ax_f.plot(tb, _break_gaps(tt, np.asarray(cols["force"], float)), lw=0.9, color="tab:green")
-    ax_f.set_ylabel("force [N]")
+    ax_f.set_ylabel(in_axis_units("force [N]", u))
     ax_e.plot(tb, _break_gaps(tt, 1e3 * np.asarray(energy, float)), lw=0.9, color="tab:red")
     ax_e.set_ylabel("felt energy [mJ]")
     flags = np.asarray(cols["flags"])
