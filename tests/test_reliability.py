@@ -1241,9 +1241,12 @@ def test_journal_keeps_the_fault_history_and_per_sample_flags(tmp_path):
     assert lp["lost"] == lp["recovered"] == 2
     info = {}
     cols = load(path, info=info)
-    # every event of the report is in the journal, in order, with its reason
-    assert [e["event"] for e in info["events"]] == [e["event"] for e in lp["events"]]
-    assert [e.get("reason") for e in info["events"]] == [e.get("reason") for e in lp["events"]]
+    # the run's description first (its units and delay: hapsim telemetry reads them),
+    # then every event of the report, in order, with its reason
+    run, *events = info["events"]
+    assert run["event"] == "run" and run["delay"] == 1.0 and run["units"]["position"] == "m"
+    assert [e["event"] for e in events] == [e["event"] for e in lp["events"]]
+    assert [e.get("reason") for e in events] == [e.get("reason") for e in lp["events"]]
     assert rep["telemetry"]["events_journaled"] == len(lp["events"])
     fl = cols["flags"]
     restarts = np.flatnonzero(fl & FLAG_LOST)

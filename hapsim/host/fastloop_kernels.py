@@ -51,7 +51,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "b03f93f8a9cf188687423d3b1c79a14e28be7c9060afcfb2cce6b02580865266"
+COMPILED_SOURCES_SHA256 = "ddf13eb617d104916da46bb2f6496bc3f561c16655e521bc3c8e42e1b8d89a4c"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).
