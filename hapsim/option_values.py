@@ -22,7 +22,59 @@ import numbers
 
 from hapsim.errors import ConfigError
 
-__all__ = ["Number", "check_numbers", "typed_flag", "API_OPTIONS", "declared", "check_values"]
+__all__ = ["Number", "check_numbers", "typed_flag", "API_OPTIONS", "declared", "check_values",
+           "option_value"]
+
+
+def option_value(key: str, value, unit: str = "", *, low: float = -math.inf,
+                 low_ok: bool = True, high: float = math.inf, whole: bool = False):
+    """A driver's or an emulated board's numeric option (``--protocol-option``,
+    ``--mock-option``, a device file's ``protocol_options``), checked where the object
+    that takes it is built.
+
+    Parameters
+    ----------
+    key : str
+        The option's name (the error's key).
+    value : int or float
+        The value given (a word, a bool, NaN or an infinity are refused).
+    unit : str
+        Its unit, said in the error (``"N"``; empty for a count or a code).
+    low, high : float
+        The range; ``low`` itself allowed where ``low_ok`` (``high`` always is).
+    whole : bool
+        Only whole numbers (an id, a code, a level count); 2.5 is refused, 2.0 is 2.
+
+    Returns
+    -------
+    int or float
+        ``value`` as an int (``whole``) or a float.
+
+    Raises
+    ------
+    hapsim.errors.ConfigError
+        ``value`` is no finite number in the range (a whole one where ``whole``): its
+        key, the range and what was given named. Before, a device id of NaN was "cannot
+        convert float NaN to integer" with no key, 2.5 was taken as 2, and a word was
+        "must be real number, not str".
+    """
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    v = float(value) if ok else math.nan
+    ok = math.isfinite(v) and (v >= low if low_ok else v > low) and v <= high \
+        and (not whole or v.is_integer())
+    if not ok:
+        kind = "a whole number" if whole else "a finite number"
+        if math.isfinite(low) and math.isfinite(high):
+            rng = f"in {'[' if low_ok else '('}{low:g}, {high:g}]"
+        elif math.isfinite(low):
+            rng = f"{'>=' if low_ok else '>'} {low:g}"
+        elif math.isfinite(high):
+            rng = f"<= {high:g}"
+        else:
+            rng = ""
+        raise ConfigError(f"must be {kind}{' ' + rng if rng else ''}"
+                          f"{f' [{unit}]' if unit else ''}, got {value!r}", key=key)
+    return int(v) if whole else v
 
 
 class Number:

@@ -931,7 +931,7 @@ def test_protocol_options_in_the_scene_and_the_device_file(tmp_path):
     sc = parse_scene(text.replace("device:\n", "device:\n  protocol_options: "
                                                "{full_scale: 1.56}\n"))
     assert sc.device.protocol_options == {"full_scale": 1.56}
-    for bad, msg in (("{full_scale: -1}", r"protocol_options.full_scale: must be a positive"),
+    for bad, msg in (("{full_scale: -1}", r"protocol_options.full_scale: must be a finite number > 0"),
                      ("{fullscale: 1}", r"unknown option 'fullscale' for firefader; valid: "
                                          r"axis, full_scale, metres_per_count")):
         with pytest.raises(ConfigError, match=msg):

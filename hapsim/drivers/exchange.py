@@ -107,8 +107,9 @@ class Exchange:
         if u <= 0:
             return self.lost
         return (f"the board answers, but {u} of its replies since the last one taken "
-                f"(over {self.silent} writes) were out of the joint's reach (further from the readings before them than its "
-                f"inertia lets it move under the torque sent, in the time between): the "
+                f"(over {self.silent} writes) were out of the joint's reach (further "
+                f"from the readings before them than its inertia lets it move under the "
+                f"torque sent, in the time between): the "
                 f"encoder's counts per revolution may differ from the driver's "
                 f"resolution (--protocol-option resolution=COUNTS), or the joint is "
                 f"lighter than the device's mass states")

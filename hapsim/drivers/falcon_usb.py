@@ -245,6 +245,8 @@ class FalconUSB:
 
     def __init__(self, url: str | None = None, *, backend=None,
                  read_timeout: float = 0.05) -> None:
+        from hapsim.option_values import option_value
+        read_timeout = option_value("read_timeout", read_timeout, "s", low=0, low_ok=False)
         index, serial = parse_url(url)
         try:
             import usb.core

@@ -67,6 +67,7 @@ import select
 import time
 
 from hapsim.drivers.base import FLAG_ESTIMATED, Driver, MappedDecoder
+from hapsim.option_values import option_value
 
 __all__ = ["FireFader", "Records", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",
            "FORCE_MIN", "FORCE_MAX", "METRES_PER_COUNT", "FULL_SCALE_N", "encode_packet", "encode_record",
@@ -540,15 +541,10 @@ class FireFader(Driver):
         if axis not in (0, 1):
             raise ConfigError(f"FireFader axis must be 0 (A) or 1 (B), got {axis!r}",
                               key="axis")
-        if not (math.isfinite(full_scale) and full_scale > 0):
-            raise ConfigError(f"must be a positive force [N], got {full_scale!r}",
-                              key="full_scale")
-        if not (math.isfinite(metres_per_count) and metres_per_count > 0):
-            raise ConfigError(f"must be a positive length [m], got {metres_per_count!r}",
-                              key="metres_per_count")
         self.axis = axis
-        self.full_scale = float(full_scale)
-        self.position_scale = self.metres_per_count = float(metres_per_count)
+        self.full_scale = option_value("full_scale", full_scale, "N", low=0, low_ok=False)
+        self.position_scale = self.metres_per_count = option_value(
+            "metres_per_count", metres_per_count, "m", low=0, low_ok=False)
         self.force_scale = self.full_scale / 127.0
         self.force_limit = FORCE_MAX * self.force_scale
 

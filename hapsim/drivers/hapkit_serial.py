@@ -40,6 +40,7 @@ from hapsim.drivers.base import (FLAG_ESTIMATED, AlignedDecoder, Driver, MappedD
 from hapsim.drivers.sketch_timing import (FIRMWARE_TICK_S, PERIOD_TICKS_TOL,  # noqa: F401
                                           RENDER_LATENCY_S, RENDER_S, SketchTiming,
                                           whole_ticks)
+from hapsim.option_values import option_value
 
 __all__ = ["HapkitSerial", "HOST_FORCE_FUNCTION", "HEADER", "command_packet", "reply_packet",
            "ReplyDecoder", "ReplyLog", "CommandDecoder", "SKETCH_READ_TIMEOUT_S",
@@ -317,20 +318,14 @@ class HapkitSerial(SketchTiming, Driver):
                  render_latency_s: tuple | list | None = None,
                  count_m: float = SKETCH_COUNT_M) -> None:
         from hapsim.errors import ConfigError
-        if not (math.isfinite(count_m) and count_m >= 0):
-            raise ConfigError(f"must be the sensor's step at the handle [m], >= 0, got "
-                              f"{count_m!r}", key="count_m")
+        count_m = option_value("count_m", count_m, "m", low=0)  # (the step at the handle)
         #: The sketch's position step [m] (the HELLO's position scale the host states).
         self.count_m = float(count_m)
         self.position_scale = self.count_m
         from hapsim.drivers.output_stage import sketch_gearing
         self._gearing = sketch_gearing()        # binary32 (answer_names)
-        if not 0 <= int(function) <= 255:
-            raise ConfigError(f"function code must be 0..255, got {function!r}",
-                              key="function")
-        if not (math.isfinite(force_limit) and force_limit > 0):
-            raise ConfigError(f"must be a positive force [N], got {force_limit!r}",
-                              key="force_limit")
+        function = option_value("function", function, low=0, high=255, whole=True)
+        force_limit = option_value("force_limit", force_limit, "N", low=0, low_ok=False)
         if reply not in ("auto", "Tp", "force"):
             raise ConfigError(f"the reply's second float: 'Tp' (the repository's head), "
                               f"'force' (its copy of 2017-04-07) or 'auto', got {reply!r}",

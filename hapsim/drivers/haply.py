@@ -51,6 +51,7 @@ import struct
 
 from hapsim.drivers.base import Driver, MappedDecoder, binary32_commands
 from hapsim.drivers.haply_reply import DESYNC_BYTES, ReplyDecoder
+from hapsim.option_values import option_value
 
 __all__ = ["HaplyM3", "DEFAULT_ID", "MAX_TORQUE", "setup_packet", "write_packet", "reply_packet",
            "ReplyDecoder", "LONGEST_COMMAND", "LONGEST_WAIT", "DESYNC_BYTES",
@@ -60,6 +61,8 @@ __all__ = ["HaplyM3", "DEFAULT_ID", "MAX_TORQUE", "setup_packet", "write_packet"
 MAX_TORQUE = 0.123
 CMD_RESET, CMD_SETUP, CMD_WRITE = 0, 1, 2
 _F = struct.Struct("<f")
+#: The largest finite binary32 (the board's floats): 3.4028235e38.
+F32_MAX = float.fromhex("0x1.fffffep+127")
 #: Longest command the board can be inside [bytes]: a set-up with 4 motors, 4 encoders,
 #: 255 analog pins and 255 PWM pins (1 + 1 + 1 + 4 + 1 + 4 + 1 + 255 + 1 + 255 + 4 * 8).
 LONGEST_COMMAND = 556
@@ -427,12 +430,11 @@ class HaplyM3(Driver):
         self.torque_levels = int(torque_levels)
         if device_id is None:
             device_id = DEFAULT_ID
-        if not 1 <= int(device_id) <= 255:
-            raise ConfigError(f"device id must be 1..255 (0 is every PWM pin's address after "
-                              f"a reset), got {device_id!r}", key="device_id")
-        if not (math.isfinite(resolution) and resolution > 0):
-            raise ConfigError(f"counts per revolution must be > 0, got {resolution!r}",
-                              key="resolution")
+        # (a device id of 0 is every PWM pin's address after a reset)
+        device_id = option_value("device_id", device_id, low=1, high=255, whole=True)
+        # (both binary32 on the wire: within its largest finite value)
+        resolution = option_value("resolution", resolution, "counts per revolution", low=0,
+                                  low_ok=False, high=F32_MAX)
         if direction not in (0, 1):
             raise ConfigError(f"direction must be 0 (CW) or 1 (CCW), got {direction!r}",
                               key="direction")
@@ -447,10 +449,8 @@ class HaplyM3(Driver):
         # the board holds it as binary32
         self.resolution = _F.unpack(_F.pack(float(resolution)))[0]
         self.direction = int(direction)
-        if not math.isfinite(offset_deg):
-            raise ConfigError(f"must be a finite angle [deg], got {offset_deg!r}",
-                              key="offset_deg")
-        self.offset_deg = float(offset_deg)
+        self.offset_deg = option_value("offset_deg", offset_deg, "deg", low=-F32_MAX,
+                                       high=F32_MAX)
         self.position_scale = 2 * math.pi / self.resolution
 
     def stop_bytes(self, position: float = 0.0) -> bytes:

@@ -48,9 +48,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, DEFAULT_ID, LONGEST_WAIT, MAX_TORQUE,
-                                  ReplyDecoder, resync_bytes)
+from hapsim.drivers.haply import (CMD_SETUP, CMD_WRITE, DEFAULT_ID, F32_MAX, LONGEST_WAIT,
+                                  MAX_TORQUE, ReplyDecoder, resync_bytes)
 from hapsim.errors import ConfigError
+from hapsim.option_values import option_value
 
 __all__ = ["Generation", "GENERATIONS", "Haply2DIY", "Reply2Decoder", "JOINT_PORTS"]
 
@@ -160,14 +161,11 @@ class Haply2DIY:
         if generation not in GENERATIONS:
             raise ConfigError(f"unknown 2DIY generation {generation!r}; valid: "
                               f"{', '.join(GENERATIONS)}", key="generation")
-        if not 1 <= int(device_id) <= 255:
-            raise ConfigError(f"device id must be 1..255, got {device_id!r}",
-                              key="device_id")
+        device_id = option_value("device_id", device_id, low=1, high=255, whole=True)
         g = GENERATIONS[generation]
-        res = g.resolution if resolution is None else float(resolution)
-        if not (math.isfinite(res) and res > 0):
-            raise ConfigError(f"counts per revolution must be > 0, got {resolution!r}",
-                              key="resolution")
+        res = g.resolution if resolution is None else option_value(
+            "resolution", resolution, "counts per revolution", low=0, low_ok=False,
+            high=F32_MAX)
         for key, v in (("motor_direction", motor_direction),
                        ("encoder_direction", encoder_direction)):
             if v is not None and (len(tuple(v)) != 2 or set(tuple(v)) - {0, 1}):

@@ -15,45 +15,8 @@ from collections import deque
 
 from hapsim.device_model import MockPhysics
 
-__all__ = ["Actuated", "WallClock", "hardware_number"]
+__all__ = ["Actuated", "WallClock"]
 
-
-def hardware_number(key: str, value, unit: str, *, low: float = 0.0,
-                    low_ok: bool = False) -> float:
-    """A board model's numeric option, checked where the model is built.
-
-    Parameters
-    ----------
-    key : str
-        The option's name (the error's key, as ``--mock-option KEY=VALUE`` gives it).
-    value : float
-        The option's value.
-    unit : str
-        Its unit, said in the error (``"N"``, ``"counts"``).
-    low : float
-        The least value; ``low_ok`` whether it is allowed itself (default: above it).
-
-    Returns
-    -------
-    float
-        ``value`` as a float.
-
-    Raises
-    ------
-    hapsim.errors.ConfigError
-        ``value`` is no finite number within the range (its key, the range and what was
-        given named). Before, a board's count of zero counts per revolution divided by it
-        in the child process: a traceback, and the host's "does not answer".
-    """
-    from hapsim.errors import ConfigError
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = math.nan
-    if not (math.isfinite(v) and (v >= low if low_ok else v > low)):
-        raise ConfigError(f"must be a finite number {'>=' if low_ok else '>'} {low:g} "
-                          f"[{unit}], got {value!r}", key=key)
-    return v
 
 
 class Actuated:

@@ -9,7 +9,8 @@ from __future__ import annotations
 import math
 
 from hapsim.drivers.firefader import HAND_PASSES
-from hapsim.emulated.actuated import Actuated, hardware_number
+from hapsim.emulated.actuated import Actuated
+from hapsim.option_values import option_value
 
 __all__ = ["FireFaderDevice"]
 
@@ -214,20 +215,22 @@ class FireFaderDevice(Actuated):
         wall = clock == "wall"
         if pass_time and firmware != "pde" and not wall:
             self.reply_delay_s = (3 + 7) * 10 / 57600 + ff.PASS_READS_S
-        self.full_scale = hardware_number("full_scale", full_scale, "N")
-        self.mpc = (ff.METRES_PER_COUNT if metres_per_count is None
-                    else hardware_number("metres_per_count", metres_per_count, "m"))
+        self.full_scale = option_value("full_scale", full_scale, "N", low=0, low_ok=False)
+        self.mpc = (ff.METRES_PER_COUNT if metres_per_count is None else
+                    option_value("metres_per_count", metres_per_count, "m", low=0,
+                                 low_ok=False))
         self.firmware = firmware
         self.touch = bool(touch)
-        self.boot_s = hardware_number("boot_s", boot_s, "s", low_ok=True)
+        self.boot_s = option_value("boot_s", boot_s, "s", low=0)
         if stop_low is not None:
-            hardware_number("stop_low", stop_low, "m", low=-math.inf)
+            option_value("stop_low", stop_low, "m")
         if travel is not None:
-            travel = hardware_number("travel", travel, "m")
+            travel = option_value("travel", travel, "m", low=0, low_ok=False)
         self.stops = (None if travel is None else
                       (float(-travel / 2 if stop_low is None else stop_low),
                        float((-travel / 2 if stop_low is None else stop_low) + travel)))
-        self.adc_s = None if adc_s is None else hardware_number("adc_s", adc_s, "s")
+        self.adc_s = (None if adc_s is None
+                      else option_value("adc_s", adc_s, "s", low=0, low_ok=False))
         T = 1.0 / float(rate_hz)
         if self.adc_s is not None:
             if not self.adc_s < T:
@@ -244,7 +247,7 @@ class FireFaderDevice(Actuated):
             self.adc_s = self.ADC_S if firmware != "pde" else 0.0
         if wall:
             rs = (self.REPLY_S if reply_s is None
-                  else hardware_number("reply_s", reply_s, "s", low_ok=True)) \
+                  else option_value("reply_s", reply_s, "s", low=0)) \
                 if pass_time else self.adc_s
             if firmware == "pde":
                 rs = 0.0

@@ -10,7 +10,8 @@ import math
 import statistics
 
 from hapsim.drivers.hapkit_serial import FIRMWARE_TICK_S, whole_ticks
-from hapsim.emulated.actuated import Actuated, hardware_number, offline_record
+from hapsim.emulated.actuated import Actuated, offline_record
+from hapsim.option_values import option_value
 
 __all__ = ["HapkitSerialDevice", "SketchReader", "hapkit_serial_offline_loop"]
 
@@ -248,7 +249,7 @@ class HapkitSerialDevice(Actuated):
         from hapsim.drivers import hapkit_serial as hk
         from hapsim.errors import ConfigError
         count_m = (hk.SKETCH_COUNT_M if count_m is None
-                   else hardware_number("count_m", count_m, "m", low_ok=True))
+                   else option_value("count_m", count_m, "m", low=0))
         if count_m > 0 and not float(getattr(device, "position_resolution", 0.0) or 0.0):
             # the sketch's reading, a whole number of counts (MockPhysics.sample rounds)
             device = dataclasses.replace(device, position_resolution=count_m)
@@ -259,7 +260,7 @@ class HapkitSerialDevice(Actuated):
         if reply not in ("Tp", "force"):
             raise ConfigError(f"must be 'Tp' or 'force', got {reply!r}", key="reply")
         render_s = (hk.RENDER_S if render_s is None
-                    else hardware_number("render_s", render_s, "s", low_ok=True))
+                    else option_value("render_s", render_s, "s", low=0))
         if not (isinstance(clock_ppm, (int, float)) and abs(float(clock_ppm)) < 1e5):
             raise ConfigError(f"must be a number of parts per million within (-1e5, 1e5), "
                               f"got {clock_ppm!r}", key="clock_ppm")
@@ -275,7 +276,8 @@ class HapkitSerialDevice(Actuated):
         self._ticks: list = []                        # the tick that took each
         self._sampled: list = []                      # wall: each reply's read [s]
         super().__init__(device, rate_hz, excitation,
-                         hardware_number("force_limit", force_limit, "N"), seed, clock=clock)
+                         option_value("force_limit", force_limit, "N", low=0, low_ok=False),
+                         seed, clock=clock)
         # the wall clock's board reads as the sketch does (SketchReader); the lockstep
         # test device, paced by the commands, has no time for its reads' timeout and
         # realigns on the header and function bytes (CommandDecoder)

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import math
 
-from hapsim.emulated.actuated import Actuated, hardware_number, offline_record
+from hapsim.emulated.actuated import Actuated, offline_record
+from hapsim.option_values import option_value
 from hapsim.emulated.haply_firmware import PASS_S, pass_at
 
 __all__ = ["HaplyDevice", "haply_offline_loop"]
@@ -106,9 +107,9 @@ class HaplyDevice(Actuated):
         # the firmware's single reads of an empty buffer: 255 (CommandDecoder notes)
         self.decoder = CommandDecoder(absent=255)
         # (resolution: the set-up packet's name for it; given, it is the count)
-        self.cpr = (hardware_number("cpr", cpr, "counts per revolution")
-                    if resolution is None else
-                    hardware_number("resolution", resolution, "counts per revolution"))
+        self.cpr = option_value("cpr" if resolution is None else "resolution",
+                                cpr if resolution is None else resolution,
+                                "counts per revolution", low=0, low_ok=False)
         self._base = 0
         self._base0 = None
         #: The largest error [rad] of the board's frame against the joint's true angle,
