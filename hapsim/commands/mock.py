@@ -238,7 +238,7 @@ def run(args) -> int:
     from hapsim.host.realtime import RealtimePriority
 
     rt = RealtimePriority(args.rt_priority)       # ConfigError (exit 2) when out of range
-    plan = mock_fault_plan(args.faults, args.fault_seed, args.link)
+    plan = mock_fault_plan(args.faults, args.fault_seed, args.link, args.lockstep)
     reopen = reopener(args.link, _new_pty, announce=args.fd is None)
 
     rate = 1000.0
@@ -471,7 +471,7 @@ def run_mock_nd(args, new_pty) -> int:
         raise ConfigError(f"must be a positive number [Hz], got {rate}", key="--rate")
     # --rate: the native rate HELLO announces; the physics follows each CONFIG's rate
     plan = mock_fault_plan(getattr(args, "faults", None), getattr(args, "fault_seed", None),
-                           getattr(args, "link", None))
+                           getattr(args, "link", None), bool(args.lockstep))
     mock = MockDeviceND(scene, a, lockstep=args.lockstep, native_rate_hz=rate)
     master, slave = new_pty(getattr(args, "link", None), announce=True)
     # the raw settings stay with the pty; with no slave fd of its own the mock sees EIO

@@ -67,7 +67,7 @@ import firmware_protocol as fp
 from hapsim.errors import ConfigError
 
 __all__ = ["FaultPlan", "FaultyDevice", "parse_faults", "mock_fault_plan", "reopener", "WIRE_FAULTS", "RX_WIRE_FAULTS",
-           "DEVICE_FAULTS", "FAULT_NAMES", "DEFAULT_DURATIONS"]
+           "DEVICE_FAULTS", "FAULT_NAMES", "DEFAULT_DURATIONS", "LOCKSTEP_FAULTS"]
 
 #: Faults applied to each device -> host frame.
 WIRE_FAULTS = ("drop", "corrupt", "garbage", "dup", "reorder", "spike")
@@ -77,6 +77,8 @@ RX_WIRE_FAULTS = tuple("rx." + n for n in WIRE_FAULTS)
 DEVICE_FAULTS = ("stall", "reset", "vanish")
 #: Every fault name the SPEC accepts.
 FAULT_NAMES = WIRE_FAULTS + RX_WIRE_FAULTS + DEVICE_FAULTS + ("nohello",)
+#: A lockstep mock's faults, at a rate (:meth:`FaultPlan.lockstep_refusal`).
+LOCKSTEP_FAULTS = ("dup", "spike", "rx.dup", "rx.spike")
 #: Default DURATION [s] of the faults that have one.
 DEFAULT_DURATIONS = {"spike": 0.005, "rx.spike": 0.005, "stall": 0.2, "vanish": 0.3}
 
@@ -160,6 +162,27 @@ class FaultPlan:
     def has_vanish(self) -> bool:
         """True when the plan can make the port vanish."""
         return self.rates.get("vanish", 0) > 0 or any(n == "vanish" for _, n, _ in self.schedule)
+
+    def lockstep_refusal(self) -> str | None:
+        """Why a lockstep mock, which ticks on the host's FORCE, cannot take this plan
+        (a str naming the faults, why, and what takes them), or None
+        (:data:`LOCKSTEP_FAULTS`, ``nohello``). A frame lost there stops both sides
+        until the device is called lost (10 s); a fault at or per tick never fires
+        (``reset@100`` ran as if not asked, ``injected: {}``).
+
+        Returns
+        -------
+        str or None"""
+        names = sorted({n for n, v in self.rates.items() if v > 0
+                        and n not in LOCKSTEP_FAULTS}
+                       | {f"{n}@{t}" for t, n, _ in self.schedule})
+        if not names:
+            return None
+        return (f"{', '.join(names)}: not with a lockstep mock, which ticks on the host's "
+                f"FORCE (a frame lost on the wire stops both sides until the device is "
+                f"called lost; a fault at or per tick never fires); with --lockstep: "
+                f"{', '.join(n + '=RATE' for n in LOCKSTEP_FAULTS)}, nohello; the others "
+                f"on the mock's own clock (without --lockstep)")
 
     def to_dict(self) -> dict:
         """JSON-ready description of the plan.
@@ -354,9 +377,10 @@ def parse_faults(spec: str | None, seed: int = 0) -> FaultPlan:
                      nohello=nohello, seed=int(seed), spec=text)
 
 
-def mock_fault_plan(spec: str | None, seed: int | None, link: str | None):
-    """A mock's fault plan from ``--faults``, ``--fault-seed`` and ``--link`` (the 1-D,
-    2-D and 3-D mocks alike).
+def mock_fault_plan(spec: str | None, seed: int | None, link: str | None,
+                    lockstep: bool = False):
+    """A mock's fault plan from ``--faults``, ``--fault-seed``, ``--link`` and
+    ``--lockstep`` (the 1-D, 2-D and 3-D mocks alike).
 
     Parameters
     ----------
@@ -366,6 +390,8 @@ def mock_fault_plan(spec: str | None, seed: int | None, link: str | None):
         ``--fault-seed`` (None: 0).
     link : str or None
         ``--link PATH``, which a ``vanish`` fault needs.
+    lockstep : bool
+        A lockstep mock (:meth:`FaultPlan.lockstep_refusal`).
 
     Returns
     -------
@@ -375,11 +401,15 @@ def mock_fault_plan(spec: str | None, seed: int | None, link: str | None):
     Raises
     ------
     ConfigError
-        A bad SPEC (:func:`parse_faults`); a ``vanish`` fault without ``--link`` (exit 2).
+        A bad SPEC (:func:`parse_faults`); a fault a lockstep mock cannot take; a
+        ``vanish`` fault without ``--link`` (exit 2).
     """
     if not spec:
         return None
     plan = parse_faults(spec, int(seed or 0))
+    why = plan.lockstep_refusal() if lockstep else None
+    if why:
+        raise ConfigError(why, key="--faults")
     if plan.has_vanish and not link:
         raise ConfigError("a vanish fault closes the pty and opens a new one: give --link "
                           "PATH and open PATH from the host", key="--link")

@@ -170,12 +170,18 @@ def measure_scene_nd(scene, opts, amplitude: float, progress=None, by: str = "fl
     Raises
     ------
     ConfigError
-        An option not taken; ``faults`` with a ``port``.
+        An option not taken; ``faults`` with a ``port``, or in lockstep.
     DeviceError, ProtocolError
         The device failed (no HELLO, a FAULT, lost beyond recovery).
     """
     refuse_options(opts, by)
     if opts.lockstep and not opts.port:
+        if opts.faults:
+            # (before, taken and ignored: "within", nothing injected, nothing said)
+            raise ConfigError("the lockstep run of a 2-D or 3-D scene closes its loop in "
+                              "this process, with no wire to fault: its n-axis mock takes "
+                              "faults on its own clock (without --lockstep)",
+                              key="--faults" if by == "flag" else "faults")
         from hapsim.lockstep import measure_felt_lockstep
         return measure_felt_lockstep(scene, amplitude, progress=progress), None
     from hapsim.analysis.linearisation import bound_at_records, linearisation_bound

@@ -411,6 +411,9 @@ class RunOptions:
         if not self.plan.empty and tp not in ("pty", "sim"):
             raise ConfigError("faults are injected by the mock: use the embedded mock (no "
                               "--port) or 'hapsim mock --faults' behind --port", key="--faults")
+        why = self.plan.lockstep_refusal() if self.lockstep and self.driver is None else None
+        if why:
+            raise ConfigError(why, key="--faults")
         if self.driver is not None:
             from hapsim.drivers import get_driver
             # unknown name or bad parameters: ConfigError before any work
