@@ -168,3 +168,36 @@ def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
     assert cap.out.strip() == api.RunReport.from_dict(
         {**canned, "error": {"type": "DeviceError", "message": "gone"}}).text()
     assert cap.err.rstrip().endswith("hapsim run: DeviceError: gone")
+
+
+@pytest.mark.parametrize("scene, argv, key, says", [
+    ("wall.yaml", ["--tolerance", "0.5"], "--tolerance", "goes with --auto"),
+    ("pantograph_spring.yaml", ["--tolerance", "0.5"], "--tolerance", "does not take"),
+    ("wall.yaml", ["--no-reconnect", "--reconnect-time", "3"], "--reconnect-time",
+     "--no-reconnect ends the run at a loss"),
+    ("wall.yaml", ["--no-reconnect", "--reconnect-attempts", "2"], "--reconnect-attempts",
+     "--no-reconnect ends the run at a loss"),
+    ("firefader.yaml", ["--frames", "compact"], "--frames", "the firefader protocol's"),
+    ("wall.yaml", ["--driver", "haply", "--frames", "full"], "--frames",
+     "the haply protocol's")])
+def test_an_option_that_would_act_on_nothing_is_refused_by_its_flag(capsys, scene, argv,
+                                                                    key, says):
+    """An option whose effect another option or the protocol rules out is refused, by
+    its flag, before the run starts (exit 2): --tolerance without --auto (the rate
+    advice's tolerance, not the verdict's), a recovery's limits with --no-reconnect, the
+    framed protocol's --frames through a driver. Before, each was taken and ignored."""
+    from hapsim.cli import main
+    path = str(Path(WALL).parent / scene)
+    assert main(["run", path, "--lockstep", *argv]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {key}: " in err and says in err, err
+
+
+def test_the_options_that_act_together_still_run(capsys):
+    """Their valid company: --auto --tolerance; --reconnect-time without
+    --no-reconnect; --frames over the framed protocol."""
+    from hapsim.cli import main
+    for argv in (["--auto", "--tolerance", "0.05"], ["--reconnect-time", "3"],
+                 ["--frames", "full"]):
+        assert main(["run", WALL, "--lockstep", "--duration", "0.2", *argv]) == 0, argv
+        capsys.readouterr()

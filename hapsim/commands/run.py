@@ -206,8 +206,10 @@ def register(sub) -> None:
             help="use 'hapsim advise': the lowest rate and cheapest method that keep the "
                  "felt (k, b) within --tolerance (calibrating port links)")
         parser.add_argument(
-            "--tolerance", type=Number(float, low=0, open_low=True), default=0.01, metavar="REL",
-            help="relative tolerance on the felt (k, b) for --auto (default 0.01)")
+            "--tolerance", type=Number(float, low=0, open_low=True), default=None,
+            metavar="REL",
+            help="relative tolerance on the felt (k, b) for --auto (default 0.01; only "
+                 "with --auto)")
 
     def device(parser):
         parser.add_argument(
@@ -309,6 +311,10 @@ def run(args) -> int:
         raise ConfigError("takes 2-D or 3-D scenes; a 1-D scene's excitation is its "
                           "excitation section", key="--amplitude")
     _refuse_family_options(args, None)
+    if args.tolerance is not None and not args.auto:
+        # (before: taken and ignored, the run's verdict not changed by it)
+        raise ConfigError("goes with --auto (the felt (k, b) tolerance the rate it chooses "
+                          "keeps); a run's verdict states its own uncertainty", key="--tolerance")
 
     from hapsim.pipeline.options import RunOptions
     opts = RunOptions.from_args(args)       # each option checked (exit 2) before loading
@@ -327,10 +333,11 @@ def run(args) -> int:
         from hapsim.errors import UnstableConfigError
         if opts.rate_hz is not None:
             raise ConfigError("--auto chooses the rate; drop --rate or --auto", key="--auto")
-        advice = advise_scene(scene, args.tolerance)
+        tolerance = 0.01 if args.tolerance is None else args.tolerance
+        advice = advise_scene(scene, tolerance)
         if not advice.ok:
             raise UnstableConfigError(f"{scene.path}: no rate and method keep what is felt "
-                                      f"within {args.tolerance:g}: {advice.reason}")
+                                      f"within {tolerance:g}: {advice.reason}")
         scene = advice.apply(scene)
         print(f"hapsim run --auto: {advice.rate_hz:g} Hz, integrator {advice.integrator}: "
               f"{advice.reason}", file=sys.stderr, flush=True)
@@ -459,7 +466,7 @@ def _short(value) -> str:
 
 
 #: ``hapsim run``'s own options (not run options) an n-D scene does not take.
-_REFUSED_ND = (("device", "--device"), ("auto", "--auto"))
+_REFUSED_ND = (("device", "--device"), ("auto", "--auto"), ("tolerance", "--tolerance"))
 
 
 def _refuse_options_nd(args):

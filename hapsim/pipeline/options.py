@@ -426,12 +426,21 @@ class RunOptions:
             if not self.plan.empty:
                 raise ConfigError("faults are injected by hapsim's own mock; a driver's mock "
                                   "has none", key="--faults")
+            if self.frames != "auto":           # (before: taken and ignored)
+                raise ConfigError(f"the framed protocol's frames; the {self.driver} "
+                                  "protocol's records are its board's", key="--frames")
             self.host_clocked = True            # the protocols answer commands: no clock
             # its mock keeps its own time (the wall clock) unless the run asks for
             # lockstep (hapsim.emulated.driver_mock.WALL_CLOCK_MOCKS)
             from hapsim.emulated.driver_mock import WALL_CLOCK_MOCKS
             self.lockstep = self.lockstep or (self.port is None
                                               and self.driver not in WALL_CLOCK_MOCKS)
+        if self.reconnect is False:             # (before: taken and ignored)
+            for f in dataclasses.fields(self):
+                if f.name in ("reconnect_attempts", "reconnect_time") and \
+                        getattr(self, f.name) != f.default:
+                    raise ConfigError("how a lost device is recovered; --no-reconnect "
+                                      "ends the run at a loss", key=f.metadata["cli"]["flag"])
         if self.reconnect is None:
             self.reconnect = not self.lockstep
         if tp == "serial" and not self.port:
