@@ -108,7 +108,9 @@ class HapsimArgumentParser(argparse.ArgumentParser):
     #: The option the last error is about, as typed (``argument --seed: ...``), else None.
     last_usage_key: str | None = None
 
-    def error(self, message: str):  # noqa: D102 - argparse's contract: print and exit 2
+    def error(self, message: str):
+        """argparse's contract: say ``message`` in one line keyed by the option as typed,
+        then exit 2 (:class:`SystemExit`)."""
         given = {a.split("=", 1)[0] for a in _ARGV if a.startswith("--")}
         parser: argparse.ArgumentParser = self
         for action in self._actions:       # the top parser: ask the chosen sub-command's

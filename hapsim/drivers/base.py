@@ -74,6 +74,14 @@ class AlignedDecoder:
         self._realigning = False        # bytes dropped since the last frame taken
 
     def parse(self, buf):
+        """The protocol's framing (each driver's decoder): the frames ``buf`` holds and the
+        bytes left over, as its subclass defines them.
+
+        Raises
+        ------
+        NotImplementedError
+            Here: a decoder gives its own.
+        """
         raise NotImplementedError
 
     def unframed(self) -> bool:

@@ -251,6 +251,7 @@ class SerialLink:
             raise DeviceError(f"read from {self.port} failed: {exc}") from None
 
     def close(self) -> None:
+        """Flush and close the port (best effort: an error closing it is not raised)."""
         try:
             self.ser.flush()
             self.ser.close()

@@ -573,6 +573,8 @@ class FireFader(Driver):
         return (3 + 7) * 10 / self.baud + PASS_READS_S
 
     def rate_reason(self) -> str:
+        """Why the rate is bounded (said with a refused ``--rate``): the round trip
+        :meth:`round_trip_s` sums."""
         return (f"a packet (0.52 ms at {self.baud} baud), the firmware's reads "
                 f"({PASS_READS_S * 1e3:.2f} ms) and its 7-byte record (1.22 ms) take "
                 f"{self.round_trip_s() * 1e3:.2f} ms, and a period must hold them (a "

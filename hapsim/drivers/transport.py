@@ -129,6 +129,7 @@ class DriverStats:
         return int(self.raw.get("truncated", 0))
 
     def as_dict(self) -> dict:
+        """The counters as a plain dict (a copy, for the report)."""
         return dict(self.raw)
 
 

@@ -409,6 +409,8 @@ class BoardLink:
         self.truth: list = []
 
     def write(self, data) -> int:
+        """The host's bytes to the board (through ``rx``), its answer queued (through
+        ``tx``); returns ``len(data)``, as pyserial's ``write``."""
         self.out += self.tx(self.board.feed(self.rx(bytes(data))))
         plant = getattr(self.board, "plant", None)
         if plant is not None:
@@ -420,6 +422,7 @@ class BoardLink:
         return len(self.out)
 
     def read(self, n: int) -> bytes:
+        """Up to ``n`` bytes the board sent (never waits), as pyserial's ``read``."""
         b = bytes(self.out[:n])
         del self.out[:n]
         return b

@@ -186,31 +186,43 @@ _run_symplectic_euler, _run_exact, _run_periods = (
 
 @_jit
 def step_masses(c):
+    """``c[0]`` samples of ``run_masses`` (its docstring), its arguments in the context
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
     _run_masses(c, c[0])
 
 
 @_jit
 def step_sd(c):
+    """``c[0]`` samples of ``run_sd`` (its docstring), its arguments in the context
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
     _run_sd(c, c[0])
 
 
 @_jit
 def step_contact(c):
+    """``c[0]`` samples of ``run_contact`` (its docstring), its arguments in the context
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
     _run_contact(c, c[0])
 
 
 @_jit
 def step_sd_contact(c):
+    """``c[0]`` samples of ``run_sd_contact`` (its docstring), its arguments in the context
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
     _run_sd_contact(c, c[0])
 
 
 @_jit
 def step_symplectic_euler(c):
+    """``c[0]`` samples of ``run_symplectic_euler`` (its docstring), its arguments in the context
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
     _run_symplectic_euler(c, c[0])
 
 
 @_jit
 def step_exact(c):
+    """``c[0]`` samples of ``run_exact`` (its docstring), its arguments in the context
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
     _run_exact(c, c[0])
 
 
