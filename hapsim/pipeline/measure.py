@@ -675,7 +675,9 @@ class _Record:
     wrapped = False
 
     def __init__(self, cols: dict) -> None:
-        self._cols = cols
+        from hapsim.host.telemetry import COLUMNS
+        # the columns only (an .npz's ``events``, a run's description, is no row)
+        self._cols = {c: cols[c] for c in COLUMNS if c in cols}
         self.n = self.head = int(cols["seq"].size)
 
     def columns(self, rows=None) -> dict:
@@ -697,7 +699,8 @@ def measure_record(prep, cols: dict, hello=None) -> dict:
         The run's calibrated scene, prediction and targets.
     cols : dict of ndarray
         The telemetry columns (:data:`hapsim.host.telemetry.COLUMNS`) of rows
-        ``0 .. n - 1``, each shape (n,).
+        ``0 .. n - 1``, each shape (n,) (other keys, an ``.npz``'s ``events``, are not
+        read).
     hello : firmware_protocol.Hello, optional
         The device's HELLO (its position scale is the sensor step when the scene gives none).
 
