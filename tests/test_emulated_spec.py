@@ -240,3 +240,14 @@ def test_a_board_whose_replies_are_out_of_reach_is_not_said_to_be_silent():
                 "--protocol-option resolution=COUNTS" in msg, msg
         else:
             assert "does not answer its writes" in msg, msg
+
+
+def test_a_mock_option_with_a_port_is_refused(capsys):
+    """``--mock-option`` describes the embedded board; with ``--port`` the device is the
+    one on the port: refused by its flag before the port is opened (before: taken and
+    ignored)."""
+    from hapsim.cli import main
+    assert main(["identify", "--driver", "haply", "--port", "/dev/nonexistent",
+                 "--mock-option", "cpr=4000"]) == 2
+    err = capsys.readouterr().err
+    assert "--mock-option: the embedded board's hardware" in err and "cannot open" not in err

@@ -276,6 +276,9 @@ def run(args) -> int:
     if args.driver != DEFAULT:
         from hapsim.drivers import get_driver
         drv = get_driver(args.driver, **dopts)
+        if args.mock_option and args.port:      # (before: taken and ignored)
+            raise ConfigError("the embedded board's hardware; with --port the device is "
+                              "the one on the port", key="--mock-option")
         if args.mock_option:
             given = _key_values(args.mock_option, "--mock-option")
             _mock_keys_known(args.driver, given)
