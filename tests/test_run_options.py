@@ -179,13 +179,17 @@ def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
      "--no-reconnect ends the run at a loss"),
     ("firefader.yaml", ["--frames", "compact"], "--frames", "the firefader protocol's"),
     ("wall.yaml", ["--driver", "haply", "--frames", "full"], "--frames",
-     "the haply protocol's")])
+     "the haply protocol's"),
+    ("wall.yaml", ["--jack-server", "x"], "--jack-server", "without --sound no sound"),
+    ("audio_string.yaml", ["--sound", "sounddevice", "--jack-server", "x"],
+     "--jack-server", "--sound sounddevice has none")])
 def test_an_option_that_would_act_on_nothing_is_refused_by_its_flag(capsys, scene, argv,
                                                                     key, says):
     """An option whose effect another option or the protocol rules out is refused, by
     its flag, before the run starts (exit 2): --tolerance without --auto (the rate
     advice's tolerance, not the verdict's), a recovery's limits with --no-reconnect, the
-    framed protocol's --frames through a driver. Before, each was taken and ignored."""
+    framed protocol's --frames through a driver, a JACK server without JACK's sound.
+    Before, each was taken and ignored."""
     from hapsim.cli import main
     path = str(Path(WALL).parent / scene)
     assert main(["run", path, "--lockstep", *argv]) == 2
@@ -201,3 +205,15 @@ def test_the_options_that_act_together_still_run(capsys):
                  ["--frames", "full"]):
         assert main(["run", WALL, "--lockstep", "--duration", "0.2", *argv]) == 0, argv
         capsys.readouterr()
+
+
+def test_play_refuses_a_jack_server_without_jacks_sound(capsys):
+    """``hapsim play --jack-server NAME`` with ``--sound none`` or ``sounddevice``:
+    refused by its flag before anything plays (before: taken and ignored)."""
+    from hapsim.cli import main
+    path = str(Path(WALL).parent / "string.yaml")
+    for sound in ("none", "sounddevice"):
+        assert main(["play", path, "--sound", sound, "--jack-server", "x",
+                     "--duration", "0.2"]) == 2
+        err = capsys.readouterr().err
+        assert "--jack-server: names the JACK server" in err and sound in err, err

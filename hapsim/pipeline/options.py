@@ -435,6 +435,11 @@ class RunOptions:
             from hapsim.emulated.driver_mock import WALL_CLOCK_MOCKS
             self.lockstep = self.lockstep or (self.port is None
                                               and self.driver not in WALL_CLOCK_MOCKS)
+        if self.jack_server is not None and self.sound not in ("auto", "jack"):
+            # (before: taken and ignored)
+            raise ConfigError("names the JACK server of --sound jack (or auto); "
+                              + ("without --sound no sound is played" if self.sound is None
+                                 else f"--sound {self.sound} has none"), key="--jack-server")
         if self.reconnect is False:             # (before: taken and ignored)
             for f in dataclasses.fields(self):
                 if f.name in ("reconnect_attempts", "reconnect_time") and \
