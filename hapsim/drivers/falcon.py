@@ -121,7 +121,22 @@ def host_packet(commands, leds: int = 0, homing: bool = False) -> bytes:
 
 def device_packet(encoders, homed: int = 0, grip: int = 0) -> bytes:
     """Device -> host packet (the emulator's reply): three int16 encoder counts, the
-    homing status (bits 0-2 for legs 1-3) and the grip's buttons (4 bits)."""
+    homing status (bits 0-2 for legs 1-3) and the grip's buttons (4 bits).
+
+    Parameters
+    ----------
+    encoders : sequence of int, length 3
+        The legs' counts (clamped to int16).
+    homed : int
+        Homing status bits (0-2).
+    grip : int
+        The grip's buttons (4 bits).
+
+    Returns
+    -------
+    bytes
+        16 bytes: ``<``, twelve count nibbles, byte 13, a nibble, ``>``.
+    """
     e = [max(-32768, min(32767, int(v))) for v in encoders]
     b13 = ((homed & 0x7) << 4) | (grip & 0xF)
     body = _nibbles(e)
@@ -153,7 +168,19 @@ def commands_zero(p: bytes) -> bool:
 
 def parse_host_packet(p: bytes):
     """The device's reading of a host packet: ``(commands, leds, homing)``, or None when
-    it is not one (delimiters, nibble bytes out of ``'A'..'P'``)."""
+    it is not one (delimiters, nibble bytes out of ``'A'..'P'``).
+
+    Parameters
+    ----------
+    p : bytes
+        16 bytes.
+
+    Returns
+    -------
+    tuple or None
+        ``(commands, leds, homing)``: the three int16 motor commands, the LED bits, the
+        homing-mode flag.
+    """
     if not _body_ok(p, 15):
         return None
     nib = [b - _A for b in p[1:15]]
@@ -165,7 +192,19 @@ def parse_device_packet(p: bytes):
     """The host's reading of a device packet: ``(encoders, homed, grip)``, or None.
 
     Byte 13 carries two fields (homing status in bits 4-6, grip in bits 0-3): it may take
-    any value from 0x41; the twelve encoder bytes and byte 14 are nibbles."""
+    any value from 0x41; the twelve encoder bytes and byte 14 are nibbles.
+
+    Parameters
+    ----------
+    p : bytes
+        16 bytes.
+
+    Returns
+    -------
+    tuple or None
+        ``(encoders, homed, grip)``: the three int16 counts, the homing bits, the grip's
+        buttons; None when ``p`` is no device packet.
+    """
     if not (len(p) == 16 and p[0] == _LT and p[15] == _GT
             and all(_A <= b <= _A + 15 for b in p[1:13]) and _A <= p[14] <= _A + 15
             and _A <= p[13] <= _A + 0x7F):
@@ -259,13 +298,34 @@ JUMP_PACKETS = 3
 
 
 def theta_deg(ticks: int) -> float:
-    """A leg's angle [deg] at encoder count ``ticks`` (libnifalcon ``getTheta``)."""
+    """A leg's angle [deg] at encoder count ``ticks`` (libnifalcon ``getTheta``).
+
+    Parameters
+    ----------
+    ticks : int
+        The leg's encoder count.
+
+    Returns
+    -------
+    float
+        ``DEG_PER_TICK * ticks + THETA_OFFSET_DEG`` [deg].
+    """
     return DEG_PER_TICK * ticks + THETA_OFFSET_DEG
 
 
 def ticks_of(theta: float) -> int:
     """The encoder count of a leg at ``theta`` [deg] (nearest; the inverse of
-    :func:`theta_deg`)."""
+    :func:`theta_deg`).
+
+    Parameters
+    ----------
+    theta : float
+        The leg's angle [deg].
+
+    Returns
+    -------
+    int
+    """
     return int(round((theta - THETA_OFFSET_DEG) / DEG_PER_TICK))
 
 
@@ -303,7 +363,18 @@ class FalconFirmwareLoader:
 
 def torque_command(tau: float) -> int:
     """libnifalcon's motor command of a leg torque ``tau`` (its unit):
-    ``-tau / TORQUE_PER_COUNT`` rounded, clamped to int16 (non-finite: 0)."""
+    ``-tau / TORQUE_PER_COUNT`` rounded, clamped to int16 (non-finite: 0).
+
+    Parameters
+    ----------
+    tau : float
+        The leg's torque, in libnifalcon's unit.
+
+    Returns
+    -------
+    int
+        The command, in -32768..32767.
+    """
     if not math.isfinite(tau):
         return 0
     return max(-32768, min(32767, int(round(-tau / TORQUE_PER_COUNT))))

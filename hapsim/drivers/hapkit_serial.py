@@ -104,7 +104,24 @@ Hapkit-serial protocol limits (hapsim --driver hapkit-serial, WHC2017 sketch fra
 
 def command_packet(force: float, function: int = HOST_FORCE_FUNCTION,
                    header: int = HEADER, a: float = 0.0) -> bytes:
-    """The 10-byte command ``[header][function][float32 a][float32 force]``."""
+    """The 10-byte command ``[header][function][float32 a][float32 force]``.
+
+    Parameters
+    ----------
+    force : float
+        The force to render [N] (binary32 on the wire).
+    function : int
+        The function code (its low byte).
+    header : int
+        The header byte (its low byte).
+    a : float
+        The first float (the driver sends :data:`SIGNATURE_A`).
+
+    Returns
+    -------
+    bytes
+        10 bytes, the floats little-endian.
+    """
     return bytes([header & 0xFF, function & 0xFF]) + _FF.pack(a, force)
 
 
@@ -113,7 +130,22 @@ SIGNATURE_A = struct.unpack("<f", SHIFT_SIGNATURE)[0]
 
 
 def reply_packet(function: int, x: float, force: float) -> bytes:
-    """The 9-byte reply ``[function][float32 x][float32 force]``."""
+    """The 9-byte reply ``[function][float32 x][float32 force]``.
+
+    Parameters
+    ----------
+    function : int
+        The function code echoed (its low byte).
+    x : float
+        The handle's position [m].
+    force : float
+        The reply's second float (``Tp`` [N m] or the force [N], by the sketch).
+
+    Returns
+    -------
+    bytes
+        9 bytes, the floats little-endian.
+    """
     return bytes([function & 0xFF]) + _FF.pack(x, force)
 
 

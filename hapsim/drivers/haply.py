@@ -131,12 +131,38 @@ def setup_packet(device_id: int, *, motor_port: int = 1, encoder_port: int = 1,
 
 
 def write_packet(device_id: int, torque: float) -> bytes:
-    """Write command ``[2][id][float32 torque]`` (no PWM pin set up)."""
+    """Write command ``[2][id][float32 torque]`` (no PWM pin set up).
+
+    Parameters
+    ----------
+    device_id : int
+        The board's id (its low byte).
+    torque : float
+        Motor 1's torque [N m] (binary32 on the wire).
+
+    Returns
+    -------
+    bytes
+        6 bytes.
+    """
     return bytes([CMD_WRITE, device_id & 0xFF]) + _F.pack(torque)
 
 
 def reply_packet(device_id: int, angle_deg: float) -> bytes:
-    """Reply ``[id][float32 angle deg]`` (one encoder, no analog pin)."""
+    """Reply ``[id][float32 angle deg]`` (one encoder, no analog pin).
+
+    Parameters
+    ----------
+    device_id : int
+        The board's id (its low byte).
+    angle_deg : float
+        Encoder 1's angle [deg] (binary32 on the wire).
+
+    Returns
+    -------
+    bytes
+        5 bytes.
+    """
     return bytes([device_id & 0xFF]) + _F.pack(angle_deg)
 
 

@@ -72,7 +72,13 @@ _f32 = np.float32
 
 def sketch_gearing() -> float:
     """The sketch's ``rp/rs * rh`` in its binary32 arithmetic (sim.h:191, left to right):
-    the handle force's factor to the motor pulley's torque [m]."""
+    the handle force's factor to the motor pulley's torque [m].
+
+    Returns
+    -------
+    float
+        The factor [m], a binary32 value.
+    """
     return float(_f32(_f32(_f32(SKETCH_RP) / _f32(SKETCH_RS)) * _f32(SKETCH_RH)))
 
 

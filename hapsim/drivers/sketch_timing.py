@@ -36,7 +36,20 @@ RENDER_S = 0.45e-3
 FIRMWARE_TICK_S = 62 * 256 / 16e6
 def whole_ticks(period_s: float, tick_s: float = FIRMWARE_TICK_S) -> int | None:
     """``period_s`` in whole ``tick_s`` [s], or None when it is no whole number of them
-    within :data:`PERIOD_TICKS_TOL` of a tick (:meth:`HapkitSerial.period_ticks`)."""
+    within :data:`PERIOD_TICKS_TOL` of a tick (:meth:`HapkitSerial.period_ticks`).
+
+    Parameters
+    ----------
+    period_s : float
+        The host's period [s].
+    tick_s : float
+        The sketch's tick [s] (default :data:`FIRMWARE_TICK_S`).
+
+    Returns
+    -------
+    int or None
+        The ticks in a period (>= 1), or None.
+    """
     ticks = float(period_s) / float(tick_s)
     n = int(round(ticks))
     return n if n >= 1 and abs(ticks - n) <= PERIOD_TICKS_TOL else None
