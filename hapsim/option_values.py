@@ -330,7 +330,8 @@ def declared(function: str, parameter: str) -> Number:
     return API_OPTIONS[function][parameter][1]
 
 
-def check_values(function: str, key_by: str = "flag", **values) -> None:
+def check_values(function: str, key_by: str = "flag", *, required: bool = False,
+                 **values) -> None:
     """Refuse a function's keyword outside its declared range, as the command line does.
 
     Parameters
@@ -340,17 +341,26 @@ def check_values(function: str, key_by: str = "flag", **values) -> None:
     key_by : {"flag", "parameter"}, optional
         The error's key: the command's flag (``--force-limit``, as the command line and
         :func:`hapsim.api.run` say it) or the keyword (``mass``, for a model's field).
+    required : bool
+        None is refused too (a required number); otherwise None is not checked.
     **values
-        Keyword -> value; None is not checked.
+        Keyword -> value.
 
     Raises
     ------
     ConfigError
-        The first value outside its range: :meth:`Number.check`'s message.
+        The first value that is no number (a word, a bool, a list: before, ``render(loop,
+        None)`` was a TypeError from ``float()``), or outside its range:
+        :meth:`Number.check`'s message.
     KeyError
         A keyword not declared for ``function`` (a programming error).
     """
     table = API_OPTIONS[function]
     for name, value in values.items():
         flag, number = table[name]
-        number.check(value, flag if key_by == "flag" else name)
+        key = flag if key_by == "flag" else name
+        if value is None and not required:
+            continue
+        if not isinstance(value, numbers.Real) or isinstance(value, bool):
+            raise ConfigError(f"must be {number.describe()}, got {value!r}", key=key)
+        number.check(value, key)

@@ -129,3 +129,51 @@ def test_an_unknown_driver_gets_the_same_reason_through_both_doors():
     assert err["key"] == "--driver" and prog.value.key == "driver"
     assert prog.value.reason == f"unknown driver 'nope'; valid: {', '.join(DRIVERS)}"
     assert err["message"].endswith(f"--driver: {prog.value.reason}")
+
+
+#: Values a program may pass where a number is meant: none is one.
+NOT_NUMBERS = [None, "x", [1.0, 2.0], {"kind": "velocity_filter"}, True]
+
+
+@pytest.mark.parametrize("value", NOT_NUMBERS, ids=repr)
+@pytest.mark.parametrize("fn, args, at", [("render", (1000.0, 1.0), 0),
+                                          ("render", (1000.0, 1.0), 1),
+                                          ("calibrate", (1000.0, 1.0), 0),
+                                          ("calibrate", (1000.0, 1.0), 1),
+                                          ("stability", (1.0,), 0)])
+def test_the_loop_functions_refuse_what_is_no_number_by_its_key(fn, args, at, value):
+    """``render``, ``calibrate``, ``stability`` with None, a word, a list, a mapping or a
+    bool where (K, B) or (k, b) go: a ConfigError keyed by the flag (before: a TypeError
+    from ``float()`` for None and a list)."""
+    loop = LoopModel(mass=0.1, friction=0.5)
+    args = list(args)
+    args[at] = value
+    with pytest.raises(ConfigError) as info:
+        getattr(api, fn)(loop, *args)
+    assert info.value.key in ("--K", "--B", "--k", "--b"), info.value.key
+
+
+@pytest.mark.parametrize("value", NOT_NUMBERS + [math.nan], ids=repr)
+@pytest.mark.parametrize("name", ["mass", "friction", "rate_hz", "delay", "hand_mass",
+                                  "hand_damping", "grip_stiffness", "grip_damping",
+                                  "stiffness"])
+def test_a_loop_model_refuses_what_is_no_number_by_its_field(name, value):
+    """Every numeric field of :class:`LoopModel` against the same values and NaN: a
+    ConfigError keyed by the field, at construction (before: a grip stiffness of NaN
+    made the hand rigid, of a word a ValueError later)."""
+    with pytest.raises(ConfigError) as info:
+        LoopModel(**{"mass": 0.1, "friction": 0.5, name: value})
+    assert info.value.key == name, (info.value.key, str(info.value))
+
+
+@pytest.mark.parametrize("value", [1.0, "velocity_filter", [1, 2], True])
+def test_a_loop_models_correction_is_a_correction_or_its_mapping(value):
+    """``correction``: a Correction or its mapping; anything else refused by its key
+    (before: taken, then an AttributeError in every analysis); the mapping is read."""
+    with pytest.raises(ConfigError) as info:
+        LoopModel(mass=0.1, friction=0.5, correction=value)
+    assert info.value.key == "correction"
+    loop = LoopModel(mass=0.1, friction=0.5,
+                     correction={"kind": "velocity_filter", "cutoff_hz": 100.0})
+    assert loop.correction.kind == "velocity_filter"
+    assert api.render(loop, 1000.0, 1.0).k > 0

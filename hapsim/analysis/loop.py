@@ -131,8 +131,9 @@ class LoopModel:
         compliant grip, on the one body when rigid; :mod:`hapsim.analysis.hand`): the real
         spring of Florens et al. Table 1 case V. The plant is then the exact ZOH (or the
         ideal hold's impulse-invariant image) of the state-space model.
-    correction : Correction, optional
-        Correction of the virtual element (:mod:`hapsim.analysis.corrections`).
+    correction : Correction or dict, optional
+        Correction of the virtual element (:mod:`hapsim.analysis.corrections`; a mapping
+        ``{kind: ..., ...}`` is read as a scene's ``device.correction``).
 
     Raises
     ------
@@ -141,8 +142,8 @@ class LoopModel:
         delay, a fractional delay with the ideal hold, or an unknown hold; a mass outside :data:`MASS_RANGE`, a rate outside
         :data:`RATE_RANGE`, ``b0 T / m`` or ``kh T^2 / m > MAX_PRODUCT``, a delay above
         :data:`MAX_DELAY`, a negative ``stiffness``;
-        a hand part not inside the whole, a compliant grip with the ideal hold; ``key``
-        names the field.
+        a hand part not inside the whole, a compliant grip with the ideal hold; a
+        ``correction`` that is no Correction or mapping of one; ``key`` names the field.
 
     Notes
     -----
@@ -165,6 +166,8 @@ class LoopModel:
     def __post_init__(self) -> None:
         def num(key, value, finite=True):
             try:
+                if isinstance(value, (bool, str)):      # (a bool or a word is no number)
+                    raise TypeError
                 v = float(value)
             except (TypeError, ValueError):
                 raise ConfigError(f"must be a number, got {value!r}", key=key) from None
@@ -183,7 +186,7 @@ class LoopModel:
         check_range(r, *RATE_RANGE, "rate_hz", "Hz")
         check_product(b0, 1.0 / (r * m), "friction", "N s/m", "b0 T/m")
         d = self.delay
-        check_values("loop", key_by="parameter", delay=d)
+        check_values("loop", key_by="parameter", required=True, delay=d)
         whole, frac = split_delay(d)
         check_delay(whole)
         if self.hold not in HOLDS:
@@ -199,11 +202,27 @@ class LoopModel:
         object.__setattr__(self, "rate_hz", r)
         # a whole delay stays an int: the plain hold's code path, bit for bit
         object.__setattr__(self, "delay", whole if frac == 0.0 else float(d))
+        if self.correction is not None:
+            # (a Correction, or its mapping as a scene gives it: before, anything was
+            # taken and the analysis failed on it with an AttributeError)
+            from hapsim.analysis.corrections import Correction
+            corr = self.correction
+            if not isinstance(corr, (Correction, dict)):
+                raise ConfigError(f"must be a Correction or its mapping {{kind: ...}}, got "
+                                  f"{corr!r}", key="correction")
+            object.__setattr__(self, "correction", Correction.from_dict(corr))
         kh = num("stiffness", self.stiffness)
         if kh < 0:
             raise ConfigError(f"must be >= 0 [N/m], got {self.stiffness!r}", key="stiffness")
         check_product(kh, 1.0 / (r * r * m), "stiffness", "N/m", "kh T^2/m")
         object.__setattr__(self, "stiffness", kh)
+        for key in ("hand_mass", "hand_damping", "grip_stiffness", "grip_damping"):
+            # numbers (the grip's stiffness may be inf: rigid), checked below when the
+            # grip is compliant; before, a word was a ValueError from rigid
+            v = num(key, getattr(self, key), finite=False)
+            if math.isnan(v):
+                raise ConfigError(f"must be a number, got {v!r}", key=key)
+            object.__setattr__(self, key, v)
         if not self.rigid:
             mh, bh = float(self.hand_mass), float(self.hand_damping)
             if not (0 < mh < m) or not (0 <= bh <= b0) or not (self.grip_stiffness > 0) \

@@ -86,7 +86,7 @@ def render(loop, K: float, B: float = 0.0) -> RenderReport:
     ``s = ln(z) / T``, ``k = m |s|^2``, ``b = -2 m Re(s)`` (Florens, Voda & Urma).
     """
     from hapsim.analysis.ths import render as _render
-    check_values("render", K=K, B=B)
+    check_values("render", required=True, K=K, B=B)
     r = _render(loop, K, B)
     return RenderReport.from_dict({**r.to_dict(), "loop": loop.to_dict()}, analysis=r)
 
@@ -152,7 +152,7 @@ def calibrate(loop, k: float, b: float) -> CalibrateReport:
     pole pair of the target oscillator (Florens, Voda & Urma).
     """
     from hapsim.analysis.ths import calibrate as _calibrate
-    check_values("calibrate", k=k, b=b)
+    check_values("calibrate", required=True, k=k, b=b)
     c = _calibrate(loop, k, b)
     return CalibrateReport.from_dict({**c.to_dict(), "loop": loop.to_dict()}, analysis=c)
 
@@ -227,7 +227,7 @@ def stability(loop, B: float = 0.0) -> StabilityReport:
     from hapsim.analysis.limit_certificate import certify_limit
     from hapsim.analysis.loop_poles import spectral_radius_known
     from hapsim.analysis.stability import circle_scan_points, published_limits, stability_limit
-    check_values("stability", B=B)
+    check_values("stability", required=True, B=B)
     kmax = stability_limit(loop, B)
     cert = certify_limit(loop, B, kmax, circle_scan_points(loop))
     rho = err = None
