@@ -593,3 +593,19 @@ def test_reported_cases_name_the_flag_as_typed(capsys, argv, key):
     assert main(argv) == 2
     doc = json.loads(capsys.readouterr().out)
     assert doc["error"] == {**doc["error"], "type": "ConfigError", "key": key}
+
+
+@pytest.mark.parametrize("argv, key", [
+    (["compare-corrections", "--mass", "0.1", "--rate", "1000", "--boundary-points",
+      "100000000"], "--boundary-points"),
+    (["compare-corrections", "--mass", "0.1", "--rate", "1000", "--n", "1000"], "--n"),
+    (["zwidth", "--scene", "configs/hapkit.yaml", "--lockstep", "--duration", "1e6"],
+     "--duration")])
+def test_a_size_that_would_run_for_days_is_refused_by_its_range(capsys, argv, key):
+    """Upper bounds on the sizes whose work grows with them (the boundary's exact limits,
+    ~14 ms each; the grid's n^2 calibrations; a Z-width trial's record): refused with
+    the range, exit 2 (before: ``--boundary-points 1e8`` ran silently for days)."""
+    from hapsim.cli import main
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"error: {key}: must be" in err and ("to " in err or "<=" in err), err

@@ -396,3 +396,31 @@ def test_minimax_with_a_correction_beats_its_nominal_calibration():
     # measured 7.7e-5 (generic 7.7e-5), margin 26
     assert c.error == pytest.approx(0.583, abs=2e-3)
     assert c.stable and c.error < c.nominal_error - 0.2
+
+
+@pytest.mark.parametrize("argv, key, count", [
+    (["--grid", "100000"], "--grid", "1e+10 members"),
+    (["--samples", "1000000000"], "--samples", "1e+09 members"),
+    (["--grid", "3163"], "--grid", "1e+07 members")])   # (3163^2 just above the cap)
+def test_a_family_too_large_to_analyse_is_refused_before_it_is_built(capsys, argv, key,
+                                                                     count):
+    """More than :data:`hapsim.analysis.hand.MAX_MEMBERS` members (a grid's points to the
+    power of the ranged hand values, or the samples): one line keyed by the option with
+    the count, exit 2, nothing allocated (before: ``--grid 100000`` asked numpy for 75
+    GiB and printed its traceback). A family at the cap itself is built."""
+    from hapsim.analysis import hand as hand_module
+    from hapsim.cli import main
+    from hapsim.errors import ConfigError
+    assert main(["family", "configs/hand_wall.yaml", *argv]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {key}: " in err and count in err and "Traceback" not in err, err
+    import hapsim
+    hand = hapsim.load_scene("configs/hand_wall.yaml").device.hand
+    with pytest.MonkeyPatch.context() as mp:     # (the cap made small: the same rule)
+        mp.setattr(hand_module, "MAX_MEMBERS", 100)
+        assert members(hand, grid=10).shape[0] == 2 ** 2 + 1 + 10 ** 2
+        assert members(hand, samples=100).shape[0] == 2 ** 2 + 1 + 100
+        with pytest.raises(ConfigError):
+            members(hand, grid=11)
+        with pytest.raises(ConfigError):
+            members(hand, samples=101)

@@ -356,6 +356,12 @@ def nominal_member(hand) -> np.ndarray:
     return np.array(out)
 
 
+#: The most members a family may have: each is a closed loop's analysis (~11 us on a
+#: 2-core AMD EPYC, measured with ``hapsim.api.family`` on ``configs/hand_wall.yaml``:
+#: 1e6 members in 11 s), and their rows and analyses are held in memory.
+MAX_MEMBERS = 10 ** 7
+
+
 def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -> np.ndarray:
     """The members of a hand family: every corner of the ranges, then a grid or samples.
 
@@ -379,7 +385,8 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
     Raises
     ------
     ConfigError
-        ``samples < 1`` or ``grid < 2``.
+        ``samples < 1`` or ``grid < 2``; more than :data:`MAX_MEMBERS` members (before: an
+        allocation of 75 GiB for ``--grid 100000``, a traceback).
     """
     spans = [field_span(_field(hand, f)) for f in HAND_FIELDS]
     ranged = [i for i, (lo, hi) in enumerate(spans) if lo < hi]
@@ -392,6 +399,7 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
     if samples is not None:
         if int(samples) < 1:
             raise ConfigError(f"must be >= 1, got {samples!r}", key="--samples")
+        _not_too_many(int(samples), "--samples", f"{_count(int(samples))} samples")
         rng = np.random.default_rng(seed)
         s = np.repeat(base[None, :], int(samples), axis=0)
         for i in ranged:
@@ -403,6 +411,9 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
     elif ranged:
         if int(grid) < 2:
             raise ConfigError(f"must be >= 2, got {grid!r}", key="grid")
+        _not_too_many(int(grid) ** len(ranged), "--grid",
+                      f"{_count(int(grid))} points on each of {len(ranged)} ranged hand "
+                      "values")
         axes = []
         for i in ranged:
             lo, hi = spans[i]
@@ -413,3 +424,16 @@ def members(hand, samples: int | None = None, *, grid: int = 9, seed: int = 0) -
         g[:, ranged] = mesh
         rows.append(g)
     return np.concatenate(rows, axis=0)
+
+
+def _not_too_many(n: int, key: str, what: str) -> None:
+    """Refuse a family of more than :data:`MAX_MEMBERS` members, with the count."""
+    if n > MAX_MEMBERS:
+        raise ConfigError(f"{what} make {_count(n)} members; at most {MAX_MEMBERS:.0e} (each "
+                          "is a closed loop's analysis, ~11 us and its rows in memory)",
+                          key=key)
+
+
+def _count(n: int) -> str:
+    """A whole count as the messages say it (3 digits; beyond a float's range, so)."""
+    return f"{n:.3g}" if n < 1e300 else "more than 1e300"

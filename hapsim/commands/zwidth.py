@@ -84,8 +84,9 @@ def register(sub) -> None:
                         "same B T/m: scaled by mass x rate / 100 kg Hz)")
     p.add_argument("--x0", type=Number(unit="m"), default=None,
                    help="release position [m] (default the scene's excitation x0, or 5 mm)")
-    p.add_argument("--duration", type=Number(float, low=0, open_low=True, unit="s"), default=0.3,
-                   help="record length per trial [s] (default 0.3)")
+    p.add_argument("--duration", type=Number(float, low=0, high=600, open_low=True, unit="s"),
+                   default=0.3, help="record length per trial [s] (default 0.3; at most 600: "
+                                     "a trial per K, a dozen K per B)")
     p.add_argument("--tol", type=Number(float, low=0, high=0.5, open_low=True, open_high=True),
                    default=2e-3,
                    help="relative width of the final bracket (default 0.002)")

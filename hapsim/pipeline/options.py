@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import numbers
 import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -363,6 +364,17 @@ class RunOptions:
             value = getattr(self, f.name)
             if value is None:
                 continue
+            # the kind of value its flag gives (a program may pass anything: before, a
+            # list for a number or a number for a path was a TypeError in the run)
+            if isinstance(meta["type"], Number):
+                kind, ok = "a number", (isinstance(value, numbers.Real)
+                                        and not isinstance(value, bool))
+            elif meta["action"] in ("store_true", "store_false", "store_const"):
+                kind, ok = "True or False", isinstance(value, bool)
+            else:
+                kind, ok = "a text", isinstance(value, str)
+            if not ok:
+                raise ConfigError(f"must be {kind}, got {value!r}", key=meta["flag"])
             if isinstance(meta["type"], Number):      # its declared range
                 meta["type"].check(value, meta["flag"])
             if meta["check"] is not None:
