@@ -217,3 +217,21 @@ def test_play_refuses_a_jack_server_without_jacks_sound(capsys):
                      "--duration", "0.2"]) == 2
         err = capsys.readouterr().err
         assert "--jack-server: names the JACK server" in err and sound in err, err
+
+
+@pytest.mark.parametrize("field", [f.name for f in command_line_fields()])
+def test_a_value_of_the_wrong_kind_is_refused_by_the_fields_flag(field):
+    """Every command-line field of :class:`RunOptions` given a value its flag cannot
+    give (a list where a number or a text goes, a dict, a number for a text, a text for
+    a flag): a ConfigError keyed by the flag at the check, before anything starts
+    (before: a list for ``rate_hz`` or a number for ``telemetry`` was a TypeError in
+    the run, a number for ``faults`` an AttributeError)."""
+    meta = next(f for f in command_line_fields() if f.name == field).metadata["cli"]
+    for value in ([1, 2], {"a": 1}, 2.5, "x"):
+        is_number = hasattr(meta["type"], "check")
+        if (is_number and value == 2.5) or (not is_number and meta["action"] is None
+                                             and value == "x"):
+            continue                    # (the kind it takes: its own checks apply)
+        with pytest.raises(ConfigError) as info:
+            RunOptions(**{field: value}).check()
+        assert info.value.key == meta["flag"], (field, value, info.value.key)
