@@ -177,3 +177,20 @@ def test_a_loop_models_correction_is_a_correction_or_its_mapping(value):
                      correction={"kind": "velocity_filter", "cutoff_hz": 100.0})
     assert loop.correction.kind == "velocity_filter"
     assert api.render(loop, 1000.0, 1.0).k > 0
+
+
+@pytest.mark.parametrize("hold", [None, 1, ["zoh"], "ZOH"], ids=repr)
+def test_a_hold_that_is_no_holds_name_is_refused_in_every_dimension(hold):
+    """``hold`` not one of the names (an array compared with them was a ValueError from
+    numpy's truth value, a list a TypeError): a ConfigError keyed ``hold``, in 1-D
+    (:class:`LoopModel`) and n-D (:class:`~hapsim.analysis.ths.matrix_loop.MatrixLoop`)."""
+    import numpy as np
+
+    from hapsim.analysis.ths.matrix_loop import MatrixLoop
+    for value in (hold, np.array(["zoh", "ideal"])):
+        with pytest.raises(ConfigError) as info:
+            LoopModel(mass=0.1, friction=0.5, hold=value)
+        assert info.value.key == "hold"
+        with pytest.raises(ConfigError) as info:
+            MatrixLoop(mass=np.eye(2) * 0.1, friction=np.eye(2) * 0.5, hold=value)
+        assert info.value.key == "hold"

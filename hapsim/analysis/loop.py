@@ -189,7 +189,7 @@ class LoopModel:
         check_values("loop", key_by="parameter", required=True, delay=d)
         whole, frac = split_delay(d)
         check_delay(whole)
-        if self.hold not in HOLDS:
+        if not isinstance(self.hold, str) or self.hold not in HOLDS:
             raise ConfigError(f"unknown hold {self.hold!r}; valid choices: "
                               f"{', '.join(HOLDS)}", key="hold")
         if frac > 0 and self.hold != "zoh":

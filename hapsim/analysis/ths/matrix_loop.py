@@ -145,7 +145,7 @@ class MatrixLoop:
                               f"Hz, got {self.rate_hz!r}", key="rate_hz")
         d = self.delay
         check_values("loop", key_by="parameter", delay=d)
-        if self.hold not in MATRIX_HOLDS:
+        if not isinstance(self.hold, str) or self.hold not in MATRIX_HOLDS:
             raise ConfigError(f"unknown hold {self.hold!r} for an n-DoF loop; valid "
                               f"choices: {', '.join(MATRIX_HOLDS)}", key="hold")
         object.__setattr__(self, "mass", M)
