@@ -283,3 +283,27 @@ def test_ctrl_c_ends_the_play_with_its_report_or_raises_leaving_nothing_running(
     assert set(multiprocessing.active_children()) <= before
     with pytest.raises(OSError):
         socket.create_connection(("127.0.0.1", port["n"]), timeout=5).close()
+
+
+@pytest.mark.parametrize("key, value", [
+    ("duration", None), ("ramp", None), ("pluck_every", None), ("duration", "x"),
+    ("journal", 1.0), ("telemetry", [1, 2]), ("jack_server", 3), ("lockstep", "yes")])
+def test_play_refuses_a_keyword_of_the_wrong_kind_by_its_flag(key, value):
+    """:func:`hapsim.play` with None for a number that has a default, a number for
+    a path or a server's name, a word for a flag: a ConfigError keyed by the command's
+    flag, before anything plays (before: TypeErrors, the journal's and the telemetry's
+    after the play, when the file was written)."""
+    from hapsim.errors import ConfigError
+    with pytest.raises(ConfigError) as info:
+        hapsim.play("configs/wall.yaml", **{"sound": "none", "duration": 0.05,
+                                            key: value})
+    assert info.value.key == "--" + key.replace("_", "-"), info.value.key
+
+
+def test_a_play_too_long_to_record_is_refused_before_it_starts(capsys):
+    """``hapsim play --duration 1e8`` (1e11 samples at 1 kHz, 4 TiB of records): one
+    line keyed ``--duration`` with the figures, exit 2 (before: numpy's traceback asking
+    for 745 GiB)."""
+    assert main(["play", "configs/wall.yaml", "--sound", "none", "--duration", "1e8"]) == 2
+    err = capsys.readouterr().err
+    assert "error: --duration: 1e+11 samples of a play" in err and "Traceback" not in err

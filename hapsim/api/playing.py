@@ -163,8 +163,17 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
         raise ConfigError(f"unknown option(s) {', '.join(unknown)}; valid: "
                           f"{', '.join(PLAY_OPTIONS)}, handle_signals", key=unknown[0])
     opts = {**PLAY_OPTIONS, **options}
-    check_values("play", **{k: opts[k] for k in ("duration", "osc", "view", "ramp",
-                                                  "pluck_every", "rt_priority")})
+    check_values("play", required=True, **{k: opts[k] for k in ("duration", "ramp",
+                                                                 "pluck_every")})
+    check_values("play", **{k: opts[k] for k in ("osc", "view", "rt_priority")})
+    # the kinds the flags give (before: a number for journal or telemetry was a TypeError
+    # when the file was written, after the play)
+    for key in ("jack_server", "journal", "telemetry"):
+        if opts[key] is not None and not isinstance(opts[key], (str, os.PathLike)):
+            raise ConfigError(f"must be a text, got {opts[key]!r}",
+                              key="--" + key.replace("_", "-"))
+    if not isinstance(opts["lockstep"], bool):
+        raise ConfigError(f"must be True or False, got {opts['lockstep']!r}", key="--lockstep")
     if opts["sound"] not in _SOUNDS:
         raise ConfigError(f"--sound: must be one of {', '.join(_SOUNDS)}, got "
                           f"{opts['sound']!r}", key="--sound")

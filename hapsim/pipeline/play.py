@@ -19,6 +19,7 @@ is accepted and ramped over ``--ramp`` seconds, sample by sample.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sys
 import time
@@ -130,7 +131,16 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
         from hapsim.audio.live import LiveSound, open_output
         live = LiveSound(engine)
     T = scene.period
-    steps = int(round(args.duration * scene.rate_hz))
+    n = args.duration * scene.rate_hz
+    # the play's records (the hand's force, positions, forces, and the loop's own): about
+    # 48 bytes a sample, checked before anything is allocated (before: --duration 1e8
+    # asked numpy for 745 GiB and printed its traceback)
+    from hapsim.outputs import check_fits
+    if not math.isfinite(n):
+        raise ConfigError(f"{args.duration:.6g} s at {scene.rate_hz:.6g} Hz is no count of "
+                          "samples", key="--duration")
+    check_fits(48.0 * n, f"{n:.3g} samples of a play ({scene.rate_hz:.6g} Hz)", "--duration")
+    steps = int(round(n))
     dev = scene.device
     base = os.path.dirname(os.path.abspath(scene.path))
     h = hand_force_samples(scene.excitation, T, base)
