@@ -194,3 +194,19 @@ def test_a_hold_that_is_no_holds_name_is_refused_in_every_dimension(hold):
         with pytest.raises(ConfigError) as info:
             MatrixLoop(mass=np.eye(2) * 0.1, friction=np.eye(2) * 0.5, hold=value)
         assert info.value.key == "hold"
+
+
+@pytest.mark.parametrize("key, value, flag", [
+    ("device", 1.0, "device"), ("device", {"mass": 0.1}, "device"),
+    ("lockstep", "x", "--lockstep"), ("hand", 2.5, "--hand"),
+    ("driver_options", "x", "--protocol-option"), ("mock_options", [1], "--mock-option"),
+    ("rt_priority", "x", "--rt-priority"), ("rt_priority", 100, "--rt-priority")])
+def test_identify_refuses_a_keyword_of_the_wrong_kind_before_it_starts(key, value, flag):
+    """:func:`hapsim.api.identify` with a device that is no Device, a flag that is no
+    bool, options that are no mapping, a priority that is no whole number in 0..99: a
+    ConfigError keyed by the command's flag, before the embedded mock starts (before: a
+    TypeError from ``dataclasses.asdict``; the rest taken: ``lockstep="x"`` as True,
+    ``rt_priority="x"`` passed on)."""
+    with pytest.raises(ConfigError) as info:
+        api.identify(**{"lockstep": True, "duration": 0.5, key: value})
+    assert info.value.key == flag, (info.value.key, str(info.value))

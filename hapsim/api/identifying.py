@@ -172,9 +172,10 @@ def identify(port: str | None = None, *, scene=None, driver: str | None = None,
     ------
     ConfigError
         Bad values (keyed by the flag of ``hapsim identify``:
-        :data:`hapsim.option_values.API_OPTIONS`), an unknown driver, both ``scene`` and
-        ``device``, a 2-D or 3-D scene or one without a device section (a file: its
-        reading's errors).
+        :data:`hapsim.option_values.API_OPTIONS`), a keyword of the wrong kind (a
+        ``device`` that is no :class:`hapsim.scene.Device`, a flag that is no bool, options
+        that are no mapping), an unknown driver, both ``scene`` and ``device``, a 2-D or 3-D
+        scene or one without a device section (a file: its reading's errors).
     IdentificationError
         A record too short or that the fit cannot explain.
     DeviceError, ProtocolError
@@ -195,7 +196,10 @@ def identify(port: str | None = None, *, scene=None, driver: str | None = None,
         except ConfigError as exc:      # named by this function's keyword
             raise ConfigError(exc.reason, key="driver") from None
     check_values("identify", baud=baud, force_limit=force_limit, envelope=envelope,
-                 duration=duration, rate_hz=rate_hz, max_delay=max_delay, seed=seed)
+                 duration=duration, rate_hz=rate_hz, max_delay=max_delay, seed=seed,
+                 rt_priority=rt_priority)
+    _kinds(device=device, lockstep=lockstep, hand=hand, driver_options=driver_options,
+           mock_options=mock_options)
     if scene is not None:
         if device is not None:
             raise ConfigError("give a scene or a device, not both", key="device")
@@ -447,3 +451,19 @@ def _record_summary(rec, a: int, b: int) -> str:
     dd = loop.get("device_delay")
     return (f"rows {a}..{b}, {int(np.count_nonzero(rec['late'][a:b]))} late, device delay "
             f"{'not shown' if dd is None or dd < 0 else dd}, stop: {loop['stop_reason']}")
+
+
+def _kinds(device, lockstep, hand, driver_options, mock_options) -> None:
+    """Refuse :func:`identify`'s keywords of the wrong kind, by their flag (before: a
+    ``device`` of 1.0 was a TypeError from ``dataclasses.asdict``; ``lockstep="x"`` was
+    taken as True, ``driver_options="x"`` without a driver ignored)."""
+    from hapsim.scene import Device
+    if device is not None and not isinstance(device, Device):
+        raise ConfigError(f"must be a hapsim.scene.Device, got {device!r}", key="device")
+    for key, value in (("--lockstep", lockstep), ("--hand", hand)):
+        if not isinstance(value, bool):
+            raise ConfigError(f"must be True or False, got {value!r}", key=key)
+    for key, value in (("--protocol-option", driver_options),
+                       ("--mock-option", mock_options)):
+        if value is not None and not isinstance(value, dict):
+            raise ConfigError(f"must be a mapping of options, got {value!r}", key=key)

@@ -150,7 +150,7 @@ def register(sub) -> None:
                         "the largest delay tried (default 20: a USB latency timer of 16 ms "
                         "at 1 kHz and some; a framed device shows its delay itself)")
     p.add_argument("--lockstep", action="store_true", help="lockstep embedded mock")
-    p.add_argument("--rt-priority", type=Number(int, low=0, high=99), default=10, metavar="P",
+    p.add_argument("--rt-priority", type=declared("identify", "rt_priority"), default=10, metavar="P",
                    help="SCHED_FIFO priority of the excitation's loop where the OS permits "
                         "it (default 10, as hapsim run; 0: normal scheduling): a loop "
                         "preempted mid-push leaves the device its force for that long")
