@@ -210,3 +210,23 @@ def test_identify_refuses_a_keyword_of_the_wrong_kind_before_it_starts(key, valu
     with pytest.raises(ConfigError) as info:
         api.identify(**{"lockstep": True, "duration": 0.5, key: value})
     assert info.value.key == flag, (info.value.key, str(info.value))
+
+
+@pytest.mark.parametrize("key, flag", [("grid", "--grid"), ("certify", "--certify-boxes"),
+                                       ("seed", "--seed")])
+def test_family_requires_the_numbers_that_have_defaults(key, flag):
+    """``family(scene, grid=None)`` (or ``certify``, ``seed``): refused by the flag with
+    the range (before: a TypeError from ``int()`` or a comparison with None); ``samples``
+    None still means the grid."""
+    scene = api.load_scene(str(CONFIGS / "hand_wall.yaml"))
+    with pytest.raises(ConfigError) as info:
+        api.family(scene, **{key: None})
+    assert info.value.key == flag
+
+
+def test_simulate_refuses_a_progress_that_is_no_function():
+    """``simulate(scene, steps, progress="x")``: refused by its key before the first
+    sample (before: a TypeError in the middle of the run)."""
+    with pytest.raises(ConfigError) as info:
+        api.simulate(WALL, 10, progress="x")
+    assert info.value.key == "progress"

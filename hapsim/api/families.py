@@ -129,7 +129,8 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     from hapsim.analysis.family import family as _family
     from hapsim.analysis.hand import hand_stiffness
 
-    check_values("family", samples=samples, grid=grid, seed=seed, certify=certify)
+    check_values("family", samples=samples)     # (None: the grid)
+    check_values("family", required=True, grid=grid, seed=seed, certify=certify)
     scene = one_d_scene(scene, "family", "there is no family of a 2-D or 3-D THS yet; "
                    "hapsim.check gives its felt matrices")
     if correction is not None:

@@ -202,8 +202,8 @@ def simulate(scene, steps: int, *, record=None, x0=None, v0=None, progress=None)
     ConfigError
         Negative ``steps``, an unknown or repeated ``record`` name, ``x0``/``v0`` for a
         scene without several ports or naming no port, a value that is not a finite
-        number, a trajectory too large for memory (key ``steps``), an invalid scene file
-        (file, line, key).
+        number, a trajectory too large for memory (key ``steps``), a ``progress`` that is
+        no function, an invalid scene file (file, line, key).
     UnrenderableTargetError
         A 1-D felt target no (K, B) renders (key ``links.NAME.target``).
     """
@@ -213,6 +213,9 @@ def simulate(scene, steps: int, *, record=None, x0=None, v0=None, progress=None)
         scene = load_scene(scene)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
         raise ConfigError(f"must be a whole number >= 0, got {steps!r}", key="steps")
+    if progress is not None and not callable(progress):     # (was a TypeError mid-run)
+        raise ConfigError(f"must be a function progress(done, steps), got {progress!r}",
+                          key="progress")
     if isinstance(scene, ScenePorts):
         return _simulate_ports(scene, int(steps), record, x0, v0, progress)
     for key, given in (("x0", x0), ("v0", v0)):
