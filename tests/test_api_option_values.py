@@ -230,3 +230,32 @@ def test_simulate_refuses_a_progress_that_is_no_function():
     with pytest.raises(ConfigError) as info:
         api.simulate(WALL, 10, progress="x")
     assert info.value.key == "progress"
+
+
+@pytest.mark.parametrize("value", [1.0, None, [1, 2], {"a": 1}], ids=repr)
+def test_a_scene_that_is_no_scene_is_refused_by_its_key(value):
+    """``check_nd``, ``modes_nd``, ``run`` and ``family`` given a number, None, a list
+    or a mapping for the scene: a ConfigError keyed ``scene`` (before: an AttributeError
+    deep in the analysis)."""
+    for call in (lambda: api.check_nd(value), lambda: api.modes_nd(value),
+                 lambda: api.run(value, lockstep=True),
+                 lambda: api.family(value)):
+        with pytest.raises(ConfigError) as info:
+            call()
+        assert info.value.key == "scene", str(info.value)
+
+
+def test_run_refuses_options_that_are_no_run_options_and_n_d_wants_an_amplitude():
+    """``run(scene, options="x")``: keyed ``options`` (a TypeError from
+    ``dataclasses.replace``); ``run_nd(scene, None)``: keyed ``--amplitude`` (a
+    TypeError from ``float()``); ``check_nd`` with a progress that is no function."""
+    with pytest.raises(ConfigError) as info:
+        api.run(WALL, options="x")
+    assert info.value.key == "options"
+    nd = str(CONFIGS / "pantograph_spring.yaml")
+    with pytest.raises(ConfigError) as info:
+        api.run_nd(nd, None)
+    assert info.value.key == "--amplitude"
+    with pytest.raises(ConfigError) as info:
+        api.check_nd(nd, progress="x")
+    assert info.value.key == "progress"

@@ -484,6 +484,9 @@ def check_nd(scene, progress=None) -> CheckReportND:
         raise ConfigError("an n-D scene is felt through its device: it needs a mass of "
                           "kind 'port' and a device section (a scene without one: "
                           "hapsim.modes_nd)", file=scene.path, key="masses")
+    if progress is not None and not callable(progress):
+        raise ConfigError(f"must be a function progress(done, total), got {progress!r}",
+                          key="progress")
     chk = check_scene_nd(scene, progress=progress)
     from hapsim.analysis.static_balance import not_at_rest
     dev = scene.device

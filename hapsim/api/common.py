@@ -13,7 +13,7 @@ from hapsim.errors import ConfigError
 
 __all__ = ["load_scene", "load_scene_nd", "refuse_ports", "ONE_PORT_ONLY", "known_digits", "known_decimals", "draw_report",
            "MeasuredPair", "Charted",
-           "one_d_scene", "figure", "n_d_scene", "matrix_list", "matrix_or_nan"]
+           "one_d_scene", "figure", "n_d_scene", "scene_given", "matrix_list", "matrix_or_nan"]
 
 
 def load_scene(path: str | os.PathLike):
@@ -161,6 +161,7 @@ def one_d_scene(scene, what: str, why: str):
     """
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)
+    scene_given(scene)
     refuse_ports(scene, what)
     if getattr(scene, "dimension", 1) != 1:
         raise ConfigError(f"a {scene.dimension}-D scene: hapsim.{what} takes dimension 1 "
@@ -225,6 +226,31 @@ def n_d_scene(scene):
     """
     if isinstance(scene, (str, os.PathLike)):
         return load_scene_nd(scene)
+    return scene_given(scene)
+
+
+def scene_given(scene):
+    """``scene`` when it is a loaded scene of any kind, else a ConfigError keyed ``scene``
+    (before: a number or None passed as a scene was an AttributeError deep in the
+    analysis).
+
+    Parameters
+    ----------
+    scene : object
+
+    Returns
+    -------
+    hapsim.scene.Scene or hapsim.scene.SceneND or hapsim.scene.ScenePorts
+
+    Raises
+    ------
+    ConfigError
+        ``scene`` is no scene (a path is loaded by the callers, not here).
+    """
+    from hapsim.scene import Scene, SceneND, ScenePorts
+    if not isinstance(scene, (Scene, SceneND, ScenePorts)):
+        raise ConfigError(f"must be a scene (hapsim.load_scene) or a scene file's path, "
+                          f"got {scene!r}", key="scene")
     return scene
 
 

@@ -14,7 +14,7 @@ from hapsim.errors import ConfigError
 from hapsim.option_values import check_values
 from hapsim.outputs import json_safe
 from hapsim.api.common import (Charted, MeasuredPair, load_scene, matrix_list,
-                               matrix_or_nan, n_d_scene)
+                               matrix_or_nan, n_d_scene, scene_given)
 from hapsim.results import Report
 
 
@@ -169,6 +169,10 @@ def run(scene, options=None, *, amplitude: float | None = None, **changes: Any):
                           f"{', '.join(valid)}", key=unknown[0])
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)               # in the dimension it declares
+    scene_given(scene)
+    if options is not None and not isinstance(options, RunOptions):
+        raise ConfigError(f"must be a RunOptions (hapsim.api.run_options names its fields), "
+                          f"got {options!r}", key="options")
     opts = dataclasses.replace(options if options is not None
                                else RunOptions(handle_signals=False), **changes)
     from hapsim.scene import ScenePorts
@@ -478,7 +482,7 @@ def run_nd(scene, amplitude: float = 1e-8, *, allow_unstable: bool = False
     first-order linearisation bound at ``a`` (:mod:`hapsim.analysis.linearisation`).
     """
     from hapsim.lockstep import measure_felt_lockstep
-    check_values("run_nd", amplitude=amplitude)
+    check_values("run_nd", required=True, amplitude=amplitude)
     scene = n_d_scene(scene)
     a = float(amplitude)
     from hapsim.analysis.prediction import require_device
