@@ -19,11 +19,12 @@ from __future__ import annotations
 import argparse
 import math
 import numbers
+import os
 
 from hapsim.errors import ConfigError
 
 __all__ = ["Number", "check_numbers", "typed_flag", "API_OPTIONS", "declared", "check_values",
-           "option_value"]
+           "option_value", "check_kind", "KINDS"]
 
 
 def option_value(key: str, value, unit: str = "", *, low: float = -math.inf,
@@ -329,6 +330,38 @@ def declared(function: str, parameter: str) -> Number:
         Not declared (a programming error).
     """
     return API_OPTIONS[function][parameter][1]
+
+
+#: The kinds of value :func:`check_kind` knows, each with its test.
+KINDS = {"a number": lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool),
+         "True or False": lambda v: isinstance(v, bool),
+         "a text": lambda v: isinstance(v, str),
+         "a path": lambda v: isinstance(v, (str, os.PathLike)),
+         "a mapping of options": lambda v: isinstance(v, dict)}
+
+
+def check_kind(key: str, value, kind: str, required: bool = False) -> None:
+    """Refuse a keyword whose value is not of the kind its flag gives (a program may pass
+    anything: a list where a number goes, a number where a path goes).
+
+    Parameters
+    ----------
+    key : str
+        The error's key (the flag).
+    value : object
+        None is not checked, unless ``required``.
+    kind : str
+        A key of :data:`KINDS`.
+    required : bool
+        None is refused too (a flag whose default is False).
+
+    Raises
+    ------
+    ConfigError
+        ``must be KIND, got VALUE``, keyed ``key``.
+    """
+    if (value is not None or required) and not KINDS[kind](value):
+        raise ConfigError(f"must be {kind}, got {value!r}", key=key)
 
 
 def check_values(function: str, key_by: str = "flag", *, required: bool = False,

@@ -457,13 +457,11 @@ def _kinds(device, lockstep, hand, driver_options, mock_options) -> None:
     """Refuse :func:`identify`'s keywords of the wrong kind, by their flag (before: a
     ``device`` of 1.0 was a TypeError from ``dataclasses.asdict``; ``lockstep="x"`` was
     taken as True, ``driver_options="x"`` without a driver ignored)."""
+    from hapsim.option_values import check_kind
     from hapsim.scene import Device
     if device is not None and not isinstance(device, Device):
         raise ConfigError(f"must be a hapsim.scene.Device, got {device!r}", key="device")
-    for key, value in (("--lockstep", lockstep), ("--hand", hand)):
-        if not isinstance(value, bool):
-            raise ConfigError(f"must be True or False, got {value!r}", key=key)
-    for key, value in (("--protocol-option", driver_options),
-                       ("--mock-option", mock_options)):
-        if value is not None and not isinstance(value, dict):
-            raise ConfigError(f"must be a mapping of options, got {value!r}", key=key)
+    check_kind("--lockstep", lockstep, "True or False", required=True)
+    check_kind("--hand", hand, "True or False", required=True)
+    check_kind("--protocol-option", driver_options, "a mapping of options")
+    check_kind("--mock-option", mock_options, "a mapping of options")

@@ -8,7 +8,7 @@ from typing import Any
 
 
 from hapsim.errors import ConfigError
-from hapsim.option_values import check_values
+from hapsim.option_values import check_kind, check_values
 from hapsim.outputs import json_safe
 from hapsim.api.common import MeasuredPair, load_scene, refuse_ports
 from hapsim.results import Report
@@ -168,12 +168,10 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
     check_values("play", **{k: opts[k] for k in ("osc", "view", "rt_priority")})
     # the kinds the flags give (before: a number for journal or telemetry was a TypeError
     # when the file was written, after the play)
-    for key in ("jack_server", "journal", "telemetry"):
-        if opts[key] is not None and not isinstance(opts[key], (str, os.PathLike)):
-            raise ConfigError(f"must be a text, got {opts[key]!r}",
-                              key="--" + key.replace("_", "-"))
-    if not isinstance(opts["lockstep"], bool):
-        raise ConfigError(f"must be True or False, got {opts['lockstep']!r}", key="--lockstep")
+    for key, kind in (("jack_server", "a text"), ("journal", "a path"),
+                      ("telemetry", "a path")):
+        check_kind("--" + key.replace("_", "-"), opts[key], kind)
+    check_kind("--lockstep", opts["lockstep"], "True or False", required=True)
     if opts["sound"] not in _SOUNDS:
         raise ConfigError(f"--sound: must be one of {', '.join(_SOUNDS)}, got "
                           f"{opts['sound']!r}", key="--sound")

@@ -173,13 +173,8 @@ def _mock_keys_known(driver: str, given: dict) -> None:
     """Refuse a ``--mock-option`` the driver's board model does not take, naming those it
     does (its constructor's numeric keywords): before, the board's process stopped at its
     start on it, and the host said only that its port was gone."""
-    import inspect
-
-    from hapsim.emulated.driver_mock import MOCKS
-    params = inspect.signature(MOCKS[driver].__init__).parameters
-    valid = sorted(n for n, p in params.items() if p.kind is p.KEYWORD_ONLY
-                   and n not in ("clock", "seed", "device_b", "hand")
-                   and any(t in str(p.annotation) for t in ("float", "int", "bool")))
+    from hapsim.emulated.driver_mock import board_options
+    valid = board_options(driver, numeric=True)
     bad = sorted(set(given) - set(valid))
     if bad:
         raise ConfigError(f"{', '.join(bad)}: not an option of the {driver} board's model; "

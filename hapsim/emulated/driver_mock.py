@@ -33,7 +33,7 @@ from hapsim.spawn import PtyChild
 
 __all__ = ["FireFaderDevice", "HaplyDevice", "HapkitSerialDevice", "ByteFaults", "serve",
            "WallClock", "MOCKS", "WALL_CLOCK_MOCKS",
-           "EmbeddedDriverMock", "build_board", "firefader_offline_loop", "main"]
+           "EmbeddedDriverMock", "board_options", "build_board", "firefader_offline_loop", "main"]
 
 #: The emulated device of each 1-D driver family, by its name (the registry's
 #: :attr:`hapsim.drivers.Family.mock`).
@@ -435,6 +435,29 @@ def _above_the_hosts() -> None:
         pass
 
 
+def board_options(driver: str, numeric: bool = False) -> list:
+    """The options a driver's board model takes (its constructor's keywords, ``seed``
+    apart), sorted.
+
+    Parameters
+    ----------
+    driver : str
+        A key of :data:`MOCKS`.
+    numeric : bool
+        Only its numbers and flags (what ``--mock-option KEY=VALUE`` can give), not the
+        clock, the second fader's device or the hand.
+
+    Returns
+    -------
+    list of str
+    """
+    import inspect
+    params = inspect.signature(MOCKS[driver].__init__).parameters
+    return sorted(n for n, p in params.items() if p.kind is p.KEYWORD_ONLY and n != "seed"
+                  and (not numeric or (n not in ("clock", "device_b", "hand") and any(
+                      t in str(p.annotation) for t in ("float", "int", "bool")))))
+
+
 def build_board(driver: str, device, excitation, rate_hz: float, *, seed: int = 0,
                 options: dict | None = None):
     """The board model a driver mock serves (one of :data:`MOCKS`), built from its options.
@@ -467,16 +490,13 @@ def build_board(driver: str, device, excitation, rate_hz: float, *, seed: int = 
         A driver with no board model, an option the board does not take (the valid ones
         named), or one out of its range (the board's check, its key named).
     """
-    import inspect
-
     from hapsim.errors import ConfigError
     from hapsim.scene import device_from_dict
     if driver not in MOCKS:
         raise ConfigError(f"no mock for driver {driver!r}; valid: {', '.join(MOCKS)}",
                           key="--driver")
     opt = dict(options or {})
-    params = inspect.signature(MOCKS[driver].__init__).parameters
-    valid = sorted(n for n, p in params.items() if p.kind is p.KEYWORD_ONLY and n != "seed")
+    valid = board_options(driver)
     bad = sorted(set(opt) - set(valid))
     if bad:
         raise ConfigError(f"{', '.join(bad)}: not an option of the {driver} board's model; "

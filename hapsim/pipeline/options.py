@@ -14,19 +14,41 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import numbers
 import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from hapsim.drivers import DEFAULT
 from hapsim.errors import ConfigError
-from hapsim.option_values import Number
+from hapsim.option_values import Number, check_kind
 
 if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
     from hapsim.host.loop import StopFlag
 
-__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields"]
+__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields", "check_jack_server"]
+
+
+def check_jack_server(server: str | None, sound: str | None) -> None:
+    """Refuse a JACK server's name where no JACK sound is played (``run`` and ``play``;
+    before, taken and ignored).
+
+    Parameters
+    ----------
+    server : str or None
+        ``--jack-server``.
+    sound : str or None
+        ``--sound`` (None: none played).
+
+    Raises
+    ------
+    ConfigError
+        A server named with ``sound`` other than ``auto`` or ``jack`` (key
+        ``--jack-server``).
+    """
+    if server is not None and sound not in ("auto", "jack"):
+        raise ConfigError("names the JACK server of --sound jack (or auto); "
+                          + ("without --sound no sound is played" if sound is None
+                             else f"--sound {sound} has none"), key="--jack-server")
 
 
 def option(default, flag: str, help: str, *, metavar: str | None = None, type=None,
@@ -366,15 +388,9 @@ class RunOptions:
                 continue
             # the kind of value its flag gives (a program may pass anything: before, a
             # list for a number or a number for a path was a TypeError in the run)
-            if isinstance(meta["type"], Number):
-                kind, ok = "a number", (isinstance(value, numbers.Real)
-                                        and not isinstance(value, bool))
-            elif meta["action"] in ("store_true", "store_false", "store_const"):
-                kind, ok = "True or False", isinstance(value, bool)
-            else:
-                kind, ok = "a text", isinstance(value, str)
-            if not ok:
-                raise ConfigError(f"must be {kind}, got {value!r}", key=meta["flag"])
+            check_kind(meta["flag"], value, "a number" if isinstance(meta["type"], Number)
+                       else "True or False" if meta["action"] in (
+                           "store_true", "store_false", "store_const") else "a text")
             if isinstance(meta["type"], Number):      # its declared range
                 meta["type"].check(value, meta["flag"])
             if meta["check"] is not None:
@@ -447,11 +463,7 @@ class RunOptions:
             from hapsim.emulated.driver_mock import WALL_CLOCK_MOCKS
             self.lockstep = self.lockstep or (self.port is None
                                               and self.driver not in WALL_CLOCK_MOCKS)
-        if self.jack_server is not None and self.sound not in ("auto", "jack"):
-            # (before: taken and ignored)
-            raise ConfigError("names the JACK server of --sound jack (or auto); "
-                              + ("without --sound no sound is played" if self.sound is None
-                                 else f"--sound {self.sound} has none"), key="--jack-server")
+        check_jack_server(self.jack_server, self.sound)
         if self.reconnect is False:             # (before: taken and ignored)
             for f in dataclasses.fields(self):
                 if f.name in ("reconnect_attempts", "reconnect_time") and \

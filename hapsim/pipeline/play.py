@@ -102,10 +102,8 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
         Bad input (an option an n-D play does not take, a scene without a device, a
         ``jack_server`` without JACK's sound, ...).
     """
-    if getattr(args, "jack_server", None) is not None and \
-            getattr(args, "sound", "auto") not in ("auto", "jack"):   # (was ignored)
-        raise ConfigError("names the JACK server of --sound jack (or auto); "
-                          f"--sound {args.sound} has none", key="--jack-server")
+    from hapsim.pipeline.options import check_jack_server
+    check_jack_server(getattr(args, "jack_server", None), getattr(args, "sound", "auto"))
     if getattr(args, "view", None) is not None:     # before anything starts: how to install
         from hapsim.view.server import require_websockets
         require_websockets()
