@@ -182,14 +182,17 @@ def test_the_command_prints_what_the_api_returns(monkeypatch, capsys):
      "the haply protocol's"),
     ("wall.yaml", ["--jack-server", "x"], "--jack-server", "without --sound no sound"),
     ("audio_string.yaml", ["--sound", "sounddevice", "--jack-server", "x"],
-     "--jack-server", "--sound sounddevice has none")])
+     "--jack-server", "--sound sounddevice has none"),
+    ("wall.yaml", ["--osc-ramp", "0.2"], "--osc-ramp", "neither is given"),
+    ("wall.yaml", ["--fault-seed", "3"], "--fault-seed", "none is given")])
 def test_an_option_that_would_act_on_nothing_is_refused_by_its_flag(capsys, scene, argv,
                                                                     key, says):
     """An option whose effect another option or the protocol rules out is refused, by
     its flag, before the run starts (exit 2): --tolerance without --auto (the rate
     advice's tolerance, not the verdict's), a recovery's limits with --no-reconnect, the
-    framed protocol's --frames through a driver, a JACK server without JACK's sound.
-    Before, each was taken and ignored."""
+    framed protocol's --frames through a driver, a JACK server without JACK's sound, a
+    ramp of the changes with no --osc or --view to bring any, a fault seed without
+    faults. Before, each was taken and ignored."""
     from hapsim.cli import main
     path = str(Path(WALL).parent / scene)
     assert main(["run", path, "--lockstep", *argv]) == 2
@@ -202,7 +205,8 @@ def test_the_options_that_act_together_still_run(capsys):
     --no-reconnect; --frames over the framed protocol."""
     from hapsim.cli import main
     for argv in (["--auto", "--tolerance", "0.05"], ["--reconnect-time", "3"],
-                 ["--frames", "full"]):
+                 ["--frames", "full"], ["--fault-seed", "3", "--faults", "dup=0.01"],
+                 ["--osc-ramp", "0.2", "--osc", "0"]):
         assert main(["run", WALL, "--lockstep", "--duration", "0.2", *argv]) == 0, argv
         capsys.readouterr()
 
@@ -217,6 +221,36 @@ def test_play_refuses_a_jack_server_without_jacks_sound(capsys):
                      "--duration", "0.2"]) == 2
         err = capsys.readouterr().err
         assert "--jack-server: names the JACK server" in err and sound in err, err
+
+
+def test_play_refuses_a_ramp_with_nothing_to_ramp(capsys):
+    """``hapsim play --ramp S`` (and :func:`hapsim.play`'s ``ramp``) with neither ``--osc``
+    nor ``--view``: no change can come in, so the ramp would act on nothing; refused by
+    its flag before anything plays (before: taken and ignored). With ``--osc`` it plays,
+    and without ``--ramp`` the default ramp is taken silently."""
+    import hapsim
+    from hapsim.cli import main
+    from hapsim.errors import ConfigError
+    base = ["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.05"]
+    assert main([*base, "--ramp", "0.2"]) == 2
+    err = capsys.readouterr().err
+    assert "--ramp: ramps the changes that come in through --osc or --view" in err, err
+    with pytest.raises(ConfigError) as info:
+        hapsim.play(WALL, sound="none", lockstep=True, duration=0.05, ramp=0.2)
+    assert info.value.key == "--ramp"
+    assert main(base) == 0 and main([*base, "--ramp", "0.2", "--osc", "0"]) == 0
+    capsys.readouterr()
+
+
+def test_mock_refuses_a_fault_seed_without_faults(capsys):
+    """``hapsim mock --fault-seed N`` without ``--faults``, for a 1-D scene, a 2-D one
+    and a driver's board: refused by its flag before a port is opened (exit 2)."""
+    from hapsim.cli import main
+    for scene in ("wall.yaml", "pantograph_wall.yaml", "firefader.yaml"):
+        path = str(Path(WALL).parent / scene)
+        assert main(["mock", "--scene", path, "--fault-seed", "3"]) == 2, scene
+        cap = capsys.readouterr()
+        assert "PORT" not in cap.out and "error: --fault-seed: " in cap.err, (scene, cap)
 
 
 @pytest.mark.parametrize("field", [f.name for f in command_line_fields()])

@@ -155,6 +155,7 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
     """
     import types
 
+    from hapsim.pipeline.options import check_ramp
     from hapsim.pipeline.play import play_scene, stop_on_signals
     from hapsim.host.loop_types import StopFlag
 
@@ -166,6 +167,7 @@ def play(scene, *, handle_signals: bool = False, **options: Any):
     check_values("play", required=True, **{k: opts[k] for k in ("duration", "ramp",
                                                                  "pluck_every")})
     check_values("play", **{k: opts[k] for k in ("osc", "view", "rt_priority")})
+    check_ramp("ramp" in options, opts["osc"], opts["view"])
     # the kinds the flags give (before: a number for journal or telemetry was a TypeError
     # when the file was written, after the play)
     for key, kind in (("jack_server", "a text"), ("journal", "a path"),

@@ -224,6 +224,7 @@ def run(args) -> int:
                           "mock takes its excitation from the scene)", key="--amplitude")
     if args.seed is None:
         args.seed = 0
+    _fault_seed_alone(args)
     if args.fault_seed is None:
         args.fault_seed = 0
     if args.firmware:
@@ -429,6 +430,13 @@ def refuse_untaken(args) -> None:
                           f"taken (valid: {', '.join(TICKS)})", key="--tick")
 
 
+def _fault_seed_alone(args) -> None:
+    """Refuse ``--fault-seed`` given without ``--faults`` (before: taken and ignored)."""
+    if getattr(args, "fault_seed", None) is not None and not getattr(args, "faults", None):
+        raise ConfigError("seeds the faults of --faults, and none is given",
+                          key="--fault-seed")
+
+
 def run_mock_nd(args, new_pty) -> int:
     """Serve an n-D scene's device on a new pty until a signal (with ``--once``: until the
     host closes the port; a run sends STOP after every record, so STOP does not end it).
@@ -470,6 +478,7 @@ def run_mock_nd(args, new_pty) -> int:
     if rate is not None and not (math.isfinite(rate) and rate > 0):
         raise ConfigError(f"must be a positive number [Hz], got {rate}", key="--rate")
     # --rate: the native rate HELLO announces; the physics follows each CONFIG's rate
+    _fault_seed_alone(args)
     plan = mock_fault_plan(getattr(args, "faults", None), getattr(args, "fault_seed", None),
                            getattr(args, "link", None), bool(args.lockstep))
     mock = MockDeviceND(scene, a, lockstep=args.lockstep, native_rate_hz=rate)

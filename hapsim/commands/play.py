@@ -99,8 +99,9 @@ def register(sub) -> None:
                    help="sound output (default auto: JACK, else PortAudio; scenes without "
                         "an audio section play silently)")
     p.add_argument("--jack-server", metavar="NAME", help="JACK server name (jackd -n NAME)")
-    p.add_argument("--ramp", type=declared("play", "ramp"), default=0.05, metavar="S",
-                   help="ramp time of every change [s] (default 0.05)")
+    p.add_argument("--ramp", type=declared("play", "ramp"), default=None, metavar="S",
+                   help="ramp time of every change that comes in through --osc or --view "
+                        "[s] (default 0.05)")
     p.add_argument("--pluck-every", type=declared("play", "pluck_every"), default=0.0,
                    metavar="S",
                    help="repeat the scene's excitation (hand impulse/profile) every S seconds "
@@ -159,9 +160,14 @@ def _play(args: argparse.Namespace, stop) -> int:
     :func:`hapsim.pipeline.play.play_scene`, its report printed (``--json``: one object;
     else :func:`hapsim.pipeline.play.play_text`); a refusal before playing raised (exit 1,
     cli's error line and ``--json`` error object)."""
+    from hapsim.api.playing import PLAY_OPTIONS
     from hapsim.commands.dimension import refuse_ports_scene
+    from hapsim.pipeline.options import check_ramp
     from hapsim.pipeline.play import play_scene, play_text
     refuse_ports_scene(args.scene, "play")        # several ports: nothing to hear
+    check_ramp(args.ramp is not None, args.osc, args.view)
+    if args.ramp is None:
+        args.ramp = PLAY_OPTIONS["ramp"]
     # a refusal before playing (an unstable loop, a device that failed) raises: exit 1,
     # cli's error line and, with --json, its error object
     code, report = play_scene(args, stop)

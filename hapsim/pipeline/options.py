@@ -25,7 +25,8 @@ from hapsim.option_values import Number, check_kind
 if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
     from hapsim.host.loop import StopFlag
 
-__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields", "check_jack_server"]
+__all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields", "check_jack_server",
+           "check_ramp"]
 
 
 def check_jack_server(server: str | None, sound: str | None) -> None:
@@ -49,6 +50,30 @@ def check_jack_server(server: str | None, sound: str | None) -> None:
         raise ConfigError("names the JACK server of --sound jack (or auto); "
                           + ("without --sound no sound is played" if sound is None
                              else f"--sound {sound} has none"), key="--jack-server")
+
+
+def check_ramp(ramp_given: bool, osc, view, key: str = "--ramp") -> None:
+    """Refuse ``play``'s ``--ramp`` where no change can come in to be ramped (before, taken
+    and ignored): the changes, and OSC's pause and resume, arrive through ``--osc`` or the
+    live view (``--view``) only.
+
+    Parameters
+    ----------
+    ramp_given : bool
+        Whether ``--ramp`` (the API's ``ramp``) was given.
+    osc, view : int or None
+        ``--osc`` and ``--view``'s ports (None: not served).
+    key : str
+        The ramp's flag (``run``'s is ``--osc-ramp``).
+
+    Raises
+    ------
+    ConfigError
+        The ramp given with neither (keyed by ``key``).
+    """
+    if ramp_given and osc is None and view is None:
+        raise ConfigError("ramps the changes that come in through --osc or --view, and "
+                          "neither is given: nothing would be ramped", key=key)
 
 
 def option(default, flag: str, help: str, *, metavar: str | None = None, type=None,
@@ -464,6 +489,11 @@ class RunOptions:
             self.lockstep = self.lockstep or (self.port is None
                                               and self.driver not in WALL_CLOCK_MOCKS)
         check_jack_server(self.jack_server, self.sound)
+        default = {f.name: f.default for f in dataclasses.fields(self)}
+        check_ramp(self.osc_ramp != default["osc_ramp"], self.osc, self.view, "--osc-ramp")
+        if self.fault_seed != default["fault_seed"] and self.plan.empty:
+            raise ConfigError("seeds the faults of --faults, and none is given",
+                              key="--fault-seed")
         if self.reconnect is False:             # (before: taken and ignored)
             for f in dataclasses.fields(self):
                 if f.name in ("reconnect_attempts", "reconnect_time") and \
