@@ -94,7 +94,18 @@ class AppliedAccount:
 
     def rows(self, a: int, b: int) -> "AppliedAccount":
         """The account of rows ``[a, b)`` (sources renumbered from ``a``; a source before
-        ``a`` stays known through ``applied``, its index becomes -1)."""
+        ``a`` stays known through ``applied``, its index becomes -1).
+
+        Parameters
+        ----------
+        a, b : int
+            First row and the row past the last (slice bounds, >= 0).
+
+        Returns
+        -------
+        AppliedAccount
+            Copies of the rows' arrays; the same ``delay`` and ``method``.
+        """
         src = self.source[a:b] - a
         return AppliedAccount(self.applied[a:b].copy(), np.where(src >= 0, src, -1),
                               self.tick_delay[a:b].copy(), self.delay, self.late[a:b].copy(),
@@ -103,7 +114,14 @@ class AppliedAccount:
 
     def to_dict(self) -> dict:
         """Summary for a report: ``method``, ``delay``, ``late``, ``rows``,
-        ``tick_delay_max``, ``unknown`` (rows), ``half_width_max`` [N]."""
+        ``tick_delay_max``, ``unknown`` (rows), ``half_width_max`` [N].
+
+        Returns
+        -------
+        dict
+            Those fields, JSON-ready: ints (``tick_delay_max`` -1 with none known),
+            ``method`` a str, ``half_width_max`` a float (0 with no rows).
+        """
         td = self.tick_delay[self.tick_delay >= 0]
         return {"method": self.method, "delay": int(self.delay), "late": self.n_late,
                 "rows": int(self.applied.size),

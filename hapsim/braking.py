@@ -269,6 +269,17 @@ class Brake:
     def report(self, periods: int, seconds: float, ended: str, late: int = 0) -> dict:
         """What the braking did, as the run reports it (``loop.brake``).
 
+        Parameters
+        ----------
+        periods : int
+            Braking FORCEs sent [periods].
+        seconds : float
+            The braking's duration [s].
+        ended : {"rest", "time", "port", "ignored"}
+            Why it ended (below).
+        late : int
+            Periods the host itself was late (held longer than two periods).
+
         Returns
         -------
         dict

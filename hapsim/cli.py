@@ -110,7 +110,21 @@ class HapsimArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         """argparse's contract: say ``message`` in one line keyed by the option as typed,
-        then exit 2 (:class:`SystemExit`)."""
+        then exit 2 (:class:`SystemExit`).
+
+        Parameters
+        ----------
+        message : str
+            argparse's message (``argument --seed: invalid int value: 'x'``), extended here
+            with hints (a flag's case, a near option or sub-command).
+
+        Raises
+        ------
+        ConfigError
+            A non-number given to a numeric option (:func:`_refuse_number`).
+        SystemExit
+            Otherwise, status 2, after the sub-command's usage and the message on stderr.
+        """
         given = {a.split("=", 1)[0] for a in _ARGV if a.startswith("--")}
         parser: argparse.ArgumentParser = self
         for action in self._actions:       # the top parser: ask the chosen sub-command's

@@ -324,7 +324,21 @@ def dash(value, spec: str) -> str:
 
 
 def plural(n: int, word: str, many: str | None = None) -> str:
-    """``"1 link"``, ``"3 links"``: a count with its noun in the right number."""
+    """``"1 link"``, ``"3 links"``: a count with its noun in the right number.
+
+    Parameters
+    ----------
+    n : int
+        The count (singular only for exactly 1).
+    word : str
+        The noun, singular.
+    many : str, optional
+        Its plural when not ``word + "s"``.
+
+    Returns
+    -------
+    str
+    """
     return f"{n} {word if n == 1 else (many or word + 's')}"
 
 

@@ -116,7 +116,13 @@ class JointDeviceND:
         self.tau = np.zeros_like(q)
 
     def position(self) -> np.ndarray:
-        """Handle position ``f(q)`` [m], shape (n,)."""
+        """Handle position ``f(q)`` [m], shape (n,).
+
+        Returns
+        -------
+        ndarray, shape (n,)
+            The forward kinematics of the joints [m].
+        """
         return self.kin.forward(self.q)
 
     def _accel(self, q, qd):
@@ -209,24 +215,53 @@ class LocalJointDeviceND:
         self._wm = np.zeros((2, n, n))
 
     def J(self, s) -> np.ndarray:
-        """Jacobian ``J0 + H s`` [m/rad] at joint displacement ``s`` [rad], shape (n, n)."""
+        """Jacobian ``J0 + H s`` [m/rad] at joint displacement ``s`` [rad], shape (n, n).
+
+        Parameters
+        ----------
+        s : ndarray, shape (n,)
+            Joint displacement from the operating point ``q0`` [rad].
+
+        Returns
+        -------
+        ndarray, shape (n, n)
+            ``d f / d q`` of the quadratic model [m/rad].
+        """
         return self.J0 + self.H @ s
 
     def _disp(self, s):
         return self.J0 @ s + 0.5 * ((self.H @ s) @ s)
 
     def position(self) -> np.ndarray:
-        """Handle position ``f(q0 + s)`` [m], shape (n,)."""
+        """Handle position ``f(q0 + s)`` [m], shape (n,).
+
+        Returns
+        -------
+        ndarray, shape (n,)
+            ``f0 + J0 s + H(s, s) / 2`` [m] (absolute, not from the rest position).
+        """
         return self.f0 + self._disp(self.s)
 
     def step(self, u) -> None:
         """Hold the torques ``J(q_n)^T u`` of the Cartesian force ``u`` [N] (shape (n,))
-        over one period and advance."""
+        over one period and advance.
+
+        Parameters
+        ----------
+        u : array_like, shape (n,)
+            Force on the handle [N].
+        """
         self.step_torque(self.J(self.s).T @ np.asarray(u, float))
 
     def step_torque(self, tau) -> None:
         """Hold the joint torques ``tau`` [N m] (shape (n,)) over one period and advance
-        (:func:`hapsim.kernels.joint.joint_step`)."""
+        (:func:`hapsim.kernels.joint.joint_step`).
+
+        Parameters
+        ----------
+        tau : array_like, shape (n,)
+            Joint torques [N m].
+        """
         self._u[:] = tau
         joint_step(self.s, self.sd, self._u, self.J0, self.H, self.Mq, self.Bq, self.mh,
                    self.bh, self.h, self.substeps, self._wv, self._wm)
@@ -238,6 +273,13 @@ class LocalJointDeviceND:
         The same Runge-Kutta steps as :meth:`step_torque`, none longer than this device's
         ``h`` (``ceil(dt / h)`` equal steps): a period cut into intervals is the period's
         motion to the integrator's error, ``O((w h)^4)`` relative.
+
+        Parameters
+        ----------
+        tau : array_like, shape (n,)
+            Joint torques [N m].
+        dt : float
+            The time they are held over [s]; not > 0 (NaN included): nothing happens.
         """
         if not dt > 0.0:
             return
@@ -247,5 +289,11 @@ class LocalJointDeviceND:
                    self.bh, dt / n, n, self._wv, self._wm)
 
     def joints(self) -> np.ndarray:
-        """Joint angles ``q0 + s`` [rad], shape (n,)."""
+        """Joint angles ``q0 + s`` [rad], shape (n,).
+
+        Returns
+        -------
+        ndarray, shape (n,)
+            A new array [rad].
+        """
         return self.q0 + self.s

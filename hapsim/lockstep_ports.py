@@ -164,6 +164,17 @@ class LockstepPorts:
         With ``out`` (shape (P + grounds,), float) the forces are written there through
         buffers held by the loop, so a real-time caller allocates nothing per sample;
         the operations and their order are the same, so the result is the same to the bit.
+
+        Parameters
+        ----------
+        out : ndarray, shape (P + grounds,), optional
+            Where to write the forces (overwritten); None: a new array.
+
+        Returns
+        -------
+        ndarray, shape (P + grounds,)
+            ``out`` itself, or the new array [N]: per link ``F = K d + B (d - dp) / T``,
+            ``-F`` on its first mass and ``+F`` on its second.
         """
         if out is None:
             d = self.x[self.i1] - self.x[self.i2]

@@ -48,7 +48,13 @@ def at_stop(undo: Callable[[], None]) -> int:
 
 
 def done(token: int | None) -> None:
-    """Forget the ``undo`` of :func:`at_stop` (its owner has run it)."""
+    """Forget the ``undo`` of :func:`at_stop` (its owner has run it).
+
+    Parameters
+    ----------
+    token : int or None
+        :func:`at_stop`'s token; None, or one already forgotten: nothing happens.
+    """
     with _STOPS_LOCK:
         _STOPS.pop(token, None)
 
@@ -254,7 +260,13 @@ class PtyChild:
 
     def end(self, grace_s: float = 2.0) -> None:
         """SIGTERM the child (a mock zeroes its force and writes its report), SIGKILL it
-        after ``grace_s`` [s]; it is reaped either way."""
+        after ``grace_s`` [s]; it is reaped either way.
+
+        Parameters
+        ----------
+        grace_s : float
+            Longest wait after the SIGTERM [s].
+        """
         self.proc.terminate()
         try:
             self.proc.wait(grace_s)
@@ -434,7 +446,13 @@ class HandledBytes:
 
     def publish(self, read: int, written: int) -> None:
         """The mock's side: ``read`` bytes read from the host, ``written`` written to it,
-        every one handled (totals since the start)."""
+        every one handled (totals since the start).
+
+        Parameters
+        ----------
+        read, written : int
+            The totals [bytes], >= 0 (stored as uint64).
+        """
         import struct
         mm = self._mm
         self._seq += 1
@@ -444,7 +462,13 @@ class HandledBytes:
         struct.pack_into("<Q", mm, 0, self._seq)
 
     def totals(self) -> tuple[int, int]:
-        """The host's side: the last totals published, ``(read, written)`` [bytes]."""
+        """The host's side: the last totals published, ``(read, written)`` [bytes].
+
+        Returns
+        -------
+        tuple of int
+            ``(read, written)`` [bytes], read whole (a torn read retried).
+        """
         import struct
         mm = self._mm
         while True:
@@ -454,7 +478,13 @@ class HandledBytes:
                 return r, w
 
     def close(self, unlink: bool = False) -> None:
-        """Unmap (idempotent); ``unlink``: remove the file too (the host's side)."""
+        """Unmap (idempotent); ``unlink``: remove the file too (the host's side).
+
+        Parameters
+        ----------
+        unlink : bool
+            Also remove the file (a missing one ignored).
+        """
         try:
             self._mm.close()
         except (BufferError, ValueError):      # pragma: no cover

@@ -19,8 +19,8 @@ def device_body(dev, member=None) -> tuple[float, float]:
     Parameters
     ----------
     dev : hapsim.scene.Device
-    member : array_like, shape (4,), optional
-        Hand member ``(mh, bh, kg, bg)``; default the nominal member of ``dev.hand``.
+    member : array_like, shape (4,) or (5,), optional
+        Hand member ``(mh, bh, kg, bg[, kh])``; default the nominal member of ``dev.hand``.
 
     Returns
     -------
@@ -65,7 +65,26 @@ def body_stiffness(dev, member=None) -> float:
 def ideal_shift(dev, T: float, member=None) -> tuple[float, float, float]:
     """``(tr, det, g)`` of the ideal hold's ``x[n+1] = tr x[n] - det x[n-1] + g f[n]``
     (Florens et al. eq. (4); with the hand's stiffness the impulse-invariant image,
-    :func:`hapsim.analysis.hand.ideal_rows`)."""
+    :func:`hapsim.analysis.hand.ideal_rows`).
+
+    Parameters
+    ----------
+    dev : hapsim.scene.Device
+        The device (mass [kg], friction [N s/m], hand).
+    T : float
+        Sample period [s].
+    member : array_like, shape (4,) or (5,), optional
+        Hand member ``(mh, bh, kg, bg[, kh])``; None: the nominal ``dev.hand``.
+
+    Returns
+    -------
+    tr, det : float
+        ``1 + a`` and ``a`` [-], ``a = exp(-b T / m)`` of the body ``(m, b)``
+        (:func:`device_body`), without a hand stiffness.
+    g : float
+        ``T^2 / (m c)`` [m/N], ``c = (b T / m) / (1 - a)`` (1 for ``b = 0``); with a hand
+        stiffness all three are :func:`hapsim.analysis.hand.ideal_rows`'.
+    """
     mass, b0 = device_body(dev, member)
     kh = body_stiffness(dev, member)
     if kh > 0:

@@ -136,7 +136,13 @@ class Correction:
         return cls(kind, **{k: float(v) for k, v in d.items() if k != "kind"})
 
     def label(self) -> str:
-        """Short human name with parameters, e.g. ``velocity_filter(fc=100 Hz)``."""
+        """Short human name with parameters, e.g. ``velocity_filter(fc=100 Hz)``.
+
+        Returns
+        -------
+        str
+            The kind and its parameters (a prediction's default horizon as ``h=d``).
+        """
         if self.kind == "velocity_filter":
             return f"velocity_filter(fc={self.cutoff_hz:g} Hz)"
         if self.kind == "prediction":
@@ -148,7 +154,14 @@ class Correction:
         return self.kind
 
     def to_dict(self) -> dict:
-        """JSON-ready ``{"kind": ..., param: value}`` (only the kind's parameters)."""
+        """JSON-ready ``{"kind": ..., param: value}`` (only the kind's parameters).
+
+        Returns
+        -------
+        dict
+            ``kind`` and each parameter of :data:`CORRECTION_KINDS` as a float (None for a
+            default ``horizon``); :meth:`from_dict` reads it back.
+        """
         out = {"kind": self.kind}
         for p in CORRECTION_KINDS[self.kind]:
             v = getattr(self, p)
@@ -156,7 +169,21 @@ class Correction:
         return out
 
     def filter_pole(self, period: float) -> tuple[float, float]:
-        """``(a, 1 - a)`` of the velocity filter, ``a = e^(-2 pi fc T)`` (accurate ``1 - a``)."""
+        """``(a, 1 - a)`` of the velocity filter, ``a = e^(-2 pi fc T)`` (accurate ``1 - a``).
+
+        The pole of the first-order low-pass ``vf[n] = a vf[n-1] + (1 - a) v[n]`` with the
+        cutoff ``fc`` (:attr:`cutoff_hz`) matched by the pole map ``z = e^(sT)``.
+
+        Parameters
+        ----------
+        period : float
+            Sample period ``T`` [s].
+
+        Returns
+        -------
+        a, one_minus_a : float
+            The pole [-] and ``1 - a`` (``-expm1(-2 pi fc T)``, exact for small ``fc T``).
+        """
         x = 2.0 * math.pi * self.cutoff_hz * period
         return math.exp(-x), -math.expm1(-x)
 
@@ -357,7 +384,14 @@ class CorrectionLaw:
         self.reset(0.0)
 
     def reset(self, x: float) -> None:
-        """Start at rest at position ``x`` [m] (histories filled with ``x``)."""
+        """Start at rest at position ``x`` [m] (histories filled with ``x``).
+
+        Parameters
+        ----------
+        x : float
+            Port position [m]; the virtual coupling's proxy starts at its equilibrium
+            ``x Kc / (Kc + K)``.
+        """
         self.x1 = self.x2 = self.p1 = self.y1 = float(x)
         self.vf = 0.0
         if self.corr.kind == "virtual_coupling":
@@ -366,6 +400,13 @@ class CorrectionLaw:
 
     def step(self, x: float, v: float = 0.0) -> float:
         """Force on the port for the position sample ``x`` [m] (and velocity ``v`` [m/s]).
+
+        Parameters
+        ----------
+        x : float
+            Position sample ``x[n]`` [m].
+        v : float, optional
+            Measured velocity [m/s]; read by ``velocity_sensor`` only (default 0).
 
         Returns
         -------
@@ -447,7 +488,7 @@ def corrected_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member=N
         (2N,), float, float.
     vnames : list of str
         Names of the 2N virtual states.
-    member : array_like, shape (4,), optional
+    member : array_like, shape (4,) or (5,), optional
         Hand member (plant layout: a compliant grip has 4 plant states).
     corr : Correction or None
         None gives the plain frame.

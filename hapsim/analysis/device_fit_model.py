@@ -49,7 +49,18 @@ class Estimate:
     unit: str
 
     def contains(self, truth: float) -> bool:
-        """True when ``lo <= truth <= hi``."""
+        """True when ``lo <= truth <= hi``.
+
+        Parameters
+        ----------
+        truth : float
+            The value to test, in :attr:`unit`.
+
+        Returns
+        -------
+        bool
+            False also for a NaN ``truth`` or bound.
+        """
         return bool(self.lo <= truth <= self.hi)
 
 
@@ -172,7 +183,14 @@ class DeviceFit:
         return round(float(e.value), 3)
 
     def to_dict(self) -> dict:
-        """Plain data (``--json``): every estimate as ``{value, lo, hi, unit}``."""
+        """Plain data (``--json``): every estimate as ``{value, lo, hi, unit}``.
+
+        Returns
+        -------
+        dict
+            Every attribute but ``model`` by name (:func:`dataclasses.asdict`),
+            ``delay_range`` as a list, ``delay_estimate`` None when not identified.
+        """
         d = {k: v for k, v in asdict(self).items() if k != "model"}
         d["delay_range"] = list(self.delay_range)
         return d

@@ -103,7 +103,15 @@ class DeviceMatrices:
     friction_se: np.ndarray = None
 
     def to_dict(self) -> dict:
-        """JSON-ready fields."""
+        """JSON-ready fields.
+
+        Returns
+        -------
+        dict
+            Every attribute by name: ``mass`` [kg], ``friction`` [N s/m] and their
+            standard errors as n lists of n (the errors None when not computed), the rest
+            as they are.
+        """
         return {"mass": self.mass.tolist(), "friction": self.friction.tolist(),
                 "delay": self.delay, "residual": self.residual,
                 "runner_up": self.runner_up, "misfit": self.misfit,

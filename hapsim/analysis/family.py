@@ -126,8 +126,8 @@ class FamilyResult:
 
     Attributes
     ----------
-    members : ndarray, shape (n, 4)
-        ``(mh, bh, kg, bg)`` per member (:data:`hapsim.analysis.hand.HAND_FIELDS`); rows
+    members : ndarray, shape (n, 5)
+        ``(mh, bh, kg, bg, kh)`` per member (:data:`hapsim.analysis.hand.HAND_FIELDS`); rows
         ``0 .. corners-1`` are the range corners, row ``corners`` the nominal member.
     corners : int
         Number of corner members.
@@ -190,7 +190,20 @@ class FamilyResult:
         return int(np.argmax(self.rho))
 
     def member_dict(self, i: int) -> dict:
-        """Member ``i`` as ``{field: value}`` plus its verdict, spectral radius and felt pair."""
+        """Member ``i`` as ``{field: value}`` plus its verdict, spectral radius and felt pair.
+
+        Parameters
+        ----------
+        i : int
+            Row of :attr:`members`.
+
+        Returns
+        -------
+        dict
+            Each :data:`~hapsim.analysis.hand.HAND_FIELDS` value (``grip_stiffness``
+            ``"rigid"`` when infinite), ``index``, ``corner`` (bool), ``stable``,
+            ``spectral_radius`` [-], ``k`` [N/m] and ``b`` [N s/m]; non-finite numbers None.
+        """
         out = {f: _f(self.members[i, j]) for j, f in enumerate(HAND_FIELDS)}
         out["grip_stiffness"] = ("rigid" if not math.isfinite(self.members[i, 2])
                                  else float(self.members[i, 2]))
@@ -252,7 +265,7 @@ def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,
     calibrated : mapping, optional
         ``{link: (K, B)}``; default: every target link calibrated on the nominal member
         (:func:`hapsim.analysis.targets.apply_targets`).
-    mem : ndarray, shape (n, 4), optional
+    mem : ndarray, shape (n, 4) or (n, 5), optional
         Explicit members (overrides ``samples``/``grid``; no corners then: ``corners = 0``
         and row 0 is taken as nominal).
     certify : int, optional
@@ -330,8 +343,8 @@ class FamilyCalibration:
         The same figure of merit at the nominal calibration.
     stable : bool
         Every member stable at (K, B).
-    members : ndarray, shape (n, 4)
-        The family.
+    members : ndarray, shape (n, 5)
+        The family (:data:`hapsim.analysis.hand.HAND_FIELDS`).
     """
 
     link: str
@@ -349,7 +362,16 @@ class FamilyCalibration:
 
     def to_dict(self) -> dict:
         """JSON-ready dict of every attribute (``members`` as its count, ``limiting`` as
-        the member's ``{mass, damping, grip_stiffness, grip_damping, index}``)."""
+        the member's ``{mass, damping, grip_stiffness, grip_damping, index}``).
+
+        Returns
+        -------
+        dict
+            ``link``, ``k``, ``b``, ``K``, ``B``, ``error``, ``limiting`` (every
+            :data:`~hapsim.analysis.hand.HAND_FIELDS` value, ``stiffness`` included, and
+            ``index``), ``stable``, ``nominal`` (``K``, ``B``, ``error``) and ``members``
+            (the count); non-finite ``K``, ``B``, errors and member values as None.
+        """
         lim = {f: _f(self.members[self.limiting, j]) for j, f in enumerate(HAND_FIELDS)}
         lim["index"] = int(self.limiting)
         return {"link": self.link, "k": self.k, "b": self.b, "K": _f(self.K), "B": _f(self.B),
@@ -369,7 +391,7 @@ def family_error(scene, link, k: float, b: float, mem: np.ndarray, K: float, B: 
         A spring_damper between the port and a ground.
     k, b : float
         Target [N/m], [N s/m].
-    mem : ndarray, shape (n, 4)
+    mem : ndarray, shape (n, 4) or (n, 5)
         Members.
     K, B : float
         Virtual (K, B) of the link.
@@ -405,7 +427,7 @@ def calibrate_family(scene, link_name: str, k: float | None = None, b: float | N
         A spring_damper between the port and a ground.
     k, b : float, optional
         Target; default the link's ``target``.
-    mem : ndarray, shape (n, 4), optional
+    mem : ndarray, shape (n, 4) or (n, 5), optional
         The family (default :func:`family_members` with ``samples``/``grid``/``seed``).
 
     Returns

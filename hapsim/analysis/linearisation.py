@@ -225,7 +225,14 @@ class LinearisationBound:
         ``damping_factor``, ``felt_stiffness`` and ``felt_damping`` (the relative bounds;
         None when a contact or plane opens, or without rendered poles), ``roundoff``
         (:attr:`roundoff`, relative), ``opening`` and ``opening_contact``
-        (:attr:`opening`, None when not measured)."""
+        (:attr:`opening`, None when not measured).
+
+        Returns
+        -------
+        dict
+            Those keys; ``link`` and ``contact`` the names (or None), non-finite numbers
+            None (``amplitude``, ``kinematic_per_m`` and ``link_per_m`` as they are).
+        """
         num = finite_or_none
         return {"amplitude": self.amplitude, "kinematic_per_m": self.kinematic,
                 "link_per_m": self.link, "link": self.link_name,

@@ -308,7 +308,13 @@ class ModeND:
     z: complex
 
     def to_dict(self) -> dict:
-        """``frequency_hz``, ``damping_ratio``, ``axis`` (JSON-ready)."""
+        """``frequency_hz``, ``damping_ratio``, ``axis`` (JSON-ready).
+
+        Returns
+        -------
+        dict
+            Eigenfrequency [Hz], damping ratio [-] and axis (int); no ``shape``, no ``z``.
+        """
         return {"frequency_hz": self.frequency_hz, "damping_ratio": self.damping_ratio,
                 "axis": self.axis}
 

@@ -292,6 +292,41 @@ def closed_loop_frame(scene, dev, port, Av, bp, bpp, cx, cp, cpp, vnames, member
     ``correction`` (mapping or :class:`hapsim.analysis.corrections.Correction`) acts at the
     port and adds at most one state after the virtual ones
     (:func:`hapsim.analysis.corrections.corrected_frame`).
+
+    Parameters
+    ----------
+    scene : hapsim.scene.Scene
+        Validated scene (its period ``T`` [s] and path).
+    dev : hapsim.scene.Device
+        Its device (hold, delay [periods], mass [kg] and friction [N s/m]).
+    port : str
+        Port name (state names).
+    Av, bp, bpp, cx, cp, cpp
+        Blocks of :func:`hapsim.analysis.virtual_network.virtual_blocks`, shapes (2N, 2N),
+        (2N,), (2N,), (2N,), float, float.
+    vnames : list of str
+        Names of the 2N virtual states.
+    member : array_like, optional
+        Hand member ``(mh, bh, kg, bg[, kh])``; None: the device's nominal hand.
+    correction : dict or Correction, optional
+        The device's correction; None: none.
+
+    Returns
+    -------
+    A : ndarray, shape (n, n)
+        Closed-loop matrix, plant rows left zero.
+    u : ndarray, shape (n,)
+        Row giving the force held over the coming period.
+    nplant : int
+        Plant states (2 or 4 for ``"zoh"``, 1 for ``"ideal"``).
+    names : list of str
+        The n state names.
+
+    Raises
+    ------
+    ConfigError
+        A bad ``correction`` mapping (:meth:`Correction.from_dict`), or as
+        :func:`~hapsim.analysis.corrections.corrected_frame`.
     """
     from hapsim.analysis.corrections import Correction, corrected_frame
 

@@ -158,7 +158,15 @@ class PortsCheck:
         ``unstable``), ``spectral_radius``, ``felt_stiffness`` and ``felt_damping`` (P x P,
         rows and columns in ``ports`` order), ``principal_directions``, the per-direction
         pairs, ``port_stiffness``, ``port_damping``, ``delays``, ``states``,
-        ``rendered_poles``, ``note``."""
+        ``rendered_poles``, ``note``.
+
+        Returns
+        -------
+        dict
+            Those keys (:func:`hapsim.analysis.scene_check.felt_summary` for the verdict
+            and the felt matrices); ``port_stiffness`` [N/m] and ``port_damping`` [N s/m]
+            as P lists of P, ``delays`` as P floats [periods].
+        """
         r = self.render.to_dict()
         return {"ports": list(self.ports), "dof": len(self.ports), **felt_summary(r),
                 "port_stiffness": self.port_stiffness.tolist(),

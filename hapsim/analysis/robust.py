@@ -117,7 +117,15 @@ class Certificate:
     arithmetic: str = ARITHMETIC
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (the counterexample as ``{field: value}``)."""
+        """JSON-ready dict (the counterexample as ``{field: value}``).
+
+        Returns
+        -------
+        dict
+            ``certified``, ``robust``, ``boxes``, ``method``, ``margin``, ``arithmetic``
+            and ``counterexample``: None, or each
+            :data:`~hapsim.analysis.hand.HAND_FIELDS` value and its ``spectral_radius``.
+        """
         ce = None
         if self.counterexample is not None:
             ce = {f: float(v) for f, v in zip(HAND_FIELDS, self.counterexample)}

@@ -483,7 +483,16 @@ class SceneCheckND:
     def to_dict(self) -> dict:
         """JSON-ready dict: ``dof``, ``stable``, ``spectral_radius``, ``felt_stiffness``,
         ``felt_damping`` (n x n), ``principal_directions``, the per-direction pairs,
-        ``port_stiffness``, ``port_damping``, ``states``, ``rendered_poles``, ``note``."""
+        ``port_stiffness``, ``port_damping``, ``states``, ``rendered_poles``, ``note``.
+
+        Returns
+        -------
+        dict
+            Those keys (:func:`felt_summary` for the verdict, the felt matrices [N/m],
+            [N s/m] and the directions; ``port_stiffness`` [N/m] and ``port_damping``
+            [N s/m] as n lists of n) and ``stiffness_limits``: None, or per limit direction
+            ``{"direction": n floats, "K_max": [N/m] or None when not finite}``.
+        """
         r = self.render.to_dict()
         out = {"dof": self.dof, **felt_summary(r),
                "port_stiffness": self.port_stiffness.tolist(),

@@ -168,7 +168,14 @@ class Trial:
     note: str = ""
 
     def to_dict(self) -> dict:
-        """JSON-ready dict of the attributes."""
+        """JSON-ready dict of the attributes.
+
+        Returns
+        -------
+        dict
+            ``K``, ``B``, ``b``, ``k``, ``b_unc``, ``rho``, ``growing``, ``note`` as they
+            are (:func:`dataclasses.asdict`; no non-finite check).
+        """
         return dataclasses.asdict(self)
 
 
@@ -203,7 +210,14 @@ class ZPoint:
     note: str = ""
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (``trials`` as dicts; non-finite values as None)."""
+        """JSON-ready dict (``trials`` as dicts; non-finite values as None).
+
+        Returns
+        -------
+        dict
+            The attributes by name, ``K_max_measured_interval`` as a list of two (or
+            None), ``trials`` as :meth:`Trial.to_dict` gives them.
+        """
         f = finite_or_none
         iv = self.K_max_measured_interval
         return {"B": self.B, "K_max_predicted": f(self.K_max_predicted),

@@ -41,7 +41,23 @@ class Analyst:
 
     def submit(self, fn, args: tuple, done=None):
         """Start ``fn(*args)``; ``done(result)`` when it ends (``done({"error": ...})`` if
-        it raised). Returns a handle with ``ready()`` and ``wait(timeout)``."""
+        it raised). Returns a handle with ``ready()`` and ``wait(timeout)``.
+
+        Parameters
+        ----------
+        fn : callable
+            A module-level function (the child receives it pickled).
+        args : tuple
+            Its arguments (picklable).
+        done : callable, optional
+            Called with the result, or with ``{"error": "Type: message"}``; in the child's
+            case from the pool's result thread.
+
+        Returns
+        -------
+        multiprocessing.pool.AsyncResult or _Done
+            The handle; in-process, the work is finished (and ``done`` called) on return.
+        """
         def failed(exc):
             if done is not None:
                 done({"error": f"{type(exc).__name__}: {exc}"})
@@ -60,6 +76,18 @@ class Analyst:
 
     def call(self, fn, *args):
         """``fn(*args)``, in the child when there is one (its exception re-raised).
+
+        Parameters
+        ----------
+        fn : callable
+            A module-level function (pickled for the child).
+        *args
+            Its arguments.
+
+        Returns
+        -------
+        object
+            What ``fn`` returned.
 
         Raises
         ------

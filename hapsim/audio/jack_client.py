@@ -114,7 +114,13 @@ class PythonProcessEnd:
 
     def note(self, delta: int) -> None:
         """A notification callback begins (``+1``, its first line) or returns (``-1``,
-        in its ``finally``)."""
+        in its ``finally``).
+
+        Parameters
+        ----------
+        delta : int
+            ``+1`` or ``-1``, added to :attr:`notes`.
+        """
         self.notes += delta
 
     def end_notifications(self, jack, client, timeout_s: float = END_WAIT_S) -> bool:

@@ -45,7 +45,7 @@ COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
                     "hapsim/kernels/pointers.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "6ce8bc4dc02708509de5a5e4a201d0d4929c1a17d2393f2156abd26bbfc8f197"
+COMPILED_SOURCES_SHA256 = "bc30491215471487b980571fcd37cd227dcee4f46320cfbedc121f920a86ec09"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -136,7 +136,21 @@ def _enter(arg, nframes):
 
 @nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=CACHE_OK)
 def process(nframes, arg):
-    """The JACK process callback (``JackProcessCallback``): ``arg`` is the context."""
+    """The JACK process callback (``JackProcessCallback``): ``arg`` is the context.
+
+    Parameters
+    ----------
+    nframes : uint32
+        Frames JACK asks for this cycle.
+    arg : void *
+        Address of the context, an int64 array of :data:`CTX`'s layout (kept alive by
+        :class:`NativeProcess`).
+
+    Returns
+    -------
+    int32
+        0 (JACK's "continue"); a block larger than the buffers is silence, counted.
+    """
     c, n, audio, fits = _enter(arg, nframes)
     if not fits:
         return 0
@@ -159,7 +173,21 @@ def process(nframes, arg):
 @nb.cfunc(types.int32(types.uint32, types.voidptr), nopython=True, cache=CACHE_OK)
 def process_ring(nframes, arg):
     """The JACK process callback over a :class:`~hapsim.audio.live.FrameRing` (``hapsim run
-    --sound``): :func:`hapsim.kernels.audio.ring_read`, then one copy per channel."""
+    --sound``): :func:`hapsim.kernels.audio.ring_read`, then one copy per channel.
+
+    Parameters
+    ----------
+    nframes : uint32
+        Frames JACK asks for this cycle.
+    arg : void *
+        Address of the context, an int64 array of :data:`CTX`'s layout (kept alive by
+        :class:`NativeProcess`).
+
+    Returns
+    -------
+    int32
+        0 (JACK's "continue"); a block larger than the buffers is silence, counted.
+    """
     c, n, audio, fits = _enter(arg, nframes)
     if not fits:
         return 0

@@ -137,6 +137,18 @@ class LiveSound:
         A callback starts at most ``ceil(block / nsub)`` periods, the last one's position
         being ``ceil(block / nsub)`` samples past the last finished period; the haptic
         side, blocked on the force ``lead`` periods back, has pushed exactly that far.
+
+        Parameters
+        ----------
+        block : int
+            Frames per callback (the server's block size).
+        nsub : int
+            Audio sub-steps per device period (> 0).
+
+        Returns
+        -------
+        int
+            The lead [device samples].
         """
         return int(math.ceil(int(block) / int(nsub)))
 
@@ -154,13 +166,35 @@ class LiveSound:
         return self._pack
 
     def set_block(self, block: int) -> int:
-        """Set :attr:`lead` for the server's block size [frames]; return it."""
+        """Set :attr:`lead` for the server's block size [frames]; return it.
+
+        Parameters
+        ----------
+        block : int
+            Frames per callback.
+
+        Returns
+        -------
+        int
+            The new :attr:`lead` [device samples] (:meth:`lead_for`).
+        """
         self.lead = self.lead_for(block, self._nsub)
         return self.lead
 
     def coupled_scene(self, scene):
         """``scene`` with its device delay increased by :attr:`lead`: the loop this live
-        sound closes (period n's force reaches the device ``lead`` samples later)."""
+        sound closes (period n's force reaches the device ``lead`` samples later).
+
+        Parameters
+        ----------
+        scene : Scene
+            The scene of :attr:`engine` (a dataclass with a ``device``).
+
+        Returns
+        -------
+        Scene
+            A copy, ``device.delay`` + :attr:`lead` [device samples]; ``scene`` unchanged.
+        """
         return dataclasses.replace(scene, device=dataclasses.replace(
             scene.device, delay=scene.device.delay + int(self.lead)))
 
@@ -169,6 +203,11 @@ class LiveSound:
         """Hand the audio thread the port position of the next device sample [m].
 
         Single producer: the value is written before the count that publishes it.
+
+        Parameters
+        ----------
+        position : float
+            Port position [m].
         """
         w = int(self._wr[0])
         self._ring[w % self._ring.size] = position
@@ -176,13 +215,29 @@ class LiveSound:
 
     def force(self) -> float:
         """The port force of the last device period the audio thread finished [N]
-        (0.0 before the first)."""
+        (0.0 before the first).
+
+        Returns
+        -------
+        float
+            Port force [N].
+        """
         w = int(self._st[_S["written"]])
         return float(self._fring[(w - 1) % self._fring.size]) if w > 0 else 0.0
 
     def port_step(self, position: float) -> float:
         """Haptic-loop form: push the position of device sample n, return the port force of
         period ``n - lead`` (0.0 for n < lead), waiting for the audio thread to finish it.
+
+        Parameters
+        ----------
+        position : float
+            Port position of device sample n [m].
+
+        Returns
+        -------
+        float
+            Port force of period ``n - lead`` [N].
 
         Raises
         ------
@@ -209,6 +264,13 @@ class LiveSound:
 
     def set_gain(self, gain: float, ramp_s: float = 0.05) -> None:
         """Ramp the master gain linearly to ``gain`` over ``ramp_s`` [s] (no click).
+
+        Parameters
+        ----------
+        gain : float
+            Target gain [-], finite.
+        ramp_s : float, optional
+            Ramp duration [s], >= 0 (at least one audio frame; default 0.05).
 
         Raises
         ------
@@ -237,7 +299,13 @@ class LiveSound:
         """``pushed``, ``consumed`` device samples, ``periods`` completed, ``underruns``
         (frames of silence because the next period's position had not arrived: the model
         waited), ``lead`` [device samples] and ``waits`` (haptic samples that waited for
-        the audio thread)."""
+        the audio thread).
+
+        Returns
+        -------
+        dict
+            Those six counts by name, as ints.
+        """
         starved = self._starved_end if self._starved_end is not None \
             else int(self._st[_S["starved"]])
         return {"pushed": int(self._wr[0]), "consumed": int(self._st[_S["read"]]),
@@ -254,6 +322,11 @@ class LiveSound:
     # -------------------------------------------------------------- audio thread
     def render(self, nframes: int) -> np.ndarray:
         """Compute the next ``nframes`` frames into :attr:`block` (one compiled call).
+
+        Parameters
+        ----------
+        nframes : int
+            Frames asked for, at most ``max_block``.
 
         Returns
         -------
@@ -312,16 +385,40 @@ class FrameRing:
         return self._pack
 
     def push(self, frames: np.ndarray) -> None:
-        """Append one device sample's frames, shape (N, C) (haptic thread)."""
+        """Append one device sample's frames, shape (N, C) (haptic thread).
+
+        Parameters
+        ----------
+        frames : ndarray, shape (N, C)
+            N audio frames (the sub-steps) of C channels.
+        """
         audio_kernel.ring_write(frames, self._ring, self._wr)
 
     def render(self, nframes: int) -> np.ndarray:
-        """The next ``nframes`` frames into :attr:`block` (sound server's thread)."""
+        """The next ``nframes`` frames into :attr:`block` (sound server's thread).
+
+        Parameters
+        ----------
+        nframes : int
+            Frames asked for, at most ``max_block``.
+
+        Returns
+        -------
+        ndarray, shape (nframes, C), float32
+            A view of the preallocated block (silence where the ring ran empty).
+        """
         audio_kernel.ring_read(nframes, self._ring, self._wr, self._st, self.block)
         return self.block[:nframes]
 
     def stats(self) -> dict:
-        """``written``, ``read`` frames, ``missing`` (silence on underrun), ``skipped``."""
+        """``written``, ``read`` frames, ``missing`` (silence on underrun), ``skipped``.
+
+        Returns
+        -------
+        dict
+            Those four counts [frames] by name, as ints (``read`` is the reader's position,
+            the ``skipped`` frames included).
+        """
         missing = self._missing_end if self._missing_end is not None else int(self._st[1])
         return {"written": int(self._wr[0]), "read": int(self._st[0]),
                 "missing": missing, "skipped": int(self._st[2])}

@@ -274,7 +274,22 @@ class BoardPerHost:
 
     def feed(self, data: bytes, now: float = math.inf, writes=None) -> bytes:
         """The board's :meth:`feed`, on its clock since its reset (``now`` [s] since
-        serving began)."""
+        serving began).
+
+        Parameters
+        ----------
+        data : bytes
+            The host's bytes (empty: none came).
+        now : float
+            Their time since serving began [s] (``inf``: lockstep, no time).
+        writes : list of bytes, optional
+            ``data`` split into the host's writes, passed on to a board that takes them.
+
+        Returns
+        -------
+        bytes
+            The board's answer.
+        """
         if (data and not self._fresh and self._last is not None
                 and now - self._last >= self.NEW_HOST_S):
             self._reset(now)                  # (a board on commands: no idle saw it)
@@ -285,7 +300,18 @@ class BoardPerHost:
         return self._dev.feed(data, now - self._born, **kw)
 
     def idle(self, silent_s: float) -> bytes:
-        """The board's :meth:`idle`; a host silent :data:`NEW_HOST_S` is gone: reset."""
+        """The board's :meth:`idle`; a host silent :data:`NEW_HOST_S` is gone: reset.
+
+        Parameters
+        ----------
+        silent_s : float
+            Time since the host's last bytes [s].
+
+        Returns
+        -------
+        bytes
+            What the board writes meanwhile.
+        """
         if self._last is not None and not self._fresh and silent_s >= self.NEW_HOST_S:
             self._reset(self._last + silent_s)
         if self._fresh:

@@ -34,6 +34,13 @@ def run_haply2_command(args) -> int:
     a child process behind a pty and the host on its clock, missing replies estimated
     samples (:func:`hapsim.pipeline.haply2_host.measure_felt_haply2_port`).
 
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``scene``, ``port`` (must be None), ``lockstep``, ``generation`` (``"gen2"`` or
+        ``"gen3"``, default gen3), ``amplitude`` [m] (None: the designed start),
+        ``rate_hz`` [Hz], ``rt_priority``, ``json``.
+
     Returns
     -------
     int

@@ -76,16 +76,34 @@ class Family:
     mock: str = ""
 
     def load(self):
-        """The driver class, its module imported now (None: the framed protocol's)."""
+        """The driver class, its module imported now (None: the framed protocol's).
+
+        Returns
+        -------
+        type or None
+            A :class:`~hapsim.drivers.base.Driver` subclass (the 2DIY's codec,
+            :class:`~hapsim.drivers.haply2.Haply2DIY`, and the Falcon's are their own).
+        """
         return _resolve(self.driver)
 
     def load_mock(self):
-        """The emulated device's class, its module imported now (None: no driver mock)."""
+        """The emulated device's class, its module imported now (None: no driver mock).
+
+        Returns
+        -------
+        type or None
+        """
         return _resolve(self.mock)
 
     def runner(self):
         """The function that runs this family's ``hapsim run``, its module imported now
-        (None: the host loop's route)."""
+        (None: the host loop's route).
+
+        Returns
+        -------
+        callable or None
+            ``hapsim run``'s function of this family (``run_haply2_command``, ...).
+        """
         return None if self.route == "loop" else _resolve(self.route)
 
 

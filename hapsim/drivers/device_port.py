@@ -55,6 +55,15 @@ class DevicePort:
     def write(self, data: bytes):
         """Write ``data`` (``ser.write``'s return).
 
+        Parameters
+        ----------
+        data : bytes
+
+        Returns
+        -------
+        int or None
+            ``ser.write``'s return: pyserial's count of the bytes written.
+
         Raises
         ------
         DeviceError
@@ -67,6 +76,16 @@ class DevicePort:
 
     def read(self, size: int = 1) -> bytes:
         """Read up to ``size`` bytes (``ser.read``'s return).
+
+        Parameters
+        ----------
+        size : int
+            Most bytes read.
+
+        Returns
+        -------
+        bytes
+            Fewer than ``size`` (or none) when the port's read timeout ran out.
 
         Raises
         ------

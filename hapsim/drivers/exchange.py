@@ -121,13 +121,47 @@ class Exchange:
 
     def send(self, data: bytes) -> float:
         """Send ``data`` (one period), return the last angle answered [rad] (NaN: none
-        within the timeout)."""
+        within the timeout).
+
+        Parameters
+        ----------
+        data : bytes
+            The write (the driver's command bytes).
+
+        Returns
+        -------
+        float
+            The angle [rad] (the decoder's unit), or NaN.
+
+        Raises
+        ------
+        DeviceError
+            As :meth:`reply`.
+        """
         got = self.reply(data)
         return math.nan if got is None else float(got)
 
     def reply(self, data: bytes):
         """Send ``data`` (one period), return the last reply the decoder gave (None: none
-        within the timeout)."""
+        within the timeout).
+
+        Parameters
+        ----------
+        data : bytes
+            The write (the driver's command bytes).
+
+        Returns
+        -------
+        object or None
+            The decoder's last value: the M3's angle [rad], the 2DIY's two angles [deg]
+            (tuple), the FireFader's position [m]; None when no reply came in time.
+
+        Raises
+        ------
+        DeviceError
+            More than ``max_missing`` writes in a row without a reply (``lost``, or the
+            replies out of reach said); a write or read of the link failed.
+        """
         if self.pace:
             now = time.monotonic()
             if now < self._next:
@@ -173,7 +207,15 @@ class Exchange:
         earlier writes still on their way (late ones; at most the timeout): a reply left
         on the line would be read by whoever opens the port next as the answer to its own
         first write. Best effort: never raises (the port may be gone; this runs on every
-        exit)."""
+        exit).
+
+        Parameters
+        ----------
+        data : bytes
+            The stop write (zero torque).
+        replies : int
+            Replies it brings (those of earlier writes still owed are added).
+        """
         try:
             self.link.write(data)
             replies += max(0, self.writes - self.replies) if self.replies else 0
@@ -231,7 +273,17 @@ class SerialLink:
     def write(self, data: bytes) -> None:
         """Write ``data``; with a watchdog (a board without one, on its own clock), through
         it: its time stamped, whether it leaves a torque held (anything but the zero
-        command, or writes that end with it), the watchdog's writes since counted."""
+        command, or writes that end with it), the watchdog's writes since counted.
+
+        Parameters
+        ----------
+        data : bytes
+
+        Raises
+        ------
+        DeviceError
+            The write failed.
+        """
         try:
             if self.watchdog is None:
                 self.ser.write(data)
@@ -243,7 +295,23 @@ class SerialLink:
 
     def read(self, timeout: float) -> bytes:
         """Bytes waiting, or the first within the port's 5 ms (the caller loops to its
-        own ``timeout`` [s])."""
+        own ``timeout`` [s]).
+
+        Parameters
+        ----------
+        timeout : float
+            The caller's wait [s]; not used (the port's read timeout is a fixed 5 ms).
+
+        Returns
+        -------
+        bytes
+            Possibly empty.
+
+        Raises
+        ------
+        DeviceError
+            The read failed.
+        """
         try:
             n = self.ser.in_waiting
             return self.ser.read(n if n else 1)

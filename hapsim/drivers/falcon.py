@@ -252,7 +252,19 @@ class DevicePacketDecoder(AlignedDecoder):
         self.stats["implausible"] = 0
 
     def parse(self, buf):
-        """``(encoders, homed, grip)`` of a packet at the start of ``buf``, or None."""
+        """``(encoders, homed, grip)`` of a packet at the start of ``buf``, or None.
+
+        Parameters
+        ----------
+        buf : bytearray
+            At least :attr:`length` (16) bytes.
+
+        Returns
+        -------
+        tuple or None
+            As :func:`parse_device_packet`: three int16 counts, the homing bits, the grip's
+            buttons.
+        """
         return parse_device_packet(bytes(buf[:16]))
 
     def _plausible(self, enc, homed) -> bool:
@@ -272,7 +284,18 @@ class DevicePacketDecoder(AlignedDecoder):
 
     def accept(self, value) -> bool:
         """A packet taken unless implausible (counted): :data:`JUMP_PACKETS` implausible
-        ones in a row are a real jump of the counts, taken as the new start."""
+        ones in a row are a real jump of the counts, taken as the new start.
+
+        Parameters
+        ----------
+        value : tuple
+            ``(encoders, homed, grip)`` of :meth:`parse`.
+
+        Returns
+        -------
+        bool
+            Whether the packet is taken.
+        """
         enc, homed, _ = value
         if not self._plausible(enc, homed):
             self.stats["implausible"] += 1

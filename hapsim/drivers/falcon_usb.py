@@ -372,6 +372,11 @@ class FalconUSB:
     def write(self, data: bytes) -> None:
         """Write bytes (one or more bulk OUT transfers).
 
+        Parameters
+        ----------
+        data : bytes
+            What to write (counted in :attr:`written`).
+
         Raises
         ------
         DeviceError
@@ -444,7 +449,29 @@ class FalconUSB:
         return usbfs_sink(self.device.bus, self.device.address)
 
     def exchange(self, send: bytes, n: int, done=None, timeout: float | None = None) -> bytes:
-        """Write ``send``, then read up to ``n`` bytes (:meth:`read`)."""
+        """Write ``send``, then read up to ``n`` bytes (:meth:`read`).
+
+        Parameters
+        ----------
+        send : bytes
+            What to write.
+        n : int
+            Most bytes read.
+        done : callable, optional
+            ``done(bytes) -> bool``: stop reading early once true.
+        timeout : float, optional
+            Longest wait for the reply [s]; default :attr:`read_timeout`.
+
+        Returns
+        -------
+        bytes
+            What came (fewer than ``n`` when the time ran out).
+
+        Raises
+        ------
+        DeviceError
+            The write or the read failed.
+        """
         self.write(send)
         return self.read(n, timeout, done)
 

@@ -81,7 +81,14 @@ class TravelSweep:
     writes: int
 
     def to_dict(self) -> dict:
-        """JSON-ready fields."""
+        """JSON-ready fields.
+
+        Returns
+        -------
+        dict
+            The fields by name, tuples as lists (``metres_per_count``, ``lo``, ``hi``
+            [m/count], ``travel`` [m], ``force`` [N]).
+        """
         return {"metres_per_count": self.metres_per_count, "lo": self.lo, "hi": self.hi,
                 "counts": list(self.counts), "half_widths": list(self.half_widths),
                 "travel": self.travel, "force": self.force, "writes": self.writes}

@@ -57,7 +57,12 @@ class HandledAccount:
     def settled(self) -> bool:
         """A lockstep mock (:attr:`settles`) has answered everything it will (its account:
         every byte written to it handled, every byte it wrote read here); False without
-        an account."""
+        an account.
+
+        Returns
+        -------
+        bool
+        """
         return self._handled is not None and self._quiet()
 
     def _quiet(self) -> bool:

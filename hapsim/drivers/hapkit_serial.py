@@ -154,9 +154,9 @@ def _plausible(x: float, lim: float) -> bool:
 
 
 class ReplyLog:
-    """The replies a host decoder took, in order: ``x`` [m] and the ``force`` [N] the
-    sketch applied from the tick it read ``x`` at; a callable mapping a reply to its
-    position (the decoder's output).
+    """The replies a host decoder took, in order: ``x`` [m] and the reply's second float
+    (``Tp`` [N m] or the rendered force [N], module notes: not the motor's force); a
+    callable mapping a reply to its position (the decoder's output).
 
     Arrays grown by doubling, preallocated: taking a reply stores two floats (no array
     per sample).
@@ -187,7 +187,7 @@ class ReplyLog:
 
 
 class ReplyDecoder(AlignedDecoder):
-    """Host side: 9-byte replies out of a byte stream, as ``(x [m], force [N])``.
+    """Host side: 9-byte replies out of a byte stream, as ``(x [m], Tp [N m] or force [N])``.
 
     Attributes
     ----------
@@ -208,7 +208,16 @@ class ReplyDecoder(AlignedDecoder):
     confirm_next = True
 
     def starts_frame(self, byte: int) -> bool:
-        """A reply starts with its function byte."""
+        """A reply starts with its function byte.
+
+        Parameters
+        ----------
+        byte : int, 0..255
+
+        Returns
+        -------
+        bool
+        """
         return byte == self.function
 
     def __init__(self, function: int = HOST_FORCE_FUNCTION) -> None:
@@ -224,7 +233,18 @@ class ReplyDecoder(AlignedDecoder):
         """``(x, force)`` of a plausible reply at the start of ``buf``, or None. A reply of
         a sketch reading the commands out of step (``[0xA0 + s][x][0.0]``, x plausible:
         :data:`SHIFT_SIGNATURE`) is no reply; it is counted (``stats["shifted"]``) and its
-        ``s`` kept (:attr:`shift`)."""
+        ``s`` kept (:attr:`shift`).
+
+        Parameters
+        ----------
+        buf : bytearray
+            At least :attr:`length` (9) bytes.
+
+        Returns
+        -------
+        tuple of float or None
+            ``(x [m], the second float: Tp [N m] or force [N])``, binary32 values.
+        """
         if buf[0] != self.function:
             s = buf[0] - SHIFT_SIGNATURE[0] + 1
             if 1 <= s <= 4 and buf[5:9] == b"\0\0\0\0" and \
@@ -255,7 +275,18 @@ class CommandDecoder(AlignedDecoder):
         self.stats["non_finite"] = 0
 
     def parse(self, buf):
-        """The force of a command at the start of ``buf``, or None."""
+        """The force of a command at the start of ``buf``, or None.
+
+        Parameters
+        ----------
+        buf : bytearray
+            At least :attr:`length` (10) bytes.
+
+        Returns
+        -------
+        float or None
+            The force [N] (binary32; NaN/inf: 0.0, counted); None: header or function differ.
+        """
         if buf[0] != self.header or buf[1] != self.function:
             return None
         f = _FF.unpack_from(buf, 2)[1]
@@ -391,7 +422,13 @@ class HapkitSerial(SketchTiming, Driver):
         self.reply_found = None
 
     def mock_hardware(self) -> dict:
-        """The emulated sketch this driver describes: its position step (``count_m``)."""
+        """The emulated sketch this driver describes: its position step (``count_m``).
+
+        Returns
+        -------
+        dict
+            ``{"count_m": float}`` [m], the mock's keywords.
+        """
         return {"count_m": self.count_m}
 
     def output_stage(self, force):
@@ -420,19 +457,50 @@ class HapkitSerial(SketchTiming, Driver):
         return sketch_output(f)
 
     def encode_force(self, force: float) -> bytes:
-        """The command for ``force`` [N], clamped to the limit (NaN/inf: 0)."""
+        """The command for ``force`` [N], clamped to the limit (NaN/inf: 0).
+
+        Parameters
+        ----------
+        force : float
+            The force to send [N].
+
+        Returns
+        -------
+        bytes
+            The 10-byte command (:func:`command_packet`, first float :data:`SIGNATURE_A`).
+        """
         f = float(force) if math.isfinite(force) else 0.0
         return command_packet(max(-self.force_limit, min(self.force_limit, f)), self.function,
                               a=SIGNATURE_A)
 
     def applied_force(self, force: float) -> float:
-        """The force the command carries [N]: clamped, rounded to binary32."""
+        """The force the command carries [N]: clamped, rounded to binary32.
+
+        Parameters
+        ----------
+        force : float
+            The force sent [N].
+
+        Returns
+        -------
+        float
+        """
         return _FF.unpack(self.encode_force(force)[2:])[1]
 
     def applied_forces(self, force):
         """:meth:`applied_force` of every force of an array, at numpy's speed
         (:func:`hapsim.drivers.base.binary32_commands` at the force limit; arguments, shapes and
-        units as :meth:`hapsim.drivers.base.Driver.applied_forces`)."""
+        units as :meth:`hapsim.drivers.base.Driver.applied_forces`).
+
+        Parameters
+        ----------
+        force : array_like of float, shape (n,)
+            Forces sent [N].
+
+        Returns
+        -------
+        ndarray of float64, shape (n,)
+        """
         return binary32_commands(force, self.force_limit)
 
     def realign_bytes(self, frames) -> bytes:
@@ -504,7 +572,12 @@ class HapkitSerial(SketchTiming, Driver):
 
     def probe_decoder(self):
         """A fresh frame decoder for the transport's tick probe at arming: replies as
-        ``(x, force)``, not logged in :attr:`replies` (they answer no row)."""
+        ``(x, force)``, not logged in :attr:`replies` (they answer no row).
+
+        Returns
+        -------
+        ReplyDecoder
+        """
         return ReplyDecoder(self.function)
 
     def answer_names(self, command: bytes, echo) -> bool | None:
@@ -516,7 +589,19 @@ class HapkitSerial(SketchTiming, Driver):
 
         Per reply in the host's loop, so no array: ``Tp`` is the binary32 product of the
         gearing and the force, both binary32, whose exact product (48 bits) the double
-        holds, so one rounding to binary32 gives ``sketch_tp``'s value."""
+        holds, so one rounding to binary32 gives ``sketch_tp``'s value.
+
+        Parameters
+        ----------
+        command : bytes
+            The bytes written (a 10-byte command of :meth:`encode_force`).
+        echo : float
+            The reply's second float (:meth:`answer_echo`): ``Tp`` [N m] or force [N].
+
+        Returns
+        -------
+        bool or None
+        """
         if len(command) != 10 or command[1] != self.function:
             return None
         f = _FF.unpack_from(command, 2)[1]              # binary32 already
@@ -526,20 +611,37 @@ class HapkitSerial(SketchTiming, Driver):
         return abs(tp) < 3.4e38 and echo == _F32.unpack(_F32.pack(tp))[0]
 
     def answer_echo(self):
-        """The second float of the last reply decoded (:attr:`replies`), or None."""
+        """The second float of the last reply decoded (:attr:`replies`), or None.
+
+        Returns
+        -------
+        float or None
+            ``Tp`` [N m] or the force [N] (module notes); None before any reply.
+        """
         log = getattr(self, "replies", None)
         return None if log is None or log.n == 0 else float(log.force[log.n - 1])
 
     def least_answer_s(self) -> float:
         """:meth:`round_trip_s`: the sketch's UART takes the command's bytes at the baud
         rate, and so does the emulated board (:class:`hapsim.emulated.hapkit_serial_board.
-        HapkitSerialDevice`)."""
+        HapkitSerialDevice`).
+
+        Returns
+        -------
+        float
+            [s]: 3.45 ms at 57600 baud.
+        """
         return self.round_trip_s()
 
     def decoder(self):
         """A fresh host decoder returning the handle position [m]; every reply's
-        ``(x, force applied)`` is kept in :attr:`replies` (a :class:`ReplyLog`) for
-        :meth:`account`."""
+        ``(x, Tp or the rendered force)`` is kept in :attr:`replies` (a ReplyLog) for
+        :meth:`account`.
+
+        Returns
+        -------
+        MappedDecoder
+        """
         self.replies = ReplyLog()
         return MappedDecoder(ReplyDecoder(self.function), self.replies)
 

@@ -481,7 +481,18 @@ class HaplyM3(Driver):
 
     def stop_bytes(self, position: float = 0.0) -> bytes:
         """Zero torque whatever the board's parser is doing (:meth:`resync`): the board has
-        no watchdog, so a zero write it misreads would leave the last torque on."""
+        no watchdog, so a zero write it misreads would leave the last torque on.
+
+        Parameters
+        ----------
+        position : float
+            The joint's last angle read [rad] (the set-up's offset, :meth:`resync`).
+
+        Returns
+        -------
+        bytes
+            :meth:`resync`'s 62 bytes.
+        """
         return self.resync(position)
 
     @classmethod
@@ -489,7 +500,20 @@ class HaplyM3(Driver):
         """``options`` with ``offset_deg`` at the start angle ``x0`` [rad] unless given:
         the board's set-up sets the encoder's count to the offset
         (``initialize_encoder``), so the embedded board is armed with the joint at the
-        excitation's start (:meth:`hapsim.drivers.base.Driver.embedded_options`)."""
+        excitation's start (:meth:`hapsim.drivers.base.Driver.embedded_options`).
+
+        Parameters
+        ----------
+        options : dict
+            The driver's keywords given.
+        x0 : float
+            The excitation's start angle [rad].
+
+        Returns
+        -------
+        dict
+            A new dict; ``options`` is not changed.
+        """
         out = dict(options)
         out.setdefault("offset_deg", math.degrees(x0))
         return out
@@ -497,7 +521,13 @@ class HaplyM3(Driver):
     def mock_hardware(self) -> dict:
         """The mock's encoder: this many counts per revolution; its wiring: the one these
         direction bytes drive the right way (``motor_sign``, :class:`hapsim.emulated.driver_mock.
-        HaplyDevice`)."""
+        HaplyDevice`).
+
+        Returns
+        -------
+        dict
+            ``cpr`` (float, counts per revolution) and ``motor_sign`` (+1 or -1).
+        """
         return {"cpr": self.resolution,
                 "motor_sign": 1 if self.motor_direction == self.direction else -1}
 
@@ -530,26 +560,75 @@ class HaplyM3(Driver):
 
     def arm(self) -> bytes:
         """The re-synchronisation (:meth:`resync`, at the arming pose ``offset_deg``): the
-        board may hold a torque from an earlier session and be anywhere in its parser."""
+        board may hold a torque from an earlier session and be anywhere in its parser.
+
+        Returns
+        -------
+        bytes
+        """
         return self.resync(math.radians(self.offset_deg))
 
     def rearm_anchor(self, position: float) -> float:
-        """A re-arming keeps the board's frame: set up at ``position`` [rad], in [deg]."""
+        """A re-arming keeps the board's frame: set up at ``position`` [rad], in [deg].
+
+        Parameters
+        ----------
+        position : float
+            The last angle read [rad].
+
+        Returns
+        -------
+        float
+            The same angle [deg] (the decoder's anchor).
+        """
         return math.degrees(position)
 
     def encode_force(self, force: float) -> bytes:
-        """Write of ``force`` [N m], clamped to the board's 0.123 N m (NaN/inf: 0)."""
+        """Write of ``force`` [N m], clamped to the board's 0.123 N m (NaN/inf: 0).
+
+        Parameters
+        ----------
+        force : float
+            The torque to send [N m].
+
+        Returns
+        -------
+        bytes
+            The 6-byte write (:func:`write_packet`).
+        """
         t = float(force) if math.isfinite(force) else 0.0
         return write_packet(self.id, max(-MAX_TORQUE, min(MAX_TORQUE, t)))
 
     def applied_force(self, force: float) -> float:
-        """The torque the board receives [N m]: clamped, rounded to binary32."""
+        """The torque the board receives [N m]: clamped, rounded to binary32.
+
+        Parameters
+        ----------
+        force : float
+            The torque sent [N m].
+
+        Returns
+        -------
+        float
+            [N m]: clamped to +-:data:`MAX_TORQUE`, then rounded to binary32.
+        """
         return _F.unpack(self.encode_force(force)[2:])[0]
 
     def applied_forces(self, force):
         """:meth:`applied_force` of every force of an array, at numpy's speed
         (:func:`hapsim.drivers.base.binary32_commands` at the board's limit; arguments, shapes and
-        units as :meth:`hapsim.drivers.base.Driver.applied_forces`)."""
+        units as :meth:`hapsim.drivers.base.Driver.applied_forces`).
+
+        Parameters
+        ----------
+        force : array_like of float, shape (n,)
+            Torques sent [N m].
+
+        Returns
+        -------
+        ndarray of float64, shape (n,)
+            The torques the writes carry [N m].
+        """
         return binary32_commands(force, MAX_TORQUE)
 
     def output_stage(self, force):

@@ -184,6 +184,11 @@ class Haply2DIY:
         """The set-up: both motors and encoders, the encoders' offsets the joints' angles
         ``joints_deg`` (joint 1, joint 2) [deg] at the pose the handle is held at.
 
+        Parameters
+        ----------
+        joints_deg : sequence of float, length 2
+            The joints' angles (joint 1, joint 2) [deg]: the encoders' offsets.
+
         Returns
         -------
         bytes
@@ -201,19 +206,52 @@ class Haply2DIY:
     def clamp1(self, t: float) -> float:
         """One torque [N m] as the board takes it: non-finite as 0, clamped to
         ``MAX_TORQUE``, rounded to binary32 (through a reused float32 cell: no
-        allocation)."""
+        allocation).
+
+        Parameters
+        ----------
+        t : float
+            The torque [N m].
+
+        Returns
+        -------
+        float
+            [N m]: clamped to +-``MAX_TORQUE`` (0.123 N m), then rounded to binary32.
+        """
         t = float(t) if math.isfinite(t) else 0.0
         f32 = self._f32
         f32[0] = max(-MAX_TORQUE, min(MAX_TORQUE, t))
         return f32.item(0)
 
     def clamp(self, torques) -> tuple:
-        """Torques [N m] as the board takes them (:meth:`clamp1` each, joint order)."""
+        """Torques [N m] as the board takes them (:meth:`clamp1` each, joint order).
+
+        Parameters
+        ----------
+        torques : iterable of float
+            Joint torques [N m], joint order.
+
+        Returns
+        -------
+        tuple of float
+            [N m], one per torque given.
+        """
         return tuple(self.clamp1(t) for t in torques)
 
     def write_bytes(self, torques) -> bytes:
         """The write of the joint torques ``(tau_1, tau_2)`` [N m] (clamped, port order):
-        10 bytes."""
+        10 bytes.
+
+        Parameters
+        ----------
+        torques : (float, float)
+            ``(tau_1, tau_2)``, joint 1's and joint 2's torque [N m].
+
+        Returns
+        -------
+        bytes
+            ``[2][id][float32 port 1's][float32 port 2's]`` (:meth:`write_into`).
+        """
         buf = bytearray(10)
         self.write_into(buf, *torques)
         return bytes(buf)
@@ -245,15 +283,42 @@ class Haply2DIY:
         278 resets, one a pass of at least 50 us (``.ino`` lines 59-64): 14 ms of board
         time with a garbage torque held before the set-up, and 600 bytes of which 1 lost
         in 200 loses at least one 95 % of the time (80 bytes now: 33 %).
+
+        Parameters
+        ----------
+        joints_deg : sequence of float, length 2
+            The set-up's offsets (joint 1, joint 2) [deg] (:meth:`setup_bytes`).
+
+        Returns
+        -------
+        bytes
+            80 bytes.
         """
         return resync_bytes(self.write_bytes((0.0, 0.0)), self.setup_bytes(joints_deg),
                             zeros=LONGEST_WAIT)
 
     def decoder(self) -> Reply2Decoder:
-        """A fresh reply decoder (whole counts at the set-up's resolution)."""
+        """A fresh reply decoder (whole counts at the set-up's resolution).
+
+        Returns
+        -------
+        Reply2Decoder
+            Its values: ``(port 1, port 2)`` angles [deg] (:meth:`joints_of`).
+        """
         return Reply2Decoder(self.id, (self.resolution, self.resolution))
 
     @staticmethod
     def joints_of(reply) -> tuple:
-        """A reply's angles (port 1, port 2) [deg] as the joints (joint 1, joint 2) [rad]."""
+        """A reply's angles (port 1, port 2) [deg] as the joints (joint 1, joint 2) [rad].
+
+        Parameters
+        ----------
+        reply : sequence of float, length 2
+            A :class:`Reply2Decoder` value: the angles of ports 1 and 2 [deg].
+
+        Returns
+        -------
+        tuple of float
+            ``(q1, q2)`` [rad].
+        """
         return (math.radians(reply[1]), math.radians(reply[0]))

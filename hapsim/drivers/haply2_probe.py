@@ -66,7 +66,13 @@ class WiringProbe:
     setups: int = 2
 
     def to_dict(self) -> dict:
-        """JSON-ready fields."""
+        """JSON-ready fields.
+
+        Returns
+        -------
+        dict
+            The fields by name, tuples as lists (``torque`` [N m], ``counts``).
+        """
         return {"relative": list(self.relative), "torque": [list(t) for t in self.torque],
                 "counts": [list(c) for c in self.counts], "writes": self.writes,
                 "setups": self.setups}

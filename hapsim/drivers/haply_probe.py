@@ -78,7 +78,13 @@ class DirectionProbe:
     writes: int
 
     def to_dict(self) -> dict:
-        """JSON-ready fields."""
+        """JSON-ready fields.
+
+        Returns
+        -------
+        dict
+            The fields by name, tuples as lists (``torque`` [N m], ``counts``).
+        """
         return {"motor_direction": self.motor_direction, "relative": self.relative,
                 "torque": list(self.torque), "counts": list(self.counts),
                 "writes": self.writes}

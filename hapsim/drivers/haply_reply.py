@@ -157,6 +157,11 @@ class ReplyDecoder(AlignedDecoder):
         the class notes): the board's torque clamp over the smallest joint inertia (a hand
         on the handle only adds inertia).
 
+        Parameters
+        ----------
+        accel : float or None
+            [rad/s^2], finite and > 0; None: the default.
+
         Raises
         ------
         ValueError
@@ -183,7 +188,15 @@ class ReplyDecoder(AlignedDecoder):
         last two replies' step stands for the speed over one period; two replies sampled
         close together (a late board's backlog, 50 us apart) make it ~0, and a joint
         moving at speed was then "out of reach" a few ms later. With a bound, the speed
-        the reach assumes is never below it (:meth:`reach_deg`)."""
+        the reach assumes is never below it (:meth:`reach_deg`).
+
+        Parameters
+        ----------
+        tau : float or None
+            Time from the last taken reply's write to now [s]; None: the reads' times.
+        speed_deg : float, optional
+            A bound on the joint's speed at the last reply taken [deg/s]; None: none.
+        """
         self._tau = None if tau is None else float(tau)
         self._speed = None if speed_deg is None else float(speed_deg)
 
@@ -263,7 +276,20 @@ class ReplyDecoder(AlignedDecoder):
 
     def parse(self, buf):
         """The angle [deg] (a tuple of ``angles``, port order, when more than one) of a
-        reply at the start of ``buf``, or None."""
+        reply at the start of ``buf``, or None.
+
+        Parameters
+        ----------
+        buf : bytearray
+            At least :attr:`length` (``1 + 4 angles``) bytes.
+
+        Returns
+        -------
+        float or tuple of float or None
+            The angle [deg] (``angles`` 1), the angles in port order [deg], or None (no
+            reply: a wrong id, an angle not finite, out of range, not a whole count, or
+            out of reach, counted in ``unreachable``).
+        """
         # (index loops, floats only: the real-time loops decode without allocating)
         self._lone = False
         if buf[0] != self.id:
@@ -348,7 +374,18 @@ class ReplyDecoder(AlignedDecoder):
         """A reply taken: the run of dropped bytes before it ends; the replies it held
         are counted in ``damaged`` (a run of ``s`` bytes held ``ceil(s / length)``: a
         byte lost leaves ``length - 1``, a corrupted reply ``length``; a run long enough
-        to be a desync is the re-synchronisation's, not counted)."""
+        to be a desync is the re-synchronisation's, not counted).
+
+        Parameters
+        ----------
+        value : float or tuple of float
+            The reply :meth:`parse` gave [deg].
+
+        Returns
+        -------
+        bool
+            Always True.
+        """
         if self._bad:
             if self._bad < self.desync_bytes:
                 self.stats["damaged"] += -(-self._bad // self.length)

@@ -188,7 +188,13 @@ class SketchTiming:
         latency between them (:data:`RENDER_LATENCY_S`): 3.45 ms. The sketch reads the
         handle at the command's end or at the tick after its read began, so its tick
         adds up to 0.42 ms more (:meth:`latest_answer_s`; ``Hapkit_arduino.ino:96-135``;
-        :func:`hapsim.drivers.tick_align.fit_tick_jump`)."""
+        :func:`hapsim.drivers.tick_align.fit_tick_jump`).
+
+        Returns
+        -------
+        float
+            [s]: ``190 / baud`` plus the render's least latency.
+        """
         return (10 + 9) * 10 / self.baud + RENDER_LATENCY_S[0]
 
     def latest_answer_s(self) -> float:
@@ -199,12 +205,24 @@ class SketchTiming:
         fit_tick_jump`: the handle read on the tick after the read's, 0.42 ms after the
         command's end at most): 4.27 ms. The emulated board's, swept over a tick's
         phases at each bound of the render's latency, is 3.87-4.27 ms; its own render,
-        4.17 ms."""
+        4.17 ms.
+
+        Returns
+        -------
+        float
+            [s].
+        """
         return (self.round_trip_s() - RENDER_LATENCY_S[0] + RENDER_LATENCY_S[1]
                 + 2 * self.tick_s - 9 * 10 / self.baud)
 
     def rate_reason(self) -> str:
-        """Why the highest rate is what it is (:meth:`check_rate`'s message)."""
+        """Why the highest rate is what it is (:meth:`check_rate`'s message).
+
+        Returns
+        -------
+        str
+            The latest answer [ms] and its parts.
+        """
         return (f"a command and its reply take up to {self.latest_answer_s() * 1e3:.3g} ms "
                 f"(both on the wire at {self.baud} baud, the sketch's tick and its render "
                 f"at the write's worst phase)")

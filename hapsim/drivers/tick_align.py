@@ -397,7 +397,18 @@ class TickAligned:
         aim of :meth:`_wait_for_band`, less how late its sleeps wake): the loop's reads
         then come a whole period after its writes, the answer's time (a write delayed
         after its deadline leaves the answer the period less that delay). Unchanged before
-        a probe found the tick (:meth:`tick_phase`)."""
+        a probe found the tick (:meth:`tick_phase`).
+
+        Parameters
+        ----------
+        deadline_ns : int
+            The loop's next deadline [monotonic ns].
+
+        Returns
+        -------
+        int
+            The aligned deadline [monotonic ns], less than a tick after ``deadline_ns``.
+        """
         if self._write_at is None:
             return int(deadline_ns)
         tk = self._tick_ns
@@ -517,7 +528,13 @@ class TickAligned:
     def tick_landed_median(self) -> float | None:
         """Where the writes went, on the host's clock: the median phase after the jump the
         probe found [fraction of a tick] (the aim: a half), to :data:`LANDED_BINS` of a
-        tick (the middle of its bin); None before any."""
+        tick (the middle of its bin); None before any.
+
+        Returns
+        -------
+        float or None
+            A fraction of a tick, in (0, 1).
+        """
         bins = getattr(self, "_landed", None)
         n = sum(bins) if bins else 0
         if not n:

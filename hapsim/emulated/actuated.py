@@ -88,7 +88,24 @@ class Actuated:
         """Lockstep: queue ``force``, apply the one due (``delay`` commands back), advance a
         period. Wall clock: run the physics to ``now`` [s], then the force takes effect at
         ``now + extra_latency_s``. ``None``: this command changes no force (the one held
-        goes on)."""
+        goes on).
+
+        Parameters
+        ----------
+        force : float or None
+            The command's force [N] (or [N m]); clamped to :attr:`limit`, a non-finite one
+            applied as 0.
+        now : float, optional
+            Wall clock: the packet's time on the device's clock [s] (needed); lockstep:
+            ignored.
+
+        Raises
+        ------
+        ValueError
+            Wall clock: ``now`` not finite (:meth:`WallClock.run_to`).
+        TypeError
+            Wall clock: ``now`` None.
+        """
         if force is not None:
             self.last_command = force
             if not math.isfinite(force):
@@ -116,14 +133,27 @@ class Actuated:
         self.physics.advance(due)
 
     def commands(self) -> int:
-        """Force commands applied so far."""
+        """Force commands applied so far.
+
+        Returns
+        -------
+        int
+            Entries of :attr:`applied`: every command in lockstep, those that set a force
+            on the wall clock.
+        """
         return len(self.applied)
 
     def held_from_now(self) -> float:
         """Lockstep: the force the device holds over the coming period [N], the head of
         its delay queue (clamped; the one held goes on where a queued command set none)
         -- what a firmware that reports "the force applied" says at the instant it read
-        the position it sends (the wall clock's reply takes it from its schedule)."""
+        the position it sends (the wall clock's reply takes it from its schedule).
+
+        Returns
+        -------
+        float
+            The force [N] (or [N m]).
+        """
         due = self._fifo[0] if self._fifo else None
         if due is None:
             return self.held
@@ -133,7 +163,13 @@ class Actuated:
 
     def settles_on(self) -> float:
         """The force the device holds once the commands in its delay queue are applied
-        (the last one that sets a force), [N]: what it is left with when the host is gone."""
+        (the last one that sets a force), [N]: what it is left with when the host is gone.
+
+        Returns
+        -------
+        float
+            The force [N] (or [N m]), clamped (a non-finite command: 0).
+        """
         if self.wall is not None:
             return self.wall.settles_on()
         for f in reversed(self._fifo):
@@ -143,7 +179,13 @@ class Actuated:
 
     def apply_now(self, force: float) -> None:
         """The device sets ``force`` itself, at once (a firmware's silence rule): the queue
-        is emptied too."""
+        is emptied too.
+
+        Parameters
+        ----------
+        force : float
+            The force held from now on [N] (or [N m]; not clamped).
+        """
         self._fifo = deque([None] * self.delay)
         self.held = force
         if self.wall is not None:
@@ -153,7 +195,18 @@ class Actuated:
 
     def idle(self, silent_s: float) -> bytes:
         """The host has been silent ``silent_s`` [s]; by default nothing happens (the
-        device holds its force: no watchdog)."""
+        device holds its force: no watchdog).
+
+        Parameters
+        ----------
+        silent_s : float
+            Time since the host's last bytes [s].
+
+        Returns
+        -------
+        bytes
+            ``b""`` here; a board's override returns what its firmware sends meanwhile.
+        """
         return b""
 
     #: From the end of a command read to the end of its answer on the wire [s]: what
@@ -197,14 +250,28 @@ class WallClock:
 
     def schedule(self, at: float, force: float) -> None:
         """The force ``force`` [N] takes effect at ``at`` [s] (in time order: a later
-        packet's force never takes effect before an earlier one's)."""
+        packet's force never takes effect before an earlier one's).
+
+        Parameters
+        ----------
+        at : float
+            The device's time it takes effect at [s].
+        force : float
+            The force [N] (or [N m]).
+        """
         if self._due and at < self._due[-1][0]:
             at = self._due[-1][0]
         self._due.append((float(at), float(force)))
 
     def set_now(self, force: float) -> None:
         """The device sets its force itself, at once (a firmware's silence rule); what was
-        due is dropped."""
+        due is dropped.
+
+        Parameters
+        ----------
+        force : float
+            The force in effect from :attr:`t` on [N] (or [N m]).
+        """
         self._due.clear()
         self._take(float(force))
 
@@ -215,11 +282,22 @@ class WallClock:
         self.held, self._since = force, self.t
 
     def settles_on(self) -> float:
-        """The force in effect once everything due has taken effect [N]."""
+        """The force in effect once everything due has taken effect [N].
+
+        Returns
+        -------
+        float
+            The last force scheduled, else :attr:`held` [N] (or [N m]).
+        """
         return self._due[-1][1] if self._due else self.held
 
     def run_to(self, now: float) -> None:
         """Integrate the physics to ``now`` [s] (nothing when ``now`` is not later).
+
+        Parameters
+        ----------
+        now : float
+            The device's time to reach [s].
 
         Raises
         ------

@@ -95,11 +95,35 @@ class ByteFaults:
         return bytes(out)
 
     def rx(self, data: bytes) -> bytes:
-        """Host -> device bytes, after the faults."""
+        """Host -> device bytes, after the faults.
+
+        Parameters
+        ----------
+        data : bytes
+            The host's bytes.
+
+        Returns
+        -------
+        bytes
+            ``data`` with bytes dropped (``drop_rx``) or one bit flipped (``corrupt_rx``),
+            counted in :attr:`counts`; ``data`` itself with no faults set.
+        """
         return self._apply(data, "drop_rx", "corrupt_rx")
 
     def tx(self, data: bytes) -> bytes:
-        """Device -> host bytes, after the faults."""
+        """Device -> host bytes, after the faults.
+
+        Parameters
+        ----------
+        data : bytes
+            The device's bytes.
+
+        Returns
+        -------
+        bytes
+            ``data`` with bytes dropped (``drop_tx``) or one bit flipped (``corrupt_tx``),
+            counted in :attr:`counts`; ``data`` itself with no faults set.
+        """
         return self._apply(data, "drop_tx", "corrupt_tx")
 
 
@@ -510,7 +534,26 @@ def build_board(driver: str, device, excitation, rate_hz: float, *, seed: int = 
 def main(argv=None) -> int:
     """Child-process entry: ``python -m hapsim.emulated.driver_mock --fd N --spec JSON --rate R``
     (``--fd``: a pty's master; ``--listen``: an emulated link's listening socket instead,
-    :mod:`hapsim.emulated.stamped_link`)."""
+    :mod:`hapsim.emulated.stamped_link`).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit status: 0 once served or stopped (the report written to ``--report``
+        when the port opened), 2 when the board cannot be built (one line on stderr).
+
+    Raises
+    ------
+    SystemExit
+        Bad arguments (argparse, status 2).
+    ValueError
+        ``--spec`` or ``--faults`` not JSON.
+    """
     import argparse
 
     from hapsim.scene import device_from_dict, excitation_from_dict

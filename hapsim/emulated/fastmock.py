@@ -51,7 +51,7 @@ COMPILED_SOURCES = MOCK_SOURCES
 #: (:data:`hapsim.kernels.sources.MOCK_SOURCES`): numba keys its disk cache on this file
 #: alone, so this constant changes with them (``tests/test_compiled_loop_sources.py`` says
 #: so), which edits this file and makes numba recompile. Until then: no cache.
-COMPILED_SOURCES_SHA256 = "fe7ee60192363d7b0dd7767add8b02b1d1088f5525e052b7b050ca90b9683779"
+COMPILED_SOURCES_SHA256 = "72ecec7b635e1b2946cf16411ec06dda70379583221df8ea55c501fe0f13f5c9"
 
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = sources_digest(source_paths(MOCK_SOURCES)) == COMPILED_SOURCES_SHA256

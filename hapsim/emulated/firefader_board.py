@@ -295,7 +295,19 @@ class FireFaderDevice(Actuated):
 
     def position_count(self, physics=None) -> int:
         """A fader's reading (fader A's by default, or that of ``physics``): the sampled
-        position in counts from the centre, 0..254."""
+        position in counts from the centre, 0..254.
+
+        Parameters
+        ----------
+        physics : hapsim.device_model.MockPhysics, optional
+            A fader's plant (fader B's: ``fader_b.physics``); default fader A's.
+
+        Returns
+        -------
+        int
+            :data:`hapsim.drivers.firefader.CENTRE` plus the sampled position over
+            ``metres_per_count``, rounded and clipped to 0..254 [counts].
+        """
         ff = self._ff
         c = ff.CENTRE + round((physics or self.physics).sample() / self.mpc)
         return int(min(max(c, 0), ff.POSITION_MAX))
@@ -451,7 +463,22 @@ class FireFaderDevice(Actuated):
             self._holding = None
 
     def step(self, count_a: int) -> bytes:
-        """One packet: one pass of the firmware, one record."""
+        """One packet: one pass of the firmware, one record.
+
+        Parameters
+        ----------
+        count_a : int
+            Fader A's force byte, signed (-128..127); fader B's is 0.
+
+        Returns
+        -------
+        bytes
+            The 7-byte record (:func:`hapsim.drivers.firefader.encode_record`).
+
+        Notes
+        -----
+        Lockstep only: on the wall clock the pass needs its start time (:meth:`feed`).
+        """
         return self._pass(count_a, 1)
 
     def _parse(self, b: int):
@@ -475,7 +502,18 @@ class FireFaderDevice(Actuated):
     def host_writes(data: bytes) -> list:
         """The host's bytes of one read as its writes: a new one at each 127 (no force
         byte the host sends is 127); bytes before the first 127 continue a write already
-        counted (the first element, possibly empty)."""
+        counted (the first element, possibly empty).
+
+        Parameters
+        ----------
+        data : bytes
+            The bytes of one read.
+
+        Returns
+        -------
+        list of bytes
+            The writes, each but the first starting with its 127.
+        """
         out = [bytearray()]
         for b in data:
             if b == 127:
@@ -588,7 +626,18 @@ class FireFaderDevice(Actuated):
         disables the force after 0.1 s (on the wall clock at the instant the firmware's
         polls ran out, :meth:`_silence`, once the emulator has seen the silence last that
         long: :func:`serve` calls this while no byte waits, every ``poll``); ``.pde``
-        streams a record (one pass) on every call."""
+        streams a record (one pass) on every call.
+
+        Parameters
+        ----------
+        silent_s : float
+            Time since the host's last bytes [s].
+
+        Returns
+        -------
+        bytes
+            ``.pde``: one 7-byte record; ``.ino``: ``b""``.
+        """
         if self.wall is not None:
             now = self._last_now + silent_s
             if self.firmware == "pde":

@@ -159,7 +159,31 @@ class VirtualFT232R:
 
     # ------------------------------------------------------------------ control
     def control(self, bm: int, req: int, value: int, index: int, data) -> int:
-        """One control transfer; IN data written into ``data``. Returns its length."""
+        """One control transfer; IN data written into ``data``. Returns its length.
+
+        Parameters
+        ----------
+        bm : int
+            ``bmRequestType``: bits 5-6 the type (0 standard, 2 vendor), bit 7 IN.
+        req, value, index : int
+            ``bRequest`` (a standard GET_DESCRIPTOR or an :data:`SIO` request), ``wValue``,
+            ``wIndex``.
+        data : array of int (``array("B")``)
+            OUT: the request's data; IN: the buffer its answer is written into.
+
+        Returns
+        -------
+        int
+            Bytes transferred: 1 (``GET_LATENCY_TIMER``), 2 (``POLL_MODEM_STATUS``), the
+            string descriptor's bytes that fit, else ``len(data)``.
+
+        Raises
+        ------
+        usb.core.USBError
+            EPIPE (a stall): a class or reserved request, an unknown vendor request, a
+            ``SIO_RESET`` value other than 0-2, a bit mode other than the UART's, a standard
+            request other than GET_DESCRIPTOR of a known string; ENODEV: unplugged.
+        """
         self._alive()
         if bm & 0x60 == 0x00:                        # standard: descriptors
             return self._standard(bm, req, value, index, data)
@@ -297,7 +321,24 @@ class VirtualFT232R:
     # ------------------------------------------------------------------ bulk
     def bulk_out(self, data) -> int:
         """Host -> device bytes: through the faults to ``device.feed``; its answer kept
-        for the host (through the faults)."""
+        for the host (through the faults).
+
+        Parameters
+        ----------
+        data : bytes-like
+            The bulk OUT transfer's bytes.
+
+        Returns
+        -------
+        int
+            ``len(data)``: every byte taken (those the faults drop included).
+
+        Raises
+        ------
+        usb.core.USBError
+            ENODEV: the chip is unplugged, or leaves the bus at this transfer
+            (``unplug_after``).
+        """
         self._count_transfer()
         self._side_in()
         self._take_out(bytes(data))
@@ -329,7 +370,24 @@ class VirtualFT232R:
 
     def bulk_in(self, buff) -> int:
         """Device -> host: USB packets of the two status bytes and up to 62 data bytes,
-        as many as ``buff`` holds (at least the status bytes)."""
+        as many as ``buff`` holds (at least the status bytes).
+
+        Parameters
+        ----------
+        buff : array of int (``array("B")``)
+            The read's buffer, written in place; its length is the bytes asked for.
+
+        Returns
+        -------
+        int
+            Bytes written into ``buff``: 2 status bytes per packet and the data (0 when
+            ``buff`` holds fewer than 2 bytes).
+
+        Raises
+        ------
+        usb.core.USBError
+            ENODEV: the chip is unplugged, or leaves the bus at this transfer.
+        """
         self._count_transfer()
         self._side_in()
         if self._later:
@@ -375,28 +433,104 @@ class VirtualUSB:
 
     # enumeration and descriptors
     def enumerate_devices(self):
-        """The chips on the bus (an unplugged one is not)."""
+        """The chips on the bus (an unplugged one is not).
+
+        Returns
+        -------
+        list of VirtualFT232R
+            The plugged chips, in order: pyusb's ``dev`` for the methods below.
+        """
         return [c for c in self.chips if c.plugged]
 
     def get_device_descriptor(self, dev):
-        """The device descriptor (``bcdDevice`` 0x0600: an FT232R)."""
+        """The device descriptor (``bcdDevice`` 0x0600: an FT232R).
+
+        Parameters
+        ----------
+        dev : VirtualFT232R
+            A chip of :meth:`enumerate_devices`.
+
+        Returns
+        -------
+        types.SimpleNamespace
+            The chip's ``desc``: the USB fields (``idVendor``, ``idProduct``, ...) and its
+            ``bus``, ``address``, ``port_number``, ``speed``.
+        """
         return dev.desc
 
     def get_configuration_descriptor(self, dev, config):
-        """The one configuration."""
+        """The one configuration.
+
+        Parameters
+        ----------
+        dev : VirtualFT232R
+        config : int
+            The configuration's index (not checked: there is one).
+
+        Returns
+        -------
+        types.SimpleNamespace
+            The chip's ``config`` descriptor (``bConfigurationValue`` 1, one interface).
+        """
         return dev.config
 
     def get_interface_descriptor(self, dev, intf, alt, config):
-        """The one interface (vendor class, two bulk endpoints)."""
+        """The one interface (vendor class, two bulk endpoints).
+
+        Parameters
+        ----------
+        dev : VirtualFT232R
+        intf, alt, config : int
+            Interface, alternate setting and configuration indices (not checked).
+
+        Returns
+        -------
+        types.SimpleNamespace
+            The chip's ``interface`` descriptor.
+        """
         return dev.interface
 
     def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
-        """Bulk IN 0x81 and bulk OUT 0x02, 64 bytes."""
+        """Bulk IN 0x81 and bulk OUT 0x02, 64 bytes.
+
+        Parameters
+        ----------
+        dev : VirtualFT232R
+        ep : int
+            The endpoint's index in the interface: 0 (bulk IN 0x81) or 1 (bulk OUT 0x02).
+        intf, alt, config : int
+            Interface, alternate setting and configuration indices (not checked).
+
+        Returns
+        -------
+        types.SimpleNamespace
+            The endpoint descriptor (``wMaxPacketSize`` 64).
+
+        Raises
+        ------
+        IndexError
+            ``ep`` other than 0 or 1.
+        """
         return dev.endpoints[ep]
 
     # handles
     def open_device(self, dev):
-        """A handle (EACCES when the chip denies access: no udev rule)."""
+        """A handle (EACCES when the chip denies access: no udev rule).
+
+        Parameters
+        ----------
+        dev : VirtualFT232R
+
+        Returns
+        -------
+        types.SimpleNamespace
+            ``dev`` (the chip) and ``handle`` (the handles opened so far, from 1).
+
+        Raises
+        ------
+        usb.core.USBError
+            ENODEV: the chip is unplugged; EACCES: it denies access (``deny_access``).
+        """
         if not dev.plugged:
             raise _usb_error("No such device (it may have been disconnected)", errno.ENODEV)
         if dev.deny_access:
@@ -406,60 +540,237 @@ class VirtualUSB:
 
     def close_device(self, dev_handle) -> None:
         """The chip's side channel closed (a watchdog's writes end with the host's
-        handle, as libusb's file)."""
+        handle, as libusb's file).
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        """
         dev_handle.dev.close_side()
 
     def set_configuration(self, dev_handle, config_value) -> None:
-        """Only configuration 1 exists."""
+        """Only configuration 1 exists.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        config_value : int
+            ``bConfigurationValue`` asked (not checked).
+
+        Raises
+        ------
+        usb.core.USBError
+            ENODEV: the chip is unplugged.
+        """
         dev_handle.dev._alive()
 
     def get_configuration(self, dev_handle) -> int:
-        """Configuration 1."""
+        """Configuration 1.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+
+        Returns
+        -------
+        int
+            1.
+        """
         return 1
 
     def set_interface_altsetting(self, dev_handle, intf, altsetting) -> None:
-        """Only alternate setting 0 exists."""
+        """Only alternate setting 0 exists.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        intf, altsetting : int
+            Interface and alternate setting (ignored).
+        """
 
     def claim_interface(self, dev_handle, intf) -> None:
-        """Claim (EBUSY when the chip says another program holds it)."""
+        """Claim (EBUSY when the chip says another program holds it).
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        intf : int
+            The interface (not checked).
+
+        Raises
+        ------
+        usb.core.USBError
+            ENODEV: the chip is unplugged; EBUSY: it is busy (``busy``).
+        """
         dev_handle.dev._alive()
         if dev_handle.dev.busy:
             raise _usb_error("Resource busy", errno.EBUSY)
 
     def release_interface(self, dev_handle, intf) -> None:
-        """Release (never fails, as after an unplug)."""
+        """Release (never fails, as after an unplug).
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        intf : int
+            The interface (ignored).
+        """
 
     def is_kernel_driver_active(self, dev_handle, intf) -> bool:
-        """No kernel driver."""
+        """No kernel driver.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        intf : int
+            The interface (ignored).
+
+        Returns
+        -------
+        bool
+            False.
+        """
         return False
 
     def detach_kernel_driver(self, dev_handle, intf) -> None:
-        """Nothing attached."""
+        """Nothing attached.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        intf : int
+            The interface (ignored).
+        """
 
     def attach_kernel_driver(self, dev_handle, intf) -> None:
-        """Nothing to attach."""
+        """Nothing to attach.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        intf : int
+            The interface (ignored).
+        """
 
     def reset_device(self, dev_handle) -> None:
-        """A USB reset (the chip's state kept)."""
+        """A USB reset (the chip's state kept).
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+
+        Raises
+        ------
+        usb.core.USBError
+            ENODEV: the chip is unplugged.
+        """
         dev_handle.dev._alive()
 
     def clear_halt(self, dev_handle, ep) -> None:
-        """No halted endpoint."""
+        """No halted endpoint.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        ep : int
+            The endpoint's address (ignored).
+        """
 
     # transfers
     def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data,
                       timeout):
-        """A control transfer (:meth:`VirtualFT232R.control`)."""
+        """A control transfer (:meth:`VirtualFT232R.control`).
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        bmRequestType, bRequest, wValue, wIndex : int
+            The setup packet's fields.
+        data : array of int (``array("B")``)
+            OUT: the data; IN: the buffer the answer is written into.
+        timeout : int
+            pyusb's timeout [ms] (ignored: no transfer waits).
+
+        Returns
+        -------
+        int
+            Bytes transferred (:meth:`VirtualFT232R.control`).
+
+        Raises
+        ------
+        usb.core.USBError
+            As :meth:`VirtualFT232R.control` (EPIPE, ENODEV).
+        """
         return dev_handle.dev.control(bmRequestType, bRequest, wValue, wIndex, data)
 
     def bulk_write(self, dev_handle, ep, intf, data, timeout):
-        """Bulk OUT to endpoint 0x02."""
+        """Bulk OUT to endpoint 0x02.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        ep : int
+            The endpoint's address: 0x02.
+        intf : int
+            The interface (ignored).
+        data : bytes-like
+            The bytes to the device.
+        timeout : int
+            pyusb's timeout [ms] (ignored).
+
+        Returns
+        -------
+        int
+            Bytes taken (:meth:`VirtualFT232R.bulk_out`).
+
+        Raises
+        ------
+        usb.core.USBError
+            EPIPE: another endpoint; ENODEV: the chip is unplugged or leaves the bus.
+        """
         if ep != _OUT_EP:
             raise _usb_error("Pipe error", errno.EPIPE)
         return dev_handle.dev.bulk_out(data)
 
     def bulk_read(self, dev_handle, ep, intf, buff, timeout):
-        """Bulk IN from endpoint 0x81."""
+        """Bulk IN from endpoint 0x81.
+
+        Parameters
+        ----------
+        dev_handle : types.SimpleNamespace
+            A handle of :meth:`open_device`.
+        ep : int
+            The endpoint's address: 0x81.
+        intf : int
+            The interface (ignored).
+        buff : array of int (``array("B")``)
+            The read's buffer, written in place.
+        timeout : int
+            pyusb's timeout [ms] (ignored: the wait is at most :data:`POLL_S`).
+
+        Returns
+        -------
+        int
+            Bytes written into ``buff`` (:meth:`VirtualFT232R.bulk_in`).
+
+        Raises
+        ------
+        usb.core.USBError
+            EPIPE: another endpoint; ENODEV: the chip is unplugged or leaves the bus.
+        """
         if ep != _IN_EP:
             raise _usb_error("Pipe error", errno.EPIPE)
         return dev_handle.dev.bulk_in(buff)

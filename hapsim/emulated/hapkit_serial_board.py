@@ -64,6 +64,13 @@ class SketchReader:
     def feed(self, data: bytes, now: float) -> list:
         """Bytes that came at the board's time ``now`` [s]; the commands completed, in order.
 
+        Parameters
+        ----------
+        data : bytes
+            The host's bytes.
+        now : float
+            The board's time they came at [s].
+
         Returns
         -------
         list of (float, int, float, float)
@@ -77,21 +84,51 @@ class SketchReader:
 
     def expire(self, now: float) -> list:
         """The command a ``readBytes`` still waits for, completed by its timeout if the
-        host has been silent longer than it by ``now`` [s]; ``[]`` or one command."""
+        host has been silent longer than it by ``now`` [s]; ``[]`` or one command.
+
+        Parameters
+        ----------
+        now : float
+            The board's time [s].
+
+        Returns
+        -------
+        list of (float, int, float, float)
+            ``[]`` or one command ``(t, function, a, b)``, as :meth:`feed`'s.
+        """
         if self._cur and self.t_last is not None and now - self.t_last > self.timeout_s:
             return self.time_out()
         return []
 
     def take(self, byte: int, t: float) -> list:
         """One byte read at ``t`` [s], the timeout kept by the caller (the sketch's loop,
-        :meth:`HapkitSerialDevice._run`); the command it completes, ``[]`` or one."""
+        :meth:`HapkitSerialDevice._run`); the command it completes, ``[]`` or one.
+
+        Parameters
+        ----------
+        byte : int
+            The byte, 0..255.
+        t : float
+            The board's time it is read at [s].
+
+        Returns
+        -------
+        list of (float, int, float, float)
+            ``[]`` or one command ``(t, function, a, b)``, as :meth:`feed`'s.
+        """
         self._cur.append(int(byte))
         self.t_last = float(t)
         return [self._finish(t)] if len(self._cur) == 10 else []
 
     def time_out(self) -> list:
         """``readBytes``' timeout: the command under way completed with the buffer's old
-        bytes at the last byte's time plus :attr:`timeout_s`; ``[]`` when none is."""
+        bytes at the last byte's time plus :attr:`timeout_s`; ``[]`` when none is.
+
+        Returns
+        -------
+        list of (float, int, float, float)
+            ``[]`` or one command ``(t, function, a, b)``, as :meth:`feed`'s.
+        """
         if not self._cur:
             return []
         self.stats["timeouts"] += 1
@@ -118,6 +155,19 @@ def sketch_force(function: int, host_function: int, b: float, x: float, v: float
     ``host_function`` (the case the driver's firmware adds; non-finite: 0), 0 none, 1 a
     wall at 5 mm (400 N/m), 2 a damper (15 N s/m on the velocity ``v`` [m/s]), 3 a spring
     (100 N/m on the handle's position ``x`` [m]), any other none.
+
+    Parameters
+    ----------
+    function : int
+        The command's function byte, 0..255.
+    host_function : int
+        The function byte of the host's force.
+    b : float
+        The command's second value: the host's force [N].
+    x : float
+        The handle's position [m].
+    v : float
+        The handle's velocity [m/s].
 
     Returns
     -------
@@ -300,7 +350,26 @@ class HapkitSerialDevice(Actuated):
     def feed(self, data: bytes, now: float = math.inf) -> bytes:
         """Bytes from the host in (at the board's time ``now`` [s], needed on the wall
         clock), the replies out: lockstep one per command; wall clock one per render that
-        follows a read (:meth:`_run`)."""
+        follows a read (:meth:`_run`).
+
+        Parameters
+        ----------
+        data : bytes
+            What the host wrote.
+        now : float
+            The board's time the bytes came at [s] (wall clock: needed; lockstep: ignored).
+
+        Returns
+        -------
+        bytes
+            The 9-byte replies (:func:`hapsim.drivers.hapkit_serial.reply_packet`); on the
+            wall clock the last is ready at :attr:`ready_at`.
+
+        Raises
+        ------
+        ValueError
+            Wall clock: ``now`` not finite.
+        """
         if self.wall is not None:
             if not math.isfinite(now):
                 raise ValueError("a board on the wall clock needs the time of each write")
@@ -455,7 +524,18 @@ class HapkitSerialDevice(Actuated):
         """The sketch has no silence rule: it holds its force. On the wall clock its loop
         runs on to the host's last byte plus ``silent_s`` [s]: a command whose bytes
         stopped coming is completed by ``readBytes``' timeout (:class:`SketchReader`),
-        then rendered and answered."""
+        then rendered and answered.
+
+        Parameters
+        ----------
+        silent_s : float
+            Time since the host's last write [s].
+
+        Returns
+        -------
+        bytes
+            The replies the loop writes meanwhile (``b""`` in lockstep or before a write).
+        """
         if self.wall is None or self._fed_at is None:
             return b""
         return self._run(self._fed_at + float(silent_s))

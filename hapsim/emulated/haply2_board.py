@@ -232,7 +232,19 @@ class Haply2DIYBoard:
         return active.index(port) if port in active else 0
 
     def angle_deg(self, port: int) -> float:
-        """Encoder ``port``'s reading [deg] (firmware ``read_encoder_value``)."""
+        """Encoder ``port``'s reading [deg] (firmware ``read_encoder_value``).
+
+        Parameters
+        ----------
+        port : int
+            The encoder port, 1..4 (a port with no joint reads its set-up count).
+
+        Returns
+        -------
+        float
+            ``360 * count / resolution`` [deg]; a set-up's resolution 0 or not finite
+            gives +-inf (nan at count 0).
+        """
         p = self.parser
         res = p.encoder_res[port - 1]
         j = self._joint_of_port(port)
@@ -268,7 +280,18 @@ class Haply2DIYBoard:
     def idle(self, silent_s: float) -> bytes:
         """A silent host ``silent_s`` [s] since its last bytes: the board has no watchdog,
         it holds its torques; a command its parser held for a pass still to come (wall
-        clock) reads its absent bytes at that pass (255): the replies it then makes."""
+        clock) reads its absent bytes at that pass (255): the replies it then makes.
+
+        Parameters
+        ----------
+        silent_s : float
+            Time since the host's last bytes [s].
+
+        Returns
+        -------
+        bytes
+            The replies (``b""`` in lockstep or with no command held).
+        """
         if self.wall is None or not self.parser.waiting:
             return b""
         return self._flush(self._last_now + silent_s)
@@ -290,7 +313,13 @@ class Haply2DIYBoard:
         return pass_at(t, self._busy_until)
 
     def commands(self) -> int:
-        """Writes taken."""
+        """Writes taken.
+
+        Returns
+        -------
+        int
+            :attr:`writes`.
+        """
         return self.writes
 
     def settles_on(self, ports=None) -> float:
@@ -320,6 +349,11 @@ class Haply2DIYBoard:
         """Wall clock: the pantograph integrated to the board's time ``t`` [s], the torques
         in effect held, each write's taking effect at its time (the plant not moving while
         the hand holds it after a set-up: module notes).
+
+        Parameters
+        ----------
+        t : float
+            The board's time to reach [s].
 
         Raises
         ------
@@ -484,11 +518,28 @@ class BoardLink:
 
     def write(self, data: bytes) -> None:
         """Feed ``data`` (host -> board bytes) to the board; its replies wait for
-        :meth:`read`."""
+        :meth:`read`.
+
+        Parameters
+        ----------
+        data : bytes
+            What the host writes.
+        """
         self._buf += self._feed(data)
 
     def read(self, timeout: float) -> bytes:
         """Every reply byte the board has made since the last read (``timeout`` [s] is
-        not waited: in lockstep the replies are there at once; ``b""`` when none)."""
+        not waited: in lockstep the replies are there at once; ``b""`` when none).
+
+        Parameters
+        ----------
+        timeout : float
+            The host's wait [s] (ignored).
+
+        Returns
+        -------
+        bytes
+            The replies' bytes, in order.
+        """
         out, self._buf = self._buf, b""
         return out

@@ -126,7 +126,20 @@ class HaplyDevice(Actuated):
 
     def angle_deg(self, port: int = 0) -> float:
         """Encoder ``port``'s reading [deg] (firmware ``read_encoder_value``, rounded to
-        binary32 on the wire)."""
+        binary32 on the wire).
+
+        Parameters
+        ----------
+        port : int
+            The encoder port, 0..3 (port - 1); only 0, the handle's joint, is read (any
+            other gives 0.0).
+
+        Returns
+        -------
+        float
+            ``360 * count / resolution`` [deg] (not yet rounded); a set-up's resolution 0
+            or not finite gives +-inf (nan at count 0).
+        """
         dec = self.decoder
         if port != 0:
             return 0.0

@@ -164,7 +164,19 @@ class CommandDecoder:
 
     def feed(self, data: bytes) -> list:
         """Bytes in; ``("write", addr, {motor port: torque})``, ``("setup", addr)``,
-        ``("reset", addr)`` out (the parser's state is the last command's)."""
+        ``("reset", addr)`` out (the parser's state is the last command's).
+
+        Parameters
+        ----------
+        data : bytes
+            The host's bytes, after those held.
+
+        Returns
+        -------
+        list of tuple
+            The commands completed, in order: a write's ports 0..3 (motor port - 1), its
+            torques the float32 sent [N m]; a command not complete stays held.
+        """
         return list(self.commands(data))
 
     @property
@@ -213,7 +225,18 @@ class CommandDecoder:
         One parser for both rules (class notes): a single read of a byte not arrived
         waits for it (``absent=None``) or reads :attr:`absent` in its place
         (:meth:`_pad`); a ``readBytes`` (the set-up's encoder parameters, a write's
-        torques) waits for its bytes either way."""
+        torques) waits for its bytes either way.
+
+        Parameters
+        ----------
+        data : bytes
+            The host's bytes, after those held.
+
+        Yields
+        ------
+        tuple
+            A command, as :meth:`feed`'s.
+        """
         buf = self._buf
         buf += data
         while buf:
@@ -259,6 +282,17 @@ class CommandDecoder:
 
     def reply_layout(self, addr: int) -> tuple:
         """What the board answers a write to ``addr`` with: ``(analog pins, encoder
-        ports)`` of that address (the reply is ``[addr]`` and a float32 for each)."""
+        ports)`` of that address (the reply is ``[addr]`` and a float32 for each).
+
+        Parameters
+        ----------
+        addr : int
+            The write's address, 0..255.
+
+        Returns
+        -------
+        (int, list of int)
+            The analog pins of ``addr`` and its encoder ports 0..3 (port - 1), in order.
+        """
         return (sum(a == addr for a in self.analog_addr),
                 [p for p in range(4) if self.encoder_addr[p] == addr])

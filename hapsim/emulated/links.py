@@ -410,7 +410,18 @@ class BoardLink:
 
     def write(self, data) -> int:
         """The host's bytes to the board (through ``rx``), its answer queued (through
-        ``tx``); returns ``len(data)``, as pyserial's ``write``."""
+        ``tx``); returns ``len(data)``, as pyserial's ``write``.
+
+        Parameters
+        ----------
+        data : bytes-like
+            What the host writes.
+
+        Returns
+        -------
+        int
+            ``len(data)`` (those ``rx`` drops included).
+        """
         self.out += self.tx(self.board.feed(self.rx(bytes(data))))
         plant = getattr(self.board, "plant", None)
         if plant is not None:
@@ -422,7 +433,18 @@ class BoardLink:
         return len(self.out)
 
     def read(self, n: int) -> bytes:
-        """Up to ``n`` bytes the board sent (never waits), as pyserial's ``read``."""
+        """Up to ``n`` bytes the board sent (never waits), as pyserial's ``read``.
+
+        Parameters
+        ----------
+        n : int
+            Most bytes to take.
+
+        Returns
+        -------
+        bytes
+            The oldest bytes not yet read (``b""`` when none).
+        """
         b = bytes(self.out[:n])
         del self.out[:n]
         return b
@@ -452,10 +474,27 @@ class LockstepBoardLink(BoardLink):
         self.dev = dev
 
     def write(self, data) -> int:
-        """Feed one write to the board: one tick; its record waits to be read."""
+        """Feed one write to the board: one tick; its record waits to be read.
+
+        Parameters
+        ----------
+        data : bytes-like
+            What the host writes (no faults on this link).
+
+        Returns
+        -------
+        int
+            ``len(data)``.
+        """
         self.out += self.dev.feed(bytes(data), writes=[b"", bytes(data)])
         return len(data)
 
     def idle(self, s: float) -> None:
-        """The host silent for ``s`` [s] (the board's silence rule counts it)."""
+        """The host silent for ``s`` [s] (the board's silence rule counts it).
+
+        Parameters
+        ----------
+        s : float
+            The silence [s].
+        """
         self.dev.idle(s)

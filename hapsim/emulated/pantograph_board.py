@@ -225,6 +225,17 @@ class JointLevelTransport:
     def receive(self, timeout: float = 0.0) -> list:
         """The inner transport's messages, STATEs of the pantograph in Cartesian form.
 
+        Parameters
+        ----------
+        timeout : float
+            Longest wait for a first message [s] (the inner transport's).
+
+        Returns
+        -------
+        list of firmware_protocol messages
+            In arrival order; a joint-level pantograph's STATE with its position the
+            handle's ``(x, y)`` [m] instead of the joints' [rad].
+
         Raises
         ------
         hapsim.errors.KinematicsError
@@ -249,7 +260,18 @@ class JointLevelTransport:
 
     def send(self, msg) -> None:
         """Send ``msg``; a FORCE as joint torques ``J(q_seq)^T F`` (DeviceError when its
-        STATE was not seen)."""
+        STATE was not seen).
+
+        Parameters
+        ----------
+        msg : firmware_protocol message
+            A 2-D FORCE's ``force`` is ``(Fx, Fy)`` [N]; any other passes unchanged.
+
+        Raises
+        ------
+        DeviceError
+            A joint-level FORCE whose STATE (its ``seq``) is not in the ring of 256.
+        """
         if self.joint_level and isinstance(msg, fp.Force) and len(msg.force) == 2:
             k = msg.seq & 255
             if self._seq[k] != msg.seq:

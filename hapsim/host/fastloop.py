@@ -82,7 +82,18 @@ _HIST = 16
 
 def compiled_available(transport) -> bool:
     """Whether the compiled loop can own this transport's port (a pyserial port with a
-    file descriptor: hardware, or the mock's pty)."""
+    file descriptor: hardware, or the mock's pty).
+
+    Parameters
+    ----------
+    transport : object
+        A host transport (:class:`hapsim.host.transport.Transport`).
+
+    Returns
+    -------
+    bool
+        Whether its ``serial_port`` has an int ``fd``.
+    """
     ser = getattr(transport, "serial_port", None)
     return isinstance(getattr(ser, "fd", None), int)
 

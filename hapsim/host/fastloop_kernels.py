@@ -51,7 +51,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "ddf13eb617d104916da46bb2f6496bc3f561c16655e521bc3c8e42e1b8d89a4c"
+COMPILED_SOURCES_SHA256 = "3b3fd8f38f86c8f078b434b15a58e96e98f4c2c9cadd77640b4886eb58115332"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

@@ -132,7 +132,14 @@ class MeasuredVelocity:
             self.missing += 1
 
     def as_dict(self) -> dict:
-        """``frames`` and ``missing`` as a dict (the run's report)."""
+        """``frames`` and ``missing`` as a dict (the run's report).
+
+        Returns
+        -------
+        dict
+            ``frames`` (VELOCITY messages kept) and ``missing`` (STATEs answered without
+            their velocity), ints.
+        """
         return {"frames": self.frames, "missing": self.missing}
 
 

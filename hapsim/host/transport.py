@@ -44,10 +44,27 @@ class Transport(Protocol):
     info: dict
 
     def send(self, msg) -> None:
-        """Send one protocol message (DeviceError when the port is gone)."""
+        """Send one protocol message (DeviceError when the port is gone).
+
+        Parameters
+        ----------
+        msg : firmware_protocol message
+            A host message (``Force``, ``Config``, ...).
+        """
 
     def receive(self, timeout: float = 0.0) -> list:
-        """The messages received so far, waiting up to ``timeout`` [s] for a first one."""
+        """The messages received so far, waiting up to ``timeout`` [s] for a first one.
+
+        Parameters
+        ----------
+        timeout : float
+            Longest wait [s], >= 0 (0: only what is waiting).
+
+        Returns
+        -------
+        list of firmware_protocol messages
+            In arrival order; empty after the timeout.
+        """
 
     def close(self) -> None:
         """Release the port (idempotent)."""

@@ -41,7 +41,7 @@ LISTEN_CODES = {"position": 0, "velocity": 1, "force": 2}
 COMPILED_SOURCES = ("hapsim/kernels/cordis.py",)
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "77752d2cf717a9cff5ea822178daa4a025da6df79a0837914ef586858770735c"
+COMPILED_SOURCES_SHA256 = "83886cfafdc1e236acf79fddfdaddee29626f970e47bdd5b176e8b47f73bdc76"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -238,7 +238,17 @@ def run_frames(nframes, nsub, linear, last, port, ring, wr, st, fring,
 @_jit
 def ring_write(frames, ring, wr):
     """Append ``frames`` (shape (F, C)) to the frame ring (shape (R, C)); ``wr[0]`` counts
-    frames written (the producer publishes after copying)."""
+    frames written (the producer publishes after copying).
+
+    Parameters
+    ----------
+    frames : ndarray, shape (F, C)
+        The frames to append (F may be 0).
+    ring : ndarray of float32, shape (R, C)
+        The ring, written at ``(wr[0] + i) % R``.
+    wr : ndarray of int64, shape (1,)
+        Frames written so far, advanced by F.
+    """
     R = ring.shape[0]
     w = wr[0]
     for i in range(frames.shape[0]):
@@ -255,6 +265,19 @@ def ring_read(nframes, ring, wr, st, out):
     counted), ``st[2]`` frames skipped (the writer was more than half a ring ahead: the
     reader jumps to a quarter ring behind it, so that clock drift between the device and
     the sound card never grows the latency).
+
+    Parameters
+    ----------
+    nframes : int
+        Frames to copy, at most ``out.shape[0]``.
+    ring : ndarray of float32, shape (R, C)
+        The ring.
+    wr : ndarray of int64, shape (1,)
+        Frames written (read only).
+    st : ndarray of int64, shape (3,)
+        Read, missing and skipped counts, updated in place.
+    out : ndarray of float32, shape (>= nframes, C)
+        Receives the frames (0.0 where the ring ran empty).
     """
     R = ring.shape[0]
     rd = st[0]

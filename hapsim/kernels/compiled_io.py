@@ -70,7 +70,18 @@ jit_helper = register_jitable
 
 @jit
 def now_ns(ts):
-    """``CLOCK_MONOTONIC`` now [ns], read into ``ts`` (int64, shape (2,): s, ns)."""
+    """``CLOCK_MONOTONIC`` now [ns], read into ``ts`` (int64, shape (2,): s, ns).
+
+    Parameters
+    ----------
+    ts : ndarray of int64, shape (2,)
+        Scratch ``struct timespec`` (seconds, nanoseconds), overwritten.
+
+    Returns
+    -------
+    int
+        Monotonic time [ns].
+    """
     c_clock_gettime(CLOCK_MONOTONIC, ts.ctypes.data)
     return ts[0] * 1_000_000_000 + ts[1]
 
@@ -78,7 +89,22 @@ def now_ns(ts):
 @jit_helper
 def crc16(buf, n, table):
     """CRC-16/CCITT-FALSE of ``buf[:n]`` with ``table`` (:data:`CRC_TABLE`); 0 over a
-    packet whose last two bytes are its CRC (PROTOCOL.md §2)."""
+    packet whose last two bytes are its CRC (PROTOCOL.md §2).
+
+    Parameters
+    ----------
+    buf : ndarray of uint8
+        The bytes.
+    n : int
+        How many of them, from the first.
+    table : ndarray of uint16, shape (256,)
+        :data:`CRC_TABLE`.
+
+    Returns
+    -------
+    int
+        The CRC, 0 .. 0xFFFF (initial value 0xFFFF, no final XOR).
+    """
     c = 0xFFFF
     for j in range(n):
         c = ((c << 8) & 0xFFFF) ^ table[((c >> 8) ^ buf[j]) & 0xFF]
@@ -88,7 +114,22 @@ def crc16(buf, n, table):
 @jit_helper
 def le(buf, off, nbytes):
     """The little-endian unsigned integer in ``buf[off:off + nbytes]`` (PROTOCOL.md §3:
-    every integer field is little-endian)."""
+    every integer field is little-endian).
+
+    Parameters
+    ----------
+    buf : ndarray of uint8
+        The packet.
+    off : int
+        Offset of the field's first byte.
+    nbytes : int
+        Its width in bytes, 1 to 8 (8 bytes read as a two's-complement int64).
+
+    Returns
+    -------
+    int64
+        The field's value.
+    """
     v = np.int64(0)
     for j in range(nbytes):
         v |= np.int64(buf[off + j]) << (8 * j)
@@ -104,7 +145,24 @@ def next_frame(rb, a, n_rb):
     PROTOCOL.md §2 (framing); shared by the compiled host loop
     (:mod:`hapsim.host.fastloop`) and the compiled mock tick
     (:mod:`hapsim.emulated.fastmock`), which each apply their own overlong rule to
-    ``z - a``."""
+    ``z - a``.
+
+    Parameters
+    ----------
+    rb : ndarray of uint8
+        The bytes received.
+    a : int
+        Where the search starts.
+    n_rb : int
+        Bytes held in ``rb``.
+
+    Returns
+    -------
+    a : int
+        First byte of the frame (past any idle fill).
+    z : int
+        Its delimiter's index, or -1 when none has arrived yet.
+    """
     while True:
         z = -1
         for j in range(a, n_rb):
@@ -119,7 +177,22 @@ def next_frame(rb, a, n_rb):
 @jit
 def cobs_decode(src, a, b, dst):
     """COBS-decode ``src[a:b]`` (no 0x00 in it) into ``dst``; its length, -1 when bad
-    (Cheshire & Baker 1999, as the ``cobs`` package decodes)."""
+    (Cheshire & Baker 1999, as the ``cobs`` package decodes).
+
+    Parameters
+    ----------
+    src : ndarray of uint8
+        Bytes holding the encoded frame.
+    a, b : int
+        The frame is ``src[a:b]``, delimiter excluded.
+    dst : ndarray of uint8
+        Receives the decoded bytes from index 0.
+
+    Returns
+    -------
+    int
+        Bytes decoded, or -1 for a code running past ``b`` or past ``dst``'s end.
+    """
     i = a
     o = 0
     while i < b:
@@ -140,7 +213,22 @@ def cobs_decode(src, a, b, dst):
 
 @jit_helper
 def cobs_encode(src, n, dst):
-    """COBS-encode ``src[:n]`` (n < 254) into ``dst`` with the 0x00 delimiter; the length."""
+    """COBS-encode ``src[:n]`` (n < 254) into ``dst`` with the 0x00 delimiter; the length.
+
+    Parameters
+    ----------
+    src : ndarray of uint8
+        The packet.
+    n : int
+        Its length, < 254 (one code byte covers it: no 0xFF block).
+    dst : ndarray of uint8, shape (>= n + 2,)
+        Receives the encoded frame and its delimiter from index 0.
+
+    Returns
+    -------
+    int
+        Bytes written, ``n + 2`` (delimiter included).
+    """
     code_at = 0
     o = 1
     code = 1

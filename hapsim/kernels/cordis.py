@@ -59,7 +59,13 @@ _ONE = nb.uint64(1)
 
 @_jit_inline
 def clear_forces(f):
-    """Zero the force accumulator ``f`` (shape (n_masses,)) before a sample's links."""
+    """Zero the force accumulator ``f`` (shape (n_masses,)) before a sample's links.
+
+    Parameters
+    ----------
+    f : ndarray, shape (n_masses,)
+        Force accumulator [N], zeroed in place.
+    """
     for i in range(f.size):
         f[i] = 0.0
 
@@ -68,7 +74,19 @@ def clear_forces(f):
 def spring_dampers(x, xp, f, i1, i2, k, z):
     """Add every spring-damper's force to ``f`` [N]: ``F = k (x1 - x2) + z ((x1 - x2) -
     (x1p - x2p))`` (``z = B / T``), ``-F`` on the first mass, ``+F`` on the second
-    (docs/design.md, 'The scheme')."""
+    (docs/design.md, 'The scheme').
+
+    Parameters
+    ----------
+    x, xp : ndarray, shape (n_masses,)
+        Positions at samples n and n - 1 [m].
+    f : ndarray, shape (n_masses,)
+        Force accumulator [N], added to in place.
+    i1, i2 : ndarray of int64, shape (n_sd,)
+        First and second mass of each link.
+    k, z : ndarray, shape (n_sd,)
+        Stiffness [N/m] and ``z = B / T`` [N/m] of each link.
+    """
     for j in range(i1.size):
         a = _U(i1[j])
         c = _U(i2[j])
@@ -82,7 +100,19 @@ def spring_dampers(x, xp, f, i1, i2, k, z):
 def contacts(x, xp, f, i1, i2, k, z, thr):
     """Add every engaged contact's force to ``f`` [N]: the spring-damper law with the spring
     term ``k (x1 - x2 + thr)``, only while ``x2 - x1 < thr``
-    (docs/design.md, 'The scheme')."""
+    (docs/design.md, 'The scheme').
+
+    Parameters
+    ----------
+    x, xp : ndarray, shape (n_masses,)
+        Positions at samples n and n - 1 [m].
+    f : ndarray, shape (n_masses,)
+        Force accumulator [N], added to in place.
+    i1, i2 : ndarray of int64, shape (n_c,)
+        First and second mass of each contact.
+    k, z, thr : ndarray, shape (n_c,)
+        Stiffness [N/m], ``z = B / T`` [N/m] and threshold [m] of each contact.
+    """
     for j in range(i1.size):
         a = _U(i1[j])
         c = _U(i2[j])
@@ -96,7 +126,21 @@ def contacts(x, xp, f, i1, i2, k, z, thr):
 @_jit_inline
 def advance(x, xp, f, mobile, t2m, fixed):
     """Move the mobile masses one period, ``x[n+1] = 2 x[n] - x[n-1] + T^2 F[n] / m``
-    (Florens, Voda & Urma Fig. 5), and carry the port's and grounds' ``x`` into ``xp``."""
+    (Florens, Voda & Urma Fig. 5), and carry the port's and grounds' ``x`` into ``xp``.
+
+    Parameters
+    ----------
+    x, xp : ndarray, shape (n_masses,)
+        Positions at samples n and n - 1 [m]; on return at n + 1 and n.
+    f : ndarray, shape (n_masses,)
+        Forces of sample n [N] (read only).
+    mobile : ndarray of int64, shape (n_mobile,)
+        Indices of the moving masses.
+    t2m : ndarray, shape (n_mobile,)
+        ``T^2 / m`` of each moving mass [s^2/kg].
+    fixed : ndarray of int64, shape (n_fixed,)
+        Indices of the grounds and the port.
+    """
     for j in range(mobile.size):
         i = _U(mobile[j])
         xn = 2.0 * x[i] - xp[i] + t2m[j] * f[i]
@@ -115,6 +159,22 @@ def chain_start(x, mobile, fixed, i1, i2):
     ``s + j + 1``; the moving masses are exactly ``s + 1 .. s + n_sd - 1`` in order; the two
     ends and every other mass are in ``fixed``. Such scenes (strings) then run without index
     arrays in their inner loops, with the same floating-point operations in the same order.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n_masses,)
+        Positions (only their number is used).
+    mobile : ndarray of int64, shape (n_mobile,)
+        Indices of the moving masses.
+    fixed : ndarray of int64, shape (n_fixed,)
+        Indices of the grounds and the port.
+    i1, i2 : ndarray of int64, shape (n_sd,)
+        First and second mass of each spring-damper.
+
+    Returns
+    -------
+    int
+        ``s``, the chain's first mass, or -1 (also for fewer than two links).
     """
     nl = i1.size
     if nl < 2 or mobile.size != nl - 1 or fixed.size + mobile.size != x.size:
@@ -153,6 +213,23 @@ def chain_fused(x, xp, f, t2m, fixed, s, k, z, c_i1, c_i2):
     their position so that the caller adds the contact forces (:func:`contacts`) and moves
     them (:func:`move_marked`). The inner loop runs between such masses and has no branch,
     which lets LLVM vectorise it.
+
+    Parameters
+    ----------
+    x, xp : ndarray, shape (n_masses,)
+        Positions at samples n and n - 1 [m] (the moved masses' advanced in place).
+    f : ndarray, shape (n_masses,)
+        Force accumulator [N], overwritten on the chain's masses and the fixed ones.
+    t2m : ndarray, shape (n_sd - 1,)
+        ``T^2 / m`` of the inner masses ``s + 1 ..`` in order [s^2/kg].
+    fixed : ndarray of int64, shape (n_fixed,)
+        Indices of the grounds and the port.
+    s : int
+        The chain's first mass (:func:`chain_start`, >= 0).
+    k, z : ndarray, shape (n_sd,)
+        Stiffness [N/m] and ``z = B / T`` [N/m] of each link.
+    c_i1, c_i2 : ndarray of int64, shape (n_c,)
+        The contacts' masses (empty for none).
     """
     for j in range(fixed.size):
         f[fixed[j]] = 0.0
@@ -200,7 +277,25 @@ def chain_fused(x, xp, f, t2m, fixed, s, k, z, c_i1, c_i2):
 
 @_jit_inline
 def move_marked(x, xp, f, t2m, fixed, s, nl, c_i1, c_i2):
-    """Move the moving chain masses that are contact ends, then the fixed masses' ``xp``."""
+    """Move the moving chain masses that are contact ends, then the fixed masses' ``xp``.
+
+    Parameters
+    ----------
+    x, xp : ndarray, shape (n_masses,)
+        Positions at samples n and n - 1 [m], advanced in place.
+    f : ndarray, shape (n_masses,)
+        Forces of sample n [N], contacts included (read only).
+    t2m : ndarray, shape (nl - 1,)
+        ``T^2 / m`` of the inner masses ``s + 1 ..`` in order [s^2/kg].
+    fixed : ndarray of int64, shape (n_fixed,)
+        Indices of the grounds and the port.
+    s : int
+        The chain's first mass (:func:`chain_start`).
+    nl : int
+        Links in the chain (``n_sd``).
+    c_i1, c_i2 : ndarray of int64, shape (n_c,)
+        The contacts' masses (empty for none).
+    """
     a = s
     while True:
         a = _next_mark(c_i1, c_i2, a)

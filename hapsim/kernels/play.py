@@ -44,7 +44,7 @@ COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
                     "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py",
                     "hapsim/kernels/layout.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "b1078ef22629844a65a054a1fb3913e1f4560e91dc165dd541b2a48f5668d0e6"
+COMPILED_SOURCES_SHA256 = "1575680e9e0f8e10e1ffa31c08619f02925e2a229eb3f6ae3706af57de92c921"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 

@@ -151,6 +151,19 @@ def numba_cache_dir(source: str) -> str:
 def loop_stamp(kernel_fn: str) -> str:
     """The stamp file :func:`hapsim.host.fastloop.warm_up` leaves once the compiled host
     loop for the kernel ``kernel_fn`` is in numba's cache (the loop is compiled per
-    kernel, which numba's index of the loop's functions does not show without numba)."""
+    kernel, which numba's index of the loop's functions does not show without numba).
+
+    Parameters
+    ----------
+    kernel_fn : str
+        The engine kernel's function name, e.g. ``run_sd``
+        (:func:`hapsim.pipeline.startup.scene_kernel`).
+
+    Returns
+    -------
+    str
+        Path of ``hapsim-loop.<kernel_fn>.stamp`` in the loop module's numba cache folder
+        (:func:`numba_cache_dir`; it may not exist).
+    """
     return os.path.join(numba_cache_dir(source_paths(["hapsim/host/fastloop_kernels.py"])[0]),
                         f"hapsim-loop.{kernel_fn}.stamp")

@@ -36,7 +36,7 @@ COMPILED_SOURCES = ("hapsim/kernels/audio.py", "hapsim/kernels/cordis.py",
                     "hapsim/kernels/arguments.py")
 #: Their SHA-256: numba keys its disk cache on this file alone, so this literal changes
 #: with them (``tests/test_compiled_loop_sources.py`` says so); until then, no cache.
-COMPILED_SOURCES_SHA256 = "489b15b996a8d86547e08fb934fbd296ec935d1e09b1181ded67e4e663883659"
+COMPILED_SOURCES_SHA256 = "bf2cc549a32680a092a60d107a50ef6709281552dbd6deae202398b81e77e9d4"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 
@@ -187,42 +187,84 @@ _run_symplectic_euler, _run_exact, _run_periods = (
 @_jit
 def step_masses(c):
     """``c[0]`` samples of ``run_masses`` (its docstring), its arguments in the context
-    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`).
+
+    Parameters
+    ----------
+    c : ndarray of int64
+        The context of :func:`context`: ``c[0]`` the samples to advance, then each
+        array's address and shape (the arrays advance in place, as by the direct call).
+    """
     _run_masses(c, c[0])
 
 
 @_jit
 def step_sd(c):
     """``c[0]`` samples of ``run_sd`` (its docstring), its arguments in the context
-    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`).
+
+    Parameters
+    ----------
+    c : ndarray of int64
+        The context of :func:`context`: ``c[0]`` the samples to advance, then each
+        array's address and shape (the arrays advance in place, as by the direct call).
+    """
     _run_sd(c, c[0])
 
 
 @_jit
 def step_contact(c):
     """``c[0]`` samples of ``run_contact`` (its docstring), its arguments in the context
-    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`).
+
+    Parameters
+    ----------
+    c : ndarray of int64
+        The context of :func:`context`: ``c[0]`` the samples to advance, then each
+        array's address and shape (the arrays advance in place, as by the direct call).
+    """
     _run_contact(c, c[0])
 
 
 @_jit
 def step_sd_contact(c):
     """``c[0]`` samples of ``run_sd_contact`` (its docstring), its arguments in the context
-    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`).
+
+    Parameters
+    ----------
+    c : ndarray of int64
+        The context of :func:`context`: ``c[0]`` the samples to advance, then each
+        array's address and shape (the arrays advance in place, as by the direct call).
+    """
     _run_sd_contact(c, c[0])
 
 
 @_jit
 def step_symplectic_euler(c):
     """``c[0]`` samples of ``run_symplectic_euler`` (its docstring), its arguments in the context
-    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`).
+
+    Parameters
+    ----------
+    c : ndarray of int64
+        The context of :func:`context`: ``c[0]`` the samples to advance, then each
+        array's address and shape (the arrays advance in place, as by the direct call).
+    """
     _run_symplectic_euler(c, c[0])
 
 
 @_jit
 def step_exact(c):
     """``c[0]`` samples of ``run_exact`` (its docstring), its arguments in the context
-    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`)."""
+    ``c`` (:data:`hapsim.kernels.arguments.KERNELS`).
+
+    Parameters
+    ----------
+    c : ndarray of int64
+        The context of :func:`context`: ``c[0]`` the samples to advance, then each
+        array's address and shape (the arrays advance in place, as by the direct call).
+    """
     _run_exact(c, c[0])
 
 
@@ -240,6 +282,12 @@ def step_periods(c):
     period per call on its own position (the ``pos`` array is a 1-element scratch), frames
     and forces dropped into scratch; mode 1 (``Engine.port_step``): the periods on the
     positions of ``pos``, frames and forces kept in the ``audio`` and ``force`` arrays.
+
+    Parameters
+    ----------
+    c : ndarray of int64
+        The context of :func:`context` with the head ``nsub, linear, last, port`` and the
+        mode (0 or 1) after it; ``c[0]`` the device periods to advance.
     """
     pos, x = _f(c, _P_POS), _f(c, _P_X)
     port = c[_P_PORT]

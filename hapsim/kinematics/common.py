@@ -22,7 +22,25 @@ SINGULAR_SINE = 1e-4
 
 
 def positive(name: str, value) -> float:
-    """``value`` as a finite length > 0 [m]; ConfigError (key ``name``) otherwise."""
+    """``value`` as a finite length > 0 [m]; ConfigError (key ``name``) otherwise.
+
+    Parameters
+    ----------
+    name : str
+        The key named in the error.
+    value : float or any
+        The length [m].
+
+    Returns
+    -------
+    float
+        The length [m].
+
+    Raises
+    ------
+    ConfigError
+        Not a number, not finite, or <= 0.
+    """
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -33,7 +51,24 @@ def positive(name: str, value) -> float:
 
 
 def finite(name: str, value) -> float:
-    """``value`` as a finite float; ConfigError (key ``name``) otherwise."""
+    """``value`` as a finite float; ConfigError (key ``name``) otherwise.
+
+    Parameters
+    ----------
+    name : str
+        The key named in the error.
+    value : float or any
+        The number.
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    ConfigError
+        Not a number, or not finite.
+    """
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -51,7 +86,27 @@ JOINT_TURN = 2.0 * math.pi
 
 def joint_angles(q, n: int, turn: bool = True) -> np.ndarray:
     """``q`` as a float array of shape (n,), finite and (with ``turn``) within one turn
-    (:data:`JOINT_TURN`), else ConfigError (key ``joints``)."""
+    (:data:`JOINT_TURN`), else ConfigError (key ``joints``).
+
+    Parameters
+    ----------
+    q : array_like, shape (n,)
+        Joint angles [rad].
+    n : int
+        Joints of the device.
+    turn : bool, optional
+        Refuse an angle beyond one turn, ``|q| > 2 pi`` (default True).
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        The angles [rad], float.
+
+    Raises
+    ------
+    ConfigError
+        Not numbers, another shape, not finite, or beyond one turn.
+    """
     try:
         a = np.asarray(q, dtype=float)
     except (TypeError, ValueError):
@@ -71,7 +126,30 @@ def joint_angles(q, n: int, turn: bool = True) -> np.ndarray:
 
 def geometry_of(geometry, kind: str, presets: dict, cls: type):
     """``geometry`` itself when a ``cls``, else the preset of that name (ConfigError, key
-    ``geometry``, naming the valid choices, otherwise)."""
+    ``geometry``, naming the valid choices, otherwise).
+
+    Parameters
+    ----------
+    geometry : str or cls
+        A geometry, or a preset's name.
+    kind : str
+        The device's name for the message (``"pantograph"``, ``"delta"``).
+    presets : dict
+        The presets by name.
+    cls : type
+        The geometry class (:class:`~hapsim.kinematics.pantograph.PantographGeometry`,
+        :class:`~hapsim.kinematics.delta.DeltaGeometry`).
+
+    Returns
+    -------
+    cls
+        The geometry.
+
+    Raises
+    ------
+    ConfigError
+        An unknown preset name, or neither a ``cls`` nor a string.
+    """
     if isinstance(geometry, str):
         if geometry not in presets:
             raise ConfigError(f"unknown {kind} {geometry!r}; valid choices: "
@@ -84,13 +162,44 @@ def geometry_of(geometry, kind: str, presets: dict, cls: type):
 
 
 def degrees_text(q) -> str:
-    """Joint angles [rad] as ``"(a, b) deg"`` for a message."""
+    """Joint angles [rad] as ``"(a, b) deg"`` for a message.
+
+    Parameters
+    ----------
+    q : iterable of float
+        Joint angles [rad].
+
+    Returns
+    -------
+    str
+        Each in degrees to 6 significant digits.
+    """
     return "(" + ", ".join(f"{math.degrees(v):.6g}" for v in q) + ") deg"
 
 
 def joint_torques(J: np.ndarray, force, n: int) -> np.ndarray:
     """``tau = J^T F`` [N m] of a Cartesian force ``F`` (shape (n,), [N]) by virtual work;
-    ConfigError (key ``force``) for a force of another shape or not finite."""
+    ConfigError (key ``force``) for a force of another shape or not finite.
+
+    Parameters
+    ----------
+    J : ndarray, shape (n, n)
+        Jacobian ``dx/dq`` [m/rad] at the joints.
+    force : array_like, shape (n,)
+        Cartesian force on the end effector [N].
+    n : int
+        The device's dimension.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Joint torques [N m].
+
+    Raises
+    ------
+    ConfigError
+        ``force`` not numbers, of another shape, or not finite.
+    """
     try:
         F = np.asarray(force, dtype=float)
     except (TypeError, ValueError):

@@ -87,7 +87,13 @@ class DeltaGeometry:
         object.__setattr__(self, "phi_deg", tuple(finite("phi_deg", p) for p in phi))
 
     def to_dict(self) -> dict:
-        """Fields as a JSON-ready dict (lengths [m], ``phi_deg`` [deg])."""
+        """Fields as a JSON-ready dict (lengths [m], ``phi_deg`` [deg]).
+
+        Returns
+        -------
+        dict
+            ``a`` .. ``f``, ``r``, ``s`` [m] as floats and ``phi_deg``, a list of 3 [deg].
+        """
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["phi_deg"] = list(self.phi_deg)
         return out
@@ -154,7 +160,20 @@ class Delta:
         return pu, pv, np.repeat(P[:, 2:3], 3, axis=1)
 
     def residual(self, p, q) -> np.ndarray:
-        """Closure constraints ``g_i(p, q_i)`` [m^2], shape (3,) (class docstring)."""
+        """Closure constraints ``g_i(p, q_i)`` [m^2], shape (3,) (class docstring).
+
+        Parameters
+        ----------
+        p : array_like, shape (3,)
+            Effector position [m].
+        q : array_like, shape (3,)
+            Joint angles [rad].
+
+        Returns
+        -------
+        ndarray, shape (3,)
+            ``g`` per leg [m^2]; zero where ``(p, q)`` is an assembly.
+        """
         return self._eval(np.asarray(p, float)[None], np.asarray(q, float)[None])[0][0]
 
     def _eval(self, P, Q):

@@ -51,11 +51,36 @@ class PantographGeometry:
     @classmethod
     def symmetric(cls, l: float, L: float, d: float) -> "PantographGeometry":
         """The symmetric pantograph (``l1 = l2 = l``, ``L1 = L2 = L``) of Haply's
-        ``--geometry l,L,d`` [m]."""
+        ``--geometry l,L,d`` [m].
+
+        Parameters
+        ----------
+        l : float > 0
+            Proximal links [m].
+        L : float > 0
+            Distal links [m].
+        d : float >= 0
+            Distance between the base joints [m].
+
+        Returns
+        -------
+        PantographGeometry
+
+        Raises
+        ------
+        ConfigError
+            As the constructor.
+        """
         return cls(l1=l, l2=l, L1=L, L2=L, d=d)
 
     def to_dict(self) -> dict:
-        """Fields as a JSON-ready dict [m]."""
+        """Fields as a JSON-ready dict [m].
+
+        Returns
+        -------
+        dict
+            ``l1``, ``l2``, ``L1``, ``L2``, ``d`` [m] as floats.
+        """
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 

@@ -461,7 +461,16 @@ class ExcitationEngine:
         return self._g
 
     def set_port_position(self, position: float, at_rest: bool = False) -> None:
-        """Centre the excitation at the device's position ``position`` [m]."""
+        """Centre the excitation at the device's position ``position`` [m].
+
+        Parameters
+        ----------
+        position : float
+            Device position [m]; the position history is filled with it.
+        at_rest : bool, optional
+            Taken for the engines' interface (:meth:`hapsim.engine.Engine.set_port_position`)
+            and ignored: the history always starts at rest.
+        """
         self._xc = float(position)
         self._xp = float(position)
         self._lp = float(position)
@@ -469,7 +478,18 @@ class ExcitationEngine:
         self._e0 = 0.0
 
     def port_step(self, position: float) -> float:
-        """Force [N] answering the position ``position`` [m] (class notes)."""
+        """Force [N] answering the position ``position`` [m] (class notes).
+
+        Parameters
+        ----------
+        position : float
+            Device position of this sample [m].
+
+        Returns
+        -------
+        float
+            Force to send [N]: the centring spring-damper, the square wave and the PRBS.
+        """
         k = self._k
         T = self._T
         e = position - self._xc

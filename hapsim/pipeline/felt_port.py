@@ -331,7 +331,22 @@ def min_rows(N: int, order: int, n: int) -> int:
     """Fewest rows a record cut short by a lost STATE may keep to be used: half the
     record, and at least ten times the regression's ``2 p n`` unknowns over the ``2n + 1``
     records (so the fit stays overdetermined tenfold, as
-    :func:`hapsim.lockstep.default_samples`)."""
+    :func:`hapsim.lockstep.default_samples`).
+
+    Parameters
+    ----------
+    N : int
+        Samples of a whole record.
+    order : int
+        Prediction order ``p`` of the loop's regression.
+    n : int
+        Axes (the ports' dimension).
+
+    Returns
+    -------
+    int
+        ``max(N // 2, ceil(20 p n / (2n + 1)), p + 2)`` rows.
+    """
     return max(N // 2, -(-20 * order * n // (2 * n + 1)), order + 2)
 
 

@@ -71,6 +71,11 @@ def refuse_options(opts, by: str = "flag", takes: tuple = ND_TAKES,
     what, why : str, optional
         The run's scene and what takes the option instead, for the message.
 
+    Returns
+    -------
+    None
+        When every option not in ``takes`` has its default.
+
     Raises
     ------
     ConfigError
@@ -344,9 +349,9 @@ def _over_port(scene, opts, a: float, progress):
 
 
 def print_statements(v: dict, o) -> None:
-    """Print a verdict's statements (:func:`hapsim.analysis.felt_matrices.felt_verdict`), one a line:
-    the quantity (a felt matrix as a whole, or along a principal direction: predicted and
-    measured [N/m] or [N s/m]), its deviation against its stated uncertainty (the
+    """Print a verdict's statements (:func:`hapsim.analysis.felt_matrices.felt_verdict`), one a
+    line: the quantity (a felt matrix as a whole, or along a principal direction: predicted
+    and measured [N/m] or [N s/m]), its deviation against its stated uncertainty (the
     linearisation bound plus the wire's term, relative), and what it says.
 
     Parameters
@@ -355,6 +360,11 @@ def print_statements(v: dict, o) -> None:
         The verdict, with ``statements``.
     o : file
         Where to print.
+
+    Returns
+    -------
+    None
+        Nothing is printed when the verdict has no statements.
     """
     st = v.get("statements") or []
     if not st:

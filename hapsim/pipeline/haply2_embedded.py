@@ -106,7 +106,27 @@ def main(argv=None) -> int:
     --generation G --amplitude A [--cpr C] [--report FILE]``: serve the emulated board
     until the host closes the port or SIGTERM; the serving report as JSON (``--listen N``
     instead of ``--fd``: an emulated link's listening socket,
-    :mod:`hapsim.emulated.stamped_link`)."""
+    :mod:`hapsim.emulated.stamped_link`).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments (default ``sys.argv[1:]``); besides those above the test options
+        ``--slow-every``, ``--slow-s``, ``--rate`` [Hz], ``--wiring``, ``--clock`` and
+        ``--rt-priority``.
+
+    Returns
+    -------
+    int
+        0 (also when stopped before the link's connection came).
+
+    Raises
+    ------
+    SystemExit
+        Bad arguments (argparse, status 2).
+    ConfigError
+        The scene cannot be read.
+    """
     import argparse
     import signal
 

@@ -68,6 +68,11 @@ class PortLink:
     def write(self, data: bytes) -> None:
         """Write ``data`` (host -> board bytes) to the port.
 
+        Parameters
+        ----------
+        data : bytes
+            The bytes to send.
+
         Raises
         ------
         DeviceError
@@ -77,6 +82,16 @@ class PortLink:
 
     def read(self, timeout: float) -> bytes:
         """The bytes waiting, or the first to come within ``timeout`` [s] (polled).
+
+        Parameters
+        ----------
+        timeout : float
+            Longest wait [s] (polled every 0.1 ms); <= 0: one look.
+
+        Returns
+        -------
+        bytes
+            What was waiting (``b""``: nothing came in time).
 
         Raises
         ------

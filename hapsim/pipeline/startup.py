@@ -87,7 +87,20 @@ _LOOP_KERNELS = os.path.join(_HERE, "host", "fastloop_kernels.py")
 def scene_kernel(scene) -> tuple[str, str]:
     """The module path and the function name of the engine kernel ``scene`` runs
     (:data:`hapsim.kernels.cordis.KERNELS` by link kinds, the integrator's kernel, or the
-    multi-rate kernel of a scene with ``audio``)."""
+    multi-rate kernel of a scene with ``audio``).
+
+    Parameters
+    ----------
+    scene : Scene
+        A 1-D scene (its ``audio``, ``integrator`` and link kinds).
+
+    Returns
+    -------
+    tuple of str
+        ``(module path, function)``, e.g. ``(".../hapsim/kernels/cordis.py", "run_sd")``;
+        an integrator other than ``"centred"`` or ``"symplectic_euler"`` gives
+        ``run_exact``.
+    """
     if getattr(scene, "audio", None) is not None:
         return os.path.join(_HERE, "kernels", "audio.py"), "run_periods"
     if scene.integrator == "centred":
@@ -101,7 +114,18 @@ def scene_kernel(scene) -> tuple[str, str]:
 
 def loop_sources(rels=LOOP_SOURCES) -> list[str]:
     """The absolute paths of :data:`LOOP_SOURCES` (or of ``rels``, the same form:
-    :func:`hapsim.kernels.sources.source_paths`)."""
+    :func:`hapsim.kernels.sources.source_paths`).
+
+    Parameters
+    ----------
+    rels : sequence of str, optional
+        Paths relative to the repository (default :data:`LOOP_SOURCES`).
+
+    Returns
+    -------
+    list of str
+        The absolute paths, in the same order.
+    """
     return source_paths(rels)
 
 
@@ -125,7 +149,18 @@ def sources_digest(paths=None) -> str:
 def loop_is_fresh(scene) -> bool:
     """Whether the compiled host loop for ``scene``'s kernel is in numba's cache: its
     stamp is newer than the loop's module, the kernel's module and every module the loop
-    compiles in (:data:`LOOP_SOURCES`)."""
+    compiles in (:data:`LOOP_SOURCES`).
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene (:func:`scene_kernel` names its kernel).
+
+    Returns
+    -------
+    bool
+        False also when the stamp or a source cannot be read.
+    """
     src, fn = scene_kernel(scene)
     try:
         at = os.stat(loop_stamp(fn)).st_mtime
@@ -235,7 +270,20 @@ def part_functions(part) -> list[tuple[str, str]]:
 
 def part_is_fresh(part, scene=None) -> bool:
     """Whether a part of :func:`run_compile_parts` is in numba's cache (every function of
-    :func:`part_functions`; the compiled loop by its stamp, :func:`loop_is_fresh`)."""
+    :func:`part_functions`; the compiled loop by its stamp, :func:`loop_is_fresh`).
+
+    Parameters
+    ----------
+    part : tuple of str
+        ``(description, module path, function)``.
+    scene : Scene, optional
+        The scene run; without it the compiled loop is judged by numba's index files
+        (:func:`cache_is_fresh`) like any other part.
+
+    Returns
+    -------
+    bool
+    """
     what, src, fn = part
     if src == _LOOP_KERNELS and scene is not None:
         return loop_is_fresh(scene)
@@ -322,7 +370,13 @@ def announce_compilation(parts, *, scene=None, command: str = "hapsim run",
 
 def compile_notice():
     """The reporter :func:`announce_compilation` set up (``notice(what)`` prints that
-    ``what`` is compiled and the time since), or None when nothing was announced."""
+    ``what`` is compiled and the time since), or None when nothing was announced.
+
+    Returns
+    -------
+    callable or None
+        ``notice(what: str) -> None``, or None.
+    """
     return _NOTICE
 
 

@@ -41,21 +41,69 @@ class LineContext:
 
     def error(self, message: str, line: int | None, key: str) -> ConfigError:
         """A :class:`~hapsim.errors.ConfigError` naming this file, ``line`` and ``key``
-        (returned, for the caller to raise)."""
+        (returned, for the caller to raise).
+
+        Parameters
+        ----------
+        message : str
+            What is wrong with the value.
+        line : int or None
+            Line of the value in the file (1-based); None when unknown.
+        key : str
+            Dotted key of the value; empty for none.
+
+        Returns
+        -------
+        ConfigError
+            The error, not raised.
+        """
         return ConfigError(message, file=self.path, line=line, key=key or None)
 
     @staticmethod
     def line_of(container: Any, key: Any = None) -> int | None:
         """Line of ``container[key]`` (a mapping's key or a list's item), else of the
         container itself (``key`` None or absent); None for a container read without
-        lines."""
+        lines.
+
+        Parameters
+        ----------
+        container : LDict, LList or any
+            The mapping or list read (its ``lines`` and ``line`` attributes, if any).
+        key : str, int or None, optional
+            The key or item index; None for the container itself.
+
+        Returns
+        -------
+        int or None
+            The line (1-based), or None.
+        """
         lines = getattr(container, "lines", None)
         if lines and key in lines:
             return lines[key]
         return getattr(container, "line", None)
 
     def mapping(self, value: Any, key: str, line: int | None) -> LDict:
-        """``value`` when it is a mapping; else ConfigError (``key`` at ``line``)."""
+        """``value`` when it is a mapping; else ConfigError (``key`` at ``line``).
+
+        Parameters
+        ----------
+        value : any
+            The value read.
+        key : str
+            Its dotted key, for the message.
+        line : int or None
+            Its line, for the message.
+
+        Returns
+        -------
+        LDict
+            ``value`` itself.
+
+        Raises
+        ------
+        ConfigError
+            ``value`` is not a dict.
+        """
         if not isinstance(value, dict):
             raise self.error(f"must be a mapping (key: value), got {type_name(value)}", line, key)
         return value
@@ -63,7 +111,24 @@ class LineContext:
     def keys(self, d: LDict, allowed: tuple[str, ...], key: str,
              required: tuple[str, ...] = ()) -> None:
         """Refuse a key of ``d`` not in ``allowed`` (listing them) or a missing
-        ``required`` one, at its line, naming ``key.k``."""
+        ``required`` one, at its line, naming ``key.k``.
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        allowed : tuple of str
+            The keys it may have.
+        key : str
+            Its dotted key (empty at the top level).
+        required : tuple of str, optional
+            The keys it must have (default none).
+
+        Raises
+        ------
+        ConfigError
+            A key not in ``allowed``, or one of ``required`` missing.
+        """
         for k in d:
             if k not in allowed:
                 raise self.error(f"unknown key {show(k)}; valid keys: {', '.join(allowed)}",
@@ -74,13 +139,48 @@ class LineContext:
                                  f"{key}.{k}" if key else k)
 
     def not_null(self, d: LDict, k: str, key: str) -> None:
-        """Refuse ``k: null`` for a key whose absence means "none" (say what was meant)."""
+        """Refuse ``k: null`` for a key whose absence means "none" (say what was meant).
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        k : str
+            The key checked (absent is allowed).
+        key : str
+            The dotted key of ``d``.
+
+        Raises
+        ------
+        ConfigError
+            ``d[k]`` is None.
+        """
         if k in d and d[k] is None:
             raise self.error(f"must be given a value, got {type_name(None)} (leave the key "
                              "out for none)", self.line_of(d, k), f"{key}.{k}")
 
     def kind(self, d: LDict, key: str, choices: tuple[str, ...]) -> str:
-        """The ``kind`` of an entry, checked now: it decides which keys the entry may have."""
+        """The ``kind`` of an entry, checked now: it decides which keys the entry may have.
+
+        Parameters
+        ----------
+        d : LDict
+            The entry read.
+        key : str
+            Its dotted key.
+        choices : tuple of str
+            The kinds allowed.
+
+        Returns
+        -------
+        str
+            ``d["kind"]``, one of ``choices``.
+
+        Raises
+        ------
+        ConfigError
+            ``kind`` missing or not one of ``choices``.
+        """
         if "kind" not in d:
             raise self.error("missing required key 'kind'", getattr(d, "line", None),
                              f"{key}.kind")
@@ -92,7 +192,20 @@ class LineContext:
 
     @staticmethod
     def doc_line(doc: LDict, where: tuple) -> int | None:
-        """Line of the value at path ``where`` in the document (or of its nearest parent)."""
+        """Line of the value at path ``where`` in the document (or of its nearest parent).
+
+        Parameters
+        ----------
+        doc : LDict
+            The document read.
+        where : tuple of str or int
+            Keys and list indices from the top down.
+
+        Returns
+        -------
+        int or None
+            The line (1-based); None for a document read without lines.
+        """
         node: Any = doc
         line = getattr(doc, "line", None)
         for step in where:
@@ -109,7 +222,35 @@ class LineContext:
     def number(self, d, k, key, *, default=None, minimum=None, strict=False,
                maximum=None, unit=""):
         """``d[k]`` as a finite float in ``[minimum, maximum]`` (``> minimum`` when
-        ``strict``) [``unit``]; ConfigError naming ``key.k`` at its line."""
+        ``strict``) [``unit``]; ConfigError naming ``key.k`` at its line.
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        k : str
+            The key.
+        key : str
+            The dotted key of ``d`` (empty at the top level).
+        default : any, optional
+            Returned as given when ``k`` is absent (default None).
+        minimum, maximum : float or None, optional
+            Bounds [``unit``]; None for none.
+        strict : bool, optional
+            Refuse ``minimum`` itself too.
+        unit : str, optional
+            Unit named in the messages, e.g. ``"N/m"``.
+
+        Returns
+        -------
+        float or any
+            The number [``unit``], or ``default``.
+
+        Raises
+        ------
+        ConfigError
+            Not a number (a bool is none), not finite, or out of bounds.
+        """
         if k not in d:
             return default
         v = d[k]
@@ -134,7 +275,33 @@ class LineContext:
 
     def integer(self, d, k, key, *, default, minimum, maximum, unit):
         """``d[k]`` as a whole number of ``unit`` in ``[minimum, maximum]``; ConfigError
-        naming ``key.k`` at its line."""
+        naming ``key.k`` at its line.
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        k : str
+            The key.
+        key : str
+            The dotted key of ``d`` (empty at the top level).
+        default : any
+            Returned as given when ``k`` is absent.
+        minimum, maximum : int
+            Bounds, both included.
+        unit : str
+            Unit named in the messages, e.g. ``"samples"``.
+
+        Returns
+        -------
+        int or any
+            The number, or ``default``.
+
+        Raises
+        ------
+        ConfigError
+            Not an int (a bool or a float is none), or out of bounds.
+        """
         if k not in d:
             return default
         v = d[k]
@@ -148,7 +315,29 @@ class LineContext:
         return int(v)
 
     def string(self, d, k, key, default=None):
-        """``d[k]`` as a non-empty string; ConfigError naming ``key.k`` at its line."""
+        """``d[k]`` as a non-empty string; ConfigError naming ``key.k`` at its line.
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        k : str
+            The key.
+        key : str
+            The dotted key of ``d``.
+        default : any, optional
+            Returned as given when ``k`` is absent (default None).
+
+        Returns
+        -------
+        str or any
+            The string, or ``default``.
+
+        Raises
+        ------
+        ConfigError
+            Not a string, or empty.
+        """
         if k not in d:
             return default
         v = d[k]
@@ -159,7 +348,31 @@ class LineContext:
 
     def choice(self, d, k, key, choices, default=None):
         """``d[k]``, one of ``choices`` (required when ``default`` is None); ConfigError
-        listing the choices, naming ``key.k`` at its line."""
+        listing the choices, naming ``key.k`` at its line.
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        k : str
+            The key.
+        key : str
+            The dotted key of ``d`` (empty at the top level).
+        choices : sequence of str
+            The values allowed.
+        default : str or None, optional
+            Returned when ``k`` is absent; None makes ``k`` required.
+
+        Returns
+        -------
+        str
+            The value, or ``default``.
+
+        Raises
+        ------
+        ConfigError
+            ``k`` missing with no default, or its value not one of ``choices``.
+        """
         if k not in d:
             if default is None:
                 raise self.error(f"missing required key {show(k)}", self.line_of(d),
@@ -173,7 +386,33 @@ class LineContext:
 
     def vector(self, d, k, key, n, default=None, unit="m"):
         """``d[k]`` as a finite float array of shape (n,) [``unit``] (absent: ``default``,
-        or zeros); ConfigError naming ``key.k`` at its line for another length or type."""
+        or zeros); ConfigError naming ``key.k`` at its line for another length or type.
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        k : str
+            The key.
+        key : str
+            The dotted key of ``d``.
+        n : int
+            The length asked for (the scene's dimension).
+        default : any, optional
+            Returned as given when ``k`` is absent; None: zeros of shape (n,).
+        unit : str, optional
+            Unit named in the messages (default ``"m"``).
+
+        Returns
+        -------
+        numpy.ndarray or any
+            Shape (n,) [``unit``], or ``default``.
+
+        Raises
+        ------
+        ConfigError
+            Not a list of ``n`` numbers, or an entry not finite.
+        """
         if k not in d:
             return np.zeros(n) if default is None else default
         v = d[k]
@@ -194,7 +433,36 @@ class LineContext:
     def matrix(self, d, k, key, n, default, unit, *, definite):
         """``d[k]`` as a symmetric n x n float array [``unit``]: a number (times I), a list of
         n numbers (diagonal) or n lists of n (a matrix); ``definite`` "positive" or "semi"
-        asks for a positive (semi-)definite one; ConfigError naming ``key.k`` at its line."""
+        asks for a positive (semi-)definite one; ConfigError naming ``key.k`` at its line.
+
+        Parameters
+        ----------
+        d : LDict
+            The mapping read.
+        k : str
+            The key.
+        key : str
+            The dotted key of ``d``.
+        n : int
+            The size (the scene's dimension).
+        default : any
+            Returned as given when ``k`` is absent (None: the caller requires it).
+        unit : str
+            Unit named in the messages, e.g. ``"kg"``, ``"N s/m"``.
+        definite : {"positive", "semi"} or None
+            Eigenvalues required > 0, >= 0, or not checked.
+
+        Returns
+        -------
+        numpy.ndarray or any
+            Shape (n, n), symmetrised ``(a + a.T) / 2`` [``unit``], or ``default``.
+
+        Raises
+        ------
+        ConfigError
+            Another shape or type, not finite, not symmetric (relative 1e-12), or not
+            (semi-)definite as asked.
+        """
         if k not in d:
             return default
         v = d[k]

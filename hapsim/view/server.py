@@ -38,6 +38,11 @@ MOST_POINTS = 400
 def require_websockets(flag: str = "--view") -> None:
     """Raise a ConfigError saying how to install the view when ``websockets`` is missing.
 
+    Parameters
+    ----------
+    flag : str
+        The option that asked for the view (the error's key).
+
     Raises
     ------
     ConfigError
@@ -151,6 +156,11 @@ class ViewServer:
     # ---------------------------------------------------------------- control
     def start(self) -> "ViewServer":
         """Start the server thread; return once it listens (its address in :attr:`url`).
+
+        Returns
+        -------
+        ViewServer
+            This server.
 
         Raises
         ------

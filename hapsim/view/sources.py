@@ -148,7 +148,15 @@ class RunSource(_Base):
 
     def record(self) -> tuple | None:
         """Arguments of :attr:`measure` for the rows the report would measure now
-        (copies), or None when there is nothing to measure."""
+        (copies), or None when there is nothing to measure.
+
+        Returns
+        -------
+        tuple or None
+            ``(prep, cols, hello)``: the :class:`PreparedRun`, the telemetry columns of rows
+            ``0 .. measured_rows - 1`` (dict of str to ndarray, shape (n,)) and the HELLO
+            (None before the loop has it).
+        """
         n = self.measured_rows
         if n <= 0 or self.prep is None or self.measure is None:
             return None
@@ -163,6 +171,13 @@ class RunSource(_Base):
 
     def rows(self, since: int, most: int) -> tuple[int, dict]:
         """Rows ``[max(since, count - most), count)`` still in memory.
+
+        Parameters
+        ----------
+        since : int
+            The first row the reader has not had yet.
+        most : int
+            Most rows returned (the newest).
 
         Returns
         -------
@@ -210,7 +225,22 @@ class PlaySource(_Base):
         return max(0, min(int(self.ctl.sample) - 1, self.xs.size))
 
     def rows(self, since: int, most: int) -> tuple[int, dict]:
-        """As :meth:`RunSource.rows` (no turnaround or flags: the play loop has no link)."""
+        """As :meth:`RunSource.rows` (no turnaround or flags: the play loop has no link).
+
+        Parameters
+        ----------
+        since : int
+            The first row the reader has not had yet.
+        most : int
+            Most rows returned (the newest).
+
+        Returns
+        -------
+        first : int
+            Index of the first row returned.
+        cols : dict of ndarray
+            ``t`` [s], ``x`` [m], ``f`` [N], each shape (rows,).
+        """
         n = self.count
         lo = max(since, n - most, 0)
         t = np.arange(lo, n) * self.period
@@ -252,7 +282,13 @@ class ChunkSource(_Base):
 
     def probe(self) -> np.ndarray:
         """Position [m], shape (dim,), of the scene's first listened mass (a free loop's
-        trace: it has no port), else of its first mass."""
+        trace: it has no port), else of its first mass.
+
+        Returns
+        -------
+        ndarray, shape (dim,)
+            A copy [m].
+        """
         listen = getattr(self.scene, "audio", None) or ()
         name = getattr(listen[0], "mass", None) if listen else None
         i = self.scene_index.get(name, 0)
@@ -260,7 +296,17 @@ class ChunkSource(_Base):
 
     def push(self, sample: int, x, f) -> None:
         """Called by the loop: one row (the sample index, port position [m] and force
-        [N], each shape (dim,)); never blocks."""
+        [N], each shape (dim,)); never blocks.
+
+        Parameters
+        ----------
+        sample : int
+            The sample's index.
+        x : ndarray, shape (dim,)
+            The port's position [m].
+        f : ndarray, shape (dim,)
+            The port's force [N].
+        """
         self.queue.append((int(sample), x, f))
 
     @property
@@ -271,7 +317,23 @@ class ChunkSource(_Base):
     def rows(self, since: int, most: int) -> tuple[int, dict]:
         """The rows handed over since the last call (``since`` and ``most`` bound them as
         in :meth:`RunSource.rows`); ``x``, ``f`` are the traced :attr:`axis`, ``xs``,
-        ``fs`` every axis, shape (rows, dim)."""
+        ``fs`` every axis, shape (rows, dim).
+
+        Parameters
+        ----------
+        since : int
+            The first row the reader has not had yet (returned as ``first`` when none came).
+        most : int
+            Most rows returned (the newest; older ones handed over are dropped).
+
+        Returns
+        -------
+        first : int
+            The sample index of the first row returned.
+        cols : dict of ndarray
+            ``t`` [s], ``x`` [m], ``f`` [N], shape (rows,); ``xs`` [m], ``fs`` [N], shape
+            (rows, dim), only when rows came.
+        """
         got = []
         while self.queue:
             got.append(self.queue.popleft())

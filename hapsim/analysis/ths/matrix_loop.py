@@ -203,7 +203,14 @@ class MatrixLoop:
 
     def to_dict(self) -> dict:
         """JSON-ready dict: ``dof``, ``mass`` [kg] and ``friction`` [N s/m] as nested
-        lists, ``rate_hz``, ``delay``, ``hold``."""
+        lists, ``rate_hz``, ``delay``, ``hold``.
+
+        Returns
+        -------
+        dict
+            ``dof`` (int), ``mass`` and ``friction`` (n lists of n), ``rate_hz`` [Hz],
+            ``delay`` [periods] (int when whole, else float) and ``hold`` (``"zoh"``).
+        """
         return {"dof": self.dof, "mass": self.mass.tolist(),
                 "friction": self.friction.tolist(), "rate_hz": self.rate_hz,
                 "delay": self.delay, "hold": self.hold}

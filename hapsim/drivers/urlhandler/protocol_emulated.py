@@ -75,6 +75,16 @@ class Serial(SerialBase):
     def from_url(self, url: str) -> str:
         """The abstract socket name in ``emulated://NAME``.
 
+        Parameters
+        ----------
+        url : str
+            The port's URL.
+
+        Returns
+        -------
+        str
+            ``NAME`` (no leading NUL).
+
         Raises
         ------
         serial.SerialException
@@ -135,6 +145,16 @@ class Serial(SerialBase):
         """Up to ``size`` bytes: as many as come within the port's ``timeout`` (None: wait
         for all of them; 0: those waiting).
 
+        Parameters
+        ----------
+        size : int
+            Most bytes to read.
+
+        Returns
+        -------
+        bytes
+            The bytes read, fewer than ``size`` after the timeout or the board's end.
+
         Raises
         ------
         serial.SerialException
@@ -159,6 +179,16 @@ class Serial(SerialBase):
 
     def write(self, data) -> int:
         """Send ``data``, one packet per :data:`PACKET` bytes, whole.
+
+        Parameters
+        ----------
+        data : bytes-like
+            The bytes to send.
+
+        Returns
+        -------
+        int
+            ``len(data)``: every byte sent.
 
         Raises
         ------
@@ -203,7 +233,18 @@ class Serial(SerialBase):
 
     def fileno(self) -> int:
         """The socket's descriptor (``select`` sees the packets not yet pulled into the read
-        buffer, not the bytes already there: :attr:`in_waiting` first)."""
+        buffer, not the bytes already there: :attr:`in_waiting` first).
+
+        Returns
+        -------
+        int
+            The socket's file descriptor.
+
+        Raises
+        ------
+        serial.PortNotOpenError
+            The port is not open.
+        """
         if not self.is_open:
             raise PortNotOpenError()
         return self._socket.fileno()
