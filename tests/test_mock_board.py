@@ -104,8 +104,49 @@ def test_the_counters_are_the_last_hosts_after_a_reset():
     assert dev._fresh and dev.commands() == served
 
 
+def _haply_scene(path, x0, options=None):
+    """configs/haply.yaml with its joint let go at ``x0`` [rad], its ``protocol_options``
+    ``options`` (None: none), written to ``path``."""
+    import yaml
+    scene = yaml.safe_load(open(os.path.join(ROOT, "configs", "haply.yaml")))
+    scene["excitation"]["x0"] = x0
+    if options is not None:
+        scene["device"]["protocol_options"] = options
+    path.write_text(yaml.safe_dump(scene))
+    return str(path)
+
+
+def test_the_haply_boards_refusal_names_what_it_then_serves(tmp_path):
+    """A Haply scene without the set-up's arming angle is refused by ``hapsim mock``
+    (a host on the port arms the encoder at ``offset_deg`` only when the scene says it);
+    the refusal names the options to add, and those options, pasted into the scene as
+    they are printed, are served, for the shipped scene's start (0.2 rad) and random
+    ones (before: the message printed 11.4592 for a 0.2 rad start, and the scene given
+    that was refused again). (The shipped scene names none: a host embedding the board
+    arms it at the excitation's start, wherever the scene's x0 is edited to.)"""
+    import argparse
+
+    import yaml
+
+    from hapsim.commands.mock_board import _board
+    from hapsim.errors import ConfigError
+
+    def served(path):
+        return _board(argparse.Namespace(scene=path, lockstep=False, seed=0,
+                                         amplitude=None))
+    rng = np.random.default_rng(92)
+    for i, x0 in enumerate([0.2, *rng.uniform(-1.0, 1.0, 12)]):
+        x0 = float(x0)
+        with pytest.raises(ConfigError) as info:
+            served(_haply_scene(tmp_path / f"bare{i}.yaml", x0))
+        text = str(info.value)
+        assert info.value.key == "device.protocol_options", text
+        named = yaml.safe_load(text[text.index("{"):text.index("}") + 1])
+        assert set(named) == {"offset_deg"}, text
+        assert served(_haply_scene(tmp_path / f"armed{i}.yaml", x0, named))[1] == 1000.0
+
+
 @pytest.mark.parametrize("args, key, words", [
-    (["--scene", "configs/haply.yaml"], "device.protocol_options", "{offset_deg: 11.4592}"),
     (["--scene", "configs/firefader.yaml", "--faults", "drop=0.1"], "--faults",
      "does not take --faults"),
     (["--scene", "configs/firefader.yaml", "--amplitude", "0.001"], "--amplitude",

@@ -126,7 +126,9 @@ def _board(args):
     if arm != given:
         # the board's set-up takes something from the excitation that a host on a port
         # does not send unless the scene says it (the Haply's encoder offset)
-        missing = ", ".join(f"{k}: {v:g}" if isinstance(v, float) else f"{k}: {v}"
+        # (a float in full, its shortest round trip: the check below takes the value
+        # itself, and the message's 11.4592 of a 0.2 rad start was refused again)
+        missing = ", ".join(f"{k}: {v!r}" if isinstance(v, float) else f"{k}: {v}"
                             for k, v in arm.items() if given.get(k) != v)
         raise ConfigError(f"the {d.protocol} board is armed where a host's set-up puts it: "
                           f"a host on its port arms it at the scene's excitation only with "
