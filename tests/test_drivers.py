@@ -1050,11 +1050,11 @@ def test_identify_added_mass_and_mock_option_are_checked(argv, msg, capsys):
 
 
 def test_aligned_decoder_hooks_see_every_skip_and_every_frame():
-    """:class:`hapsim.drivers.base.AlignedDecoder`'s hooks (the Haply desync count and
+    """:class:`hapsim.drivers.decoders.AlignedDecoder`'s hooks (the Haply desync count and
     the Falcon plausibility filter are built on them): ``on_skip`` once per byte dropped,
     ``accept`` once per parsed frame, whose bytes are consumed either way; only accepted
     frames come out and count, over random streams fed in random pieces."""
-    from hapsim.drivers.base import AlignedDecoder
+    from hapsim.drivers.decoders import AlignedDecoder
 
     class Dec(AlignedDecoder):
         length = 3

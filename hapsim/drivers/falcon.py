@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 
-from hapsim.drivers.base import AlignedDecoder
+from hapsim.drivers.decoders import AlignedDecoder
 
 __all__ = ["LED_GREEN", "LED_BLUE", "LED_RED", "HOMING_MODE", "HOMED", "host_packet",
            "device_packet", "parse_host_packet", "commands_zero", "parse_device_packet", "DevicePacketDecoder",

@@ -66,7 +66,8 @@ import math
 import select
 import time
 
-from hapsim.drivers.base import FLAG_ESTIMATED, Driver, MappedDecoder
+from hapsim.drivers.base import FLAG_ESTIMATED, Driver
+from hapsim.drivers.decoders import MappedDecoder
 from hapsim.option_values import option_value
 
 __all__ = ["FireFader", "Records", "enable_passes", "pass_pwm", "enable_step", "ENABLE_GATE", "HOST_START", "DEVICE_START", "POSITION_MAX",

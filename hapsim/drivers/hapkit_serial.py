@@ -35,8 +35,8 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import (FLAG_ESTIMATED, AlignedDecoder, Driver, MappedDecoder,
-                                 binary32_commands)
+from hapsim.drivers.base import FLAG_ESTIMATED, Driver, binary32_commands
+from hapsim.drivers.decoders import AlignedDecoder, MappedDecoder
 from hapsim.drivers.sketch_timing import (FIRMWARE_TICK_S, PERIOD_TICKS_TOL,  # noqa: F401
                                           RENDER_LATENCY_S, RENDER_S, SketchTiming,
                                           whole_ticks)

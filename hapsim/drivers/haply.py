@@ -49,7 +49,8 @@ from __future__ import annotations
 import math
 import struct
 
-from hapsim.drivers.base import Driver, MappedDecoder, binary32_commands
+from hapsim.drivers.base import Driver, binary32_commands
+from hapsim.drivers.decoders import MappedDecoder
 from hapsim.drivers.haply_reply import DESYNC_BYTES, ReplyDecoder
 from hapsim.option_values import option_value
 

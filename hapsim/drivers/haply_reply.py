@@ -13,7 +13,7 @@ import math
 import struct
 import time
 
-from hapsim.drivers.base import AlignedDecoder
+from hapsim.drivers.decoders import AlignedDecoder
 
 __all__ = ["ReplyDecoder", "DESYNC_BYTES"]
 
@@ -357,7 +357,7 @@ class ReplyDecoder(AlignedDecoder):
 
     def starts_frame(self, byte: int) -> bool:
         """Whether a reply can start with ``byte``: the id (the byte after a one-byte
-        answer the host asked for, :meth:`hapsim.drivers.base.AlignedDecoder.mark_at`;
+        answer the host asked for, :meth:`hapsim.drivers.decoders.AlignedDecoder.mark_at`;
         :attr:`confirm_next` is off).
 
         Parameters

@@ -20,8 +20,8 @@ is cut there: ``probed``, :func:`hapsim.pipeline.haply2_host.usable_rows`). Firm
 answers a write with its address and the readings of the ports at that address
 (``write_states`` then ``read_states``, ``Haply_M3_Firmware_V1_5.ino`` line 77 and 89;
 ``.h`` ``read_states``): ``[MARK_ID]``, one byte, in the marker's place among the 9-byte
-replies (the decoder gives it as :data:`hapsim.drivers.base.MARK` where a reply would
-start: :meth:`hapsim.drivers.base.AlignedDecoder.mark_at`). The replies before it answer
+replies (the decoder gives it as :data:`hapsim.drivers.decoders.MARK` where a reply would
+start: :meth:`hapsim.drivers.decoders.AlignedDecoder.mark_at`). The replies before it answer
 the writes before the marker, the one after it the write after the marker, so the count
 is set there whatever it was: a late board's is unchanged, one that swallowed ``D``
 writes moves on by ``D``. The loop writes on meanwhile; the answer comes with the next

@@ -92,7 +92,7 @@ from collections import deque
 import numpy as np
 
 from hapsim.braking import BRAKE_MAX_S, Brake, brake_damping, brake_rest
-from hapsim.drivers.base import MARK
+from hapsim.drivers.decoders import MARK
 from hapsim.drivers.haply import MAX_TORQUE, ResyncRule
 from hapsim.drivers.haply2 import Haply2DIY
 from hapsim.errors import DeviceError
