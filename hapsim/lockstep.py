@@ -233,7 +233,20 @@ def measure_felt_lockstep(scene, amplitude: float = 1e-8, samples: int | None = 
 def default_samples(order: int, n: int) -> int:
     """Samples per identification record: ``max(300, 20 p n)`` for prediction order
     ``p`` and ``n`` axes (ten times the regression's ``2 p n`` minimum, so the fit is
-    overdetermined tenfold)."""
+    overdetermined tenfold).
+
+    Parameters
+    ----------
+    order : int
+        The prediction order ``p``, >= 1.
+    n : int
+        Axes (or ports: :func:`hapsim.lockstep_ports.measure_felt_ports`).
+
+    Returns
+    -------
+    int
+        Samples per record, >= 300.
+    """
     return max(300, 20 * int(order) * int(n))
 
 

@@ -213,11 +213,23 @@ class Key:
         return tuple(v) if isinstance(v, tuple) else (None, v)
 
     def why_text(self) -> str:
-        """:attr:`why` with ``{limit}`` filled in."""
+        """:attr:`why` with ``{limit}`` filled in.
+
+        Returns
+        -------
+        str
+            ``{limit}``: the analysis limit's upper bound, else :attr:`maximum` (``%g``).
+        """
         return self.why.format(limit=f"{self.analysis_limits()[1] or self.maximum:g}")
 
     def range_text(self) -> str:
-        """The allowed values in words (``"> 0"``, ``">= 0, or .inf"``, ``"zoh | ideal"``)."""
+        """The allowed values in words (``"> 0"``, ``"> 0, .inf allowed"``, ``"zoh | ideal"``).
+
+        Returns
+        -------
+        str
+            The parts joined by ``", "`` (a choice's values by ``" | "``); may be empty.
+        """
         if self.type == "choice":
             return " | ".join(self.choices)
         parts = []
@@ -241,7 +253,13 @@ class Key:
         return ", ".join(p for p in parts if p)
 
     def default_text(self) -> str:
-        """The default in words (``"required"``, ``"none"``, ``"0"``, ``"zoh"``)."""
+        """The default in words (``"required"``, ``"none"``, ``"0"``, ``"zoh"``).
+
+        Returns
+        -------
+        str
+            :attr:`default_doc` when set, else the default as the docs print it.
+        """
         if self.default_doc:
             return self.default_doc
         if self.required:

@@ -346,7 +346,13 @@ class Controller:
         self.log(event, change.kind, [change.name, *change.end], at=int(sample))
 
     def felt_reply(self) -> tuple:
-        """The values of ``/hapsim/felt``: k, b, f0, zeta predicted, k, b measured."""
+        """The values of ``/hapsim/felt``: k, b, f0, zeta predicted, k, b measured.
+
+        Returns
+        -------
+        tuple of 6 float
+            k [N/m], b [N s/m], f0 [Hz], zeta [-] predicted, k, b measured (NaN: not known).
+        """
         f = self.felt
         return (number(f.get("k")), number(f.get("b")), number(f.get("f0_hz")),
                 number(f.get("damping_ratio")), float(self.measured[0]),
@@ -473,7 +479,17 @@ class Controller:
 
     def finish(self, timeout_s: float = 10.0) -> bool:
         """Wait up to ``timeout_s`` [s] for the identification under way; whether none is
-        left running."""
+        left running.
+
+        Parameters
+        ----------
+        timeout_s : float
+            Longest wait [s], for the rebasing and for the identification each.
+
+        Returns
+        -------
+        bool
+        """
         if self._rebasing is not None:
             self._rebasing.join(timeout_s)
         if self._pending is None:
@@ -674,7 +690,13 @@ class ControllerND(Controller):
     def felt_reply(self) -> tuple:
         """``/hapsim/felt``'s values: the 1-D ones (k, b along the stiffest felt direction,
         f0, zeta, measured k, b: NaN), then n, the felt stiffness matrix [N/m] and the
-        felt damping matrix [N s/m] row by row (NaN without a port)."""
+        felt damping matrix [N s/m] row by row (NaN without a port).
+
+        Returns
+        -------
+        tuple of float
+            ``6 + 1 + 2 n^2``: :meth:`Controller.felt_reply`'s, ``n``, the matrices row-major.
+        """
         f = self.felt
         n = int(f.get("dof", self.scene.dimension))
 
@@ -684,10 +706,22 @@ class ControllerND(Controller):
                 *flat(f.get("felt_damping")))
 
     def measure(self, x, wait: float = 0.0) -> None:
-        """Not done in n-D (:attr:`unmeasured` says so); present for the 1-D interface."""
+        """Not done in n-D (:attr:`unmeasured` says so); present for the 1-D interface.
+
+        Parameters
+        ----------
+        x, wait
+            Ignored (:meth:`Controller.measure`'s).
+        """
 
     def poll(self, engine=None) -> None:
-        """Not used in n-D: :class:`hapsim.audio.live.LiveND` takes the changes."""
+        """Not used in n-D: :class:`hapsim.audio.live.LiveND` takes the changes.
+
+        Parameters
+        ----------
+        engine : optional
+            Ignored: it raises ``NotImplementedError`` whatever is given.
+        """
         raise NotImplementedError("an n-D scene's changes are ramped by LiveND")
 
     def _plan(self, address: str, args):

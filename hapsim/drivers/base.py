@@ -179,7 +179,14 @@ class Driver:
 
     def options(self) -> dict:
         """The device parameters this driver was built with (its constructor's keywords
-        and their values): what ``device.protocol_options`` holds."""
+        and their values): what ``device.protocol_options`` holds.
+
+        Returns
+        -------
+        dict
+            Keyword name to its value, for each constructor keyword the driver keeps as
+            an attribute of that name (a new dict).
+        """
         import inspect
         names = [n for n in inspect.signature(type(self).__init__).parameters if n != "self"]
         return {n: getattr(self, n) for n in names if hasattr(self, n)}
@@ -207,13 +214,25 @@ class Driver:
 
     def mock_hardware(self) -> dict:
         """The keywords of this driver's mock (:mod:`hapsim.emulated.driver_mock`) that build the
-        device this driver describes (by default none)."""
+        device this driver describes (by default none).
+
+        Returns
+        -------
+        dict
+            Keyword name to value; empty by default.
+        """
         return {}
 
     def round_trip_s(self) -> float:
         """Shortest time from a command's first byte to the end of its answer [s] (wire
         time of both at the baud rate, 10 bits a byte, plus the device's own work); 0 for
-        a link whose wire time is negligible (USB at full speed)."""
+        a link whose wire time is negligible (USB at full speed).
+
+        Returns
+        -------
+        float
+            [s], >= 0; 0.0 by default.
+        """
         return 0.0
 
     def least_answer_s(self) -> float:
@@ -221,14 +240,33 @@ class Driver:
         board's firmware allows (its bytes and the answer's on the wire, its least work),
         where the board's emulation honours it too: an answer read sooner is not that
         command's (:meth:`hapsim.drivers.transport.DriverTransport._take`). 0 (the
-        default): not stated, the newest command is taken as answered."""
+        default): not stated, the newest command is taken as answered.
+
+        Returns
+        -------
+        float
+            [s], >= 0; 0.0 by default.
+        """
         return 0.0
 
     def answer_names(self, command: bytes, echo) -> bool | None:
         """Whether an answer whose echo (:meth:`answer_echo`) is ``echo`` can answer
         ``command`` (the bytes written); None (the default): the board's answers name no
         command, the transport's rule of time alone pairs them
-        (:meth:`hapsim.drivers.transport.DriverTransport._take`)."""
+        (:meth:`hapsim.drivers.transport.DriverTransport._take`).
+
+        Parameters
+        ----------
+        command : bytes
+            The bytes written (one command of :meth:`encode_force`).
+        echo : object
+            What the answer echoes (:meth:`answer_echo`; the Hapkit sketch's: a float).
+
+        Returns
+        -------
+        bool or None
+            True: it can; False: it cannot; None: not known (always, by default).
+        """
         return None
 
     def answer_echo(self):
@@ -238,7 +276,13 @@ class Driver:
 
     def max_rate_hz(self) -> float:
         """Highest host rate whose period holds a command and its answer [Hz] (inf when
-        the link sets no bound)."""
+        the link sets no bound).
+
+        Returns
+        -------
+        float
+            ``1 / round_trip_s()`` [Hz]; ``math.inf`` when :meth:`round_trip_s` is 0.
+        """
         rt = self.round_trip_s()
         return 1.0 / rt if rt > 0 else math.inf
 
@@ -261,7 +305,18 @@ class Driver:
     def rate_candidates(self, rates) -> list:
         """The rates a ladder's span offers this board, increasing [Hz]: the ladder's own
         (a board on its own tick overrides it: the whole numbers of its ticks within the
-        span). :meth:`board_rates` keeps those it holds."""
+        span). :meth:`board_rates` keeps those it holds.
+
+        Parameters
+        ----------
+        rates : iterable of float
+            Candidate rates [Hz], increasing (``hapsim advise``'s ladder).
+
+        Returns
+        -------
+        list of float
+            [Hz]; by default ``rates`` as floats, in their order.
+        """
         return [float(r) for r in rates]
 
     def board_rates(self, rates) -> list:
@@ -312,40 +367,124 @@ class Driver:
                 f"highest rate this device can hold is {math.floor(top):d} Hz", key="rate_hz")
 
     def rate_reason(self) -> str:
-        """Why :meth:`max_rate_hz` is what it is (for :meth:`check_rate`'s message)."""
+        """Why :meth:`max_rate_hz` is what it is (for :meth:`check_rate`'s message).
+
+        Returns
+        -------
+        str
+            By default the round trip (:meth:`round_trip_s`) in [ms].
+        """
         return f"a command and its answer take {self.round_trip_s() * 1e3:.3g} ms"
 
     def stop_bytes(self, position: float = 0.0) -> bytes:
         """What the host sends to leave the device at zero force (STOP, a loss, closing
         the port): a zero-force command by default; a device that may have lost its place
-        in the byte stream gets its re-synchronisation, which ends at zero force."""
+        in the byte stream gets its re-synchronisation, which ends at zero force.
+
+        Parameters
+        ----------
+        position : float
+            The last position read [m] or [rad] (used by a re-synchronisation that sets
+            the device's position, the Haply's; ignored by default).
+
+        Returns
+        -------
+        bytes
+            By default ``encode_force(0.0)``.
+
+        Raises
+        ------
+        NotImplementedError
+            By default, for a driver that does not implement :meth:`encode_force`.
+        """
         return self.encode_force(0.0)
 
     def resync(self, position: float = 0.0) -> bytes:
         """Bytes that put a device which lost its place in the byte stream back in step,
         zero force first (default: a zero-force command; a start byte re-aligns a framed
-        device by itself). ``position`` is the last position read [m] or [rad]."""
+        device by itself). ``position`` is the last position read [m] or [rad].
+
+        Parameters
+        ----------
+        position : float
+            The last position read [m] or [rad] (ignored by default).
+
+        Returns
+        -------
+        bytes
+            By default ``encode_force(0.0)``.
+
+        Raises
+        ------
+        NotImplementedError
+            By default, for a driver that does not implement :meth:`encode_force`.
+        """
         return self.encode_force(0.0)
 
     def encode_force(self, force: float) -> bytes:
-        """Bytes commanding ``force`` [N] on the driven axis (zero on the others)."""
+        """Bytes commanding ``force`` [N] on the driven axis (zero on the others).
+
+        Parameters
+        ----------
+        force : float
+            The force to send [N] (a rotary device's torque [N m]); a driver clamps it to
+            :attr:`force_limit`.
+
+        Returns
+        -------
+        bytes
+            One command, as written to the port.
+
+        Raises
+        ------
+        NotImplementedError
+            Always, here: every driver overrides it.
+        """
         raise NotImplementedError
 
     def arm(self) -> bytes:
         """Bytes sent when the host arms the device (CONFIG): by default one zero-force
-        command, whose answer is the first record."""
+        command, whose answer is the first record.
+
+        Returns
+        -------
+        bytes
+            By default ``encode_force(0.0)``.
+        """
         return self.encode_force(0.0)
 
     def rearm_anchor(self, position: float):
         """For a device whose set-up sets its position (re-arming it at :meth:`arm`'s
         pose would move its frame), the decoder's anchor at ``position`` (the last read,
         [m] or [rad]), and the transport re-arms it with :meth:`resync` there; None (the
-        default): a re-arming is :meth:`arm` again."""
+        default): a re-arming is :meth:`arm` again.
+
+        Parameters
+        ----------
+        position : float
+            The last position read [m] or [rad].
+
+        Returns
+        -------
+        float or None
+            The decoder's anchor (the Haply's: the angle in [deg]); None by default.
+        """
         return None
 
     def applied_force(self, force: float) -> float:
         """The force [N] the device receives for ``force`` (after the protocol's
-        quantisation and clamp): what identification must fit against."""
+        quantisation and clamp): what identification must fit against.
+
+        Parameters
+        ----------
+        force : float
+            The force sent [N] (or torque [N m]).
+
+        Returns
+        -------
+        float
+            [N]; by default ``force`` itself, as a float.
+        """
         return float(force)
 
     def applied_forces(self, force):

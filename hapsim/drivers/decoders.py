@@ -63,8 +63,19 @@ class AlignedDecoder:
         self._realigning = False        # bytes dropped since the last frame taken
 
     def parse(self, buf):
-        """The protocol's framing (each driver's decoder): the frames ``buf`` holds and the
-        bytes left over, as its subclass defines them.
+        """The protocol's framing (each driver's decoder): the value of the frame at the
+        start of ``buf``, or None where no frame starts there, as its subclass defines it
+        (:meth:`feed_into` drops the frame's :attr:`length` bytes, or one byte on None).
+
+        Parameters
+        ----------
+        buf : bytearray
+            The bytes held, at least :attr:`length` of them; not changed.
+
+        Returns
+        -------
+        object or None
+            The frame's value (a subclass's: a float, a tuple), or None: no frame.
 
         Raises
         ------
@@ -88,7 +99,18 @@ class AlignedDecoder:
 
     def starts_frame(self, byte: int) -> bool:
         """Whether a frame can start with ``byte`` (:attr:`confirm_next`: the byte after a
-        window; by default any)."""
+        window; by default any).
+
+        Parameters
+        ----------
+        byte : int
+            A byte's value, 0-255.
+
+        Returns
+        -------
+        bool
+            True by default.
+        """
         return True
 
     def on_skip(self) -> None:
@@ -112,7 +134,18 @@ class AlignedDecoder:
 
     def accept(self, value) -> bool:
         """Whether a parsed frame (its ``length`` bytes consumed) is taken; only taken
-        frames are returned and counted in ``stats["frames"]``."""
+        frames are returned and counted in ``stats["frames"]``.
+
+        Parameters
+        ----------
+        value : object
+            The frame's value, as :meth:`parse` returned it (not None).
+
+        Returns
+        -------
+        bool
+            True by default.
+        """
         return True
 
     def clear(self) -> None:
@@ -134,7 +167,19 @@ class AlignedDecoder:
         """
 
     def feed(self, data: bytes) -> list:
-        """Bytes in, the values of the frames taken out."""
+        """Bytes in, the values of the frames taken out.
+
+        Parameters
+        ----------
+        data : bytes
+            Bytes read from the link; a frame's incomplete tail is held for the next call.
+
+        Returns
+        -------
+        list
+            The values of the frames taken (:meth:`parse`'s, and :data:`MARK` for a
+            one-byte answer), in their order; a new list.
+        """
         out = []
         self.feed_into(data, out)
         return out
@@ -218,7 +263,19 @@ class MappedDecoder:
         self._position = position
 
     def feed(self, data: bytes) -> list:
-        """Bytes in, the positions of the complete frames out."""
+        """Bytes in, the positions of the complete frames out.
+
+        Parameters
+        ----------
+        data : bytes
+            Bytes read from the link.
+
+        Returns
+        -------
+        list
+            ``position(frame)`` of each frame the frame decoder's ``feed`` gave [m] or
+            [rad], in their order.
+        """
         pos = self._position
         return [pos(fr) for fr in self.frames.feed(data)]
 

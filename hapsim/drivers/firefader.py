@@ -553,29 +553,69 @@ class FireFader(Driver):
         """Packet commanding ``force`` [N] on the driven fader, 0 on the other.
 
         The count is clamped to -126..126 (the protocol's -127 would exceed the symmetric
-        force limit, 126 counts, by one count)."""
+        force limit, 126 counts, by one count).
+
+        Parameters
+        ----------
+        force : float
+            Force [N]; NaN or infinite: 0 (:func:`force_counts`).
+
+        Returns
+        -------
+        bytes
+            The 3-byte packet ``[127, fA, fB]`` (:func:`encode_packet`).
+        """
         c = max(force_counts(force, self.full_scale), -FORCE_MAX)
         return encode_packet(c, 0) if self.axis == 0 else encode_packet(0, c)
 
     def applied_force(self, force: float) -> float:
-        """The force the packet of ``force`` commands [N]: its count times the scale."""
+        """The force the packet of ``force`` commands [N]: its count times the scale.
+
+        Parameters
+        ----------
+        force : float
+            The force sent [N].
+
+        Returns
+        -------
+        float
+            [N], a whole number of counts (-126..126) of ``full_scale / 127``.
+        """
         return max(force_counts(force, self.full_scale), -FORCE_MAX) * self.force_scale
 
     def mock_hardware(self) -> dict:
         """The mock's fader: this full scale and position scale, and end stops
         :data:`MOCK_TRAVEL_COUNTS` counts apart around the middle (its pot reads about 2
-        and 252 at them)."""
+        and 252 at them).
+
+        Returns
+        -------
+        dict
+            ``full_scale`` [N], ``metres_per_count`` [m/count], ``travel`` [m].
+        """
         return {"full_scale": self.full_scale, "metres_per_count": self.position_scale,
                 "travel": MOCK_TRAVEL_COUNTS * self.position_scale}
 
     def round_trip_s(self) -> float:
         """From a packet's first byte to its record's last [s]: 3 + 7 bytes of 10 bits at
-        57600 baud and the firmware's reads (module notes), about 2.99 ms."""
+        57600 baud and the firmware's reads (module notes), about 2.99 ms.
+
+        Returns
+        -------
+        float
+            [s]: ``100 / baud + PASS_READS_S``.
+        """
         return (3 + 7) * 10 / self.baud + PASS_READS_S
 
     def rate_reason(self) -> str:
         """Why the rate is bounded (said with a refused ``--rate``): the round trip
-        :meth:`round_trip_s` sums."""
+        :meth:`round_trip_s` sums.
+
+        Returns
+        -------
+        str
+            The round trip's parts and sum [ms].
+        """
         return (f"a packet (0.52 ms at {self.baud} baud), the firmware's reads "
                 f"({PASS_READS_S * 1e3:.2f} ms) and its 7-byte record (1.22 ms) take "
                 f"{self.round_trip_s() * 1e3:.2f} ms, and a period must hold them (a "
@@ -733,7 +773,13 @@ class FireFader(Driver):
         return acc
 
     def decoder(self):
-        """A fresh host-side decoder returning the driven fader's position [m]."""
+        """A fresh host-side decoder returning the driven fader's position [m].
+
+        Returns
+        -------
+        MappedDecoder
+            Over a :class:`RecordDecoder`: ``(count - 127) * position_scale`` [m].
+        """
         ax = self.axis
         mpc = self.position_scale
         return MappedDecoder(RecordDecoder(), lambda r: (r[ax] - CENTRE) * mpc)

@@ -194,7 +194,16 @@ class FalconDevice:
     # ------------------------------------------------------------------ line settings
     def line(self, **settings) -> None:
         """USB control transfers: ``dtr``, ``rts``, ``baud``, ``baud_divisor``,
-        ``latency_ms``, ``purge``, ``bits``, ``flow`` (module notes for their effects)."""
+        ``latency_ms``, ``purge``, ``bits``, ``flow`` (module notes for their effects).
+
+        Parameters
+        ----------
+        **settings
+            ``dtr`` (0 or 1: a rising edge resets the MCU into its loader), ``baud``
+            [baud], ``baud_divisor`` (the FT232R's register: :func:`ft232r_baud`),
+            ``purge`` (bool: the bytes held dropped); ``rts``, ``latency_ms``, ``bits``,
+            ``flow`` and any other are ignored.
+        """
         if settings.get("purge"):
             self._buf.clear()
         if "baud" in settings:
@@ -232,12 +241,25 @@ class FalconDevice:
         return tuple(out)
 
     def now(self) -> float:
-        """The device's own clock [s]: ``time.monotonic`` since it was made."""
+        """The device's own clock [s]: ``time.monotonic`` since it was made.
+
+        Returns
+        -------
+        float
+            [s], >= 0.
+        """
         return time.monotonic() - self._t0
 
     def run_to(self, t: float) -> None:
         """Wall clock: the legs integrated to the device's time ``t`` [s], the commands in
-        effect held, each packet's taking effect at its time."""
+        effect held, each packet's taking effect at its time.
+
+        Parameters
+        ----------
+        t : float
+            The device's time to run to [s] (:meth:`now`'s clock); nothing is integrated
+            when the legs are there already.
+        """
         while self._t < t:
             nxt = t
             if self._due and self._due[0][0] < nxt:
@@ -357,11 +379,23 @@ class FalconDevice:
 
     def counts(self) -> tuple:
         """The three encoder counts the device reports now (relative to the power-up
-        pose until homed): the truth a host's readings are compared with in the tests."""
+        pose until homed): the truth a host's readings are compared with in the tests.
+
+        Returns
+        -------
+        tuple of int
+            The three legs' counts, leg order.
+        """
         return self._counts()
 
     def joints_deg(self) -> np.ndarray:
-        """The legs' true angles [deg] (tests)."""
+        """The legs' true angles [deg] (tests).
+
+        Returns
+        -------
+        ndarray, shape (3,)
+            [deg], leg order (libnifalcon's convention; no encoder offset).
+        """
         return np.degrees(self.plant.joints())
 
 
@@ -381,11 +415,30 @@ class EmulatorLink:
         self.device = device
 
     def line(self, **settings) -> None:
-        """The settings passed on."""
+        """The settings passed on.
+
+        Parameters
+        ----------
+        **settings
+            As the device's ``line`` (:meth:`FalconDevice.line`).
+        """
         self.device.line(**settings)
 
     def exchange(self, send: bytes, n: int, done=None, timeout=None) -> bytes:
-        """The device's answer to ``send`` (all of it, whatever ``n``)."""
+        """The device's answer to ``send`` (all of it, whatever ``n``).
+
+        Parameters
+        ----------
+        send : bytes
+            What the host writes.
+        n, done, timeout
+            Ignored (the :class:`hapsim.drivers.falcon_usb.FalconUSB`-like signature).
+
+        Returns
+        -------
+        bytes
+            The device's ``feed(send)``.
+        """
         return self.device.feed(send)
 
 

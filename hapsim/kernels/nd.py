@@ -518,7 +518,17 @@ def run_nd(n, dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_p
            eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, eu_sh, eu_sk, eu_sz, eu_srest,
            eu_pad_ptr, eu_pad, W, c_i1, c_i2, c_k, c_z, c_thr, c_lprev, p_mass, p_normal,
            p_offset, p_k, p_z, dn_fam, dn_G, port, port_f):
-    """``n`` samples of :func:`step_nd` (same arguments after ``n``)."""
+    """``n`` samples of :func:`step_nd` (same arguments after ``n``).
+
+    Parameters
+    ----------
+    n : int
+        Samples to run, >= 0 (0: nothing changes).
+    dim, block, x, ..., port_f
+        As :func:`step_nd`: ``x``, ``xp``, the previous lengths (``eu_lprev``,
+        ``c_lprev``) and ``port_f`` updated in place (``port_f``: the last sample's force
+        on ``port`` [N]).
+    """
     for _ in range(n):
         step_nd(dim, block, x, xp, f, t2m, lin_pieces, lin_ptr, lin_k, lin_z, eu_pieces,
                 eu_ptr, eu_k, eu_z, eu_rest, eu_lprev, eu_sh, eu_sk, eu_sz, eu_srest,

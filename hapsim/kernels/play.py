@@ -44,7 +44,7 @@ COMPILED_SOURCES = ("hapsim/kernels/nd.py", "hapsim/kernels/audio.py",
                     "hapsim/kernels/cordis.py", "hapsim/kernels/pointers.py",
                     "hapsim/kernels/layout.py")
 #: Their SHA-256 (``tests/test_play_nd.py`` says when to update it).
-COMPILED_SOURCES_SHA256 = "1575680e9e0f8e10e1ffa31c08619f02925e2a229eb3f6ae3706af57de92c921"
+COMPILED_SOURCES_SHA256 = "3573dcef48a54d071ded057a3c6009225a6bded29863b7e9cd3eff74350bd61d"
 #: Whether numba's disk cache may serve this module's compiled code.
 CACHE_OK = cache_ok(COMPILED_SOURCES, COMPILED_SOURCES_SHA256)
 

@@ -221,6 +221,11 @@ def check_scene(s) -> None:
     The YAML reader checks only what the dataclasses cannot express (syntax, structure,
     unknown and missing keys); every value is checked here, once.
 
+    Parameters
+    ----------
+    s : hapsim.scene.Scene
+        The scene (its ``__post_init__`` calls this).
+
     Raises
     ------
     Invalid
@@ -271,6 +276,11 @@ def check_scene_ports(s) -> None:
     (:data:`PORTS_NOT_BUILT`): 2 to :data:`MAX_PORTS` ports, each with a device and no
     device for another name, no virtual mass, no contact, no target, ``hold: zoh``, no
     hand or correction (each port its own delay, whole or sub-sample).
+
+    Parameters
+    ----------
+    s : hapsim.scene.ScenePorts
+        The scene (its ``__post_init__`` calls this).
 
     Raises
     ------
@@ -424,6 +434,11 @@ def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> N
         The device (its Cartesian mass [kg] and friction [N s/m], shape (n, n)).
     dev_line : int or None
         Line of the ``device`` section.
+
+    Returns
+    -------
+    None
+        Nothing: the scene's products pass, or the first beyond the bound is refused.
 
     Raises
     ------
