@@ -296,8 +296,9 @@ API_OPTIONS = {
                  "rate_hz": ("--rate", Number(float, low=0, open_low=True, unit="Hz")),
                  "max_delay": ("--max-delay", Number(int, low=0)),
                  "seed": ("--seed", Number(int, low=0)),
+                 # (high: a device's mass range, hapsim.scene_schema.MASS_RANGE)
                  "added_mass": ("--added-mass", Number(float, low=0, open_low=True,
-                                                       unit="kg")),
+                                                       high=1e12, unit="kg")),
                  "rt_priority": ("--rt-priority", Number(int, low=0, high=99))},
     "run_nd": {"amplitude": ("--amplitude", Number(float, low=0, open_low=True, unit="m"))},
     "play": {"duration": ("--duration", Number(float, low=0, open_low=True, unit="s")),

@@ -10,7 +10,8 @@ import os
 import numpy as np
 
 from hapsim.errors import ConfigError
-from hapsim.api.common import Charted, figure, load_scene, matrix_or_nan, n_d_scene
+from hapsim.api.common import (Charted, draw_report, figure, load_scene, matrix_or_nan,
+                               n_d_scene)
 from hapsim.results import Report
 
 
@@ -434,7 +435,6 @@ class CheckReportND(Report):
             matplotlib missing, or a path that cannot be written (key ``plot``).
         """
         from hapsim.analysis.scene_check import felt_over_workspace
-        from hapsim.plots import save_figure
         from hapsim.plots.workspace import plot_scene_nd
         scene = self.scene_nd
         felt = felt_over_workspace(scene) if scene.device.joints is not None else None
@@ -443,10 +443,8 @@ class CheckReportND(Report):
                 if felt is not None and felt.note else ""
             title = (f"{os.path.basename(scene.path)}: {scene.device.kind}, "
                      f"{scene.rate_hz:g} Hz, delay {scene.device.delay}" + note)
-        fig = plot_scene_nd(scene, self.analysis, felt, title=title)
-        if path is not None:
-            save_figure(fig, os.fspath(path))
-        return fig
+        return draw_report(self, lambda rep, ax=None: plot_scene_nd(
+            scene, self.analysis, felt, title=title), path, axes=False)
 
 
 def check_nd(scene, progress=None) -> CheckReportND:
@@ -559,15 +557,12 @@ class ModesReportND(Report):
         ConfigError
             matplotlib missing, or a path that cannot be written (key ``plot``).
         """
-        from hapsim.plots import save_figure
         from hapsim.plots.workspace import plot_modes_nd
         scene = self.scene_nd
         if title is None:
             title = f"{os.path.basename(scene.path)}: modes at {scene.rate_hz:g} Hz"
-        fig = plot_modes_nd(scene, self.analysis, title=title, count=count)
-        if path is not None:
-            save_figure(fig, os.fspath(path))
-        return fig
+        return draw_report(self, lambda rep, ax=None: plot_modes_nd(
+            scene, self.analysis, title=title, count=count), path, axes=False)
 
 
 def modes_nd(scene) -> ModesReportND:

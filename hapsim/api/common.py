@@ -10,6 +10,7 @@ import os
 import numpy as np
 
 from hapsim.errors import ConfigError
+from hapsim.option_values import check_kind
 
 __all__ = ["load_scene", "load_scene_nd", "refuse_ports", "ONE_PORT_ONLY", "known_digits", "known_decimals", "draw_report",
            "MeasuredPair", "Charted",
@@ -52,7 +53,7 @@ def load_scene(path: str | os.PathLike):
     return _load(p)
 
 
-def draw_report(report, draw, path_or_ax):
+def draw_report(report, draw, path_or_ax, axes: bool = True):
     """``draw(report, ax=...)`` into new axes (None), given axes, or a figure file.
 
     Parameters
@@ -63,6 +64,9 @@ def draw_report(report, draw, path_or_ax):
     path_or_ax : str, path-like, matplotlib.axes.Axes or None
         A figure file (checked first, written by :func:`hapsim.plots.save_figure`), axes
         to draw into, or None (new axes).
+    axes : bool
+        Whether the chart draws into given axes (False: a figure of its own, several
+        panels; axes are refused rather than ignored).
 
     Returns
     -------
@@ -71,15 +75,22 @@ def draw_report(report, draw, path_or_ax):
     Raises
     ------
     ConfigError
-        matplotlib missing, or a path that cannot be written (key ``plot``).
+        matplotlib missing, a path that cannot be written, or a target that is neither a
+        path nor axes (key ``plot``; before: a number was an AttributeError, axes were
+        ignored by the charts that draw their own figure, and the 2-D/3-D charts wrote
+        ``x.png`` for a path ``x`` without extension).
     """
-    from hapsim.plots import check_figure_path, save_figure
+    from hapsim.plots import check_figure_path, is_axes, save_figure
     if isinstance(path_or_ax, (str, os.PathLike)):
         path = os.fspath(path_or_ax)
         check_figure_path(path, "plot")
         fig = draw(report)
         save_figure(fig, path)
         return fig
+    if path_or_ax is not None:
+        if not (axes and is_axes(path_or_ax)):
+            raise ConfigError(f"must be a figure file's path{', axes' if axes else ''} or "
+                              f"None, got {path_or_ax!r}", key="plot")
     return draw(report, ax=path_or_ax)
 
 
@@ -286,21 +297,35 @@ def matrix_or_nan(m, n: int) -> np.ndarray:
 
 def known_digits(value: float, error: float) -> float:
     """``value`` rounded to the digits that are known: to the decade at or above
-    ``2 error`` (so the last digit shown is off by at most half a unit).
+    ``2 error`` (so the last digit shown is off by at most half a unit), tens or
+    thousands included (987654 known to 2000 is 990000).
 
     Parameters
     ----------
     value : float
     error : float >= 0
-        Its uncertainty (0 or non-finite: ``value`` unchanged).
+        Its uncertainty (0 or not finite, an uncertainty unknown: ``value`` unchanged).
 
     Returns
     -------
     float
+
+    Raises
+    ------
+    ConfigError
+        ``value`` or ``error`` not a number, or ``error`` negative (keyed by the
+        argument).
     """
-    if not (error > 0 and math.isfinite(error)):
+    check_kind("value", value, "a number", required=True)
+    check_kind("error", error, "a number", required=True)
+    if error < 0:
+        raise ConfigError(f"must be a number >= 0 (an uncertainty), got {error!r}",
+                          key="error")
+    if error == 0 or not math.isfinite(error) or not math.isfinite(value):
         return value
-    return round(value, known_decimals(error))
+    # (before: floored at 0 decimals, as known_decimals is for printing, it kept the
+    # units' digits of a value known to thousands)
+    return round(value, -math.ceil(math.log10(2.0 * error)))
 
 
 def known_decimals(error: float) -> int:
@@ -319,9 +344,13 @@ def known_decimals(error: float) -> int:
 
     Raises
     ------
-    ValueError
-        ``error <= 0`` (``math.log10``).
+    ConfigError
+        ``error`` not a finite number > 0 (keyed ``error``).
     """
+    check_kind("error", error, "a number", required=True)
+    if not (error > 0 and math.isfinite(error)):
+        raise ConfigError(f"must be a finite number > 0 (an uncertainty), got {error!r}",
+                          key="error")
     return max(0, -math.ceil(math.log10(2.0 * error)))
 
 
@@ -343,8 +372,20 @@ class MeasuredPair:
     @property
     def ok(self) -> bool:
         """Ran or played to its end, or was stopped by a signal, with no device error:
-        what exit code 0 means."""
-        return self.exit_code == 0
+        what exit code 0 means. A report read back from its JSON (no ``exit_code``) is
+        judged by the command's rule on what it says (:meth:`exit_rule`; before: an
+        AttributeError)."""
+        code = getattr(self, "exit_code", None)
+        return code == 0 if code is not None else self.exit_rule()
+
+    def exit_rule(self) -> bool:
+        """Whether the command exited 0, from the report's content: no ``error``.
+
+        Returns
+        -------
+        bool
+        """
+        return not getattr(self, "error", None)
 
 
 class Charted:

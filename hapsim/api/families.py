@@ -87,7 +87,7 @@ class FamilyReport(Report):
 
         def draw(report, ax=None):          # two panels: a figure of its own
             return plot_family(report.analysis, title=title or report.scene)
-        return draw_report(self, draw, path)
+        return draw_report(self, draw, path, axes=False)
 
 
 def family(scene, samples: int | None = None, *, grid: int = 9, seed: int = 0,

@@ -69,13 +69,15 @@ class IdentifyReport(Report):
         from hapsim.drivers import get_driver
         return get_driver(name, **opts)
 
-    def device_yaml(self, force_limit: float = 2.0, driver=None) -> str:
+    def device_yaml(self, force_limit: float | None = None, driver=None) -> str:
         """The ``device:`` section for a scene or ``hapsim run --device`` (as ``--out``).
 
         Parameters
         ----------
-        force_limit : float
-            The excitation's force limit (its comment) [N] ([N m] on a rotary axis).
+        force_limit : float, optional
+            The excitation's force limit (its comment) [N] ([N m] on a rotary axis), a
+            finite number > 0; default the report's own (``loop.settings.force_limit``;
+            before: 2 whatever the excitation's was).
         driver : hapsim.drivers.base.Driver, optional
             The driver whose protocol and units it names; default :meth:`found_driver`
             (a Haply joint's file then says [kg m^2]), the framed protocol's SI units
@@ -85,8 +87,27 @@ class IdentifyReport(Report):
         -------
         str
             YAML text (:func:`hapsim.device_file.device_yaml`).
+
+        Raises
+        ------
+        ConfigError
+            ``force_limit`` not a finite number > 0, or none given to a report that
+            states none; ``driver`` not a driver (keyed by the argument).
         """
+        import math
+
         from hapsim.device_file import device_yaml
+        from hapsim.drivers.base import Driver
+        from hapsim.option_values import check_kind
+        if force_limit is None:
+            force_limit = (self.loop.get("settings") or {}).get("force_limit")
+        check_kind("force_limit", force_limit, "a number", required=True)
+        if not (math.isfinite(force_limit) and force_limit > 0):
+            raise ConfigError(f"must be a finite number > 0 [N], got {force_limit!r}",
+                              key="force_limit")
+        if driver is not None and not isinstance(driver, Driver):
+            raise ConfigError(f"must be a driver (hapsim.drivers.get_driver), got "
+                              f"{driver!r}", key="driver")
         return device_yaml(self.fit, force_limit, hand=self.hand,
                            driver=self.found_driver() if driver is None else driver)
 
@@ -300,8 +321,28 @@ def excite_and_fit(*, port=None, baud=115200, device=None, force_limit=2.0, enve
         and returned, ``rec["lost"]`` the DeviceError.
     """
     from hapsim.analysis.device_fit import fit_device
+    from hapsim.option_values import check_kind
+    from hapsim.outputs import check_fits
     from hapsim.pipeline.identify_run import record
-    check_values("identify", max_delay=max_delay)
+    # every keyword, as identify checks its own (before: only max_delay; a word or None
+    # for a number was a TypeError deep in the excitation, a bool taken as 1)
+    check_values("identify", required=True, baud=baud, force_limit=force_limit,
+                 envelope=envelope, duration=duration, rate_hz=rate_hz,
+                 max_delay=max_delay, seed=seed)
+    check_values("identify", rt_priority=rt_priority)
+    _kinds(device=device, lockstep=lockstep, hand=False, driver_options=driver_options,
+           mock_options=mock_options)
+    for key, value in (("progress", progress), ("handle_signals", handle_signals)):
+        check_kind(key, value, "True or False", required=True)
+    check_kind("--port", port, "a path")
+    check_kind("--travel", travel, "a number")
+    check_kind("transport", transport, "a text")
+    if driver is None and (driver_options or mock_options):
+        raise ConfigError("options of a driver's protocol or board, and no driver is given",
+                          key="--protocol-option" if driver_options else "--mock-option")
+    samples = duration * rate_hz
+    check_fits(64.0 * samples, f"{samples:.3g} samples of the excitation's record",
+               "--duration")
     import signal
     import threading
 
@@ -388,12 +429,30 @@ def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: fl
     Raises
     ------
     ConfigError
-        A driver whose protocol carries SI units (nothing to calibrate), a bad mass, or
-        the added mass not resolved by the two fits.
+        A report that is no identification's with its fit (one read back from JSON has
+        none), a driver that is no driver or not the one the reports name
+        (``loop.settings.driver``), a driver whose protocol carries SI units (nothing to
+        calibrate), a bad mass, or the added mass not resolved by the two fits.
     """
     from hapsim.analysis.calibration import full_scale_from_added_mass, rescale_fit
     from hapsim.drivers import get_driver
-    check_values("identify", added_mass=added_mass)
+    from hapsim.drivers.base import Driver
+    check_values("identify", required=True, added_mass=added_mass)
+    for key, rep in (("bare", bare), ("loaded", loaded)):
+        if not isinstance(rep, IdentifyReport) or getattr(rep, "fit", None) is None:
+            raise ConfigError(f"must be identify()'s report, with its fit (one read back "
+                              f"from JSON has none), got {type(rep).__name__}", key=key)
+    if not isinstance(driver, Driver):
+        raise ConfigError(f"must be a driver (hapsim.drivers.get_driver), got {driver!r}",
+                          key="driver")
+    for key, rep in (("bare", bare), ("loaded", loaded)):
+        # (before: a Haply driver took two FireFader records and rescaled its resolution
+        # by the fader's gain)
+        named = (rep.loop.get("settings") or {}).get("driver")
+        if named is not None and named != driver.name:
+            raise ConfigError(f"the {key} record went through the {named} driver, not "
+                              f"{driver.name}: the scale is the driver's the records were "
+                              "taken through", key="driver")
     opt = driver.scale_option
     if opt is None:
         raise ConfigError(f"the {driver.name} protocol carries SI units: no scale to "

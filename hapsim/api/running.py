@@ -79,6 +79,22 @@ class RunReport(Charted, MeasuredPair, Report):
     reason: str | None = None
     units: dict | None = None
 
+    def exit_rule(self) -> bool:
+        """Whether ``hapsim run`` exited 0, from the report's content: no device lost
+        (``error``), no safety stop, no fault, a link that kept the loop it measured
+        (:func:`hapsim.pipeline.report.build_report`'s rule).
+
+        Returns
+        -------
+        bool
+        """
+        import copy
+
+        from hapsim.host.link_verdict import link_verdict
+        loop = self.loop or {}
+        unfit = link_verdict(copy.deepcopy(self.measured or {}), copy.deepcopy(loop))
+        return not (self.error or loop.get("safety_stop") or loop.get("faults") or unfit)
+
     _chart = "plot_felt"
 
     def text(self) -> str:
@@ -301,8 +317,15 @@ class RunReportND(Report):
     @property
     def ok(self) -> bool:
         """Ran to its end, or was stopped by a signal, with no safety stop and no device
-        error: what exit code 0 means."""
-        return getattr(self, "exit_code", 0) == 0
+        error: what exit code 0 means. A report read back from its JSON (no
+        ``exit_code``) is judged by the same rule on what it says (before: always True,
+        a device lost included)."""
+        code = getattr(self, "exit_code", None)
+        if code is not None:
+            return code == 0
+        stop = str((self.extra.get("realtime") or {}).get("stop") or "")
+        return not (self.error or (self.safety or {}).get("stop")
+                    or stop.startswith("safety"))
 
     @property
     def k(self) -> np.ndarray:
@@ -527,7 +550,18 @@ def run_scene_nd(scene, options, amplitude: float | None = None) -> RunReportND:
     DeviceError, ProtocolError
         The device failed before its first record (no HELLO, a wrong one, a FAULT).
     """
+    import os
+
     from hapsim.pipeline.felt_run import measure_scene_nd, refuse_options, scene_for_run
+    from hapsim.pipeline.options import RunOptions
+    from hapsim.scene import SceneND
+    if not isinstance(scene, (str, os.PathLike)) and not isinstance(scene_given(scene),
+                                                                     SceneND):
+        # (before: a 1-D scene was an AttributeError deep in the run)
+        raise ConfigError("must be a 2-D or 3-D scene (hapsim.run takes any)", key="scene")
+    if not isinstance(options, RunOptions):
+        raise ConfigError(f"must be a hapsim.pipeline.options.RunOptions, got {options!r}",
+                          key="options")
     opts = options.check_values()
     if opts.driver is not None:
         raise ConfigError(f"driver {opts.driver!r} on a 2-D or 3-D scene runs from the "

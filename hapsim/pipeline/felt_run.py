@@ -130,9 +130,10 @@ def scene_for_run(scene, amplitude: float | None, rate_hz: float | None,
     import os
 
     from hapsim.scene import load_scene_nd
+    from hapsim.option_values import check_values
     a = default if amplitude is None else amplitude
-    if not (isinstance(a, (int, float)) and math.isfinite(a) and a > 0):
-        raise ConfigError(f"must be a positive number [m], got {a}", key="--amplitude")
+    # (its declaration: before, True was taken as 1 m)
+    check_values("run_nd", required=True, amplitude=a)
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene_nd(scene)
     if rate_hz is not None:

@@ -151,6 +151,13 @@ def record(device=None, *, port: str | None = None, baud: int = 115200,
     if transport not in ("inprocess", "pty", "serial"):
         raise ConfigError(f"unknown transport {transport!r}; valid: inprocess, pty, serial",
                           key="transport")
+    if use_driver and transport == "inprocess":
+        # (as hapsim run refuses it: before, the board ran over a pty all the same, with
+        # the in-process link's 0.5 s state timeout, and the report said "inprocess")
+        raise ConfigError(f"transport 'inprocess' runs hapsim's own mock in this process; "
+                          f"the {drv.name} driver talks to its board over a port (its "
+                          "emulated board when no port is given); valid with a driver: "
+                          "pty, serial", key="transport")
     dev = device or DEFAULT_DEVICE
     stop = stop or StopFlag()
     old = {}

@@ -25,6 +25,9 @@ from hapsim.option_values import Number, check_kind
 if TYPE_CHECKING:       # an annotation only: the parser is built without the host loop
     from hapsim.host.loop import StopFlag
 
+#: The loop's transports (:attr:`RunOptions.transport`).
+TRANSPORTS = ("serial", "pty", "inprocess", "sim")
+
 __all__ = ["RunOptions", "option", "add_run_arguments", "command_line_fields", "check_jack_server",
            "check_ramp"]
 
@@ -420,9 +423,29 @@ class RunOptions:
                 meta["type"].check(value, meta["flag"])
             if meta["check"] is not None:
                 meta["check"](value, meta["flag"])
+        self._check_program_fields()
         from hapsim.emulated.faults import parse_faults
         parse_faults(self.faults, self.fault_seed)
         return self
+
+    def _check_program_fields(self) -> None:
+        """The kinds of a program's options, which have no flag (before: an n-D run took a
+        ``transport`` of any word, a 1-D one's ``on_start`` of a word was a TypeError at
+        its start, ``telemetry_interval=-1`` and ``mock_options="x"`` ran)."""
+        if self.transport is not None and self.transport not in TRANSPORTS:
+            raise ConfigError(f"unknown transport {self.transport!r}; valid: "
+                              f"{', '.join(TRANSPORTS)}", key="transport")
+        if self.stop is not None and not callable(getattr(self.stop, "request", None)):
+            raise ConfigError(f"must be a hapsim.host.loop_types.StopFlag, got "
+                              f"{self.stop!r}", key="stop")
+        check_kind("handle_signals", self.handle_signals, "True or False", required=True)
+        for key in ("on_start", "on_precheck"):
+            if getattr(self, key) is not None and not callable(getattr(self, key)):
+                raise ConfigError(f"must be a function, got {getattr(self, key)!r}", key=key)
+        Number(float, low=0, open_low=True, unit="s").check(self.telemetry_interval,
+                                                            "telemetry_interval")
+        for key in ("driver_options", "mock_options", "driver_faults"):
+            check_kind(key, getattr(self, key), "a mapping of options")
 
     @property
     def protocol(self) -> str:
@@ -453,9 +476,6 @@ class RunOptions:
         if self.transport is None:
             self.transport = "serial" if self.port else "pty"
         tp = self.transport
-        if tp not in ("serial", "pty", "inprocess", "sim"):
-            raise ConfigError(f"unknown transport {tp!r}; valid: serial, pty, inprocess, sim",
-                              key="transport")
         if tp == "sim" and self.lockstep:
             raise ConfigError("the sim transport runs the real-time mock on a virtual clock; "
                               "drop --lockstep", key="--lockstep")

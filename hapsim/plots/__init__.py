@@ -12,7 +12,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["PLOT_INSTALL", "plot_grid", "plot_poles", "plot_felt", "plot_identify", "save_figure", "figure_formats", "check_figure_path",
-           "check_output_path"]
+           "check_output_path", "is_axes"]
 
 
 #: How to install the plot extra (matplotlib): the README's command, in hapsim's checkout.
@@ -202,6 +202,26 @@ def figure_formats() -> tuple:
         return tuple(sorted(fig.canvas.get_supported_filetypes()))
     finally:
         plt.close(fig)
+
+
+def is_axes(obj) -> bool:
+    """Whether ``obj`` is matplotlib axes (a chart's target; the API imports no
+    matplotlib of its own).
+
+    Parameters
+    ----------
+    obj : object
+
+    Returns
+    -------
+    bool
+        False too where matplotlib is not installed (no axes can exist then).
+    """
+    try:
+        from matplotlib.axes import Axes
+    except ImportError:  # pragma: no cover - depends on the environment
+        return False
+    return isinstance(obj, Axes)
 
 
 def check_figure_path(path: str, key: str = "--out") -> None:
