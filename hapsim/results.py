@@ -80,7 +80,15 @@ class Report:
         -------
         Report
             An instance of the class it is called on.
+
+        Raises
+        ------
+        ConfigError
+            ``d`` is no mapping (keyed ``d``; before: an AttributeError).
         """
+        if not isinstance(d, dict):
+            from hapsim.errors import ConfigError
+            raise ConfigError(f"must be a report's JSON object (a dict), got {d!r}", key="d")
         names = {f.name for f in dataclasses.fields(cls)}
         obj = cls(**{n: d.get(n) for n in names})
         object.__setattr__(obj, "_extra", {k: v for k, v in d.items() if k not in names})

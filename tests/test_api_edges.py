@@ -231,3 +231,37 @@ def test_a_chart_goes_to_the_file_named_or_is_refused(tmp_path):
         rep.plot(str(path))
         assert path.stat().st_size > 0
     plt.close("all")
+
+
+@pytest.mark.parametrize("bad", [None, 1, "word", [1]])
+def test_every_report_refuses_what_is_no_json_object(bad):
+    """``from_dict`` of every report class of the API with what is no JSON object: a
+    ConfigError keyed ``d`` (before: an AttributeError on ``.get``)."""
+    from hapsim.results import Report
+    classes = [getattr(api, n) for n in api.__all__ if isinstance(getattr(api, n), type)
+               and issubclass(getattr(api, n), Report) and getattr(api, n) is not Report]
+    assert len(classes) >= 15
+    for cls in classes:
+        with pytest.raises(ConfigError) as info:
+            cls.from_dict(bad)
+        assert info.value.key == "d", cls
+
+
+@pytest.mark.parametrize("empty", [0, "", False, {}])
+def test_a_list_section_given_as_no_list_is_refused_by_its_key(tmp_path, empty):
+    """Every shipped scene, each top-level section that is a list (masses, links,
+    planes, ...) replaced by a value that is no list but reads as false: refused at its
+    key by every reader (before: the 2-D/3-D reader took ``links: 0`` and ``planes: 0``
+    as none, where the 1-D one refused them)."""
+    import yaml
+    tried = 0
+    for path in sorted(CONFIGS.glob("*.yaml")):
+        doc = yaml.safe_load(path.read_text())
+        for key in [k for k, v in doc.items() if isinstance(v, list)]:
+            out = tmp_path / f"{path.stem}_{key}.yaml"
+            out.write_text(yaml.safe_dump({**doc, key: empty}, sort_keys=False))
+            with pytest.raises(ConfigError) as info:
+                hapsim.load_scene(str(out))
+            assert info.value.key == key, (path.name, key, str(info.value))
+            tried += 1
+    assert tried >= 30

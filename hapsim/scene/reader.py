@@ -611,7 +611,7 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
 
     # links
     links, lnames = [], {}
-    lseq = doc.get("links") or []
+    lseq = [] if doc.get("links") is None else doc["links"]     # (0 or "" was read as none)
     if not isinstance(lseq, list):
         raise r.error(f"must be a list of links, got {type_name(lseq)}",
                       r.line_of(doc, "links"), "links")
@@ -651,7 +651,7 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
 
     # planes
     planes, pnames = [], {}
-    pseq = doc.get("planes") or []
+    pseq = [] if doc.get("planes") is None else doc["planes"]     # (0 or "" was read as none)
     if not isinstance(pseq, list):
         raise r.error(f"must be a list of planes, got {type_name(pseq)}",
                       r.line_of(doc, "planes"), "planes")
