@@ -265,3 +265,25 @@ def test_a_list_section_given_as_no_list_is_refused_by_its_key(tmp_path, empty):
             assert info.value.key == key, (path.name, key, str(info.value))
             tried += 1
     assert tried >= 30
+
+
+def test_a_2d_or_3d_scene_without_its_dimension_is_told_to_give_it(tmp_path):
+    """Every shipped 2-D and 3-D scene with its ``dimension`` line deleted: read as 1-D,
+    it is refused at its first key a 1-D scene does not have, saying to give the
+    dimension (before: "unknown key 'kind'; valid keys: mass, friction, ..." of the
+    3-D device, which hid why)."""
+    import yaml
+    tried = 0
+    for path in sorted(CONFIGS.glob("*.yaml")):
+        doc = yaml.safe_load(path.read_text())
+        if doc.get("dimension", 1) == 1:
+            continue
+        out = tmp_path / path.name
+        out.write_text("".join(line for line in path.read_text().splitlines(True)
+                               if not line.startswith("dimension:")))
+        with pytest.raises(ConfigError) as info:
+            hapsim.load_scene(str(out))
+        assert "add dimension: 2 (or 3)" in str(info.value), (path.name, str(info.value))
+        assert info.value.line is not None and info.value.key is not None
+        tried += 1
+    assert tried >= 5

@@ -531,8 +531,9 @@ def _bad_values(action) -> list[str]:
     kind = action.type
     if kind.low is not None:                     # below, and an open bound itself (0)
         values += [f"{kind.low - 1:g}"] + [f"{kind.low:g}"] * kind.open_low
-    if kind.high is not None:
-        values += [f"{kind.high + 1:g}"] + [f"{kind.high:g}"] * kind.open_high
+    if kind.high is not None:                    # (past it by more than %g rounds off)
+        values += [f"{kind.high + max(1.0, abs(kind.high) * 1e-3):g}"] + \
+            [f"{kind.high:g}"] * kind.open_high
     return values
 
 

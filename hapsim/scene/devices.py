@@ -15,7 +15,8 @@ from hapsim.errors import ConfigError, show, type_name
 from hapsim.scene.elements import DeviceND
 from hapsim.scene.lines import LineContext
 
-__all__ = ["read_device_nd", "DEVICE_KINDS", "DEVICE_KEYS", "DEVICE_DOF",
+__all__ = ["read_device_nd", "nd_key_without_dimension", "DEVICE_KINDS", "DEVICE_KEYS",
+           "DEVICE_DOF",
            "PANTOGRAPH_GEOMETRY_KEYS"]
 
 #: The kinds of device of a 2-D or 3-D scene (``device.kind``).
@@ -186,3 +187,45 @@ def read_device_nd(r: LineContext, doc, n: int, max_delay: int) -> DeviceND:
     return DeviceND(kind, loop.mass, loop.friction, pos, delay, hold, joints=q,
                     geometry=geometry, joint_inertia=Mq, joint_friction=Bq, hand_mass=mh,
                     hand_damping=bh)
+
+
+def nd_key_without_dimension(doc, top_keys_1d, device_keys_1d):
+    """The first key of a 2-D or 3-D scene in a file without ``dimension`` (read as 1-D,
+    where "unknown key 'kind'" hid why: the fuzz of stop 92 deleted the line).
+
+    Parameters
+    ----------
+    doc : mapping
+        The scene file's top level.
+    top_keys_1d, device_keys_1d : collection of str
+        The 1-D reader's top-level and ``device`` keys.
+
+    Returns
+    -------
+    (str, mapping, str) or None
+        The dotted key, the mapping that holds it and its own key there; None when every
+        key is a 1-D scene's.
+    """
+    from hapsim.scene.reader import TOP_KEYS_ND
+    for k in doc:
+        if k in TOP_KEYS_ND and k not in top_keys_1d:
+            return k, doc, k
+    dev = doc.get("device")
+    if isinstance(dev, dict):
+        nd = {k for keys in DEVICE_KEYS.values() for k in keys}
+        for k in dev:
+            if k in nd and k not in device_keys_1d:
+                return f"device.{k}", dev, k
+    for i, m in enumerate(doc.get("masses") if isinstance(doc.get("masses"), list) else ()):
+        for k in ("x0", "v0"):              # a position or velocity given as a vector
+            if isinstance(m, dict) and isinstance(m.get(k), list):
+                return f"masses[{i}].{k}", m, k
+    for section, k in (("excitation", "direction"), ("audio", "listen")):
+        d = doc.get(section)
+        if isinstance(d, dict) and k == "direction" and k in d:
+            return f"excitation.{k}", d, k
+        if isinstance(d, dict) and isinstance(d.get(k), list):   # a listening point's axis
+            for i, it in enumerate(d[k]):
+                if isinstance(it, dict) and "axis" in it:
+                    return f"audio.listen[{i}].axis", it, "axis"
+    return None

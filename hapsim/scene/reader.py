@@ -22,7 +22,7 @@ from hapsim.errors import ConfigError, show, type_name
 from hapsim.scene_schema import (LINK_KINDS, MASS_KINDS, MASS_RANGE, MAX_DELAY, RATE_RANGE,
                                  key_names, section_keys)
 from hapsim.scene_schema import key as _key
-from hapsim.scene.devices import read_device_nd
+from hapsim.scene.devices import nd_key_without_dimension, read_device_nd
 from hapsim.scene.elements import (Audio, Device, Excitation, ExcitationND, Hand, Impulse, Link,
                                    LinkND, Listen, ListenND, Mass, MassND, PlaneND, Safety,
                                    SafetyND)
@@ -147,6 +147,11 @@ def parse_scene(text: str, path: str = "<string>",
                             ctx.line_of(doc, "dimension"), "dimension")
     if "devices" in doc:
         raise ctx.error(PORTS_REFUSAL, ctx.line_of(doc, "devices"), "devices")
+    nd = None if "dimension" in doc else nd_key_without_dimension(doc, _TOP_KEYS,
+                                                                  key_names("device"))
+    if nd is not None:
+        raise ctx.error("a 2-D or 3-D scene's key, and a scene without `dimension` is 1-D: "
+                        "add dimension: 2 (or 3)", ctx.line_of(nd[1], nd[2]), nd[0])
     ctx.keys(doc, _TOP_KEYS, "", required=tuple(k.name for k in section_keys("") if k.required))
     masses = _read_masses(ctx, doc)
     links = _read_links(ctx, doc, masses)
