@@ -1037,7 +1037,7 @@ def test_haply_rearming_after_a_stop_is_no_streaming_firmware():
 @pytest.mark.parametrize("argv,msg", [
     (["--added-mass", "0.05"], "--added-mass.*give --driver"),
     (["--driver", "hapkit-serial", "--added-mass", "0.05"], "SI units.*firefader, haply"),
-    (["--driver", "firefader", "--added-mass", "-1"], r"--added-mass: must be a finite number > 0 \[kg\]"),
+    (["--driver", "firefader", "--added-mass", "-1"], r"--added-mass: must be a finite number > 0 and <= 1e\+12 \[kg\]"),
     (["--driver", "firefader", "--mock-option", "full_scale"], "--mock-option.*KEY=VALUE"),
 ])
 def test_identify_added_mass_and_mock_option_are_checked(argv, msg, capsys):

@@ -439,7 +439,7 @@ def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: fl
     from hapsim.drivers.base import Driver
     check_values("identify", required=True, added_mass=added_mass)
     for key, rep in (("bare", bare), ("loaded", loaded)):
-        if not isinstance(rep, IdentifyReport) or getattr(rep, "fit", None) is None:
+        if getattr(rep, "fit", None) is None:
             raise ConfigError(f"must be identify()'s report, with its fit (one read back "
                               f"from JSON has none), got {type(rep).__name__}", key=key)
     if not isinstance(driver, Driver):
@@ -448,7 +448,7 @@ def calibrate_scale(bare: IdentifyReport, loaded: IdentifyReport, added_mass: fl
     for key, rep in (("bare", bare), ("loaded", loaded)):
         # (before: a Haply driver took two FireFader records and rescaled its resolution
         # by the fader's gain)
-        named = (rep.loop.get("settings") or {}).get("driver")
+        named = ((getattr(rep, "loop", None) or {}).get("settings") or {}).get("driver")
         if named is not None and named != driver.name:
             raise ConfigError(f"the {key} record went through the {named} driver, not "
                               f"{driver.name}: the scale is the driver's the records were "

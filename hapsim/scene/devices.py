@@ -189,7 +189,7 @@ def read_device_nd(r: LineContext, doc, n: int, max_delay: int) -> DeviceND:
                     hand_damping=bh)
 
 
-def nd_key_without_dimension(doc, top_keys_1d, device_keys_1d):
+def nd_key_without_dimension(doc, top_keys_1d, device_keys_1d, top_keys_nd):
     """The first key of a 2-D or 3-D scene in a file without ``dimension`` (read as 1-D,
     where "unknown key 'kind'" hid why: the fuzz of stop 92 deleted the line).
 
@@ -197,8 +197,9 @@ def nd_key_without_dimension(doc, top_keys_1d, device_keys_1d):
     ----------
     doc : mapping
         The scene file's top level.
-    top_keys_1d, device_keys_1d : collection of str
-        The 1-D reader's top-level and ``device`` keys.
+    top_keys_1d, device_keys_1d, top_keys_nd : collection of str
+        The 1-D reader's top-level and ``device`` keys, the 2-D/3-D reader's top-level
+        keys (:data:`hapsim.scene.reader.TOP_KEYS_ND`).
 
     Returns
     -------
@@ -206,9 +207,8 @@ def nd_key_without_dimension(doc, top_keys_1d, device_keys_1d):
         The dotted key, the mapping that holds it and its own key there; None when every
         key is a 1-D scene's.
     """
-    from hapsim.scene.reader import TOP_KEYS_ND
     for k in doc:
-        if k in TOP_KEYS_ND and k not in top_keys_1d:
+        if k in top_keys_nd and k not in top_keys_1d:
             return k, doc, k
     dev = doc.get("device")
     if isinstance(dev, dict):

@@ -147,8 +147,8 @@ def parse_scene(text: str, path: str = "<string>",
                             ctx.line_of(doc, "dimension"), "dimension")
     if "devices" in doc:
         raise ctx.error(PORTS_REFUSAL, ctx.line_of(doc, "devices"), "devices")
-    nd = None if "dimension" in doc else nd_key_without_dimension(doc, _TOP_KEYS,
-                                                                  key_names("device"))
+    nd = None if "dimension" in doc else nd_key_without_dimension(
+        doc, _TOP_KEYS, key_names("device"), TOP_KEYS_ND)
     if nd is not None:
         raise ctx.error("a 2-D or 3-D scene's key, and a scene without `dimension` is 1-D: "
                         "add dimension: 2 (or 3)", ctx.line_of(nd[1], nd[2]), nd[0])
