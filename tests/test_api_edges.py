@@ -287,3 +287,34 @@ def test_a_2d_or_3d_scene_without_its_dimension_is_told_to_give_it(tmp_path):
         assert info.value.line is not None and info.value.key is not None
         tried += 1
     assert tried >= 5
+
+
+def test_the_added_mass_calibration_says_which_way_the_masses_miss():
+    """:func:`hapsim.analysis.calibration.full_scale_from_added_mass` over random
+    intervals: apart and heavier with the mass, a gain whose interval holds the exact
+    ratio ``added / (m2 - m1)`` of the intervals' ends; overlapping, "not resolved";
+    apart and lighter with the mass, "swapped" (before: said to overlap)."""
+    from types import SimpleNamespace as E
+
+    from hapsim.analysis.calibration import full_scale_from_added_mass
+    rng = np.random.default_rng(7)
+    seen = {"resolved": 0, "overlap": 0, "swapped": 0}
+    for _ in range(300):
+        c1, c2 = rng.uniform(0.05, 0.2, 2)
+        w1, w2 = rng.uniform(0.001, 0.05, 2)
+        m1 = E(value=c1, lo=c1 - w1, hi=c1 + w1)
+        m2 = E(value=c2, lo=c2 - w2, hi=c2 + w2)
+        if m2.lo > m1.hi:
+            sc = full_scale_from_added_mass(m1, m2, 0.05, 0.39)
+            assert sc.gain_lo <= 0.05 / (c2 - c1) <= sc.gain_hi
+            seen["resolved"] += 1
+            continue
+        with pytest.raises(ConfigError) as info:
+            full_scale_from_added_mass(m1, m2, 0.05, 0.39)
+        if m2.hi < m1.lo:
+            assert "swapped" in str(info.value) and "overlap" not in str(info.value)
+            seen["swapped"] += 1
+        else:
+            assert "overlap" in str(info.value)
+            seen["overlap"] += 1
+    assert min(seen.values()) >= 20, seen

@@ -76,8 +76,9 @@ def full_scale_from_added_mass(m1, m2, added_mass: float,
     Raises
     ------
     ConfigError
-        A non-positive added mass or full scale, or ``m2`` not above ``m1`` beyond their
-        intervals (the added mass is not resolved: add more, or record longer).
+        A non-positive added mass or full scale, ``m2`` below ``m1`` beyond their
+        intervals (swapped records), or not above it beyond them (the added mass is not
+        resolved: add more, or record longer).
     """
     if not (math.isfinite(added_mass) and added_mass > 0):
         raise ConfigError(f"must be a positive mass [kg], got {added_mass!r}", key="added_mass")
@@ -86,6 +87,12 @@ def full_scale_from_added_mass(m1, m2, added_mass: float,
                           key="full_scale")
     dm = float(added_mass)
     lo_den = m2.lo - m1.hi
+    if m2.hi < m1.lo:
+        # (before: said to overlap; the loaded record is lighter beyond both intervals)
+        raise ConfigError(f"the mass identified with the added mass ([{m2.lo:.4g}, "
+                          f"{m2.hi:.4g}] kg) is below the one without it ([{m1.lo:.4g}, "
+                          f"{m1.hi:.4g}] kg): the two records are swapped, or the mass was "
+                          "not on the handle", key="added_mass")
     if not lo_den > 0:
         raise ConfigError(f"the added mass is not resolved: the masses identified with and "
                           f"without it overlap ([{m1.lo:.4g}, {m1.hi:.4g}] and [{m2.lo:.4g}, "
