@@ -318,3 +318,29 @@ def test_the_added_mass_calibration_says_which_way_the_masses_miss():
             assert "overlap" in str(info.value)
             seen["overlap"] += 1
     assert min(seen.values()) >= 20, seen
+
+
+def test_a_kinematic_devices_friction_is_refused_at_the_key_it_was_given_by(tmp_path):
+    """Every shipped pantograph and delta scene, its ``joint_friction`` raised until the
+    Cartesian friction's ``b0 T/m`` passes the bound: refused at ``device.joint_friction``
+    and its line (before: keyed ``device.friction``, a key the file does not have, at
+    the device's line)."""
+    import yaml
+    tried = 0
+    for path in sorted(CONFIGS.glob("*.yaml")):
+        doc = yaml.safe_load(path.read_text())
+        dev = doc.get("device") or {}
+        if "joint_friction" not in dev:
+            continue
+        n = len(dev["joints"])
+        for big in (1e30, 1e300):
+            dev = {**dev, "joint_friction": [big] * n}
+            out = tmp_path / path.name
+            out.write_text(yaml.safe_dump({**doc, "device": dev}, sort_keys=False))
+            with pytest.raises(ConfigError) as info:
+                hapsim.load_scene(str(out))
+            assert info.value.key == "device.joint_friction", str(info.value)
+            lines = out.read_text().splitlines()
+            assert "joint_friction" in lines[info.value.line - 1], str(info.value)
+            tried += 1
+    assert tried >= 4

@@ -704,8 +704,11 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     if ports and device is not None:
         masses = [MassND(m.name, m.kind, m.mass, device.position.copy(), m.v0, m.line)
                   if m.kind == "port" else m for m in masses]
+    dd = doc.get("device") if isinstance(doc.get("device"), dict) else {}
     check_products_nd(r, 1.0 / rate, masses, links, planes, device,
-                    r.line_of(doc, "device") if "device" in doc else None)
+                      r.line_of(doc, "device") if "device" in doc else None,
+                      (r.line_of(dd, "joint_friction"), "device.joint_friction")
+                      if "joint_friction" in dd else None)
     audio = _read_audio_nd(r, doc, n, names) if "audio" in doc else None
     excitation = None
     if "excitation" in doc:

@@ -412,7 +412,8 @@ def _check_products(s) -> None:
             refuse(lk.target[1], T / m, "N s/m", "b T/m", ("links", i, "target", "b"))
 
 
-def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> None:
+def check_products_nd(r, T: float, masses, links, planes, device, dev_line,
+                      friction_at=None) -> None:
     """The dimensionless products of a 2-D or 3-D scene's loop, the 1-D scene's rule
     (:func:`check_scene`'s, here on the reader's values as it builds them): ``|K| T^2/m``
     and ``|B| T/m`` of every link and plane, ``m`` its lightest moving end (a virtual mass, or the device's
@@ -434,6 +435,9 @@ def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> N
         The device (its Cartesian mass [kg] and friction [N s/m], shape (n, n)).
     dev_line : int or None
         Line of the ``device`` section.
+    friction_at : (int or None, str), optional
+        Line and key of the friction's input (a kinematic device's ``joint_friction``);
+        default ``dev_line`` and ``device.friction``.
 
     Returns
     -------
@@ -451,8 +455,11 @@ def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> N
             sx = max(float(np.max(np.abs(X))), np.finfo(float).tiny)
             return sx * np.linalg.eigvalsh(0.5 * (X / sx) + 0.5 * (X.T / sx))
         light = float(np.min(eigs(device.mass)))
+        # the key the friction was given by: a kinematic device's joint_friction, mapped
+        # to the Cartesian J^-T B_q J^-1 (before: keyed device.friction, a key not there)
+        f_line, f_key = friction_at or (dev_line, "device.friction")
         if not np.all(np.isfinite(device.friction)):
-            raise r.error("the device's friction is not finite", dev_line, "device.friction")
+            raise r.error("the device's friction is not finite", f_line, f_key)
         heavy_b0 = float(np.max(np.abs(eigs(device.friction))))
         if not (math.isfinite(light) and light > 0):
             raise r.error("the device's Cartesian mass is not positive definite here",
@@ -460,7 +467,10 @@ def check_products_nd(r, T: float, masses, links, planes, device, dev_line) -> N
         try:
             check_product(heavy_b0, T / light, "friction", "N s/m", "b0 T/m")
         except ConfigError as exc:
-            raise r.error(exc.reason, dev_line, "device.friction") from None
+            raise r.error(exc.reason + (" (the Cartesian J^-T B_q J^-1 + hand_damping "
+                                        "at these joints)" if f_key != "device.friction"
+                                        else ""),
+                          f_line, f_key) from None
         for m in masses:
             if m.kind == "port":
                 inertia[m.name] = light
