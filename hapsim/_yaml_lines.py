@@ -385,9 +385,22 @@ class _Builder:
         if key in obj:
             raise ConfigError(f"duplicate key {_show_name(key)} (first on line "
                               f"{obj.lines[key]})", file=self.path, line=fr.key_line,
-                              key=_show_name(key, quote=False))
+                              key=self._path(_show_name(key, quote=False)))
         obj[key] = value
         obj.lines[key] = fr.key_line
+
+    def _path(self, last: str) -> str:
+        """The dotted key of ``last`` in the innermost open mapping, as the scene's
+        messages name keys (``masses[25].name``; before: the bare ``name``)."""
+        out = ""
+        for fr in self.stack[:-1]:
+            if isinstance(fr.obj, LList):
+                out += f"[{len(fr.obj)}]"
+            elif isinstance(fr.key, str):
+                out += ("." if out else "") + _show_name(fr.key, quote=False)
+            else:                           # a merge's or a number's key: the bare name
+                return last
+        return out + ("." if out else "") + last
 
     def _merge(self, fr: _Frame) -> None:
         """Apply ``<<`` merge keys: explicit keys win, then earlier merged mappings."""

@@ -344,3 +344,45 @@ def test_a_kinematic_devices_friction_is_refused_at_the_key_it_was_given_by(tmp_
             assert "joint_friction" in lines[info.value.line - 1], str(info.value)
             tried += 1
     assert tried >= 4
+
+
+def test_a_duplicate_key_is_named_by_its_whole_path(tmp_path):
+    """Every block-style ``key: value`` line of every shipped scene, written twice: the
+    refusal names the key by its whole dotted path, as every other message of a scene
+    names keys (``device.mass``, ``masses[3].x0``; before: the bare ``mass``), at the
+    second line. The paths expected are read from the file's own parse."""
+    import re
+
+    from hapsim._yaml_lines import LDict, LList, load_yaml
+
+    def paths(node, prefix, out):
+        if isinstance(node, LDict):
+            for k, v in node.items():
+                p = f"{prefix}.{k}" if prefix else str(k)
+                out.setdefault(node.lines[k], p)
+                paths(v, p, out)
+        elif isinstance(node, LList):
+            for i, v in enumerate(node):
+                paths(v, f"{prefix}[{i}]", out)
+        return out
+    tried = 0
+    for path in sorted(CONFIGS.glob("*.yaml")):
+        text = path.read_text()
+        by_line = paths(load_yaml(text, str(path)), "", {})
+        lines = text.splitlines(True)
+        depth = 0                               # open flow brackets before the line
+        for i, line in enumerate(lines):
+            code = line.split("#", 1)[0]
+            inside, depth = depth > 0, depth + sum(map(code.count, "{[")) - sum(
+                map(code.count, "}]"))
+            m = re.match(r"^( *)([a-z_0-9]+): *[^\s#{\[][^{\[]*$", line)
+            if m is None or inside or (i + 1) not in by_line or tried > 400:
+                continue
+            out = tmp_path / "dup.yaml"
+            out.write_text("".join(lines[:i + 1] + [line] + lines[i + 1:]))
+            with pytest.raises(ConfigError) as info:
+                hapsim.load_scene(str(out))
+            assert info.value.key == by_line[i + 1], (path.name, i + 1, str(info.value))
+            assert info.value.line == i + 2 and "duplicate key" in str(info.value)
+            tried += 1
+    assert tried >= 40
