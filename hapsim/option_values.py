@@ -220,7 +220,8 @@ class Number:
         """
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             return repr(value)
-        if self.kind is int and math.isfinite(value) and float(value).is_integer():
+        if self.kind is int and math.isfinite(value) and float(value).is_integer() \
+                and abs(value) < 1e16:      # (1e300 was shown with its 301 digits)
             return repr(int(value))
         return repr(float(value))
 
