@@ -386,3 +386,19 @@ def test_a_duplicate_key_is_named_by_its_whole_path(tmp_path):
             assert info.value.line == i + 2 and "duplicate key" in str(info.value)
             tried += 1
     assert tried >= 40
+
+
+def test_run_report_nd_refuses_what_is_no_measurement():
+    """:func:`hapsim.api.run_report_nd` (public) with a scene, a result, a lockstep flag
+    or port facts of the wrong kind: a ConfigError keyed by the argument (before: an
+    AttributeError, a KeyError, or ``[1.0]`` taken as lockstep True)."""
+    from hapsim.lockstep import measure_felt_lockstep
+    pw = hapsim.load_scene(PANTOGRAPH)
+    res = measure_felt_lockstep(pw, 1e-8)
+    assert api.run_report_nd(pw, res, True).lockstep is True
+    for args, key in (((None, res, True), "scene"), ((pw, {}, True), "res"),
+                      ((pw, [res], True), "res"), ((pw, res, [1.0]), "lockstep"),
+                      ((pw, res, "yes"), "lockstep"), ((pw, res, True, "word"), "port_info")):
+        with pytest.raises(ConfigError) as info:
+            api.run_report_nd(*args)
+        assert info.value.key == key, args

@@ -358,8 +358,23 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
     Returns
     -------
     RunReportND
+
+    Raises
+    ------
+    ConfigError
+        A scene that is no scene, a result that is no measurement's (its keys named), a
+        ``lockstep`` that is no bool, a ``port_info`` that is no mapping (before: an
+        AttributeError, a KeyError, or a list taken as True).
     """
     from hapsim.analysis.felt_matrices import felt_directions, felt_verdict
+    from hapsim.option_values import check_kind
+    scene_given(scene)
+    need = ("measured", "predicted", "deviation", "bound", "records", "samples", "order")
+    if not isinstance(res, dict) or not set(need) <= set(res):
+        raise ConfigError(f"must be a measurement's result with {', '.join(need)}, got "
+                          f"{type(res).__name__}", key="res")
+    check_kind("lockstep", lockstep, "True or False", required=True)
+    check_kind("port_info", port_info, "a mapping of options")
     fit, chk = res["measured"], res["predicted"]
     if port_info is not None:
         from hapsim.pipeline.felt_port import verdict_nd
