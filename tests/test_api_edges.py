@@ -402,3 +402,19 @@ def test_run_report_nd_refuses_what_is_no_measurement():
         with pytest.raises(ConfigError) as info:
             api.run_report_nd(*args)
         assert info.value.key == key, args
+
+
+@pytest.mark.parametrize("far", [1e100, 1e200, 1e300])
+def test_a_record_the_fit_cannot_take_is_not_measurable_not_a_traceback(tmp_path, far):
+    """The shipped wall with its ground ``far`` metres away: the loop pushes the hand at
+    its force limit until the safety stop, and the record's fit has no finite covariance.
+    The run reports it (a verdict, exit 1 for the safety stop) where a LinAlgError came
+    out of ``hapsim run`` before."""
+    text = Path(WALL).read_text().replace("{name: wall, kind: ground, x0: 0.0}",
+                                          f"{{name: wall, kind: ground, x0: {far!r}}}")
+    assert repr(far) in text
+    path = tmp_path / "far.yaml"
+    path.write_text(text)
+    rep = hapsim.run(str(path), lockstep=True, transport="inprocess", duration=0.3,
+                     handle_signals=False)
+    assert rep.verdict is not None and rep.within is not True, rep.verdict

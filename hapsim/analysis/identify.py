@@ -47,10 +47,9 @@ __all__ = ["measure_felt", "sensor_sd", "fit_free_response", "pair_noise_sensiti
 #: Rounding-level residual (relative to the record's amplitude) under which a full-order
 #: pencil is taken as exact: a noise-free linear record is reproduced to ~1e-13.
 EXACT_RESIDUAL = 1e-9
-#: Coverage factor of the stated interval: +- COVERAGE standard errors. Over random
-#: quantised / noisy loops (tests/test_identify_quantised.py) the errors divided by the
-#: standard errors have an rms of about 1.1 (k) and 1.2 (b): the quantiser's error is not
-#: white at amplitudes of a few steps, so 3.5 rather than the Gaussian 3.
+#: Coverage factor of the stated interval, in standard errors: over random quantised or
+#: noisy loops (tests/test_identify_quantised.py) error / standard error has an rms ~1.1 (k),
+#: ~1.2 (b), the quantiser's error not white at a few steps: 3.5, not the Gaussian 3.
 COVERAGE = 3.5
 #: Least number of oscillation cycles above the floor for a measurement.
 MIN_CYCLES = 1.5
@@ -212,8 +211,7 @@ def _varpro(spec, y, offset, lens=None):
 
     try:
         # least_squares(method="lm", x_scale="jac")'s iterates bit for bit, without its
-        # bookkeeping round every evaluation (a fifth of a fit's time; its refusals kept:
-        # tests/test_identify_varpro_minpack.py)
+        # bookkeeping (a fifth of a fit's time; tests/test_identify_varpro_minpack.py)
         th = levenberg_marquardt(res, jac, theta0, tol=1e-14,
                                  max_nfev=200 * (theta0.size + 1)).x
     except (ValueError, np.linalg.LinAlgError):
@@ -435,10 +433,9 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
                 proj = _projection(spec, y, offset, lens)
                 rms, cov, _ = _covariance(spec, y, offset, None, lens, proj)
             except np.linalg.LinAlgError:
-                # a pencil pole growing past the float range over a stretch (a record
-                # that is not the loop's free response exactly): no exact fit; the
-                # robust path below measures it (this raised out of a Hapkit run's
-                # report beside two CPU-bound processes)
+                # a pencil pole growing past the float range over a stretch (not the
+                # loop's free response exactly; once out of a loaded Hapkit run's report):
+                # no exact fit, the robust path below measures it
                 rms = math.inf
             md = rendered_pair(modes_from_poles(z, mass, period))
             if md is not None and rms <= EXACT_RESIDUAL * amp0:
@@ -516,8 +513,11 @@ def measure_felt(y, period: float, mass: float, predicted, felt, *, offset: bool
         if all(np.isfinite(_theta(sp))) and (best is None or cost < best[1]):
             best = (sp, cost)
     spec = best[0]
-    proj = _projection(spec, yw, offset, lens_w)
-    rms, cov, c = _covariance(spec, yw, offset, sensor_response, lens_w, proj)
+    try:
+        proj = _projection(spec, yw, offset, lens_w)
+        rms, cov, c = _covariance(spec, yw, offset, sensor_response, lens_w, proj)
+    except np.linalg.LinAlgError:      # (a ground 1e300 m away: a traceback out of run)
+        raise ConfigError("the record's fit has no finite covariance") from None
     if fit is not None:
         fit.update(spec=[list(sp_) for sp_ in spec], kept=list(kept))
     out = _with_wire(_result(spec, fi, cov, rms, floor, mass, period, yw, offset,
