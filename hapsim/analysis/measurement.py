@@ -223,8 +223,10 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
                            rows=[idx[p:q] for p, q in got["kept"]])
             if late_bounds is not None and "b" in res and lb is None:
                 res["k_bound_late"] = res["b_bound_late"] = 0.0
-        except ConfigError as exc:
-            out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+        except (ConfigError, np.linalg.LinAlgError) as exc:
+            # (a fit's linear algebra that fails on a record is the record's "not
+            # measurable", never a traceback out of the run)
+            out["error"] = exc.reason if hasattr(exc, "reason") else f"the fit failed: {exc}"
             return out
         out.update(res)
         if "error" in res:
@@ -233,8 +235,8 @@ def identify(position: np.ndarray, seq: np.ndarray, period: float, order: int, m
         return out
     try:
         md = fit_rendered(y, period, int(order), mass, offset=offset, pencil=pencil)
-    except ConfigError as exc:
-        out["error"] = exc.reason if hasattr(exc, "reason") else str(exc)
+    except (ConfigError, np.linalg.LinAlgError) as exc:
+        out["error"] = exc.reason if hasattr(exc, "reason") else f"the fit failed: {exc}"
         if "identically zero" in out["error"]:
             out["error"] += ("; the loop never moved: give the scene an excitation "
                              "(x0, v0, impulse or profile)")
