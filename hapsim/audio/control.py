@@ -57,8 +57,8 @@ import numpy as np
 
 from hapsim.audio.analyst import Analyst
 from hapsim.audio.journal import identify_window
-from hapsim.audio.messages import (ADDRESSES, USAGE, Change, Refused, name_arg, number,
-                                   numbers)
+from hapsim.audio.messages import (ADDRESSES, USAGE, Change, Refused, gain_arg, name_arg,
+                                   no_args, number, numbers)
 from hapsim.errors import HapsimError
 
 __all__ = ["Controller", "ControllerND", "predict_nd"]
@@ -294,7 +294,7 @@ class Controller:
                                        f"{address} {' '.join(map(str, args))}")
                     self._gen += 1
             self._mail.append(change)
-        except (Refused, HapsimError, KeyError, ValueError, TypeError) as exc:
+        except (Refused, HapsimError, KeyError, ValueError, TypeError, ArithmeticError) as exc:
             reason = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
             self.refused += 1
             self.log("refused", address, args, reason=reason)
@@ -363,11 +363,12 @@ class Controller:
         None for another address."""
         steps = self._steps()
         if address in ("/hapsim/pause", "/hapsim/resume"):
+            no_args(args, address)
             kind = address.rsplit("/", 1)[1]
             return Change(kind, "", (self.force_scale,), (0.0 if kind == "pause" else 1.0,),
                           steps)
         if address == "/hapsim/gain":
-            (g,) = numbers(args, 1, "gain", address)
+            g = gain_arg(args, address)
             if self.live is None:
                 raise Refused("no live sound in this run (--sound)")
             return Change("gain", "", (self.live.gain,), (g,), steps)

@@ -41,7 +41,14 @@ from __future__ import annotations
 import dataclasses
 import math
 
-__all__ = ["ADDRESSES", "USAGE", "Change", "Refused", "name_arg", "numbers", "number"]
+__all__ = ["ADDRESSES", "USAGE", "Change", "Refused", "name_arg", "numbers", "number",
+           "no_args", "gain_arg", "telemetry_args", "MAX_GAIN", "MAX_TELEMETRY_HZ"]
+
+#: The largest master gain a change takes [-] (+120 dB: beyond it a loud scene's frames
+#: left float32's range, inf on the sound card; before: 1e300 was accepted).
+MAX_GAIN = 1e6
+#: The fastest telemetry a subscriber may ask for [Hz] (one message a sample at most).
+MAX_TELEMETRY_HZ = 1e6
 
 #: The OSC addresses the server maps (module docstring).
 ADDRESSES = ("/hapsim/link/stiffness", "/hapsim/link/damping", "/hapsim/link/kb",
@@ -138,16 +145,102 @@ def numbers(args, n: int, what: str, address: str = "") -> tuple:
     Raises
     ------
     Refused
-        Fewer than ``n``, not numbers (booleans refused) or not finite.
+        Fewer or more than ``n`` (before: the extra ones were dropped and the change
+        taken), not numbers (booleans refused), or not finite (an int beyond the float
+        range too).
     """
-    if len(args) < n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                for v in args[:n]):
-        missing = "missing" if len(args) < n else "not a number"
+    if len(args) != n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                 for v in args):
+        missing = ("missing" if len(args) < n else f"{len(args)} given" if len(args) > n
+                   else "not a number")
         raise Refused(f"expected {n} number(s) ({what}): {missing}" + _usage(address))
-    vals = tuple(float(v) for v in args[:n])
+    try:
+        vals = tuple(float(v) for v in args)
+    except OverflowError:
+        vals = (math.inf,)
     if not all(math.isfinite(v) for v in vals):
-        raise Refused(f"{what} must be finite")
+        raise Refused(f"{what} must be finite, got {', '.join(map(str, args))}"
+                      + _usage(address))
     return vals
+
+
+def no_args(args, address: str) -> None:
+    """Refuse arguments given to an address that takes none (pause, resume, the
+    queries; before: taken and ignored).
+
+    Parameters
+    ----------
+    args : sequence
+    address : str
+
+    Raises
+    ------
+    Refused
+        Any argument given.
+    """
+    if args:
+        raise Refused(f"{address} takes no argument, got {len(args)}")
+
+
+def gain_arg(args, address: str = "/hapsim/gain") -> float:
+    """The master gain a change asks for: a finite number in [0, :data:`MAX_GAIN`].
+
+    Parameters
+    ----------
+    args : sequence
+    address : str
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    Refused
+        As :func:`numbers`, or outside [0, MAX_GAIN] (a negative gain is no volume;
+        before: -1 and 1e300 were taken, inf frames reached the sound card).
+    """
+    (g,) = numbers(args, 1, "gain", address)
+    if not 0.0 <= g <= MAX_GAIN:
+        raise Refused(f"gain must be in [0, {MAX_GAIN:g}] (0 silences), got {g:g}")
+    return g
+
+
+def telemetry_args(args, rate_hz: float) -> tuple:
+    """A telemetry subscription's ``HOST PORT [RATE_HZ]``, checked before it is taken.
+
+    Parameters
+    ----------
+    args : sequence
+        The message's arguments.
+    rate_hz : float
+        The loop's rate [Hz] (the subscription's rate is at most that).
+
+    Returns
+    -------
+    (str, int, int)
+        Host, port and the samples between two messages (>= 1).
+
+    Raises
+    ------
+    Refused
+        A host that is no name, a port outside 1-65535, a rate that is not a finite
+        number > 0 (before: a rate 0 was a ZeroDivisionError out of the handler, -1 sent
+        every sample, a port of 70000 was taken and raised in the sample loop).
+    """
+    usage = _usage("/hapsim/telemetry")
+    if not 2 <= len(args) <= 3 or not isinstance(args[0], str) or not args[0]:
+        raise Refused("expected a host name, a port and an optional rate" + usage)
+    port = args[1]
+    if isinstance(port, bool) or not isinstance(port, (int, float)) or \
+            not (math.isfinite(port) and port == int(port) and 1 <= port <= 65535):
+        raise Refused(f"port must be a whole number in [1, 65535], got {port!r}" + usage)
+    rate = 50.0 if len(args) < 3 else args[2]
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or \
+            not (math.isfinite(rate) and 0 < rate <= MAX_TELEMETRY_HZ):
+        raise Refused(f"rate_hz must be a number in (0, {MAX_TELEMETRY_HZ:g}] [Hz], got "
+                      f"{rate!r}" + usage)
+    return args[0], int(port), max(1, int(round(rate_hz / float(rate))))
 
 
 def number(v) -> float:

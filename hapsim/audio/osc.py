@@ -11,7 +11,7 @@ import threading
 import numpy as np
 
 from hapsim.audio.control import Controller
-from hapsim.audio.messages import ADDRESSES, number
+from hapsim.audio.messages import ADDRESSES, Refused, number, telemetry_args
 
 __all__ = ["serve_osc", "send_telemetry"]
 
@@ -72,14 +72,18 @@ def serve_osc(ctl: Controller, port: int, host: str = "127.0.0.1", status=None):
               int(st.get("xruns", 0)), int(st.get("underruns", 0)))
 
     def on_telemetry(client, address, *args):
+        import socket
         try:
-            host_, port_ = str(args[0]), int(args[1])
-            rate = float(args[2]) if len(args) > 2 else 50.0
-            tel["every"] = max(1, int(round(ctl.scene.rate_hz / rate)))
-            tel["client"] = udp_client.SimpleUDPClient(host_, port_)
-        except (IndexError, ValueError, TypeError) as exc:
-            reply(client, "/hapsim/refused", address, f"expected host port [rate_hz]: {exc}")
+            host_, port_, every = telemetry_args(args, ctl.scene.rate_hz)
+            socket.getaddrinfo(host_, port_, type=socket.SOCK_DGRAM)   # a name it can reach
+            new = udp_client.SimpleUDPClient(host_, port_)
+        except Refused as exc:
+            reply(client, "/hapsim/refused", address, str(exc))
             return
+        except (OSError, ValueError, UnicodeError) as exc:      # (before: a traceback)
+            reply(client, "/hapsim/refused", address, f"host {args[0]!r}: {exc}")
+            return
+        tel["every"], tel["client"] = every, new
         ctl.log("telemetry", address, args)
         reply(client, "/hapsim/ok", address, 0.0, math.nan, math.nan)
 
@@ -129,5 +133,5 @@ def send_telemetry(tel: dict, t: float, x, f, ctl: Controller) -> None:
             c.send_message("/hapsim/tel", [float(t), *(float(v) for v in np.ravel(x)),
                                            *(float(v) for v in np.ravel(f)),
                                            number(ctl.felt.get("k")), number(ctl.felt.get("b"))])
-        except OSError:
+        except (OSError, OverflowError, ValueError):    # (a subscriber gone: not the loop's)
             pass

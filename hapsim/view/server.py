@@ -381,13 +381,19 @@ class ViewServer:
     def _answer(self, req: dict) -> dict:
         """A page's request: ``{"op": "stop"}`` or ``{"op": "request", "address": ...,
         "args": [...]}`` (the OSC addresses of :mod:`hapsim.audio.control`)."""
+        if not isinstance(req, dict):           # (a list or a number: an AttributeError
+            return {"type": "reply", "ok": False,  # that ended the page's connection)
+                    "reason": "a request is a JSON object {op, address, args}"}
         op = req.get("op")
         if op == "stop":
             self.stop.request(None, reason="view: stop button")
             return {"type": "reply", "op": "stop", "ok": True}
         if op == "request":
             address = str(req.get("address", ""))
-            args = list(req.get("args") or [])
+            args = req.get("args") or []
+            if not isinstance(args, list):      # (a word was split into its letters)
+                return {"type": "reply", "op": op, "address": address, "ok": False,
+                        "reason": "args must be a list"}
             if self.ctl is None:
                 return {"type": "reply", "op": op, "address": address, "args": args,
                         "ok": False, "reason": "this run takes no live changes"}
