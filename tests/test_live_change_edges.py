@@ -152,3 +152,19 @@ def test_a_page_message_of_the_wrong_shape_is_answered_not_raised(req):
     out = ViewServer._answer(fake, req)
     assert out["ok"] is False and out["reason"], out
     assert "no link 'w'" not in out["reason"]
+
+
+@pytest.mark.parametrize("scene, link", [("wall", "wall"), ("string", "seg1")])
+def test_a_negative_virtual_damping_is_refused_as_the_scene_file_refuses_it(scene, link):
+    """``/hapsim/link/damping LINK -B`` and ``/hapsim/link/kb LINK K -B`` on a 1-D scene:
+    refused, as the scene file and the 2-D/3-D controller refuse a negative damping
+    (before: taken); a target's calibration may still give one."""
+    sc = prepare_scene(load_scene(str(CONFIGS / f"{scene}.yaml")))[0]
+    ctl = Controller(sc, Engine(sc), ramp_s=0.01, background=False)
+    lk = sc.link(link)
+    for address, args in (("/hapsim/link/damping", [link, -1e-4]),
+                          ("/hapsim/link/kb", [link, lk.stiffness, -0.01])):
+        ok, reason = ctl.request(address, *args)
+        assert not ok and "damping must be >= 0" in reason, reason
+    ok, info = ctl.request("/hapsim/link/damping", link, lk.damping)
+    assert ok, info

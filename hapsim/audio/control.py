@@ -435,6 +435,9 @@ class Controller:
                     K, B = numbers(args[1:], 2, "K B", address)
                 else:
                     raise Refused(f"unknown address {address}; valid: {', '.join(ADDRESSES)}")
+                if what != "stiffness" and B < 0:   # (the file's rule, and n-D's: before, taken)
+                    raise Refused(f"link {name!r}: damping must be >= 0 [N s/m], got {B:g} "
+                                  "(a felt damping below the device's: /hapsim/link/target)")
                 new = sc.with_link(name, stiffness=K, damping=B)
             nl = new.link(name)
             pred = self._check(new, sc)
