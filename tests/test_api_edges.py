@@ -404,6 +404,7 @@ def test_run_report_nd_refuses_what_is_no_measurement():
         assert info.value.key == key, args
 
 
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")   # (its subject)
 @pytest.mark.parametrize("far", [1e100, 1e200, 1e300])
 def test_a_record_the_fit_cannot_take_is_not_measurable_not_a_traceback(tmp_path, far):
     """The shipped wall with its ground ``far`` metres away: the loop pushes the hand at
