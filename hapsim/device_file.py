@@ -134,15 +134,14 @@ def load_device(path: str):
         Unreadable file, invalid YAML, other top-level keys than ``device``, or an invalid
         device section (file, line and key named, as for scenes).
     """
-    from hapsim.scene.lines import LineContext
+    from hapsim.scene.lines import LineContext, read_text
     from hapsim.scene.reader import read_device
     from hapsim.scene.rules import Invalid, check_device
     path = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise ConfigError(f"cannot read device file: {exc.strerror or exc}", file=path) from exc
+    # (the scene's reader: a regular file of bounded size, its bytes decoded as the scene's
+    # are; before, a FIFO hung, /dev/zero filled the memory, a byte that is no UTF-8 was
+    # a UnicodeDecodeError traceback)
+    text = read_text(path, "device file")
     from hapsim._yaml_lines import load_yaml
     doc = load_yaml(text, path)
     ctx = LineContext(path)

@@ -170,17 +170,23 @@ def load_profile(path: str, column: str = "force", unit: str = "N",
         The file cannot be read or lacks the columns, a value is not finite, or the
         times do not increase strictly (key ``key``).
     """
+    import io
+
+    from hapsim.outputs import read_input
     what = f"time [s], {column} [{unit}]"
+    # (a FIFO or /dev/zero: refused, not read)
+    raw = io.BytesIO(read_input(path, key, what=f"the {column} profile"))
     try:
         if path.lower().endswith(".npz"):
-            with np.load(path) as z:
+            with np.load(raw) as z:
                 t, f = np.asarray(z["time"], float), np.asarray(z[column], float)
             f = f[:, 0] if f.ndim == 2 else f
         else:
-            data = np.genfromtxt(path, delimiter=",", comments="#")
-            if data.ndim == 2 and not np.all(np.isfinite(data[0])):
+            data = np.genfromtxt(raw, delimiter=",", comments="#", ndmin=2)
+            if data.shape[0] and not np.all(np.isfinite(data[0])):
                 data = data[1:]          # header line
-            data = np.atleast_2d(data)
+            if data.shape[1] < 2:       # (one column was read as one sample: t, x)
+                raise ValueError(f"{data.shape[1]} column(s)")
             t, f = data[:, 0], data[:, 1]
     except DAMAGED_FILE_ERRORS as exc:
         raise ConfigError(f"cannot read the {column} profile {path}: {exc}; expected "

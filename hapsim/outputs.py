@@ -1,4 +1,6 @@
-"""Checks a command makes before it starts work: can it write its outputs, will it fit.
+"""Checks a command makes before it starts work: can it write its outputs, will it fit;
+and the file boundary itself: an input read only from a regular file of bounded size
+(:func:`read_input`), an output written whole or not at all (:func:`atomic_write`).
 
 A command that writes a file or allocates a large array checks both up front, so a long
 simulation or a run on a device does not end in a traceback after minutes (issue 10).
@@ -6,14 +8,17 @@ simulation or a run on a device does not end in a traceback after minutes (issue
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import stat
 
 from hapsim.errors import ConfigError
 
 __all__ = ["check_writable", "available_memory", "check_fits", "format_bytes", "json_safe",
-           "finite_or_none", "write_json", "say_error_after"]
+           "finite_or_none", "write_json", "say_error_after", "read_input", "atomic_write",
+           "MAX_INPUT_BYTES"]
 
 
 def check_writable(path: str, option: str) -> None:
@@ -45,6 +50,7 @@ def check_writable(path: str, option: str) -> None:
     if os.path.isdir(path):
         raise ConfigError(f"cannot write {path}: it is a directory; give a file name",
                           key=option)
+    _regular_or_absent(path, option)
     probe = f"{path}.partial"
     existed = os.path.exists(probe)
     try:
@@ -130,9 +136,103 @@ def check_fits(nbytes: float, what: str, option: str, fraction: float = 0.8) -> 
                           key=option)
 
 
-def write_json(path: str, obj, indent: int | None = None) -> None:
-    """Write ``obj`` as JSON to ``path``, whole or not at all: through ``path.partial``,
-    renamed into place (a reader never sees half a report).
+#: The largest file an input option reads whole [bytes] (a scene, a device file, a
+#: gesture: /dev/zero read until the memory ran out).
+MAX_INPUT_BYTES = 1 << 30
+
+
+def _regular_or_absent(path: str, key: str | None) -> None:
+    """Refuse a path that exists and is no regular file (a device, a pipe, a socket): a
+    write replaces it (as root, /dev/full was made a file), a read never ends."""
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise ConfigError(f"{path} is not a regular file (a directory, a device or a "
+                          "pipe): give a file's name", key=key)
+
+
+def read_input(path: str, key: str | None = None, limit: int = MAX_INPUT_BYTES,
+               what: str = "input file") -> bytes:
+    """The bytes of an input file, read whole, once it is known to be a regular file of a
+    bounded size (before: a FIFO hung the command, /dev/zero filled the memory).
+
+    Parameters
+    ----------
+    path : str or path-like
+    key : str, optional
+        The option that named it, for the message.
+    limit : int
+        The largest size taken [bytes].
+    what : str
+        What the file is, for the message (``scene file``).
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    ConfigError
+        A missing or unreadable file, one that is no regular file, or one over ``limit``
+        (the file named).
+    """
+    path = os.fspath(path)
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise ConfigError(f"cannot read {what}: {exc.strerror or exc}", file=path,
+                          key=key) from None
+    if not stat.S_ISREG(st.st_mode):
+        raise ConfigError("not a regular file (a directory, a device or a pipe): give a "
+                          "file", file=path, key=key)
+    if st.st_size > limit:
+        raise ConfigError(f"{format_bytes(st.st_size)}, more than the "
+                          f"{format_bytes(limit)} an input file may be", file=path, key=key)
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(limit + 1)
+    except OSError as exc:
+        raise ConfigError(f"cannot read {what}: {exc.strerror or exc}", file=path,
+                          key=key) from None
+
+
+@contextlib.contextmanager
+def atomic_write(path: str, mode: str = "w", key: str | None = None):
+    """Write ``path`` whole or not at all: through ``path.partial``, renamed into place
+    once the block ends without an error, removed when it raises.
+
+    Parameters
+    ----------
+    path : str
+    mode : {"w", "wb"}
+    key : str, optional
+        The option that named the path, for a refusal.
+
+    Yields
+    ------
+    file
+        The open ``.partial`` file.
+
+    Raises
+    ------
+    ConfigError
+        ``path`` exists and is no regular file (a device or a pipe is never replaced).
+    """
+    path = os.fspath(path)
+    _regular_or_absent(path, key)
+    tmp = f"{path}.partial"
+    try:
+        with open(tmp, mode) as fh:
+            yield fh
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def write_json(path: str, obj, indent: int | None = None, key: str | None = None) -> None:
+    """Write ``obj`` as JSON to ``path``, whole or not at all (:func:`atomic_write`: a
+    reader never sees half a report, a failure leaves nothing, a device is never
+    replaced).
 
     Parameters
     ----------
@@ -141,11 +241,18 @@ def write_json(path: str, obj, indent: int | None = None) -> None:
         What ``json.dump`` writes.
     indent : int, optional
         As ``json.dump``'s.
+    key : str, optional
+        The option that named the path, for a refusal.
+
+    Raises
+    ------
+    ConfigError
+        ``path`` is no regular file.
+    OSError
+        The write failed (the ``.partial`` file removed).
     """
-    tmp = f"{path}.partial"
-    with open(tmp, "w") as fh:
+    with atomic_write(path, "w", key) as fh:
         json.dump(obj, fh, indent=indent)
-    os.replace(tmp, path)
 
 
 def finite_or_none(v) -> float | None:

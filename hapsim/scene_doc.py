@@ -173,10 +173,9 @@ def main(argv: list[str] | None = None) -> int:
         if not same:
             print(f"{args.out} is out of date: run python -m hapsim.scene_doc", file=sys.stderr)
         return 0 if same else 1
-    tmp = args.out + ".partial"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(text)
-    os.replace(tmp, args.out)
+    from hapsim.outputs import atomic_write
+    with atomic_write(args.out, "wb") as fh:
+        fh.write(text.encode("utf-8"))
     print(f"wrote {args.out}")
     return 0
 

@@ -147,13 +147,12 @@ def write_wav(path: str, audio: np.ndarray, rate_hz: float) -> dict:
     peak = float(np.max(np.abs(a))) if a.size else 0.0
     clipped = int(np.sum(np.abs(a) > 1.0))
     pcm = np.round(np.clip(a, -1.0, 1.0) * 32767.0).astype("<i2")
-    tmp = f"{path}.partial"
-    with wave.open(tmp, "wb") as w:
+    from hapsim.outputs import atomic_write
+    with atomic_write(path, "wb", "--audio") as fh, wave.open(fh, "wb") as w:
         w.setnchannels(a.shape[1])
         w.setsampwidth(2)
         w.setframerate(int(round(rate_hz)))
         w.writeframes(pcm.tobytes())
-    os.replace(tmp, path)
     return {"frames": int(a.shape[0]), "channels": int(a.shape[1]),
             "rate_hz": int(round(rate_hz)), "peak": peak, "clipped": clipped}
 

@@ -10,6 +10,7 @@ import sys
 from hapsim.drivers import DEFAULT, DRIVERS, family
 from hapsim.errors import ConfigError
 from hapsim.option_values import Number, declared
+from hapsim.outputs import atomic_write
 
 _DESCRIPTION = """\
 Excite a 1-DoF force-feedback device safely and identify what hapsim's predictions rest
@@ -348,9 +349,9 @@ def run(args) -> int:
                 f"[{scale.full_scale_lo:.4g}, {scale.full_scale_hi:.4g}] (gain "
                 f"{scale.gain:.4g} over the {opt} assumed); mass and friction in the "
                 f"device's own units\n") + text
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text)
+    if args.out:                                # whole or not at all (a device refused)
+        with atomic_write(args.out, "wb", "--out") as fh:
+            fh.write(text.encode("utf-8"))
     if args.plot:
         _plot(fit, rec, args.plot, drv)
     loop = rec["loop"]
@@ -479,9 +480,9 @@ def _run_space(args, scene) -> int:
             f"         friction: {mat(fit.friction)},\n"
             f"         position: [{', '.join(f'{v:.6g}' for v in dev.position)}], "
             f"delay: {fit.delay}}}\n")
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            fh.write(text)
+    if args.out:                                # whole or not at all (a device refused)
+        with atomic_write(args.out, "wb", "--out") as fh:
+            fh.write(text.encode("utf-8"))
     if args.json:
         print(json.dumps(doc))
     else:

@@ -196,6 +196,9 @@ def run(args) -> int:
         ``--link``, ``--trace`` or ``--spin-us`` without ``--firmware``, or a scene without
         a device section (exit 2 from :func:`hapsim.cli.main`).
     """
+    if getattr(args, "report", None):         # (before serving: it failed at the exit, and
+        from hapsim.outputs import check_writable      # /dev/full was replaced by a file)
+        check_writable(args.report, "--report")
     if args.scene and args.fd is None and args.spec is None:
         from hapsim.scene import scene_dimension
         if scene_dimension(args.scene) == 1:

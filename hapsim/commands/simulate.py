@@ -220,6 +220,7 @@ def _run_audio(args: argparse.Namespace) -> int:
 
     if not args.audio.lower().endswith(".wav"):
         raise ConfigError(f"the sound file must end in .wav, got {args.audio!r}", key="--audio")
+    check_writable(args.audio, "--audio")       # (before the work: it failed after it)
     if args.out is not None and os.path.splitext(args.out)[1].lower() not in (".npz", ".csv"):
         raise ConfigError("unknown output format; valid: .npz, .csv", key="--out")
     scene = load_scene(args.scene)
@@ -277,15 +278,14 @@ def write_trajectory(path: str, time_s: np.ndarray, position: np.ndarray, names:
         Recorded mass names.
     """
     import numpy as np
-    tmp = f"{path}.partial"
-    if path.lower().endswith(".npz"):
-        with open(tmp, "wb") as fh:
+
+    from hapsim.outputs import atomic_write
+    with atomic_write(path, "wb", "--out") as fh:      # (a failure leaves no .partial)
+        if path.lower().endswith(".npz"):
             np.savez(fh, time=time_s, position=position, names=np.array(names))
-    else:
-        data = np.column_stack([time_s, position])
-        np.savetxt(tmp, data, delimiter=",", header=",".join(["time"] + names), comments="",
-                   fmt="%.17g")
-    os.replace(tmp, path)
+        else:
+            np.savetxt(fh, np.column_stack([time_s, position]), delimiter=",",
+                       header=",".join(["time"] + names), comments="", fmt="%.17g")
 
 
 # ------------------------------------------------- a 2-D or 3-D scene
@@ -480,12 +480,11 @@ def _run_ports(args) -> int:
             raise
         raise ConfigError(exc.reason, key=f"--{exc.key}") from None
     elapsed = time.perf_counter() - t0
-    tmp = f"{args.out}.partial"
-    with open(tmp, "wb") as fh:
+    from hapsim.outputs import atomic_write
+    with atomic_write(args.out, "wb", "--out") as fh:
         np.savez(fh, time=rep.time, position=rep.position, names=np.array(rep.names),
                  ports=np.array(rep.ports), port_position=rep.port_position,
                  port_force=rep.port_force)
-    os.replace(tmp, args.out)
     summary = {**rep.to_dict(), "out": args.out, "seconds": elapsed}
     bad = rep.diverged
     return _outcome(args, summary, None if bad is None else (

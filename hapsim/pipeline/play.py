@@ -102,8 +102,12 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
         Bad input (an option an n-D play does not take, a scene without a device, a
         ``jack_server`` without JACK's sound, ...).
     """
+    from hapsim.outputs import check_writable
     from hapsim.pipeline.options import check_jack_server
     check_jack_server(getattr(args, "jack_server", None), getattr(args, "sound", "auto"))
+    for key in ("journal", "telemetry"):        # (before the play: they failed after it)
+        if getattr(args, key, None):
+            check_writable(getattr(args, key), "--" + key)
     if getattr(args, "view", None) is not None:     # before anything starts: how to install
         from hapsim.view.server import require_websockets
         require_websockets()
@@ -323,10 +327,9 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
     if args.journal:
         write_journal(args.journal, ctl.journal)
     if args.telemetry:
-        tmp = args.telemetry + ".partial"
-        with open(tmp, "wb") as fh:
+        from hapsim.outputs import atomic_write
+        with atomic_write(args.telemetry, "wb", "--telemetry") as fh:
             np.savez(fh, time=np.arange(steps) * T, position=xs, force=fs)
-        os.replace(tmp, args.telemetry)
     if view is not None:
         view.finish(report)
     return (1 if error else 0), report

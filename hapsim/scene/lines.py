@@ -513,13 +513,15 @@ def _key_name(parent: str, k: Any) -> str:
     return f"{parent}.{bare_name(k)}" if parent else bare_name(k)
 
 
-def read_text(path: str | os.PathLike) -> str:
+def read_text(path: str | os.PathLike, what: str = "scene file") -> str:
     """The text of a scene file (any dimension), decoded as the YAML reader takes it.
 
     Parameters
     ----------
     path : str or path-like
         The file.
+    what : str
+        What it is, for the message (``device file``).
 
     Returns
     -------
@@ -532,10 +534,7 @@ def read_text(path: str | os.PathLike) -> str:
     ConfigError
         The file cannot be read, or its bytes are no text (the file named).
     """
+    from hapsim.outputs import read_input
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise ConfigError(f"cannot read scene file: {exc.strerror or exc}", file=path) from exc
-    return decode_text(data, path)
+    # (a FIFO, /dev/zero: refused, not read)
+    return decode_text(read_input(path, what=what), path)

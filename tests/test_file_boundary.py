@@ -1,0 +1,159 @@
+"""The file boundary a fuzz of every file option found (stop 92): an output written over a
+device (as root, ``hapsim mock --report /dev/full`` made /dev/full a regular file), inputs
+read from a pipe (a hang) or from /dev/zero (the memory filled), ``.partial`` files left by
+a failed write, output paths found unwritable only after the work, a device file that is
+no UTF-8 a traceback, and a one-column gesture read as one sample. One reader
+(:func:`hapsim.outputs.read_input`) and one writer (:func:`hapsim.outputs.atomic_write`)
+now stand at the boundary; each option is tested through them."""
+
+from __future__ import annotations
+
+import os
+import stat
+import threading
+from pathlib import Path
+
+import pytest
+
+from hapsim.errors import ConfigError
+from hapsim.outputs import atomic_write, read_input, write_json
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+WALL = str(CONFIGS / "wall.yaml")
+
+
+def _returns_within(fn, seconds=20.0):
+    """``fn()``'s exception (or None), asserting it returned within ``seconds`` (a read of
+    a pipe never returns: the thread is left behind, the test fails)."""
+    out = {}
+
+    def call():
+        try:
+            fn()
+        except BaseException as exc:       # noqa: BLE001 - handed to the test
+            out["exc"] = exc
+        out["done"] = True
+    t = threading.Thread(target=call, daemon=True)
+    t.start()
+    t.join(seconds)
+    assert out.get("done"), "still reading after 20 s"
+    return out.get("exc")
+
+
+def _readers(path):
+    """Every reader of an input option, on ``path``."""
+    import hapsim
+    from hapsim.device_file import load_device
+    from hapsim.device_model import load_profile
+    return {"scene": lambda: hapsim.load_scene(path),
+            "device file": lambda: load_device(path),
+            "gesture": lambda: load_profile(path, "position", "m", key="--gesture"),
+            "bytes": lambda: read_input(path)}
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder", "/dev/zero"])
+def test_no_input_option_reads_what_is_no_regular_file(tmp_path, kind):
+    """A pipe, a folder or /dev/zero given as any input file: a ConfigError naming the
+    file, at once (before: a pipe hung the command; /dev/zero was read until the memory
+    ran out)."""
+    if kind == "fifo":
+        path = str(tmp_path / "in.yaml")
+        os.mkfifo(path)
+    elif kind == "folder":
+        path = str(tmp_path / "in.yaml")
+        os.mkdir(path)
+    else:
+        path = "/dev/zero"
+        if not os.path.exists(path):
+            pytest.skip("no /dev/zero on this machine")
+    for name, read in _readers(path).items():
+        exc = _returns_within(read)
+        assert isinstance(exc, ConfigError), (name, exc)
+        assert "regular file" in str(exc) and path in str(exc), (name, str(exc))
+
+
+def test_an_input_over_the_size_bound_is_refused_before_it_is_read(tmp_path):
+    path = tmp_path / "big.yaml"
+    path.write_bytes(b"#" * 4096)
+    with pytest.raises(ConfigError, match="more than"):
+        read_input(str(path), limit=1024)
+    assert read_input(str(path), limit=4096) == b"#" * 4096
+
+
+def test_a_device_file_that_is_no_utf8_is_refused_as_a_scene_is(tmp_path):
+    """A device file with a Latin-1 byte: refused with the scene reader's message
+    (before: a UnicodeDecodeError traceback)."""
+    from hapsim.device_file import load_device
+    path = tmp_path / "dev.yaml"
+    path.write_bytes(b"device: {mass: 0.1}  # r\xe9glage\n")
+    with pytest.raises(ConfigError) as info:
+        load_device(str(path))
+    assert "UTF-8" in str(info.value)
+
+
+def test_a_one_column_gesture_is_refused_not_read_as_one_sample(tmp_path):
+    from hapsim.device_model import load_profile
+    path = tmp_path / "g.csv"
+    path.write_text("0.0\n0.001\n0.002\n0.003\n")
+    with pytest.raises(ConfigError, match="1 column"):
+        load_profile(str(path), "position", "m", key="--gesture")
+    path.write_text("time,position\n0.0,0.0\n0.001,0.001\n")
+    t, x = load_profile(str(path), "position", "m", key="--gesture")
+    assert t.tolist() == [0.0, 0.001] and x.tolist() == [0.0, 0.001]
+
+
+def test_the_writer_never_replaces_a_device_or_a_pipe_and_leaves_nothing_on_failure(
+        tmp_path):
+    """:func:`atomic_write` (every output file goes through it): a pipe at the path is
+    refused and stays a pipe (a device likewise: /dev/full was replaced by a file, as
+    root); a write that fails leaves the old file whole and no ``.partial``; one that
+    succeeds replaces it whole."""
+    fifo = str(tmp_path / "out.json")
+    os.mkfifo(fifo)
+    for write in (lambda: write_json(fifo, {"a": 1}),
+                  lambda: atomic_write(fifo, "w").__enter__()):
+        with pytest.raises(ConfigError, match="not a regular file"):
+            write()
+        assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+    path = tmp_path / "out.txt"
+    path.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_write(str(path), "w") as fh:
+            fh.write("half")
+            raise RuntimeError("disk full")
+    assert path.read_text() == "old" and not Path(f"{path}.partial").exists()
+    with atomic_write(str(path), "w") as fh:
+        fh.write("new")
+    assert path.read_text() == "new" and not Path(f"{path}.partial").exists()
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["mock", "--once", "--report", "{out}"], "--report"),
+    (["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.05", "--journal",
+      "{out}"], "--journal"),
+    (["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.05", "--telemetry",
+      "{out}"], "--telemetry"),
+    (["simulate", str(CONFIGS / "audio_string.yaml"), "--steps", "10", "--audio", "{out}"],
+     "--audio"),
+    (["simulate", WALL, "--steps", "10", "--out", "{out}"], "--out"),
+    (["identify", "--lockstep", "--duration", "0.5", "--out", "{out}"], "--out")])
+@pytest.mark.parametrize("where", ["fifo", "missing folder"])
+def test_every_output_option_is_checked_before_the_work(tmp_path, capsys, argv, flag,
+                                                         where):
+    """Each command's output file that cannot be written (a pipe, a missing folder) is
+    refused by its flag before the work, exit 2, and a pipe stays a pipe (before: the
+    mock's report replaced it at the exit, play and simulate --audio failed after the
+    work with a traceback)."""
+    from hapsim.cli import main
+    ext = {"--report": ".json", "--journal": ".json", "--telemetry": ".npz",
+           "--audio": ".wav", "--out": ".yaml" if argv[0] == "identify" else ".npz"}[flag]
+    out = str(tmp_path / ("o" + ext)) if where == "fifo" else str(
+        tmp_path / "no" / ("o" + ext))
+    if where == "fifo":
+        os.mkfifo(out)
+    code = main([a.replace("{out}", out) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{flag}: " in err, (code, err)
+    if where == "fifo":
+        assert stat.S_ISFIFO(os.stat(out).st_mode)
+    assert not list(tmp_path.rglob("*.partial"))
