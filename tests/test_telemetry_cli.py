@@ -75,7 +75,8 @@ def test_summary_counts_are_the_runs_own(faulted, capsys):
     # measured 0 (generic 0): exact on both targets
     assert s["felt_energy_j"]["end"] == pytest.approx(lp["energy_j"], rel=1e-9, abs=1e-15)
     assert s["integrity"] == {"format": "hst", "intact": True, "chunks": s["integrity"]["chunks"],
-                              "torn_bytes": 0, "lost_rows": []}
+                              "torn_bytes": 0, "lost_rows": [], "damaged_after": 0,
+                              "time_back": 0, "empty": False}
     cols = load(hst)
     assert s["force_n"] == {"min": cols["force"].min(), "max": cols["force"].max()}
     assert s["position_m"]["max"] == cols["position"].max()

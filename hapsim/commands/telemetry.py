@@ -131,7 +131,35 @@ def read(path: str) -> tuple[dict, dict]:
                for c in COLUMNS):
         raise ConfigError("not hapsim telemetry: columns of different lengths", file=path,
                           key="FILE")
+    if ext == ".hst":
+        info["damaged"] = _intact_chunks_after(path, info)
+    t = np.asarray(cols["time"], float)
+    # rows out of order or written twice (chunks swapped or repeated: their CRCs hold);
+    # before, such a file was summarised as intact, its energy doubled
+    info["time_back"] = int(np.sum(~(np.diff(t) > 0))) if t.size > 1 else 0
     return cols, info
+
+
+def _intact_chunks_after(path: str, info: dict) -> int:
+    """The intact chunks after the one a journal's reading stopped at: 0 where the
+    journal is whole or cut at its end (a kill mid-write); more where a chunk in the
+    middle is damaged and the rest was never read (before: said to be a cut tail)."""
+    import zlib
+
+    from hapsim.host.telemetry import _HEAD, CHUNK_MAGIC
+    from hapsim.outputs import read_input
+    data = read_input(path, "FILE", what="telemetry")
+    pos, found = len(data) - int(info.get("torn_bytes") or 0) + 1, 0
+    while (pos := data.find(CHUNK_MAGIC, pos)) >= 0 and pos + _HEAD.size <= len(data):
+        _, _, hlen, plen, crc = _HEAD.unpack_from(data, pos)
+        a = pos + _HEAD.size
+        whole = a + hlen + plen <= len(data)
+        if whole and zlib.crc32(data[a + hlen:a + hlen + plen],
+                                zlib.crc32(data[a:a + hlen])) == crc:
+            found, pos = found + 1, a + hlen + plen
+        else:
+            pos += 1
+    return found
 
 
 def felt_energy(position: np.ndarray, force: np.ndarray, flags: np.ndarray,
@@ -262,10 +290,12 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     if info.get("torn_rows"):
         lost_rows.append(list(map(int, info["torn_rows"])))
     integrity = {"format": info.get("format"),
-                 "intact": not info.get("torn_bytes") and not lost_rows}
+                 "intact": bool(n) and not info.get("torn_bytes") and not lost_rows
+                 and not info.get("time_back") and not info.get("damaged"),
+                 "time_back": int(info.get("time_back", 0)), "empty": not n}
     if info.get("format") == "hst":
         integrity.update(chunks=int(info["chunks"]), torn_bytes=int(info["torn_bytes"]),
-                         lost_rows=lost_rows)
+                         lost_rows=lost_rows, damaged_after=int(info.get("damaged", 0)))
     applied = None
     fseq = cols.get("force_seq")
     if n and fseq is not None and np.any(fseq >= 0):
@@ -339,15 +369,29 @@ def format_summary(path: str, s: dict) -> str:
                      f"(longest {ap['tick_delay_max']} ticks behind); felt energy [J] from the "
                      f"applied force: max {_g(ap['felt_energy_j']['max'])}, end "
                      f"{_g(ap['felt_energy_j']['end'])}")
+    if ig.get("empty"):
+        lines.append("NOT INTACT: no sample at all (an empty file, or a run stopped before "
+                     "its first record)")
+    if ig.get("time_back"):
+        lines.append(f"NOT INTACT: the time goes back or repeats {ig['time_back']} times "
+                     "(rows out of order or written twice: chunks swapped or repeated); "
+                     "the figures above count them as they come")
     if ig["format"] == "hst":
         if ig["intact"]:
             lines.append(f"journal: {ig['chunks']} chunks, intact")
-        else:
+        elif ig.get("damaged_after"):
+            lines.append(f"journal: {ig['chunks']} intact chunks read, then a damaged "
+                         f"chunk with {ig['damaged_after']} intact chunks after it, not "
+                         "read: the file is damaged in its middle (not cut by a kill); "
+                         "every row after the damage is lost")
+        elif ig["torn_bytes"] or ig["lost_rows"]:
             lost = ", ".join(f"rows {a}..{b - 1}" for a, b in ig["lost_rows"])
             torn = (f"; the last {ig['torn_bytes']} bytes are a chunk cut short (a kill "
                     "mid-write), ignored" if ig["torn_bytes"] else "")
             lines.append(f"journal: {ig['chunks']} intact chunks read{torn}; lost: "
                          f"{lost or 'rows of the cut chunk (count unknown)'}")
+        else:
+            lines.append(f"journal: {ig['chunks']} chunks read")
     elif ig["format"] == "csv":
         lines.append("csv: columns only (the loss/recovery events are kept in .hst and .npz)")
     return "\n".join(lines)
