@@ -197,3 +197,39 @@ def test_a_damaged_or_reordered_journal_is_never_summarised_as_intact(tmp_path, 
     assert not ig["intact"] and ig["time_back"] >= 1, ig
     ig = integrity(b"")
     assert not ig["intact"] and ig["empty"], ig
+
+
+def test_a_telemetry_file_of_the_wrong_shape_is_refused_or_read_safely(tmp_path, capsys):
+    """``hapsim telemetry`` on an ``.npz`` whose events are no list of objects, a CSV under
+    an ``.npz`` name, a pipe, and a journal whose run description is damaged (half its
+    units, a word for its delay): exit 2 with one line for the first three (before: an
+    AttributeError; numpy's advice to load the file unsafely; "no such file"), the
+    description ignored for the last, its SI units and delay 1 taken (before: a KeyError)."""
+    import json
+
+    import numpy as np
+
+    import hapsim
+    from hapsim.cli import main
+    from hapsim.host.telemetry import COLUMNS, load, save_columns
+    npz = tmp_path / "run.npz"
+    hapsim.run(WALL, lockstep=True, duration=0.3, telemetry=str(npz), handle_signals=False)
+    with np.load(npz) as z:
+        cols = {c: z[c] for c in z.files if c in COLUMNS}
+    bad_events = tmp_path / "events.npz"
+    np.savez(bad_events, **cols, events=np.array(json.dumps({"a": 1})))
+    csv_npz = tmp_path / "csv.npz"
+    csv_npz.write_text("time,position,force,seq\n0,0,0,0\n")
+    fifo = tmp_path / "pipe.hst"
+    os.mkfifo(fifo)
+    for path, says in ((bad_events, "events are not a list"), (csv_npz, "not an .npz"),
+                       (fifo, "not a regular file")):
+        assert main(["telemetry", str(path)]) == 2, path
+        err = capsys.readouterr().err
+        assert says in err and "pickle" not in err and len(err.strip().splitlines()) == 1, err
+    hst = tmp_path / "desc.hst"
+    save_columns(load(str(npz)), str(hst), events=[
+        {"event": "run", "units": {"position": "rad"}, "delay": "x", "rate_hz": -1}])
+    assert main(["telemetry", str(hst), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["units"]["position"] == "m" and s["felt_energy_j"]["delay"] == 1

@@ -97,7 +97,8 @@ def read(path: str) -> tuple[dict, dict]:
         raise ConfigError(f"unknown telemetry format {ext or '(none)'!r}; valid: "
                           f"{', '.join(_FORMATS)}", file=path, key="FILE")
     if not os.path.isfile(path):
-        raise ConfigError("no such file", file=path, key="FILE")
+        raise ConfigError("not a regular file (a directory, a device or a pipe)"
+                          if os.path.exists(path) else "no such file", file=path, key="FILE")
     info: dict = {"format": ext[1:], "events": []}
     try:
         if ext == ".hst":
@@ -126,7 +127,15 @@ def read(path: str) -> tuple[dict, dict]:
         raise
     except DAMAGED_FILE_ERRORS as exc:
         msg = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+        if "pickle" in msg or "context manager" in msg:
+            # (numpy's advice to load it unsafely, for a file that is no .npz archive)
+            msg = f"not an {ext} archive (another format under its name?)"
         raise ConfigError(f"cannot read telemetry: {msg}", file=path, key="FILE") from None
+    if not (isinstance(info.get("events"), list)
+            and all(isinstance(e, dict) for e in info["events"])):
+        # (an AttributeError in the summary before)
+        raise ConfigError("not hapsim telemetry: its events are not a list of objects",
+                          file=path, key="FILE")
     if not all(np.asarray(cols[c]).ndim == 1 and cols[c].size == cols["seq"].size
                for c in COLUMNS):
         raise ConfigError("not hapsim telemetry: columns of different lengths", file=path,
@@ -227,9 +236,15 @@ def described(info: dict) -> dict:
     from hapsim.drivers import axis_units
     ev = next((e for e in info.get("events", []) if e.get("event") == "run"), {})
     units = ev.get("units")
-    return {"units": units if isinstance(units, dict) and "position" in units
-            else axis_units(None),
-            "delay": ev.get("delay"), "rate_hz": ev.get("rate_hz")}
+    # the units of an axis hapsim knows, else SI (a damaged description's half set of
+    # units was a KeyError out of the summary)
+    known = (axis_units(None), axis_units("haply"))
+    delay, rate = ev.get("delay"), ev.get("rate_hz")
+    return {"units": units if units in known else axis_units(None),
+            "delay": delay if isinstance(delay, (int, float)) and not isinstance(delay, bool)
+            and 0 <= delay <= 10 ** 6 else None,
+            "rate_hz": rate if isinstance(rate, (int, float)) and not isinstance(rate, bool)
+            and math.isfinite(rate) and rate > 0 else None}
 
 
 def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
