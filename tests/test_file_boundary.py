@@ -233,3 +233,24 @@ def test_a_telemetry_file_of_the_wrong_shape_is_refused_or_read_safely(tmp_path,
     assert main(["telemetry", str(hst), "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["units"]["position"] == "m" and s["felt_energy_j"]["delay"] == 1
+
+
+@pytest.mark.parametrize("column, value", [("flags", 1.5), ("seq", "x"), ("position", 1j),
+                                           ("status", "ok")])
+def test_a_telemetry_column_of_the_wrong_kind_is_refused(tmp_path, capsys, column, value):
+    """An ``.npz`` whose column is not the numbers its kind needs (whole numbers for
+    ``seq``, ``flags``, ``status``; real ones for ``position``): exit 2 naming the column
+    (before: a TypeError in the summary)."""
+    import numpy as np
+
+    import hapsim
+    from hapsim.cli import main
+    npz = tmp_path / "run.npz"
+    hapsim.run(WALL, lockstep=True, duration=0.2, telemetry=str(npz), handle_signals=False)
+    with np.load(npz) as z:
+        cols = {c: z[c] for c in z.files}
+    cols[column] = np.full(cols["seq"].shape, value)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **cols)
+    assert main(["telemetry", str(bad)]) == 2
+    assert f"column {column!r}" in capsys.readouterr().err

@@ -119,7 +119,8 @@ def read(path: str) -> tuple[dict, dict]:
         else:
             with open(path, encoding="utf-8", errors="replace") as fh:
                 header = fh.readline().strip().split(",")
-            if header[:3] != list(COLUMNS[:3]):
+            missing = [c for c in ("time", "position", "force", "seq") if c not in header]
+            if header[:3] != list(COLUMNS[:3]) or missing:   # (a missing seq read as zeros)
                 raise ConfigError(f"not hapsim telemetry: the first line must be the header "
                                   f"{','.join(COLUMNS)}", file=path, key="FILE")
             cols = load(path)
@@ -136,6 +137,13 @@ def read(path: str) -> tuple[dict, dict]:
         # (an AttributeError in the summary before)
         raise ConfigError("not hapsim telemetry: its events are not a list of objects",
                           file=path, key="FILE")
+    from hapsim.host.telemetry import _DTYPES
+    bad = [c for c in COLUMNS if np.asarray(cols[c]).dtype.kind not in (
+        "iu" if np.dtype(_DTYPES[c]).kind in "iu" else "iuf")]
+    if bad:             # (a string, complex or float-flags column: a TypeError deep in it)
+        raise ConfigError(f"not hapsim telemetry: column {bad[0]!r} is not "
+                          f"{'whole ' if np.dtype(_DTYPES[bad[0]]).kind in 'iu' else ''}"
+                          f"numbers ({np.asarray(cols[bad[0]]).dtype})", file=path, key="FILE")
     if not all(np.asarray(cols[c]).ndim == 1 and cols[c].size == cols["seq"].size
                for c in COLUMNS):
         raise ConfigError("not hapsim telemetry: columns of different lengths", file=path,
