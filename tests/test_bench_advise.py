@@ -269,6 +269,13 @@ def test_cli_bench_from_json_rederives_capacity_ratios_without_measuring(tmp_pat
             assert r[f"turnaround_{q}"] == d["turnaround_us"][q] / e["turnaround_us"][q]
     assert main(["bench", "--only", "loop_capacity", "--from-json",
                  "--out", str(tmp_path / "missing")]) == 2
+    for other in ("[1, 2]", "{}", '{"echo": 5, "daemon": []}'):
+        # not the chart's measurements: refused, the file left as it was (before: a list
+        # was an AttributeError, {} was rewritten as {"ratios": []} with exit 0)
+        (tmp_path / "loop_capacity.json").write_text(other)
+        assert main(["bench", "--only", "loop_capacity", "--from-json", "--no-plot",
+                     "--out", str(tmp_path)]) == 2
+        assert (tmp_path / "loop_capacity.json").read_text() == other
 
 
 _BOARD = """rate_hz: 201.613

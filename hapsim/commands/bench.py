@@ -147,7 +147,8 @@ def _rederive(name: str, path: str) -> dict:
     Raises
     ------
     hapsim.errors.ConfigError
-        When the file is missing or not JSON (key ``--from-json``).
+        When the file is missing, not JSON, or not the chart's measurements (key
+        ``--from-json``).
     """
     from hapsim.bench import capacity
     from hapsim.errors import ConfigError
@@ -156,6 +157,11 @@ def _rederive(name: str, path: str) -> dict:
             data = json.load(fh)
     except (OSError, ValueError) as exc:
         raise ConfigError(f"cannot re-read {path}: {exc}", key="--from-json") from None
+    if not isinstance(data, dict) or (name == "loop_capacity" and not (
+            isinstance(data.get("echo"), list) and isinstance(data.get("daemon"), list))):
+        # (a list was an AttributeError; {} was rewritten as {"ratios": []}, exit 0)
+        raise ConfigError(f"cannot re-read {path}: not the {name} chart's measurements "
+                          "(a JSON object with its rows)", key="--from-json")
     if name == "loop_capacity":
         data["ratios"] = capacity.capacity_ratios(data.get("echo"), data.get("daemon"))
     return data
