@@ -137,12 +137,12 @@ def read(path: str) -> tuple[dict, dict]:
         # (an AttributeError in the summary before)
         raise ConfigError("not hapsim telemetry: its events are not a list of objects",
                           file=path, key="FILE")
-    from hapsim.host.telemetry import _DTYPES
+    from hapsim.host.telemetry import DTYPES
     bad = [c for c in COLUMNS if np.asarray(cols[c]).dtype.kind not in (
-        "iu" if np.dtype(_DTYPES[c]).kind in "iu" else "iuf")]
+        "iu" if np.dtype(DTYPES[c]).kind in "iu" else "iuf")]
     if bad:             # (a string, complex or float-flags column: a TypeError deep in it)
         raise ConfigError(f"not hapsim telemetry: column {bad[0]!r} is not "
-                          f"{'whole ' if np.dtype(_DTYPES[bad[0]]).kind in 'iu' else ''}"
+                          f"{'whole ' if np.dtype(DTYPES[bad[0]]).kind in 'iu' else ''}"
                           f"numbers ({np.asarray(cols[bad[0]]).dtype})", file=path, key="FILE")
     if not all(np.asarray(cols[c]).ndim == 1 and cols[c].size == cols["seq"].size
                for c in COLUMNS):
@@ -163,13 +163,13 @@ def _intact_chunks_after(path: str, info: dict) -> int:
     middle is damaged and the rest was never read (before: said to be a cut tail)."""
     import zlib
 
-    from hapsim.host.telemetry import _HEAD, CHUNK_MAGIC
+    from hapsim.host.telemetry import CHUNK_HEAD, CHUNK_MAGIC
     from hapsim.outputs import read_input
     data = read_input(path, "FILE", what="telemetry")
     pos, found = len(data) - int(info.get("torn_bytes") or 0) + 1, 0
-    while (pos := data.find(CHUNK_MAGIC, pos)) >= 0 and pos + _HEAD.size <= len(data):
-        _, _, hlen, plen, crc = _HEAD.unpack_from(data, pos)
-        a = pos + _HEAD.size
+    while (pos := data.find(CHUNK_MAGIC, pos)) >= 0 and pos + CHUNK_HEAD.size <= len(data):
+        _, _, hlen, plen, crc = CHUNK_HEAD.unpack_from(data, pos)
+        a = pos + CHUNK_HEAD.size
         whole = a + hlen + plen <= len(data)
         if whole and zlib.crc32(data[a + hlen:a + hlen + plen],
                                 zlib.crc32(data[a:a + hlen])) == crc:

@@ -51,7 +51,7 @@ COMPILED_SOURCES = LOOP_SOURCES
 #: numba keys its disk cache on this file alone: when those modules change, this constant
 #: must change with them (``tests/test_compiled_loop_sources.py`` says so), which edits
 #: this file and makes numba recompile. Until then the loop compiles without the cache.
-COMPILED_SOURCES_SHA256 = "3b3fd8f38f86c8f078b434b15a58e96e98f4c2c9cadd77640b4886eb58115332"
+COMPILED_SOURCES_SHA256 = "06e9555bb2419e9055ee99abbe6281ed6454a0039093d6a27e9ae6a7d5432247"
 
 #: Whether numba's disk cache may serve this module's compiled code: only when the modules
 #: compiled in are those the digest names (else a cached loop could run an old rule).

@@ -93,7 +93,7 @@ import numpy as np
 from hapsim.errors import ConfigError
 
 __all__ = ["Telemetry", "load_telemetry", "COLUMNS", "ChunkWriter", "load", "convert",
-           "write_journal", "save_columns",
+           "write_journal", "save_columns", "CHUNK_HEAD", "DTYPES",
            "CHUNK_MAGIC", "CHUNK_VERSION", "FLAG_LATE", "FLAG_LOST", "FLAG_RAMP",
            "FLAG_CLAMPED", "FLAG_SKIPPED", "FLAG_ESTIMATED"]
 
@@ -101,8 +101,8 @@ __all__ = ["Telemetry", "load_telemetry", "COLUMNS", "ChunkWriter", "load", "con
 CHUNK_MAGIC = b"HSTC"
 #: Journal chunk format version.
 CHUNK_VERSION = 1
-_HEAD = struct.Struct("<4sHHII")
-_DTYPES = {"time": "<f8", "position": "<f8", "force": "<f8", "seq": "<i8",
+CHUNK_HEAD = struct.Struct("<4sHHII")    # magic, version, header and payload length, crc
+DTYPES = {"time": "<f8", "position": "<f8", "force": "<f8", "seq": "<i8",  # in a file
            "turnaround_us": "<f8", "late": "|i1", "flags": "|u1", "force_seq": "<i8",
            "status": "<u2"}
 #: Value of a column absent from an older file (else 0).
@@ -384,7 +384,7 @@ def _complete(cols: dict) -> dict:
 
 def _absent(c: str, n: int) -> np.ndarray:
     """Column ``c`` of ``n`` rows for a file written before it existed."""
-    return np.full(n, _MISSING.get(c, 0), dtype=_DTYPES[c])
+    return np.full(n, _MISSING.get(c, 0), dtype=DTYPES[c])
 
 
 def load_telemetry(path: str) -> dict[str, np.ndarray]:
@@ -413,7 +413,7 @@ def load_telemetry(path: str) -> dict[str, np.ndarray]:
     data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     n = data.shape[0]
     out = {c: (data[:, names.index(c)] if c in names else _absent(c, n))
-           .astype(np.dtype(_DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
+           .astype(np.dtype(DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
     return out
 
 
@@ -586,16 +586,16 @@ class ChunkWriter:
 
 def _chunk_bytes(header: dict, payload: bytes = b"") -> bytes:
     """One journal chunk: fixed head, JSON header, payload (module docstring)."""
-    head = json.dumps(header, separators=(",", ":")).encode()
-    crc = zlib.crc32(payload, zlib.crc32(head))
-    return _HEAD.pack(CHUNK_MAGIC, CHUNK_VERSION, len(head), len(payload), crc) + head + payload
+    h = json.dumps(header, separators=(",", ":")).encode()
+    crc = zlib.crc32(payload, zlib.crc32(h))
+    return CHUNK_HEAD.pack(CHUNK_MAGIC, CHUNK_VERSION, len(h), len(payload), crc) + h + payload
 
 
 def _rows_chunk(cols: dict, first: int, rows: int) -> tuple[dict, bytes]:
     """Header and payload of a rows chunk holding ``cols`` (rows ``first ..``)."""
-    payload = b"".join(np.ascontiguousarray(cols[c], dtype=_DTYPES[c]).tobytes()
+    payload = b"".join(np.ascontiguousarray(cols[c], dtype=DTYPES[c]).tobytes()
                        for c in COLUMNS)
-    return ({"columns": list(COLUMNS), "dtypes": [_DTYPES[c] for c in COLUMNS],
+    return ({"columns": list(COLUMNS), "dtypes": [DTYPES[c] for c in COLUMNS],
              "rows": rows, "first": first}, payload)
 
 
@@ -721,11 +721,11 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
     events: list = []
     gaps: list = []
     expect = 0
-    while pos + _HEAD.size <= len(data):
-        magic, version, hlen, plen, crc = _HEAD.unpack_from(data, pos)
+    while pos + CHUNK_HEAD.size <= len(data):
+        magic, version, hlen, plen, crc = CHUNK_HEAD.unpack_from(data, pos)
         if magic != CHUNK_MAGIC or version != CHUNK_VERSION:
             break
-        a = pos + _HEAD.size
+        a = pos + CHUNK_HEAD.size
         b = a + hlen + plen
         if b > len(data):
             break
@@ -757,16 +757,16 @@ def load(path: str, *, info: dict | None = None) -> dict[str, np.ndarray]:
     if info is not None:
         info.update(chunks=chunks, rows=rows, torn_bytes=len(data) - pos, events=events,
                     gaps=gaps, torn_rows=_torn_rows(data, pos))
-    return {c: (np.concatenate(parts[c]) if parts[c] else np.zeros(0, dtype=_DTYPES[c]))
-            .astype(np.dtype(_DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
+    return {c: (np.concatenate(parts[c]) if parts[c] else np.zeros(0, dtype=DTYPES[c]))
+            .astype(np.dtype(DTYPES[c]).newbyteorder("=")) for c in COLUMNS}
 
 
 def _torn_rows(data: bytes, pos: int) -> tuple[int, int] | None:
     """Rows ``[a, b)`` announced by the torn chunk at ``pos`` when its header is whole."""
-    if pos + _HEAD.size > len(data):
+    if pos + CHUNK_HEAD.size > len(data):
         return None
-    magic, version, hlen, _, _ = _HEAD.unpack_from(data, pos)
-    a = pos + _HEAD.size
+    magic, version, hlen, _, _ = CHUNK_HEAD.unpack_from(data, pos)
+    a = pos + CHUNK_HEAD.size
     if magic != CHUNK_MAGIC or a + hlen > len(data):
         return None
     try:
