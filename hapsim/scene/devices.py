@@ -220,12 +220,11 @@ def nd_key_without_dimension(doc, top_keys_1d, device_keys_1d, top_keys_nd):
         for k in ("x0", "v0"):              # a position or velocity given as a vector
             if isinstance(m, dict) and isinstance(m.get(k), list):
                 return f"masses[{i}].{k}", m, k
-    for section, k in (("excitation", "direction"), ("audio", "listen")):
-        d = doc.get(section)
-        if isinstance(d, dict) and k == "direction" and k in d:
-            return f"excitation.{k}", d, k
-        if isinstance(d, dict) and isinstance(d.get(k), list):   # a listening point's axis
-            for i, it in enumerate(d[k]):
-                if isinstance(it, dict) and "axis" in it:
-                    return f"audio.listen[{i}].axis", it, "axis"
+    exc, aud = doc.get("excitation"), doc.get("audio")
+    if isinstance(exc, dict) and "direction" in exc:
+        return "excitation.direction", exc, "direction"
+    listen = aud.get("listen") if isinstance(aud, dict) else None
+    for i, it in enumerate(listen if isinstance(listen, list) else ()):
+        if isinstance(it, dict) and "axis" in it:           # a listening point's axis
+            return f"audio.listen[{i}].axis", it, "axis"
     return None

@@ -707,8 +707,9 @@ def parse_scene_nd(text: str, path: str = "<string>") -> SceneND:
     dd = doc.get("device") if isinstance(doc.get("device"), dict) else {}
     check_products_nd(r, 1.0 / rate, masses, links, planes, device,
                       r.line_of(doc, "device") if "device" in doc else None,
-                      (r.line_of(dd, "joint_friction"), "device.joint_friction")
-                      if "joint_friction" in dd else None)
+                      next(((r.line_of(dd, k), f"device.{k}") for k in ("joint_friction",
+                                                                         "friction")
+                           if k in dd), None))
     audio = _read_audio_nd(r, doc, n, names) if "audio" in doc else None
     excitation = None
     if "excitation" in doc:
