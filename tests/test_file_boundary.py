@@ -254,3 +254,43 @@ def test_a_telemetry_column_of_the_wrong_kind_is_refused(tmp_path, capsys, colum
     np.savez(bad, **cols)
     assert main(["telemetry", str(bad)]) == 2
     assert f"column {column!r}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("out, fail_at, code", [("t.hst", 1, 0), ("t.npz", 1, 0),
+                                                ("t.npz", None, 0), ("t.hst", 0, 2)])
+def test_a_full_disk_under_the_telemetry_is_said_not_a_traceback(tmp_path, capsys,
+                                                                 monkeypatch, out, fail_at,
+                                                                 code):
+    """``hapsim run --telemetry`` whose journal's chunk ``fail_at`` (and every later one)
+    fails as on a full disk, or whose ``.npz`` export fails (``fail_at`` None): the run
+    ends with its report, which says the journal writer stopped and, for an ``.npz``,
+    that the journal has the rows; a journal that cannot take its first chunk is refused
+    by its flag, exit 2 (before: OSError tracebacks from the writer's last flush and from
+    the export)."""
+    import errno
+
+    from hapsim.cli import main
+    from hapsim.host import telemetry as tm
+    from hapsim.pipeline import runner
+
+    real = tm.ChunkWriter._chunk
+
+    def chunk(self, *a):
+        if fail_at is not None and self.chunks >= fail_at:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, *a)
+    monkeypatch.setattr(tm.ChunkWriter, "_chunk", chunk)
+    if fail_at is None:
+        def full(*a, **k):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        monkeypatch.setattr(runner, "save_columns", full)
+    got = main(["run", WALL, "--lockstep", "--duration", "1", "--telemetry",
+                str(tmp_path / out)])
+    cap = capsys.readouterr()
+    assert got == code and "Traceback" not in cap.err, (got, cap.err[-2000:])
+    if code == 0:
+        assert "journal writer stopped" in cap.out, cap.out[-2000:]
+        if fail_at is None:     # (with the journal cut, the .npz is written from memory)
+            assert f"{tmp_path / out}.hst has the rows" in cap.out, cap.out[-2000:]
+    else:
+        assert "--telemetry: cannot write" in cap.err, cap.err

@@ -494,7 +494,10 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             journal = telemetry if telemetry.lower().endswith(".hst") else telemetry + ".hst"
             writer = ChunkWriter(tel, journal, opts.telemetry_interval,
                                  events=loop.result.events)
-            writer.note(_run_event(prep, opts))
+            try:                        # (a full disk at the start: a traceback before)
+                writer.note(_run_event(prep, opts))
+            except OSError as exc:
+                raise ConfigError(f"cannot write {journal}: {exc.strerror}", key="--telemetry")
             writer.start()
             if opts.transport == "sim" or (opts.lockstep and not opts.host_clocked):
                 tel.drain = _sync_drain(writer, tel)    # no deadline: may wait for the disk
@@ -521,7 +524,10 @@ def run_loop(prep: PreparedRun, conn: Connection, opts: RunOptions) -> LoopRun:
             out.close()
         conn.rt.__exit__(None, None, None)
         if writer is not None:
-            writer.close()
+            try:
+                writer.close()
+            except OSError as exc:      # a full disk: said in the report, which is kept
+                writer.error = writer.error or exc
             writer_info = {"lost_rows": writer.lost_rows, "chunks": writer.chunks,
                            "events": writer.events_written,
                            "error": str(writer.error) if writer.error else None}
@@ -627,9 +633,13 @@ def _telemetry_info(conn: Connection, run: LoopRun, opts: RunOptions,
         from hapsim.host.loop import percentiles_us
         ta = load(journal)["turnaround_us"]
         run.res.turnaround_us = dict(percentiles_us(ta), samples=int(ta.size))
+    wi = dict(run.writer_info or {})
     if journal != telemetry:
-        _export(tel, journal, telemetry, [described, *run.res.events])
-    wi = run.writer_info or {}
+        try:
+            _export(tel, journal, telemetry, [described, *run.res.events])
+        except OSError as exc:          # the journal keeps the rows (a traceback before)
+            held = f" it held when it stopped ({wi['error']})" if wi.get("error") else ""
+            wi["error"] = f"{telemetry} not written ({exc.strerror}); {journal} has the rows{held}"
     return {"path": telemetry, "samples": tel.n,
             "columns": ["time [s]", "position [m]", "force [N]", "seq",
                         "turnaround [us]", "late", "flags"],
