@@ -294,3 +294,28 @@ def test_a_full_disk_under_the_telemetry_is_said_not_a_traceback(tmp_path, capsy
             assert f"{tmp_path / out}.hst has the rows" in cap.out, cap.out[-2000:]
     else:
         assert "--telemetry: cannot write" in cap.err, cap.err
+
+
+@pytest.mark.parametrize("ext", [".npz", ".hst"])
+def test_a_torn_journal_converted_stays_not_intact(tmp_path, capsys, ext):
+    """``hapsim telemetry cut.hst --out X`` of a journal cut by a kill: X's own summary
+    says it was converted from a file that was not intact, with the figures (before: an
+    ``.npz`` or ``.hst`` made from it said "intact")."""
+    import json
+
+    import hapsim
+    from hapsim.cli import main
+    hst = tmp_path / "run.hst"
+    hapsim.run(WALL, lockstep=True, duration=1.0, telemetry=str(hst), handle_signals=False,
+               telemetry_interval=1e-4)
+    data = hst.read_bytes()
+    cut = tmp_path / "cut.hst"
+    cut.write_bytes(data[:len(data) * 2 // 3])
+    out = tmp_path / f"out{ext}"
+    assert main(["telemetry", str(cut), "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["telemetry", str(out), "--json"]) == 0
+    ig = json.loads(capsys.readouterr().out)["integrity"]
+    assert not ig["intact"] and ig["converted_from"]["torn_bytes"] > 0, ig
+    assert main(["telemetry", str(out)]) == 0
+    assert "NOT INTACT: converted from a file that was not" in capsys.readouterr().out

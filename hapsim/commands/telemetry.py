@@ -304,7 +304,7 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     events: dict[str, int] = {}
     for ev in info.get("events", []):
         name = str(ev.get("event", "?"))
-        if name == "run":           # (the run's description: described())
+        if name in ("run", "converted"):    # (the run's description; a conversion's note)
             continue
         events[name] = events.get(name, 0) + 1
     e = felt_energy(cols["position"], cols["force"], flags, delay) if n else np.zeros(0)
@@ -312,10 +312,15 @@ def summarize(cols: dict, info: dict, delay: int = 1) -> dict:
     lost_rows = [list(map(int, g)) for g in info.get("gaps", [])]
     if info.get("torn_rows"):
         lost_rows.append(list(map(int, info["torn_rows"])))
+    was = next((ev.get("integrity") for ev in info.get("events", [])
+                if ev.get("event") == "converted" and isinstance(ev.get("integrity"), dict)),
+               None)                    # a file converted from one that was not intact
     integrity = {"format": info.get("format"),
                  "intact": bool(n) and not info.get("torn_bytes") and not lost_rows
-                 and not info.get("time_back") and not info.get("damaged"),
+                 and not info.get("time_back") and not info.get("damaged") and not was,
                  "time_back": int(info.get("time_back", 0)), "empty": not n}
+    if was:
+        integrity["converted_from"] = was
     if info.get("format") == "hst":
         integrity.update(chunks=int(info["chunks"]), torn_bytes=int(info["torn_bytes"]),
                          lost_rows=lost_rows, damaged_after=int(info.get("damaged", 0)))
@@ -392,6 +397,11 @@ def format_summary(path: str, s: dict) -> str:
                      f"(longest {ap['tick_delay_max']} ticks behind); felt energy [J] from the "
                      f"applied force: max {_g(ap['felt_energy_j']['max'])}, end "
                      f"{_g(ap['felt_energy_j']['end'])}")
+    if ig.get("converted_from"):
+        lines.append("NOT INTACT: converted from a file that was not ("
+                     + ", ".join(f"{k} {v}" for k, v in ig["converted_from"].items()
+                                 if k in ("chunks", "torn_bytes", "lost_rows", "time_back",
+                                          "damaged_after") and v) + ")")
     if ig.get("empty"):
         lines.append("NOT INTACT: no sample at all (an empty file, or a run stopped before "
                      "its first record)")
@@ -462,7 +472,12 @@ def run(args: argparse.Namespace) -> int:
     s["file"] = args.file
     s["units"] = units = run_said["units"]
     if args.out:
-        save_columns(cols, args.out, info.get("events"), key="--out")
+        events = list(info.get("events") or [])
+        if not s["integrity"]["intact"]:
+            # (before, a torn journal's export said it was intact)
+            events.append({"event": "converted", "sample": int(cols["seq"].size),
+                           "from": args.file, "integrity": s["integrity"]})
+        save_columns(cols, args.out, events, key="--out")
         s["out"] = args.out
     if args.plot:
         from hapsim.plots.telemetry import plot_telemetry
