@@ -566,6 +566,7 @@ def test_cli_map_paper_preset(tmp_path, capsys):
     ("--out", "adir.png", "is a directory"),
     ("--data", "missing/grid.json", "does not exist"),
     ("--data", ".", "is a directory"),
+    ("--data", "grid.txt", "give a file ending in .json"),
 ])
 def test_cli_map_bad_output_paths_exit_2_naming_the_option(opt, name, expect, tmp_path,
                                                            monkeypatch, capsys):

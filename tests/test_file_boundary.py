@@ -127,28 +127,32 @@ def test_the_writer_never_replaces_a_device_or_a_pipe_and_leaves_nothing_on_fail
     assert path.read_text() == "new" and not Path(f"{path}.partial").exists()
 
 
-@pytest.mark.parametrize("argv, flag", [
-    (["mock", "--once", "--report", "{out}"], "--report"),
+#: Each command's output option, and the ways its path cannot be written.
+OUTPUTS = [
+    (["mock", "--once", "--report", "{out}"], "--report", ".json"),
     (["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.05", "--journal",
-      "{out}"], "--journal"),
+      "{out}"], "--journal", ".json"),
     (["play", WALL, "--sound", "none", "--lockstep", "--duration", "0.05", "--telemetry",
-      "{out}"], "--telemetry"),
+      "{out}"], "--telemetry", ".npz"),
     (["simulate", str(CONFIGS / "audio_string.yaml"), "--steps", "10", "--audio", "{out}"],
-     "--audio"),
-    (["simulate", WALL, "--steps", "10", "--out", "{out}"], "--out"),
-    (["identify", "--lockstep", "--duration", "0.5", "--out", "{out}"], "--out")])
-@pytest.mark.parametrize("where", ["fifo", "missing folder"])
-def test_every_output_option_is_checked_before_the_work(tmp_path, capsys, argv, flag,
+     "--audio", ".wav"),
+    (["simulate", WALL, "--steps", "10", "--out", "{out}"], "--out", ".npz"),
+    (["identify", "--lockstep", "--duration", "0.5", "--out", "{out}"], "--out", ".yaml")]
+
+
+@pytest.mark.parametrize("argv, flag, ext, where", [
+    (*o, w) for o in OUTPUTS for w in ("fifo", "missing folder")] + [
+    # (a report's and a journal's name is free: JSON whatever its extension)
+    (*o, "wrong extension") for o in OUTPUTS if o[1] not in ("--report", "--journal")])
+def test_every_output_option_is_checked_before_the_work(tmp_path, capsys, argv, flag, ext,
                                                          where):
     """Each command's output file that cannot be written (a pipe, a missing folder) is
     refused by its flag before the work, exit 2, and a pipe stays a pipe (before: the
     mock's report replaced it at the exit, play and simulate --audio failed after the
     work with a traceback)."""
     from hapsim.cli import main
-    ext = {"--report": ".json", "--journal": ".json", "--telemetry": ".npz",
-           "--audio": ".wav", "--out": ".yaml" if argv[0] == "identify" else ".npz"}[flag]
-    out = str(tmp_path / ("o" + ext)) if where == "fifo" else str(
-        tmp_path / "no" / ("o" + ext))
+    out = {"fifo": str(tmp_path / ("o" + ext)), "missing folder": str(
+        tmp_path / "no" / ("o" + ext)), "wrong extension": str(tmp_path / "o.txt")}[where]
     if where == "fifo":
         os.mkfifo(out)
     code = main([a.replace("{out}", out) for a in argv])

@@ -239,6 +239,9 @@ def run(args) -> int:
     if args.out:
         from hapsim.plots import check_output_path
         check_output_path(args.out, "--out")
+        if not args.out.lower().endswith((".yaml", ".yml")):    # (any name was taken)
+            raise ConfigError(f"the device file is YAML: give a file ending in .yaml, got "
+                              f"{args.out!r}", key="--out")
     scene = None
     if args.mock_scene:
         from hapsim import load_scene

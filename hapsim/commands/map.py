@@ -95,6 +95,9 @@ def run(args) -> int:
     if args.data:
         from hapsim.plots import check_output_path
         check_output_path(args.data, "--data")
+        if not args.data.lower().endswith(".json"):     # (any name was taken)
+            raise ConfigError(f"the grid data is JSON: give a file ending in .json, got "
+                              f"{args.data!r}", key="--data")
     k0, k1 = args.k_range
     b0_, b1 = args.b_range
     if not (0 < k0 < k1):
@@ -113,9 +116,9 @@ def run(args) -> int:
             raise ConfigError(exc.reason, key="--out") from None
     data = g.to_dict()
     if args.data:
-        try:
-            with open(args.data, "w", encoding="utf-8") as fh:
-                json.dump(data, fh)
+        from hapsim.outputs import write_json
+        try:                            # whole or not at all (a full disk left 0 bytes)
+            write_json(args.data, data, key="--data")
         except OSError as exc:
             raise ConfigError(f"cannot write {args.data!r}: {exc.strerror or exc}",
                               key="--data") from None

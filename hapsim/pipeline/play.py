@@ -108,6 +108,9 @@ def play_scene(args, stop, scene=None) -> tuple[int, dict]:
     for key in ("journal", "telemetry"):        # (before the play: they failed after it)
         if getattr(args, key, None):
             check_writable(getattr(args, key), "--" + key)
+    if getattr(args, "telemetry", None) and not args.telemetry.lower().endswith(".npz"):
+        raise ConfigError(f"a play's telemetry is an .npz archive: give a file ending in "
+                          f".npz, got {args.telemetry!r}", key="--telemetry")
     if getattr(args, "view", None) is not None:     # before anything starts: how to install
         from hapsim.view.server import require_websockets
         require_websockets()
