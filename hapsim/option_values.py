@@ -60,7 +60,10 @@ def option_value(key: str, value, unit: str = "", *, low: float = -math.inf,
         "must be real number, not str".
     """
     ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
-    v = float(value) if ok else math.nan
+    try:
+        v = float(value) if ok else math.nan
+    except OverflowError:               # an int beyond the float range (10**400)
+        v = math.inf
     ok = math.isfinite(v) and (v >= low if low_ok else v > low) and v <= high \
         and (not whole or v.is_integer())
     if not ok:
@@ -74,8 +77,23 @@ def option_value(key: str, value, unit: str = "", *, low: float = -math.inf,
         else:
             rng = ""
         raise ConfigError(f"must be {kind}{' ' + rng if rng else ''}"
-                          f"{f' [{unit}]' if unit else ''}, got {value!r}", key=key)
+                          f"{f' [{unit}]' if unit else ''}, got {_shown(value)}", key=key)
     return int(v) if whole else v
+
+
+def _shown(value, as_float: bool = False) -> str:
+    """A refused value as a message shows it: a whole number as it is (as a float with
+    ``as_float``, a float option's value), a float's repr, a number too large to write
+    out as a float (1e300 was shown with its 301 digits), one beyond even that by its
+    count of digits."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return repr(value)
+    if isinstance(value, int) and abs(value) < 1e16 and not as_float:
+        return repr(value)
+    try:
+        return repr(float(value))
+    except OverflowError:
+        return f"an integer of about {int(abs(value).bit_length() * 0.30103) + 1} digits"
 
 
 class Number:
@@ -220,10 +238,9 @@ class Number:
         """
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             return repr(value)
-        if self.kind is int and math.isfinite(value) and float(value).is_integer() \
-                and abs(value) < 1e16:      # (1e300 was shown with its 301 digits)
+        if self.kind is int and abs(value) < 1e16 and float(value).is_integer():
             return repr(int(value))
-        return repr(float(value))
+        return _shown(value, as_float=True)
 
 
 def typed_flag(option_strings, argv) -> str:

@@ -91,9 +91,10 @@ class RunReport(Charted, MeasuredPair, Report):
         import copy
 
         from hapsim.host.link_verdict import link_verdict
+        from hapsim.pipeline.report import run_failed
         loop = self.loop or {}
         unfit = link_verdict(copy.deepcopy(self.measured or {}), copy.deepcopy(loop))
-        return not (self.error or loop.get("safety_stop") or loop.get("faults") or unfit)
+        return not (self.error or run_failed(loop, unfit))
 
     _chart = "plot_felt"
 
@@ -323,9 +324,7 @@ class RunReportND(Report):
         code = getattr(self, "exit_code", None)
         if code is not None:
             return code == 0
-        stop = str((self.extra.get("realtime") or {}).get("stop") or "")
-        return not (self.error or (self.safety or {}).get("stop")
-                    or stop.startswith("safety"))
+        return not _nd_failed(self.error, self.safety, self.extra.get("realtime"))
 
     @property
     def k(self) -> np.ndarray:
@@ -405,8 +404,29 @@ def run_report_nd(scene, res: dict, lockstep: bool, port_info: dict | None = Non
                  safety=res.get("safety"), error=res.get("error"))
     if res.get("wire") is not None:
         d.update(wire=res["wire"], uncertainty=v["uncertainty"])
-    failed = (res.get("safety") or {}).get("stop") or res.get("error")
+    failed = _nd_failed(res.get("error"), res.get("safety"))
     return RunReportND.from_dict(d, exit_code=1 if failed else 0)
+
+
+def _nd_failed(error, safety=None, realtime=None) -> bool:
+    """An n-D run's exit rule: it failed (exit 1) after a device lost (``error``) or a
+    safety stop (``safety["stop"]``, or a real-time record stopped by ``safety ...``);
+    the reports of a run, of a run over several ports and of one read back from JSON
+    all apply it.
+
+    Parameters
+    ----------
+    error : dict or None
+    safety : dict or None
+    realtime : dict or None
+        A run over ports' real-time record (its ``stop``).
+
+    Returns
+    -------
+    bool
+    """
+    stop = str((realtime or {}).get("stop") or "")
+    return bool(error or (safety or {}).get("stop") or stop.startswith("safety"))
 
 
 #: What a run of a scene with several ports takes (every other option refused by name).
@@ -465,8 +485,7 @@ def run_scene_ports(scene, options, amplitude: float | None = None,
         rep.update({k: v[k] for k in ("verdict", "within", "reason", "statements",
                                       "not_stated")})
         # a safety stop or the board lost in the middle: exit 1, as every run's
-        failed = (res.get("error") is not None
-                  or str(res["realtime"]["stop"]).startswith("safety"))
+        failed = _nd_failed(res.get("error"), realtime=res["realtime"])
         return RunReportND.from_dict({**rep, "ports": list(res["predicted"].ports),
                                       "delays": [float(d) for d in res["predicted"].delays],
                                       "realtime": res["realtime"],

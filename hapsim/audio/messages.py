@@ -231,16 +231,15 @@ def telemetry_args(args, rate_hz: float) -> tuple:
     usage = _usage("/hapsim/telemetry")
     if not 2 <= len(args) <= 3 or not isinstance(args[0], str) or not args[0]:
         raise Refused("expected a host name, a port and an optional rate" + usage)
-    port = args[1]
-    if isinstance(port, bool) or not isinstance(port, (int, float)) or \
-            not (math.isfinite(port) and port == int(port) and 1 <= port <= 65535):
-        raise Refused(f"port must be a whole number in [1, 65535], got {port!r}" + usage)
-    rate = 50.0 if len(args) < 3 else args[2]
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or \
-            not (math.isfinite(rate) and 0 < rate <= MAX_TELEMETRY_HZ):
-        raise Refused(f"rate_hz must be a number in (0, {MAX_TELEMETRY_HZ:g}] [Hz], got "
-                      f"{rate!r}" + usage)
-    return args[0], int(port), max(1, int(round(rate_hz / float(rate))))
+    from hapsim.errors import ConfigError
+    from hapsim.option_values import option_value
+    try:                                # (the options' one check: a range, a whole number)
+        port = option_value("port", args[1], whole=True, low=1, high=65535)
+        rate = option_value("rate_hz", 50.0 if len(args) < 3 else args[2], "Hz", low=0,
+                            low_ok=False, high=MAX_TELEMETRY_HZ)
+    except ConfigError as exc:
+        raise Refused(str(exc) + usage) from None
+    return args[0], port, max(1, int(round(rate_hz / rate)))
 
 
 def number(v) -> float:

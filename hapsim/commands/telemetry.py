@@ -165,6 +165,8 @@ def _intact_chunks_after(path: str, info: dict) -> int:
 
     from hapsim.host.telemetry import CHUNK_HEAD, CHUNK_MAGIC
     from hapsim.outputs import read_input
+    if not info.get("torn_bytes"):          # read to its end: nothing after (no 2nd read)
+        return 0
     data = read_input(path, "FILE", what="telemetry")
     pos, found = len(data) - int(info.get("torn_bytes") or 0) + 1, 0
     while (pos := data.find(CHUNK_MAGIC, pos)) >= 0 and pos + CHUNK_HEAD.size <= len(data):

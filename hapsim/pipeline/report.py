@@ -20,7 +20,7 @@ from hapsim.errors import dash
 if TYPE_CHECKING:
     from hapsim.pipeline.options import RunOptions
 
-__all__ = ["build_report", "device_clock_warning", "format_report", "loss_lines",
+__all__ = ["build_report", "run_failed", "device_clock_warning", "format_report", "loss_lines",
            "safety_context", "verdict_summary"]
 
 
@@ -203,7 +203,27 @@ def build_report(prep: PreparedRun, conn: Connection, run: LoopRun, opts: RunOpt
             "predicted": in_axis_units(prep.pred, units), "units": units,
             "measured": measured, "loop": loop_info, "telemetry": tel_info, "osc": osc,
             "sound": run.sound, **verdict_summary(measured),
-            "exit_code": 1 if (res.safety_stop or res.faults or unfit) else 0}
+            "exit_code": 1 if run_failed(loop_info, unfit) else 0}
+
+
+def run_failed(loop: dict, unfit: bool) -> bool:
+    """A 1-D run's exit rule from its report's ``loop`` section: it failed (exit 1) after
+    a safety stop, a device fault, or a link that did not keep the loop it measured
+    (``unfit``: :func:`hapsim.host.link_verdict.link_verdict`); a device lost is the
+    runner's own exit 1. The report built and one read back from JSON
+    (:meth:`hapsim.api.RunReport.exit_rule`) apply it alike.
+
+    Parameters
+    ----------
+    loop : dict
+        ``safety_stop``, ``faults``.
+    unfit : bool
+
+    Returns
+    -------
+    bool
+    """
+    return bool(loop.get("safety_stop") or loop.get("faults") or unfit)
 
 
 #: Rows before a safety stop that :func:`safety_context` reads (a few of the device's
